@@ -1,0 +1,60 @@
+"""`hgca` command line. Each subcommand lives in hgca_core/commands/<name>.py with
+`add_arguments(parser)` and `run(args) -> int`; modules are imported only when their command runs,
+so `hgca info` does not pay for importing torch."""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from hgca_core import __version__
+from hgca_core.errors import HgcaError
+
+COMMANDS = {
+    "info": "print point count, bounds and attributes of scan files",
+    "synth": "make synthetic street scenes with simulated LiDAR (one scene, or a dataset split)",
+    "train": "train a model stage with a time budget, resuming from its checkpoint",
+    "complete": "complete LiDAR scans into meshes",
+    "eval": "evaluate completion on the synthetic test split against baselines",
+    "bench": "measure time and memory of completion per stage",
+    "demo": "complete the bundled example and render it",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="hgca", description=__doc__.split("\n")[0])
+    parser.add_argument("--version", action="version", version=f"hgca {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name, help_text in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(_module=f"hgca_core.commands.{name}")
+        module = _load(name)
+        if module is not None:
+            module.add_arguments(p)
+    return parser
+
+
+def _load(name: str):
+    """Import a command module only when argv names it (keeps start-up light), else None."""
+    if name not in sys.argv[1:2] and "--help" not in sys.argv and "-h" not in sys.argv:
+        return None
+    return importlib.import_module(f"hgca_core.commands.{name}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    if argv is not None:
+        sys.argv = [sys.argv[0], *argv]
+    args = build_parser().parse_args()
+    module = importlib.import_module(args._module)
+    try:
+        return int(module.run(args) or 0)
+    except HgcaError as exc:
+        print(f"hgca {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"hgca {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,105 @@
+"""Sparse coordinate sets on int64 torch tensors, vectorised (no Python loops over cells).
+
+A coordinate set is an (N, 4) int64 tensor of [batch, x, y, z] rows. Sets are kept unique and sorted by
+their packed key, which makes membership a `searchsorted` and union a concatenate + unique.
+"""
+from __future__ import annotations
+
+import itertools
+
+import torch
+
+_BITS = 18                      # per spatial axis: coordinates in [-2**17, 2**17)
+_OFF = 1 << (_BITS - 1)
+_MASK = (1 << _BITS) - 1
+
+
+def pack(coords: torch.Tensor) -> torch.Tensor:
+    """[b, x, y, z] -> one int64 key; order of keys = lexicographic order of rows."""
+    c = coords.long()
+    return (((c[:, 0] << _BITS | (c[:, 1] + _OFF)) << _BITS | (c[:, 2] + _OFF)) << _BITS) | (c[:, 3] + _OFF)
+
+
+def unpack(keys: torch.Tensor) -> torch.Tensor:
+    z = (keys & _MASK) - _OFF
+    y = ((keys >> _BITS) & _MASK) - _OFF
+    x = ((keys >> (2 * _BITS)) & _MASK) - _OFF
+    b = keys >> (3 * _BITS)
+    return torch.stack([b, x, y, z], dim=1)
+
+
+def unique(coords: torch.Tensor) -> torch.Tensor:
+    """Unique rows, sorted by key."""
+    return unpack(torch.unique(pack(coords)))
+
+
+def union(*sets: torch.Tensor) -> torch.Tensor:
+    return unique(torch.cat([s.long() for s in sets], dim=0))
+
+
+def lookup(query: torch.Tensor, table_keys: torch.Tensor) -> torch.Tensor:
+    """Index of each query row in a *sorted* key table, or -1 where absent."""
+    q = pack(query) if query.dim() == 2 else query
+    if table_keys.numel() == 0:
+        return torch.full(q.shape, -1, dtype=torch.long, device=q.device)
+    idx = torch.searchsorted(table_keys, q).clamp_(max=table_keys.numel() - 1)
+    return torch.where(table_keys[idx] == q, idx, torch.full_like(idx, -1))
+
+
+def isin(query: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
+    """Boolean membership of query rows in a coordinate set."""
+    return lookup(query, torch.sort(pack(table)).values) >= 0
+
+
+def offsets(radius: int, metric: str = "chebyshev", device: torch.device | str = "cpu") -> torch.Tensor:
+    """Integer offsets (K, 3) within `radius` under `metric` ('chebyshev' cube, 'l1' octahedron, 'l2' ball)."""
+    r = range(-radius, radius + 1)
+    offs = torch.tensor(list(itertools.product(r, r, r)), dtype=torch.long, device=device)
+    if metric == "l1":
+        offs = offs[offs.abs().sum(1) <= radius]
+    elif metric == "l2":
+        offs = offs[(offs * offs).sum(1) <= radius * radius]
+    elif metric != "chebyshev":
+        raise ValueError(f"unknown metric {metric!r}")
+    return offs
+
+
+def dilate(coords: torch.Tensor, radius: int, metric: str = "chebyshev",
+           bounds: tuple[int, int, int] | None = None) -> torch.Tensor:
+    """The neighbourhood N(s): all cells within `radius` of a cell in the set (the set included).
+
+    With `bounds`, cells outside [0, bounds) on any axis are dropped, so growth stays inside the region.
+    """
+    offs = offsets(radius, metric, coords.device)
+    full = torch.zeros((len(offs), 4), dtype=torch.long, device=coords.device)
+    full[:, 1:] = offs
+    grown = (coords.long()[:, None, :] + full[None]).reshape(-1, 4)
+    if bounds is not None:
+        b = torch.tensor(bounds, device=coords.device)
+        grown = grown[((grown[:, 1:] >= 0) & (grown[:, 1:] < b)).all(1)]
+    return unique(grown)
+
+
+def upsample2(coords: torch.Tensor) -> torch.Tensor:
+    """Each coarse cell -> its 8 fine children (20 cm -> 10 cm)."""
+    kids = torch.tensor(list(itertools.product((0, 1), repeat=3)), dtype=torch.long, device=coords.device)
+    full = torch.zeros((8, 4), dtype=torch.long, device=coords.device)
+    full[:, 1:] = kids
+    c = coords.long().clone()
+    c[:, 1:] *= 2
+    return unique((c[:, None, :] + full[None]).reshape(-1, 4))
+
+
+def downsample2(coords: torch.Tensor) -> torch.Tensor:
+    """Each fine cell -> its parent by flooring (10 cm -> 20 cm)."""
+    c = coords.long().clone()
+    c[:, 1:] = torch.div(c[:, 1:], 2, rounding_mode="floor")
+    return unique(c)
+
+
+def with_batch(coords3: torch.Tensor, b: int = 0) -> torch.Tensor:
+    """(N, 3) -> (N, 4) with a constant batch index."""
+    out = torch.empty((len(coords3), 4), dtype=torch.long, device=coords3.device)
+    out[:, 0] = b
+    out[:, 1:] = coords3.long()
+    return out

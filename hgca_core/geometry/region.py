@@ -1,0 +1,124 @@
+"""Oriented completion regions and the frames the model works in.
+
+The *region frame* has its origin at the box's minimum corner and its axes along the box (yaw about z),
+so a point inside the default region has 0 <= x, y < 38.4 m and 0 <= z < 8 m. Voxel indices are taken in
+this frame, which makes them non-negative and bounded by the grid shape.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hgca_core.errors import InputError
+
+DEFAULT_SIZE = (38.4, 38.4, 8.0)
+BELOW_GROUND = 1.0  # the box starts this far below the ground under the sensor (paper: [-1, 7] m)
+
+
+@dataclass(frozen=True)
+class Region:
+    """An oriented box: centre (world, metres), size (metres) and yaw (radians, about +z)."""
+
+    center: np.ndarray
+    size: np.ndarray = field(default_factory=lambda: np.array(DEFAULT_SIZE))
+    yaw: float = 0.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "center", np.asarray(self.center, dtype=np.float64).reshape(3))
+        object.__setattr__(self, "size", np.asarray(self.size, dtype=np.float64).reshape(3))
+        if not np.all(np.isfinite(self.center)) or not np.all(np.isfinite(self.size)) or not np.isfinite(self.yaw):
+            raise InputError("region has non-finite numbers")
+        if np.any(self.size <= 0):
+            raise InputError(f"region size must be positive, got {self.size.tolist()}")
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """3x3 rotation from region axes to world axes."""
+        c, s = np.cos(self.yaw), np.sin(self.yaw)
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+    @property
+    def min_corner(self) -> np.ndarray:
+        return self.center - self.rotation @ (self.size / 2)
+
+    def to_local(self, points: np.ndarray) -> np.ndarray:
+        """World -> region frame (origin at the minimum corner)."""
+        p = np.asarray(points, dtype=np.float64)
+        return (p - self.center) @ self.rotation + self.size / 2
+
+    def to_world(self, local: np.ndarray) -> np.ndarray:
+        """Region frame -> world."""
+        q = np.asarray(local, dtype=np.float64) - self.size / 2
+        return q @ self.rotation.T + self.center
+
+    def local_matrix(self) -> np.ndarray:
+        """4x4 transform world -> region frame (for poses)."""
+        m = np.eye(4)
+        m[:3, :3] = self.rotation.T
+        m[:3, 3] = -self.rotation.T @ self.center + self.size / 2
+        return m
+
+    def contains_local(self, local: np.ndarray) -> np.ndarray:
+        return np.all((local >= 0) & (local < self.size), axis=1)
+
+    def grid_shape(self, voxel: float) -> tuple[int, int, int]:
+        n = np.round(self.size / voxel).astype(int)
+        return int(n[0]), int(n[1]), int(n[2])
+
+    def as_tuple(self) -> tuple[float, ...]:
+        """(cx, cy, cz, sx, sy, sz, yaw_degrees): the CLI's --region form."""
+        return (*self.center.tolist(), *self.size.tolist(), float(np.degrees(self.yaw)))
+
+    @classmethod
+    def parse(cls, text: str) -> "Region":
+        """Parse 'cx,cy,cz,sx,sy,sz[,yaw_degrees]'."""
+        try:
+            vals = [float(v) for v in text.split(",")]
+        except ValueError as exc:
+            raise InputError(f"--region must be numbers 'cx,cy,cz,sx,sy,sz[,yaw]', got {text!r}") from exc
+        if len(vals) not in (6, 7):
+            raise InputError(f"--region needs 6 or 7 numbers 'cx,cy,cz,sx,sy,sz[,yaw]', got {len(vals)}")
+        yaw = np.radians(vals[6]) if len(vals) == 7 else 0.0
+        return cls(center=np.array(vals[:3]), size=np.array(vals[3:6]), yaw=float(yaw))
+
+    @classmethod
+    def around(cls, points: np.ndarray, sensor: np.ndarray | None = None, ground_z: float | None = None,
+               size: tuple[float, float, float] = DEFAULT_SIZE, yaw: float = 0.0) -> "Region":
+        """The paper's default box: centred on the sensor in x/y, from 1 m below the ground up.
+
+        Without a sensor origin the centre is the median of the points in x/y; without a ground height
+        it is estimated from the points near that centre.
+        """
+        pts = np.asarray(points, dtype=np.float64)
+        if len(pts) == 0:
+            raise InputError("cannot place a region around zero points")
+        centre_xy = np.asarray(sensor, dtype=np.float64)[:2] if sensor is not None else np.median(pts[:, :2], axis=0)
+        if ground_z is None:
+            ground_z = estimate_ground(pts, centre_xy)
+        sz = np.asarray(size, dtype=np.float64)
+        centre = np.array([centre_xy[0], centre_xy[1], ground_z - BELOW_GROUND + sz[2] / 2])
+        return cls(center=centre, size=sz, yaw=yaw)
+
+
+def estimate_ground(points: np.ndarray, centre_xy: np.ndarray, radius: float = 15.0, cell: float = 2.0) -> float:
+    """Robust ground height near centre_xy: the median of per-cell low percentiles.
+
+    Taking a low percentile per 2 m cell ignores cars, walls and trees in that cell (they only add points
+    above the ground) and the median over cells ignores cells that hold no ground at all (a wall's foot
+    under an overhang, a pit of noise).
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    d = np.linalg.norm(pts[:, :2] - centre_xy, axis=1)
+    near = pts[d < radius]
+    if len(near) < 20:
+        near = pts
+    keys = np.floor(near[:, :2] / cell).astype(np.int64)
+    _, inv = np.unique(keys, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    order = np.lexsort((near[:, 2], inv))
+    z_sorted, g_sorted = near[order, 2], inv[order]
+    starts = np.searchsorted(g_sorted, np.arange(g_sorted.max() + 1))
+    counts = np.bincount(g_sorted)
+    lows = z_sorted[starts + (counts * 0.05).astype(np.int64)]
+    return float(np.median(lows[counts >= 3])) if np.any(counts >= 3) else float(np.median(lows))
