@@ -12,6 +12,7 @@ from hgca_core.errors import HgcaError
 
 COMMANDS = {
     "info": "print point count, bounds and attributes of scan files",
+    "read": "read scans (any supported format, optional poses) and write them accumulated to one .npz",
     "synth": "make synthetic street scenes with simulated LiDAR (one scene, or a dataset split)",
     "train": "train a model stage with a time budget, resuming from its checkpoint",
     "complete": "complete LiDAR scans into meshes",
