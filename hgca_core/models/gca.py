@@ -1,0 +1,115 @@
+"""The coarse stage: a GCA transition kernel p_theta(s^{t+1} | s^t, s^0) at 20 cm, optionally with the planner.
+
+The kernel is a sparse U-Net evaluated on the neighbourhood N(s^t) (cells within `radius` of occupied cells,
+Chebyshev metric, i.e. the 3x3x3 cube for r = 1), with input features [in s^t, in s^0] + a 3D sinusoidal
+positional encoding; it outputs one Bernoulli logit per cell (Eq. 2-3). With the planner, the decoder
+features are de-normalised per BEV pillar by SPADE (gamma, beta) maps computed once from s^0.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Callable
+
+import torch
+from torch import nn
+
+from hgca_core.geometry import coords as cs
+from hgca_core.models.planner import BevOutput, Planner, pillar_index
+from hgca_core.nn.encoding import sinusoidal
+from hgca_core.nn.sparse import SparseTensor
+from hgca_core.nn.unet import SparseUNet
+
+
+@dataclass
+class GCAConfig:
+    channels: tuple[int, ...] = (16, 32, 48, 64, 96)
+    blocks: int = 1
+    radius: int = 1
+    pe_freq: int = 3
+    use_planner: bool = True
+    z_r: int = 4
+    beta: float = 0.1
+    steps: int = 30                   # T1
+    alpha0: float = 0.15              # infusion alpha_t = alpha0 + alpha1 * t
+    alpha1: float = 0.005
+    grid: tuple[int, int, int] = (192, 192, 40)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "GCAConfig":
+        fields = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in cls.__dataclass_fields__}
+        return cls(**fields)
+
+
+class GCAKernel(nn.Module):
+    """Transition kernel; `forward` returns logits of lambda_theta on the given neighbourhood cells."""
+
+    def __init__(self, cfg: GCAConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        in_ch = 2 + 3 * 2 * cfg.pe_freq
+        self.unet = SparseUNet(in_ch, 1, channels=cfg.channels, blocks=cfg.blocks)
+        self.planner = Planner(self.unet.decoder_channels, z_r=cfg.z_r) if cfg.use_planner else None
+
+    def bev(self, s0: torch.Tensor, batch: int, grid: tuple[int, int, int]) -> BevOutput | None:
+        return self.planner(s0, batch, grid) if self.planner is not None else None
+
+    def neighbourhood(self, state: torch.Tensor, grid: tuple[int, int, int]) -> torch.Tensor:
+        return cs.dilate(state, self.cfg.radius, bounds=grid)
+
+    def forward(self, nbhd: torch.Tensor, state: torch.Tensor, s0: torch.Tensor,
+                grid: tuple[int, int, int], bev: BevOutput | None) -> torch.Tensor:
+        in_state = cs.isin(nbhd, state).float()[:, None]
+        in_s0 = cs.isin(nbhd, s0).float()[:, None]
+        g = torch.tensor(grid, dtype=torch.float32, device=nbhd.device)
+        pe = sinusoidal((nbhd[:, 1:].float() + 0.5) / g, self.cfg.pe_freq)
+        x = SparseTensor(nbhd, torch.cat([in_state, in_s0, pe], dim=1))
+        out = self.unet(x, modulate=self._spade(bev, grid) if bev is not None else None)
+        return out.feats[:, 0]
+
+    @staticmethod
+    def _spade(bev: BevOutput, grid: tuple[int, int, int]) -> Callable[[int, SparseTensor], SparseTensor]:
+        hw = Planner.bev_shape(grid)
+
+        def modulate(level: int, x: SparseTensor) -> SparseTensor:
+            gamma, beta = bev.spade[level]
+            c = gamma.shape[1]
+            idx = pillar_index(x.coords, x.stride, hw)
+            g = gamma.permute(0, 2, 3, 1).reshape(-1, c)[idx]
+            b = beta.permute(0, 2, 3, 1).reshape(-1, c)[idx]
+            return x.replace_feats(x.feats * (1 + g) + b)
+
+        return modulate
+
+
+def alpha(cfg: GCAConfig, t: int) -> float:
+    """Infusion weight alpha_t = alpha0 + alpha1 * t, clipped to [0, 1]."""
+    return float(min(max(cfg.alpha0 + cfg.alpha1 * t, 0.0), 1.0))
+
+
+@torch.no_grad()
+def sample(model: GCAKernel, s0: torch.Tensor, grid: tuple[int, int, int], steps: int,
+           generator: torch.Generator, progress: Callable[[int, int], None] | None = None) -> torch.Tensor:
+    """Run the Markov chain from s^0 for `steps` transitions (Eq. 1); the last one by maximum likelihood.
+
+    s0: (N, 4) coordinates of one or more samples (batch column). Returns the final occupied set.
+    """
+    model.eval()
+    batch = int(s0[:, 0].max().item()) + 1 if len(s0) else 1
+    bev = model.bev(s0, batch, grid)
+    state = s0
+    for t in range(steps):
+        nbhd = model.neighbourhood(state, grid)
+        prob = torch.sigmoid(model(nbhd, state, s0, grid, bev))
+        if t == steps - 1:
+            keep = prob > 0.5
+        else:
+            keep = torch.rand(prob.shape, generator=generator, device=prob.device) < prob
+        state = nbhd[keep]
+        if progress is not None:
+            progress(t + 1, steps)
+        if len(state) == 0:  # the chain died: nothing left to grow from
+            break
+    return state

@@ -1,0 +1,116 @@
+"""One completion, end to end: points in the world frame -> k meshes in the world frame.
+
+This is the Python API behind `hgca complete` (and `hgca_core.complete`). Data flow as in DESIGN.md:
+region -> crop -> voxelise -> coarse GCA (+ planner) -> [fine cGCA -> unsigned distance -> marching cubes]
+-> mesh back in the input's frame with each vertex's distance to the nearest input point.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import trimesh
+from scipy.spatial import cKDTree
+
+from hgca_core.errors import InputError
+from hgca_core.geometry import coords as cs
+from hgca_core.geometry.region import Region
+from hgca_core.geometry.voxel import COARSE, FINE, voxelize_coarse
+
+ProgressFn = Callable[[str, int, int, str], None]
+# Peak memory per square metre of region, measured for the default region (benchmarks/) with margin;
+# used to refuse regions that cannot fit before spending minutes on them.
+BYTES_PER_M2 = 3.0e6
+
+
+@dataclass
+class Completion:
+    """One sample: the mesh (world frame), per-vertex distance to the input, and the coarse cells."""
+
+    mesh: trimesh.Trimesh
+    observed_distance: np.ndarray
+    coarse_cells: np.ndarray  # (M, 3) int, 20 cm cells in the region frame
+    region: Region
+    seed: int
+
+
+def default_weights(stage: str) -> Path:
+    from hgca_core.models.checkpoint import WEIGHTS_DIR
+
+    return WEIGHTS_DIR / f"{stage}.pt"
+
+
+def check_points(points: np.ndarray, what: str = "input") -> np.ndarray:
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise InputError(f"{what}: points must be an (N, 3) array, got shape {p.shape}")
+    if len(p) == 0:
+        raise InputError(f"{what}: there are no points")
+    if not np.all(np.isfinite(p)):
+        raise InputError(f"{what}: {int((~np.isfinite(p)).any(1).sum())} points have NaN or infinite coordinates")
+    return p
+
+
+def check_memory(region: Region) -> None:
+    """Refuse a region whose estimated peak memory exceeds what this machine has available."""
+    import psutil
+
+    need = float(region.size[0] * region.size[1]) * BYTES_PER_M2
+    avail = psutil.virtual_memory().available
+    if need > avail:
+        raise InputError(f"region {region.size[0]:.1f} x {region.size[1]:.1f} m needs about {need / 2**30:.1f} GiB, "
+                         f"only {avail / 2**30:.1f} GiB available: use a smaller --region or split it into tiles")
+
+
+def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarray | None = None,
+             samples: int = 1, seed: int = 0, stage: str = "coarse", device: str = "cpu",
+             t1: int | None = None, t2: int | None = None, weights: str | Path | None = None,
+             progress: ProgressFn | None = None) -> list[Completion]:
+    """Complete accumulated LiDAR points. Sample i uses seed + i, so a (seed, i) pair names one mesh."""
+    if stage not in ("coarse", "full"):
+        raise InputError(f"stage must be 'coarse' or 'full', not {stage!r}")
+    if stage == "full" and not default_weights("fine").exists():
+        raise InputError("the fine stage has no shipped weights yet (hgca_core/weights/fine.pt): use --stage coarse")
+    if samples < 1:
+        raise InputError(f"samples must be at least 1, got {samples}")
+    pts = check_points(points)
+    if region is None:
+        sensor = None if origins is None or len(origins) == 0 else np.asarray(origins)[0]
+        region = Region.around(pts, sensor=sensor)
+    check_memory(region)
+    report = progress or (lambda *a: None)
+    local = region.to_local(pts)
+    inside = region.contains_local(local)
+    if not inside.any():
+        raise InputError(f"no input points inside the region (centre {np.round(region.center, 2).tolist()}, "
+                         f"size {region.size.tolist()} m); the points span {np.round(pts.min(0), 2).tolist()} "
+                         f"to {np.round(pts.max(0), 2).tolist()}")
+    s0 = voxelize_coarse(local[inside], region.grid_shape(FINE))
+    grid = region.grid_shape(COARSE)
+
+    from hgca_core.models.checkpoint import load_coarse
+    from hgca_core.models.gca import sample as gca_sample
+
+    model, _ = load_coarse(str(weights or default_weights("coarse")), device)
+    steps = t1 or model.cfg.steps
+    tree = cKDTree(pts[inside])
+    results = []
+    for i in range(samples):
+        gen = torch.Generator(device=device).manual_seed(seed + i)
+        s0_t = cs.with_batch(torch.from_numpy(s0).to(device))
+        occ = gca_sample(model, s0_t, grid, steps, gen,
+                         lambda t, n: report("coarse", t, n, f"sample {i + 1}/{samples}"))
+        cells = occ[:, 1:].cpu().numpy()
+        from hgca_core.meshing import voxel_mesh
+
+        report("mesh", i, samples, f"sample {i + 1}/{samples}")
+        mesh = voxel_mesh(cells, COARSE, lower_corner=-FINE / 2)
+        mesh.vertices = region.to_world(mesh.vertices)
+        dist = tree.query(mesh.vertices, workers=-1)[0].astype(np.float32) if len(mesh.vertices) else np.zeros(0, np.float32)
+        mesh.vertex_attributes["observed_distance"] = dist
+        results.append(Completion(mesh=mesh, observed_distance=dist, coarse_cells=cells, region=region, seed=seed + i))
+        report("mesh", i + 1, samples, f"sample {i + 1}/{samples}")
+    return results

@@ -1,0 +1,104 @@
+"""Infusion training of the coarse GCA (+ planner): losses Eq. 5-7 on persistent chains."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+import torch.nn.functional as F
+
+from hgca_core.geometry import coords as cs
+from hgca_core.models.gca import GCAConfig, GCAKernel, alpha, sample
+from hgca_core.models.planner import rough_target
+from hgca_core.training.buffer import Chain
+from hgca_core.training.data import COARSE_GRID, coarse_pair, crop_flip, load_arrays, split_files
+
+
+def batched(sets: list[torch.Tensor]) -> torch.Tensor:
+    return torch.cat([cs.with_batch(s, b) for b, s in enumerate(sets)]) if sets else torch.zeros((0, 4), dtype=torch.long)
+
+
+class CoarseLoss(nn.Module):
+    """Wraps the kernel so one forward computes the whole loss (what DDP must see) and the next states."""
+
+    def __init__(self, cfg: GCAConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.model = GCAKernel(cfg)
+
+    def forward(self, chains: list[Chain]) -> tuple[torch.Tensor, dict, list[torch.Tensor]]:
+        cfg, grid, b = self.cfg, chains[0].grid, len(chains)
+        s0, st, gt = (batched([getattr(c, k) for c in chains]) for k in ("s0", "state", "gt"))
+        nbhd = self.model.neighbourhood(st, grid)
+        bev = self.model.bev(s0, b, grid)
+        logits = self.model(nbhd, st, s0, grid, bev)
+        target = cs.isin(nbhd, gt).float()
+        loss_gca = F.binary_cross_entropy_with_logits(logits, target)
+        loss = loss_gca
+        stats = {"loss_gca": float(loss_gca)}
+        if bev is not None:
+            loss_bev = F.binary_cross_entropy_with_logits(bev.rough, rough_target(gt, b, grid, cfg.z_r))
+            loss = loss + cfg.beta * loss_bev
+            stats["loss_bev"] = float(loss_bev)
+        with torch.no_grad():  # infusion kernel q^t: Ber((1 - a_t) lambda + a_t 1[c in gt])
+            a = torch.tensor([alpha(cfg, c.t) for c in chains])[nbhd[:, 0]]
+            p = (1 - a) * torch.sigmoid(logits) + a * target
+            keep = torch.rand(p.shape) < p
+            nxt = nbhd[keep]
+            new_states = [nxt[nxt[:, 0] == i, 1:] for i in range(b)]
+            stats["cells"] = float(len(nbhd)) / b
+        return loss, stats, new_states
+
+
+@dataclass
+class CoarseTask:
+    """Everything the trainer needs to know about the coarse stage."""
+
+    data_dir: str
+    cfg: GCAConfig
+    crop: int | None = 96
+    val_count: int = 2
+    name: str = "coarse"
+
+    def __post_init__(self) -> None:
+        self.train_files = split_files(self.data_dir, "train")
+
+    def build(self) -> CoarseLoss:
+        return CoarseLoss(self.cfg)
+
+    def new_example(self, rng: np.random.Generator) -> Chain:
+        path = self.train_files[int(rng.integers(len(self.train_files)))]
+        s0, gt = coarse_pair(path)
+        (s0_t, gt_t), grid = crop_flip([s0, gt], COARSE_GRID, self.crop, rng)
+        return Chain(s0=s0_t, gt=gt_t, state=s0_t.clone(), t=0, grid=grid)
+
+    def validate(self, loss_module: CoarseLoss, seed: int = 0) -> dict:
+        """IoU (20 cm, visible cells) of full T1 sampling on the first val samples, cropped like training."""
+        from hgca_core.metrics.iou import iou
+
+        files = split_files(self.data_dir, "val")[: self.val_count]
+        scores = []
+        for k, path in enumerate(files):
+            rng = np.random.default_rng(1000 + k)  # fixed crops: the curve compares like with like
+            s0, gt = coarse_pair(path)
+            vis = load_arrays(str(path), ("visible20",))["visible20"].astype(np.int64)
+            (s0_t, gt_t, vis_t), grid = crop_flip([s0, gt, vis], COARSE_GRID, self.crop, rng)
+            gen = torch.Generator().manual_seed(seed + k)
+            out = sample(loss_module.model, cs.with_batch(s0_t), grid, self.cfg.steps, gen)
+            scores.append(iou(out[:, 1:].numpy(), gt_t.numpy(), vis_t.numpy()))
+        loss_module.train()
+        return {"val_iou": float(np.mean(scores))}
+
+
+def default_config(use_planner: bool = True) -> GCAConfig:
+    return GCAConfig(use_planner=use_planner)
+
+
+def run_name(use_planner: bool) -> str:
+    return "coarse" if use_planner else "coarse_noplanner"
+
+
+def weights_path(use_planner: bool) -> Path:
+    return Path(__file__).resolve().parents[1] / "weights" / f"{run_name(use_planner)}.pt"

@@ -1,0 +1,165 @@
+"""The one training loop of both stages: time budget, exact resume, atomic checkpoints, DDP.
+
+A task (coarse or fine) supplies the loss module, fresh examples for the chain buffer and a validation
+metric. The loop trains until its time budget is spent, then checkpoints, so training can continue across
+sessions with `--resume`. Under `torchrun` every rank keeps its own chains; gradients are all-reduced by
+DistributedDataParallel (gloo on CPU, NCCL on GPUs) and rank 0 writes checkpoints and logs.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import nn
+from tqdm import tqdm
+
+from hgca_core.training.buffer import Chain, ChainBuffer
+
+
+class Task(Protocol):
+    name: str
+    cfg: Any
+
+    def build(self) -> nn.Module: ...
+    def new_example(self, rng: np.random.Generator) -> Chain: ...
+    def validate(self, loss_module: nn.Module, seed: int = 0) -> dict: ...
+
+
+def _atomic_save(obj: Any, path: Path) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _dist() -> tuple[int, int]:
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    if dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False, batch: int = 2,
+          buffer_size: int = 8, lr: float = 5e-4, clip: float = 0.5, seed: int = 0,
+          val_every_min: float = 10.0, ckpt_every_min: float = 5.0, max_steps: int | None = None,
+          progress: bool = True) -> dict:
+    """Train `task` for `minutes` of wall time (or `max_steps`), resuming from out_dir/ckpt.pt if asked."""
+    rank, world = _dist()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt_path = out / "ckpt.pt"
+    torch.manual_seed(seed + rank)
+    module = task.build()
+    optim = torch.optim.Adam(module.parameters(), lr=lr)
+    buffer = ChainBuffer(buffer_size, task.new_example, task.cfg.steps, np.random.default_rng(seed + 7919 * rank))
+    state = {"step": 0, "elapsed_s": 0.0, "history": [], "sessions": []}
+    if resume and ckpt_path.exists():
+        ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        module.load_state_dict(ck["model"])
+        optim.load_state_dict(ck["optim"])
+        state = ck["state"]
+        if rank == 0 and ck.get("buffer") is not None:
+            buffer.load_state_dict(ck["buffer"])
+        torch.set_rng_state(ck["torch_rng"])
+    elif resume and rank == 0:
+        print(f"no checkpoint at {ckpt_path}: starting from scratch")
+    ddp = nn.parallel.DistributedDataParallel(module) if world > 1 else module
+    module.train()
+
+    def checkpoint() -> None:
+        if rank == 0:
+            _atomic_save({"model": module.state_dict(), "optim": optim.state_dict(), "state": state,
+                          "buffer": buffer.state_dict(), "torch_rng": torch.get_rng_state(),
+                          "config": task.cfg.to_dict(), "task": task.name}, ckpt_path)
+
+    def validate() -> None:
+        if rank == 0:
+            module.eval()
+            metrics = task.validate(module)
+            module.train()
+            state["history"].append({"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1),
+                                     "kind": "val", **metrics})
+            plot_history(state["history"], out / "curve.png", task.name)
+
+    session_start = time.time()
+    budget = minutes * 60.0
+    last_ckpt = last_val = time.time()
+    stats_acc: dict[str, list[float]] = {}
+    bar = tqdm(total=round(budget), unit="s", desc=f"train {task.name}", disable=not progress or rank != 0)
+    steps_this_session = 0
+    while True:
+        spent = time.time() - session_start
+        stop = spent >= budget or (max_steps is not None and steps_this_session >= max_steps)
+        if world > 1:  # every rank stops at the same step
+            flag = torch.tensor([1.0 if stop else 0.0])
+            dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+            stop = bool(flag.item())
+        if stop:
+            break
+        t0 = time.time()
+        idx = buffer.take(batch)
+        chains = [buffer.chains[i] for i in idx]
+        loss, stats, new_states = ddp(chains)
+        optim.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(module.parameters(), clip)
+        optim.step()
+        for i, s in zip(idx, new_states):
+            buffer.advance(i, s)
+        dt = time.time() - t0
+        state["step"] += 1
+        state["elapsed_s"] += dt
+        steps_this_session += 1
+        for k, v in {"loss": float(loss), **stats, "step_s": dt}.items():
+            stats_acc.setdefault(k, []).append(v)
+        bar.n = min(round(time.time() - session_start), round(budget))
+        bar.set_postfix(step=state["step"], loss=f"{float(loss):.4f}")
+        if state["step"] % 10 == 0 and rank == 0:
+            state["history"].append({"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1), "kind": "train",
+                                     **{k: float(np.mean(v)) for k, v in stats_acc.items()}})
+            stats_acc = {}
+        if time.time() - last_val >= val_every_min * 60:
+            validate()
+            last_val = time.time()
+        if time.time() - last_ckpt >= ckpt_every_min * 60:
+            checkpoint()
+            last_ckpt = time.time()
+    bar.close()
+    validate()
+    state["sessions"].append({"ended": time.strftime("%Y-%m-%d %H:%M:%S"), "steps": steps_this_session,
+                              "wall_s": round(time.time() - session_start, 1), "world_size": world,
+                              "device": "cpu", "threads": torch.get_num_threads()})
+    checkpoint()
+    if rank == 0:
+        (out / "history.json").write_text(json.dumps(state["history"], indent=1))
+    return state
+
+
+def plot_history(history: list[dict], path: Path, title: str) -> None:
+    """Loss and validation IoU against steps, one PNG, so progress across sessions is visible."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tr = [h for h in history if h["kind"] == "train"]
+    va = [h for h in history if h["kind"] == "val"]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    if tr:
+        ax[0].plot([h["step"] for h in tr], [h["loss"] for h in tr], lw=1)
+    ax[0].set(xlabel="step", ylabel="training loss", title=f"{title}: loss")
+    key = next((k for k in ("val_iou", "val_cd") if va and k in va[0]), None)
+    if key:
+        ax[1].plot([h["step"] for h in va], [h[key] for h in va], "o-")
+    ax[1].set(xlabel="step", ylabel=key or "validation", title=f"{title}: validation")
+    fig.tight_layout()
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=80)
+    plt.close(fig)
+    os.replace(tmp, path)
