@@ -139,10 +139,13 @@ def rough_target(gt: torch.Tensor, batch: int, grid: tuple[int, int, int], z_r: 
 
 
 def pillar_index(coords: torch.Tensor, stride: int, hw: tuple[int, int]) -> torch.Tensor:
-    """Flat (b, px, py) BEV index of sparse cells at a U-Net level whose cells are `stride` voxels wide."""
+    """Flat (b, px, py) BEV index of sparse cells at a U-Net level whose cells are `stride` voxels wide.
+
+    Coordinates are in finest-cell units at every level (hgca_core.nn.sparse), so a coarse cell's centre
+    voxel is x + stride // 2 and its pillar is that divided by the pillar width."""
     c = coords.long()
-    centre_x = c[:, 1] * stride + stride // 2
-    centre_y = c[:, 2] * stride + stride // 2
+    centre_x = c[:, 1] + stride // 2
+    centre_y = c[:, 2] + stride // 2
     px = torch.div(centre_x, PILLAR, rounding_mode="floor").clamp(0, hw[0] - 1)
     py = torch.div(centre_y, PILLAR, rounding_mode="floor").clamp(0, hw[1] - 1)
     return (c[:, 0] * hw[0] + px) * hw[1] + py
