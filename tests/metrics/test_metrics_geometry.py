@@ -1,0 +1,104 @@
+"""Known answers for voxel meshing, Street CD, the baselines and the results table."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hgca_core.errors import InputError
+from hgca_core.geometry.voxel import cell_centers
+from hgca_core.metrics.baselines import input_baseline, poisson_baseline, voxelize_points
+from hgca_core.metrics.evaluate import aggregate, format_table
+from hgca_core.metrics.resim import voxels_to_mesh
+from hgca_core.metrics.street import street_cd, street_points
+
+
+def test_single_cell_mesh_bounds_follow_cell_centre_convention() -> None:
+    c = np.array([[3, 4, 5]])
+    for voxel in (0.1, 0.2):
+        m = voxels_to_mesh(c, voxel)
+        centre = cell_centers(c, voxel)[0]
+        assert np.allclose(m.bounds, [centre - voxel / 2, centre + voxel / 2], atol=1e-9)
+        assert m.is_watertight
+    assert np.allclose(voxels_to_mesh(c, 0.2).bounds.mean(0), [0.65, 0.85, 1.05])  # (c + 0.25) * 0.2
+
+
+def test_box_of_cells_mesh_bounds_and_offset() -> None:
+    g = np.stack(np.meshgrid(np.arange(2), np.arange(3), np.arange(4), indexing="ij"), -1).reshape(-1, 3)
+    m = voxels_to_mesh(g + [10, 0, -2], 0.5, origin_offset=0.25)     # cell c spans [c*0.5, (c+1)*0.5)
+    assert np.allclose(m.bounds, [[5.0, 0.0, -1.0], [6.0, 1.5, 1.0]], atol=1e-9)
+    assert m.is_watertight
+    # a 1 x 1.5 x 2 box whose 18 m of edges are bevelled by prisms of cross-section h^2 / 2, h = 0.25
+    assert 3.0 - 18 * 0.25 ** 2 / 2 < m.volume < 3.0
+
+
+def test_voxels_to_mesh_edge_cases() -> None:
+    assert len(voxels_to_mesh(np.zeros((0, 3), int), 0.2).faces) == 0
+    with pytest.raises(InputError, match="origin_offset"):
+        voxels_to_mesh(np.zeros((1, 3), int), 0.3)
+    assert len(voxels_to_mesh(np.zeros((1, 3), int), 0.3, origin_offset=0.0).faces) > 0
+
+
+def test_street_cd_ignores_ground_and_outside_points() -> None:
+    rng = np.random.default_rng(0)
+    box, gz = (0.0, 0.0, 10.0, 4.0), 1.0
+    g = np.arange(0.0, 3.0)                                         # a 1 m lattice "car" above the ground cut
+    car = np.stack(np.meshgrid(2 + g, 1 + g[:2], 1.5 + g[:2], indexing="ij"), -1).reshape(-1, 3)
+    gt_ground = np.column_stack([rng.uniform(0, 10, (3000, 2)), np.full(3000, gz)])
+    pred_ground = np.column_stack([rng.uniform(0, 10, (500, 2)), gz + rng.uniform(-0.1, 0.19, 500)])
+    outside = car + [20.0, 0, 0]                                    # an object off the street box
+    gt = np.concatenate([car, gt_ground])
+    pred = np.concatenate([car, pred_ground, outside])
+    assert street_cd(pred, gt, box, gz) == 0.0
+    # a car raised by 0.3 m (< half the lattice step, so each point's NN is its own copy) scores exactly 0.3
+    assert street_cd(car + [0, 0, 0.3], car, box, gz) == pytest.approx(0.3, abs=1e-12)
+    # no car predicted at all: the documented penalty, the box's x/y diagonal
+    assert street_cd(pred_ground, gt, box, gz) == pytest.approx(np.hypot(10, 4))
+    assert len(street_points(gt, box, gz)) == len(car)
+
+
+def test_input_baseline_voxelises_like_the_paper() -> None:
+    pts = np.array([[0.04, 0.0, 0.0], [0.06, 0.0, 0.0], [0.16, 0.0, 0.0], [0.26, 0.0, 0.0]])
+    # round to 10 cm: x cells 0, 1, 2, 3 -> floor by 2: 0, 0, 1, 1
+    assert np.array_equal(voxelize_points(pts, 0.1)[:, 0], [0, 1, 2, 3])
+    cells, mesh = input_baseline(pts)
+    assert np.array_equal(cells, [[0, 0, 0], [1, 0, 0]])
+    assert np.allclose(mesh.bounds, [[-0.05, -0.05, -0.05], [0.35, 0.15, 0.15]], atol=1e-9)
+    assert len(input_baseline(pts, grid_shape=(1, 1, 1))[0]) == 1
+
+
+def test_poisson_baseline_reconstructs_a_sphere() -> None:
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(20_000, 3))
+    p = 2.0 * p / np.linalg.norm(p, axis=1, keepdims=True)
+    origins = np.array([[5.0, 0, 0], [-5, 0, 0], [0, 5, 0], [0, -5, 0], [0, 0, 5], [0, 0, -5]])
+    m = poisson_baseline(p, origins, depth=7)
+    r = np.linalg.norm(m.vertices, axis=1)
+    assert len(m.faces) > 1000
+    assert np.abs(r - 2.0).max() < 0.03
+    # normals were oriented towards the outside sensors, so the surface faces outwards
+    assert (np.einsum("ij,ij->i", m.vertex_normals, m.vertices) > 0).mean() > 0.99
+    # trimming the 10 % lowest-density vertices leaves most of the sphere
+    assert m.area > 0.8 * 4 * np.pi * 4
+
+
+def test_format_table_scales_like_the_paper() -> None:
+    rows = {
+        "hGCA": {"k": 3, "representation": "implicit", "resim_min": 0.453, "resim_avg": 0.465, "tmd": 0.092,
+                 "iou": 0.5217, "street_cd_min": 0.185, "street_cd_avg": 0.202, "street_tmd": 0.051},
+        "input": aggregate([{"k": 1, "resim_min": 0.633, "resim_avg": 0.633, "tmd": np.nan, "iou": 0.3443,
+                             "street_cd_min": np.nan, "street_cd_avg": np.nan, "street_tmd": np.nan}]),
+    }
+    table = format_table(rows)
+    lines = table.splitlines()
+    assert lines[0].startswith("| Method | Representation | ReSim min")
+    assert "| hGCA | implicit | 4.53 | 4.65 | 0.92 | 52.17 | 1.85 | 2.02 | 0.51 |" in lines
+    assert "| input | - | 6.33 | - | - | 34.43 | - | - | - |" in lines
+    no_street = format_table({"input": rows["input"]})
+    assert "Street" not in no_street.splitlines()[0]
+
+
+def test_aggregate_ignores_undefined_values() -> None:
+    rows = [{"k": 3, "resim_min": 0.2, "iou": np.nan}, {"k": 3, "resim_min": 0.4, "iou": 0.5}]
+    agg = aggregate(rows)
+    assert agg["resim_min"] == pytest.approx(0.3) and agg["iou"] == pytest.approx(0.5) and agg["n"] == 2
+    assert np.isnan(agg["street_cd_min"])
