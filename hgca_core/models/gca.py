@@ -51,7 +51,7 @@ class GCAKernel(nn.Module):
         self.cfg = cfg
         in_ch = 2 + 3 * 2 * cfg.pe_freq
         self.unet = SparseUNet(in_ch, 1, channels=cfg.channels, blocks=cfg.blocks)
-        self.planner = Planner(self.unet.decoder_channels, z_r=cfg.z_r) if cfg.use_planner else None
+        self.planner = Planner(list(self.unet.channels[: self.unet.num_levels]), z_r=cfg.z_r) if cfg.use_planner else None
 
     def bev(self, s0: torch.Tensor, batch: int, grid: tuple[int, int, int]) -> BevOutput | None:
         return self.planner(s0, batch, grid) if self.planner is not None else None

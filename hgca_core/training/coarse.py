@@ -13,7 +13,7 @@ from hgca_core.geometry import coords as cs
 from hgca_core.models.gca import GCAConfig, GCAKernel, alpha, sample
 from hgca_core.models.planner import rough_target
 from hgca_core.training.buffer import Chain
-from hgca_core.training.data import COARSE_GRID, coarse_pair, crop_flip, load_arrays, split_files
+from hgca_core.training.data import coarse_pair, crop_flip, load_arrays, split_files
 
 
 def batched(sets: list[torch.Tensor]) -> torch.Tensor:
@@ -37,11 +37,11 @@ class CoarseLoss(nn.Module):
         target = cs.isin(nbhd, gt).float()
         loss_gca = F.binary_cross_entropy_with_logits(logits, target)
         loss = loss_gca
-        stats = {"loss_gca": float(loss_gca)}
+        stats = {"loss_gca": float(loss_gca.detach())}
         if bev is not None:
             loss_bev = F.binary_cross_entropy_with_logits(bev.rough, rough_target(gt, b, grid, cfg.z_r))
             loss = loss + cfg.beta * loss_bev
-            stats["loss_bev"] = float(loss_bev)
+            stats["loss_bev"] = float(loss_bev.detach())
         with torch.no_grad():  # infusion kernel q^t: Ber((1 - a_t) lambda + a_t 1[c in gt])
             a = torch.tensor([alpha(cfg, c.t) for c in chains])[nbhd[:, 0]]
             p = (1 - a) * torch.sigmoid(logits) + a * target
@@ -70,8 +70,8 @@ class CoarseTask:
 
     def new_example(self, rng: np.random.Generator) -> Chain:
         path = self.train_files[int(rng.integers(len(self.train_files)))]
-        s0, gt = coarse_pair(path)
-        (s0_t, gt_t), grid = crop_flip([s0, gt], COARSE_GRID, self.crop, rng)
+        s0, gt, full = coarse_pair(path)
+        (s0_t, gt_t), grid = crop_flip([s0, gt], full, self.crop, rng)
         return Chain(s0=s0_t, gt=gt_t, state=s0_t.clone(), t=0, grid=grid)
 
     def validate(self, loss_module: CoarseLoss, seed: int = 0) -> dict:
@@ -82,9 +82,9 @@ class CoarseTask:
         scores = []
         for k, path in enumerate(files):
             rng = np.random.default_rng(1000 + k)  # fixed crops: the curve compares like with like
-            s0, gt = coarse_pair(path)
+            s0, gt, full = coarse_pair(path)
             vis = load_arrays(str(path), ("visible20",))["visible20"].astype(np.int64)
-            (s0_t, gt_t, vis_t), grid = crop_flip([s0, gt, vis], COARSE_GRID, self.crop, rng)
+            (s0_t, gt_t, vis_t), grid = crop_flip([s0, gt, vis], full, self.crop, rng)
             gen = torch.Generator().manual_seed(seed + k)
             out = sample(loss_module.model, cs.with_batch(s0_t), grid, self.cfg.steps, gen)
             scores.append(iou(out[:, 1:].numpy(), gt_t.numpy(), vis_t.numpy()))

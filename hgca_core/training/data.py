@@ -8,10 +8,8 @@ import numpy as np
 import torch
 
 from hgca_core.errors import InputError
-from hgca_core.geometry.voxel import voxelize_coarse
+from hgca_core.geometry.voxel import COARSE, FINE, voxelize_coarse
 
-FINE_GRID = (384, 384, 80)
-COARSE_GRID = (192, 192, 40)
 
 
 def split_files(data_dir: str | Path, split: str) -> list[Path]:
@@ -29,10 +27,19 @@ def load_arrays(path: str, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
         return {k: z[k] for k in keys}
 
 
-def coarse_pair(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """(s0, gt) at 20 cm for a sample: the input voxelised as the paper says, and the ground truth."""
+def grids(path: str | Path) -> tuple[tuple[int, int, int], tuple[int, int, int]]:
+    """(10 cm grid, 20 cm grid) of a sample's region, from its stored size."""
+    size = load_arrays(str(path), ("region",))["region"][3:6]
+    fine = tuple(int(v) for v in np.round(size / FINE))
+    coarse = tuple(int(v) for v in np.round(size / COARSE))
+    return fine, coarse
+
+
+def coarse_pair(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
+    """(s0, gt, grid) at 20 cm for a sample: the input voxelised as the paper says, and the ground truth."""
     a = load_arrays(str(path), ("input_points", "gt_occ20"))
-    return voxelize_coarse(a["input_points"], FINE_GRID).astype(np.int64), a["gt_occ20"].astype(np.int64)
+    fine, coarse = grids(path)
+    return voxelize_coarse(a["input_points"], fine).astype(np.int64), a["gt_occ20"].astype(np.int64), coarse
 
 
 def crop_flip(sets: list[np.ndarray], grid: tuple[int, int, int], crop: int | None,

@@ -116,10 +116,10 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
         state["step"] += 1
         state["elapsed_s"] += dt
         steps_this_session += 1
-        for k, v in {"loss": float(loss), **stats, "step_s": dt}.items():
+        for k, v in {"loss": float(loss.detach()), **stats, "step_s": dt}.items():
             stats_acc.setdefault(k, []).append(v)
         bar.n = min(round(time.time() - session_start), round(budget))
-        bar.set_postfix(step=state["step"], loss=f"{float(loss):.4f}")
+        bar.set_postfix(step=state["step"], loss=f"{float(loss.detach()):.4f}")
         if state["step"] % 10 == 0 and rank == 0:
             state["history"].append({"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1), "kind": "train",
                                      **{k: float(np.mean(v)) for k, v in stats_acc.items()}})

@@ -1,0 +1,53 @@
+import torch
+
+from hgca_core.geometry import coords as cs
+from hgca_core.models.gca import GCAConfig, GCAKernel, alpha, sample
+from hgca_core.models.planner import Planner, rough_target
+
+GRID = (24, 24, 20)
+
+
+def _plane():
+    xy = torch.stack(torch.meshgrid(torch.arange(4, 20), torch.arange(4, 20), indexing="ij"), -1).reshape(-1, 2)
+    return cs.with_batch(torch.cat([xy, torch.full((len(xy), 1), 5)], 1))
+
+
+def _model(planner=True):
+    torch.manual_seed(0)
+    return GCAKernel(GCAConfig(channels=(8, 8, 16, 16, 16), use_planner=planner, grid=GRID))
+
+
+def test_kernel_logits_on_neighbourhood_and_planner_shapes():
+    m = _model()
+    s0 = _plane()
+    nbhd = m.neighbourhood(s0, GRID)
+    assert len(nbhd) == 18 * 18 * 3  # the plane dilated by one cell in every direction
+    bev = m.bev(s0, 1, GRID)
+    assert bev.rough.shape == (1, 4, 8, 8)
+    assert len(bev.spade) == m.unet.num_levels
+    logits = m(nbhd, s0, s0, GRID, bev)
+    assert logits.shape == (len(nbhd),) and torch.isfinite(logits).all()
+    logits.sum().backward()
+    assert m.planner.pointnet.inp.weight.grad is not None  # the planner is in the graph
+
+
+def test_rough_target_marks_height_bins():
+    gt = torch.tensor([[0, 0, 0, 0], [0, 5, 5, 19], [0, 23, 23, 10]])
+    t = rough_target(gt, 1, GRID, 4)
+    assert t.shape == (1, 4, 8, 8)
+    assert t[0, 0, 0, 0] == 1 and t[0, 3, 1, 1] == 1 and t[0, 2, 7, 7] == 1 and t.sum() == 3
+
+
+def test_alpha_schedule_is_clipped():
+    cfg = GCAConfig()
+    assert alpha(cfg, 0) == 0.15 and abs(alpha(cfg, 10) - 0.2) < 1e-12 and alpha(cfg, 1000) == 1.0
+
+
+def test_sampling_is_seeded():
+    m = _model(planner=False)
+    s0 = _plane()
+    a = sample(m, s0, GRID, 3, torch.Generator().manual_seed(1))
+    b = sample(m, s0, GRID, 3, torch.Generator().manual_seed(1))
+    assert torch.equal(a, b)
+    c = sample(m, s0, GRID, 3, torch.Generator().manual_seed(2))
+    assert not torch.equal(a, c) or len(a) == 0

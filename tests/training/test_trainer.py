@@ -1,0 +1,49 @@
+import json
+import os
+import subprocess
+import sys
+
+import torch
+
+from hgca_core.training.coarse import CoarseTask
+from hgca_core.models.gca import GCAConfig
+from hgca_core.training.trainer import train
+
+SMALL = dict(channels=(8, 8, 16, 16, 16))
+
+
+def _task(data, planner=True):
+    return CoarseTask(str(data), GCAConfig(use_planner=planner, steps=4, **SMALL), crop=24, val_count=1)
+
+
+def test_budgeted_training_checkpoints_and_resumes_exactly(tiny_dataset, tmp_path):
+    out = tmp_path / "run"
+    s1 = train(_task(tiny_dataset), out, minutes=5, max_steps=3, batch=2, buffer_size=3, progress=False)
+    assert s1["step"] == 3 and (out / "ckpt.pt").exists() and (out / "curve.png").exists()
+    ck = torch.load(out / "ckpt.pt", weights_only=False)
+    assert ck["state"]["step"] == 3 and len(ck["buffer"]["chains"]) == 3
+    ts = [c["t"] for c in ck["buffer"]["chains"]]
+    assert max(ts) >= 1  # chains advanced by infusion steps
+    s2 = train(_task(tiny_dataset), out, minutes=5, max_steps=2, resume=True, batch=2, buffer_size=3, progress=False)
+    assert s2["step"] == 5 and len(s2["sessions"]) == 2
+    hist = json.loads((out / "history.json").read_text())
+    assert [h for h in hist if h["kind"] == "val"] and all(0.0 <= h["val_iou"] <= 1.0 for h in hist if h["kind"] == "val")
+
+
+def test_loss_falls_when_overfitting_one_example(tiny_dataset, tmp_path):
+    s = train(_task(tiny_dataset, planner=False), tmp_path / "o", minutes=5, max_steps=40, batch=1, buffer_size=1,
+              lr=3e-3, progress=False, val_every_min=1e9)
+    losses = [h["loss"] for h in s["history"] if h["kind"] == "train"]
+    assert losses[-1] < 0.7 * losses[0]
+
+
+def test_torchrun_two_cpu_ranks(tiny_dataset, tmp_path):
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29533",
+           "-m", "hgca_core.cli", "train", "coarse", "--data", str(tiny_dataset), "--out", str(tmp_path / "ddp"),
+           "--max-steps", "2", "--minutes", "5", "--crop", "24", "--batch", "1", "--buffer", "2",
+           "--channels", "8,8,16,16,16", "--no-progress"]
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    ck = torch.load(tmp_path / "ddp" / "ckpt.pt", weights_only=False)
+    assert ck["state"]["step"] == 2 and ck["state"]["sessions"][0]["world_size"] == 2
