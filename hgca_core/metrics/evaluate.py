@@ -12,7 +12,7 @@ import trimesh
 
 from hgca_core.errors import InputError
 from hgca_core.metrics.iou import iou, points_to_cells20
-from hgca_core.metrics.resim import _sensor, resim_cd_per_pose, resim_scans
+from hgca_core.metrics.resim import default_sensor, resim_cd_per_pose, resim_scans
 from hgca_core.metrics.street import GROUND_MARGIN, street_cd, street_penalty, street_points
 from hgca_core.metrics.surface import sample_surface
 from hgca_core.metrics.tmd import tmd
@@ -50,9 +50,10 @@ def evaluate_sample(sample: Mapping[str, Any], meshes: Sequence[trimesh.Trimesh]
     if occ20 is not None and len(occ20) != k:
         raise InputError(f"{k} meshes but {len(occ20)} occupancy sets")
     missing = [key for key in ("region", "eval_poses", "gt_occ20") if key not in sample]
+    missing += [f"eval_scan_{t}" for t in range(len(sample.get("eval_poses", []))) if f"eval_scan_{t}" not in sample]
     if missing:
         raise InputError(f"sample lacks {', '.join(missing)}")
-    sen = _sensor(sensor)
+    sen = default_sensor(sensor)
     region_size = np.asarray(sample["region"], dtype=np.float64)[3:6]
     poses = np.asarray(sample["eval_poses"], dtype=np.float64)
     gt_scans = [np.asarray(sample[f"eval_scan_{t}"], dtype=np.float64) for t in range(len(poses))]

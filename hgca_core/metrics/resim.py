@@ -79,7 +79,8 @@ def _check_poses(poses: np.ndarray) -> np.ndarray:
     return P
 
 
-def _sensor(sensor: "Sensor | None") -> "Sensor":
+def default_sensor(sensor: "Sensor | None" = None) -> "Sensor":
+    """`sensor`, or the paper's evaluation LiDAR (`hgca_core.synth.lidar.EVAL128`) when None."""
     if sensor is not None:
         return sensor
     from hgca_core.synth.lidar import EVAL128
@@ -94,7 +95,7 @@ def resim_scans(mesh: trimesh.Trimesh, poses: np.ndarray, sensor: "Sensor | None
     """
     from hgca_core.synth.lidar import cast, make_intersector
 
-    P, sen = _check_poses(poses), _sensor(sensor)
+    P, sen = _check_poses(poses), default_sensor(sensor)
     if mesh is None or len(mesh.faces) == 0:
         return [np.zeros((0, 3)) for _ in P]
     target = make_intersector(mesh)                 # one BVH, reused for every pose
@@ -124,7 +125,7 @@ def resim_cd(mesh: trimesh.Trimesh, gt_scans: Sequence[np.ndarray], poses: np.nd
     than any real completion scores, finite, and keeps averages over a dataset meaningful. A pose whose
     ground-truth scan is also empty scores 0.
     """
-    P, sen = _check_poses(poses), _sensor(sensor)
+    P, sen = _check_poses(poses), default_sensor(sensor)
     if len(gt_scans) != len(P):
         raise InputError(f"{len(P)} poses but {len(gt_scans)} ground-truth scans")
     pred = resim_scans(mesh, P, sen, region_size)
