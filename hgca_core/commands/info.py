@@ -1,0 +1,73 @@
+"""`hgca info FILE... [--json] [--format F]`: what a scan file holds, to check a file before completing it."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from typing import Any
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("files", nargs="+", help="scan files (ply, las/laz/copc, pcd, xyz/csv/txt, npy/npz, "
+                                            "KITTI .bin, nuScenes .pcd.bin)")
+    p.add_argument("--json", action="store_true", help="print one JSON document instead of text")
+    p.add_argument("--format", dest="fmt", metavar="F",
+                   help="force the format (ply, las, pcd, xyz, npy, npz, kitti, nuscenes) instead of the extension's")
+
+
+def describe(path: str, fmt: str | None = None) -> dict[str, Any]:
+    """Facts about one file as plain JSON-able values (raises InputError for bad files)."""
+    from hgca_core.io import read_scan, resolve_format
+    from hgca_core.io.las import las_header_info
+
+    scan = read_scan(path, fmt)  # raises InputError for anything wrong with the file
+    chosen = resolve_format(path, fmt)
+    info: dict[str, Any] = {
+        "file": path,
+        "format": chosen,
+        "points": len(scan),
+        "bounds": {"min": scan.points.min(axis=0).tolist(), "max": scan.points.max(axis=0).tolist()},
+        "attributes": {name: str(values.dtype) for name, values in scan.attributes.items()},
+        "origins": None if scan.origins is None else scan.origins.tolist(),
+    }
+    if chosen == "las":
+        info["las"] = las_header_info(path)
+    return info
+
+
+def _text(info: dict[str, Any]) -> str:
+    def fmt3(v: list[float]) -> str:
+        return " ".join(f"{x:.3f}" for x in v)
+
+    lines = [
+        info["file"],
+        f"  format:     {info['format']}",
+        f"  points:     {info['points']}",
+        f"  bounds min: {fmt3(info['bounds']['min'])}",
+        f"  bounds max: {fmt3(info['bounds']['max'])}",
+        "  attributes: " + (", ".join(f"{k} ({v})" for k, v in info["attributes"].items()) or "none"),
+        "  origins:    " + ("unknown" if info["origins"] is None
+                            else "; ".join(fmt3(o) for o in info["origins"][:4])
+                            + (f" ... ({len(info['origins'])} in all)" if len(info["origins"]) > 4 else "")),
+    ]
+    las = info.get("las")
+    if las:
+        kind = "COPC" if las["copc"] else ("LAZ" if las["compressed"] else "LAS")
+        lines += [
+            f"  las:        {kind} {las['version']}, point format {las['point_format']}, "
+            f"header point count {las['header_point_count']}",
+            f"  scale:      {' '.join(repr(v) for v in las['scale'])}",
+            f"  offset:     {' '.join(repr(v) for v in las['offset'])}",
+        ]
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    infos = [describe(os.fspath(f), args.fmt) for f in args.files]
+    if args.json:
+        json.dump({"files": infos}, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        print("\n".join(_text(i) for i in infos))
+    return 0

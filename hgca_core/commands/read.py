@@ -1,0 +1,36 @@
+"""`hgca read SCAN... [--poses P] [--format F] -o OUT.npz`: accumulate scans into one .npz.
+
+The Blender add-on imports scans through this command, so it gets every format and the poses logic
+without importing laspy/plyfile (or torch) inside Blender.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+
+from hgca_core.errors import InputError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scans", nargs="+", help="scan files (ply, las/laz/copc, pcd, xyz/csv/txt, npy/npz, "
+                                            "KITTI .bin, nuScenes .pcd.bin)")
+    p.add_argument("--poses", metavar="P",
+                   help="JSON with a sensor->world 4x4 pose per scan (see docs/CONTRACTS.md)")
+    p.add_argument("--format", dest="fmt", metavar="F",
+                   help="force the format (ply, las, pcd, xyz, npy, npz, kitti, nuscenes) instead of the extension's")
+    p.add_argument("-o", "--out", required=True, metavar="OUT.npz",
+                   help="output .npz: points (N,3) f32, attributes, origins")
+
+
+def run(args: argparse.Namespace) -> int:
+    from hgca_core.io import read_scans, write_points
+    from hgca_core.io.writers import NPZ_RESERVED
+
+    if os.path.splitext(args.out)[1].lower() != ".npz":
+        raise InputError("output must end in .npz", args.out)
+    scan = read_scans(args.scans, poses=args.poses, fmt=args.fmt)
+    attributes = {k: v for k, v in scan.attributes.items() if k not in NPZ_RESERVED}
+    write_points(args.out, scan.points, attributes, origins=scan.origins)
+    print(f"{args.out}: {len(scan)} points from {len(args.scans)} scan(s), "
+          f"attributes: {', '.join(attributes) or 'none'}")
+    return 0

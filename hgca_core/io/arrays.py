@@ -1,0 +1,66 @@
+"""NumPy files: `.npy` holding an (N, >=3) table (or a structured array with x, y, z fields) and `.npz`
+archives as written by `hgca read` (`points`, per-point attributes, optional `origins`)."""
+from __future__ import annotations
+
+import numpy as np
+
+from hgca_core.errors import InputError
+from hgca_core.io.scan import Scan
+
+
+def _numeric(a: np.ndarray, what: str, path: str) -> np.ndarray:
+    if a.dtype.kind not in "biuf":
+        raise InputError(f"{what} has non-numeric dtype {a.dtype}", path)
+    return a
+
+
+def _check_magic(path: str, magic: tuple[bytes, ...], what: str) -> None:
+    with open(path, "rb") as f:
+        head = f.read(8)
+    if not head.startswith(magic):
+        raise InputError(f"not a {what}: its first bytes lack the signature", path)
+
+
+def read_npy(path: str) -> Scan:
+    """Columns beyond x, y, z become attributes `column_3`, ...; structured arrays keep their field names."""
+    _check_magic(path, (b"\x93NUMPY",), "NumPy .npy file")
+    a = np.load(path, allow_pickle=False)
+    if a.dtype.names:
+        missing = [c for c in ("x", "y", "z") if c not in a.dtype.names]
+        if missing or a.ndim != 1:
+            raise InputError(f"structured array needs 1-D records with x, y, z fields (has {a.dtype.names})", path)
+        points = np.column_stack([_numeric(a[c], c, path).astype(np.float64) for c in ("x", "y", "z")])
+        attributes = {n: np.array(a[n]) for n in a.dtype.names
+                      if n not in ("x", "y", "z") and a.dtype[n].shape == () and a.dtype[n].kind in "biuf"}
+        return Scan(points, attributes, None, path)
+    _numeric(a, "array", path)
+    if a.ndim != 2 or a.shape[1] < 3:
+        raise InputError(f"array must be (N, >=3), got shape {a.shape}", path)
+    attributes = {f"column_{i}": a[:, i].copy() for i in range(3, a.shape[1])}
+    return Scan(a[:, :3].astype(np.float64), attributes, None, path)
+
+
+def read_npz(path: str) -> Scan:
+    """Other (N,) arrays become attributes; arrays of any other shape are metadata and are ignored."""
+    _check_magic(path, (b"PK\x03\x04", b"PK\x05\x06"), "NumPy .npz (zip) archive")
+    with np.load(path, allow_pickle=False) as z:
+        keys = list(z.keys())
+        if "points" not in keys:
+            raise InputError(f"npz has no 'points' array (keys: {keys})", path)
+        points = _numeric(z["points"], "'points'", path)
+        if points.ndim != 2 or points.shape[1] < 3:
+            raise InputError(f"'points' must be (N, >=3), got shape {points.shape}", path)
+        n = len(points)
+        attributes = {}
+        for key in keys:
+            if key in ("points", "origins"):
+                continue
+            value = z[key]
+            if value.shape == (n,) and value.dtype.kind in "biuf":
+                attributes[key] = value
+        origins = None
+        if "origins" in keys:
+            origins = _numeric(z["origins"], "'origins'", path)
+            if origins.ndim not in (1, 2) or origins.shape[-1] != 3:
+                raise InputError(f"'origins' must be (S, 3), got shape {origins.shape}", path)
+    return Scan(points[:, :3].astype(np.float64), attributes, origins, path)

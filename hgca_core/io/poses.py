@@ -1,0 +1,115 @@
+"""Per-scan sensor->world poses from the JSON sidecar in CONTRACTS.md, validated before any point moves.
+
+A pose that is not a rigid transform (scaled, sheared, reflected, NaN) would silently distort the
+accumulated scene, so it is rejected with the entry and the problem named.
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from hgca_core.errors import InputError
+
+ORTHONORMAL_TOL = 1e-3  # max |R^T R - I| entry; loose enough for float32-rounded or SLAM-drifted rotations
+
+
+@dataclass(frozen=True)
+class PoseEntry:
+    """One scan's pose: `file` as written in the JSON, `path` resolved against the JSON's folder."""
+
+    file: str
+    path: str
+    pose: np.ndarray
+    origin: np.ndarray | None
+
+
+def validate_pose(matrix: Any, what: str, path: str | None = None) -> np.ndarray:
+    """Return `matrix` as a float64 4x4 rigid transform, or raise InputError saying what is wrong."""
+    try:
+        m = np.asarray(matrix, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{what}: pose is not a 4x4 array of numbers", path) from None
+    if m.shape != (4, 4):
+        raise InputError(f"{what}: pose must be 4x4, got shape {m.shape}", path)
+    if not np.isfinite(m).all():
+        raise InputError(f"{what}: pose has NaN or infinite values", path)
+    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+        raise InputError(f"{what}: pose last row must be 0 0 0 1, got {m[3].tolist()}", path)
+    r = m[:3, :3]
+    err = float(np.abs(r.T @ r - np.eye(3)).max())
+    if err > ORTHONORMAL_TOL:
+        raise InputError(f"{what}: pose rotation is not orthonormal (max |R^T R - I| = {err:.3g})", path)
+    if np.linalg.det(r) < 0:
+        raise InputError(f"{what}: pose rotation is a reflection (determinant < 0)", path)
+    return m
+
+
+def load_poses(path: str | os.PathLike) -> list[PoseEntry]:
+    """Parse `{"scans": [{"file", "pose", "origin"?}, ...]}`; every entry is validated."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise InputError("poses file not found", path)
+    try:
+        with open(path, "r", encoding="utf-8") as f:
+            doc = json.load(f)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"poses file is not valid JSON ({exc})", path) from None
+    scans = doc.get("scans") if isinstance(doc, dict) else None
+    if not isinstance(scans, list) or not scans:
+        raise InputError('poses JSON must be an object with a non-empty "scans" list', path)
+    base = os.path.dirname(os.path.abspath(path))
+    entries: list[PoseEntry] = []
+    for i, item in enumerate(scans):
+        what = f"scans[{i}]"
+        if not isinstance(item, dict) or not isinstance(item.get("file"), str) or not item["file"]:
+            raise InputError(f'{what} must be an object with a "file" string', path)
+        what = f"{what} ({item['file']})"
+        if "pose" not in item:
+            raise InputError(f'{what} has no "pose"', path)
+        pose = validate_pose(item["pose"], what, path)
+        origin = None
+        if item.get("origin") is not None:
+            try:
+                origin = np.asarray(item["origin"], dtype=np.float64)
+            except (TypeError, ValueError):
+                origin = np.zeros(0)
+            if origin.shape != (3,) or not np.isfinite(origin).all():
+                raise InputError(f'{what}: "origin" must be 3 finite numbers', path)
+        resolved = os.path.normpath(os.path.join(base, os.path.expanduser(item["file"])))
+        entries.append(PoseEntry(item["file"], resolved, pose, origin))
+    seen: dict[str, int] = {}
+    for i, e in enumerate(entries):
+        if e.path in seen:
+            raise InputError(f"scans[{seen[e.path]}] and scans[{i}] name the same file {e.file!r}", path)
+        seen[e.path] = i
+    return entries
+
+
+def match_poses(entries: Sequence[PoseEntry], scan_paths: Sequence[str], poses_path: str) -> list[PoseEntry]:
+    """The entry for each scan: same resolved path first, else same file name (which must be unambiguous).
+
+    Entries for scans not being read are allowed (importing a subset of a drive); a scan without an entry
+    is an error, since guessing its pose would misplace it.
+    """
+    by_path = {os.path.normcase(e.path): e for e in entries}
+    result = []
+    for scan in scan_paths:
+        entry = by_path.get(os.path.normcase(os.path.normpath(os.path.abspath(scan))))
+        if entry is None:
+            name = os.path.basename(scan)
+            same = [e for e in entries if os.path.basename(e.path) == name]
+            if len(same) > 1:
+                raise InputError(f"{len(same)} entries have file name {name!r}; give the scan's path instead",
+                                 poses_path)
+            if not same:
+                raise InputError(f"no pose for scan {scan!r} ({len(entries)} entries, "
+                                 f"{len(scan_paths)} scans)", poses_path)
+            entry = same[0]
+        if any(entry is r for r in result):
+            raise InputError(f"two scans match the same entry {entry.file!r}", poses_path)
+        result.append(entry)
+    return result

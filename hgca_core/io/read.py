@@ -1,0 +1,117 @@
+"""`read_scan` / `read_scans`: the entry points every caller (CLI, pipeline, Blender via `hgca read`) uses.
+
+Library exceptions from truncated or corrupt files are turned into `InputError` here, so callers only
+ever see one error type whose message names the file.
+"""
+from __future__ import annotations
+
+import os
+from typing import Callable, Sequence
+
+import numpy as np
+
+from hgca_core.errors import InputError
+from hgca_core.io.arrays import read_npy, read_npz
+from hgca_core.io.formats import label, resolve_format
+from hgca_core.io.las import read_las
+from hgca_core.io.pcd import read_pcd
+from hgca_core.io.ply import read_ply
+from hgca_core.io.poses import PoseEntry, load_poses, match_poses, validate_pose
+from hgca_core.io.scan import Scan, finalize
+from hgca_core.io.sensor_bin import read_kitti, read_nuscenes
+from hgca_core.io.text import read_xyz
+
+READERS: dict[str, Callable[[str], Scan]] = {
+    "ply": read_ply, "las": read_las, "pcd": read_pcd, "xyz": read_xyz, "npy": read_npy, "npz": read_npz,
+    "kitti": read_kitti, "nuscenes": read_nuscenes,
+}
+
+
+def check_readable(path: str) -> None:
+    """Missing, non-regular and empty files get their own plain message before any parser sees them."""
+    if not os.path.exists(path):
+        raise InputError("file not found", path)
+    if not os.path.isfile(path):
+        raise InputError("not a regular file", path)
+    if os.path.getsize(path) == 0:
+        raise InputError("file is empty (0 bytes)", path)
+
+
+def read_scan(path: str | os.PathLike, fmt: str | None = None) -> Scan:
+    """Read one scan file; `fmt` overrides the extension (ply, las, pcd, xyz, npy, npz, kitti, nuscenes)."""
+    path = os.fspath(path)
+    check_readable(path)
+    try:
+        chosen = resolve_format(path, fmt)
+    except OSError as exc:
+        raise InputError(f"cannot open file ({exc.strerror})", path) from None
+    try:
+        scan = READERS[chosen](path)
+    except InputError:
+        raise
+    except MemoryError:
+        raise InputError("file is too large to read into memory", path) from None
+    except Exception as exc:  # noqa: BLE001 - every parser failure is bad input, reported without a traceback
+        raise InputError(f"corrupt or truncated {label(chosen)} file ({type(exc).__name__}: {exc})", path) from None
+    return finalize(scan, path)
+
+
+def _pose_list(poses: str | os.PathLike | Sequence, paths: list[str]) -> tuple[list[np.ndarray], list]:
+    """Poses and JSON origins (or None) in `paths` order, from a JSON sidecar or a list of 4x4 arrays."""
+    if isinstance(poses, (str, os.PathLike)):
+        poses_path = os.fspath(poses)
+        entries: list[PoseEntry] = match_poses(load_poses(poses_path), paths, poses_path)
+        return [e.pose for e in entries], [e.origin for e in entries]
+    mats = list(poses)
+    if len(mats) != len(paths):
+        names = ", ".join(os.path.basename(p) for p in paths[:5]) + (", ..." if len(paths) > 5 else "")
+        raise InputError(f"{len(mats)} poses given for {len(paths)} scans ({names})")
+    return [validate_pose(m, f"pose {i} (for {paths[i]})") for i, m in enumerate(mats)], [None] * len(mats)
+
+
+def read_scans(paths: Sequence[str | os.PathLike], poses: str | os.PathLike | Sequence | None = None,
+               fmt: str | None = None) -> Scan:
+    """Accumulate scans in one world frame; adds `scan_index` (uint16) and keeps attributes all scans share.
+
+    With poses, each scan's points go through its sensor->world pose and its origin is the JSON `origin`,
+    else its own origins moved by the pose, else the pose translation. Without poses, points and origins
+    are taken as already in one frame.
+    """
+    paths = [os.fspath(p) for p in paths]
+    if not paths:
+        raise InputError("no scan files given")
+    if len(paths) > np.iinfo(np.uint16).max + 1:
+        raise InputError(f"too many scans ({len(paths)}); at most 65536 can be accumulated")
+    pose_mats, json_origins = _pose_list(poses, paths) if poses is not None else (None, None)
+    scans = [read_scan(p, fmt) for p in paths]
+    common = set(scans[0].attributes)
+    for s in scans[1:]:
+        common &= set(s.attributes)
+    common.discard("scan_index")
+    points, origins = [], []
+    any_origin = False
+    for i, s in enumerate(scans):
+        if pose_mats is None:
+            points.append(s.points)
+            if s.origins is not None:
+                origins.append(s.origins)
+                any_origin = True
+            continue
+        r, t = pose_mats[i][:3, :3], pose_mats[i][:3, 3]
+        points.append(s.points @ r.T + t)
+        if json_origins[i] is not None:
+            origins.append(json_origins[i][None])
+        elif s.origins is not None:
+            origins.append(s.origins @ r.T + t)
+        else:
+            origins.append(t[None].copy())
+        any_origin = True
+    attributes = {name: np.concatenate([s.attributes[name] for s in scans]) for name in sorted(common)}
+    attributes["scan_index"] = np.concatenate(
+        [np.full(len(s), i, dtype=np.uint16) for i, s in enumerate(scans)])
+    return Scan(
+        points=np.concatenate(points),
+        attributes=attributes,
+        origins=np.concatenate(origins) if any_origin else None,
+        path=paths[0] if len(paths) == 1 else None,
+    )

@@ -1,0 +1,76 @@
+"""The `Scan` container every reader returns, and the one place that enforces the finite-coordinate policy.
+
+Keeping the policy here (not in each reader) means every format drops sensor "no return" rows and rejects
+other non-finite coordinates in exactly the same way.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hgca_core.errors import InputError
+
+
+@dataclass
+class Scan:
+    """Points in world metres with per-point attributes and the sensor origins they were seen from.
+
+    `origins` is None when the file does not say where the sensor was (aerial LAS, plain XYZ); the
+    pipeline then estimates what it needs from the points alone.
+    """
+
+    points: np.ndarray
+    attributes: dict[str, np.ndarray] = field(default_factory=dict)
+    origins: np.ndarray | None = None
+    path: str | None = None
+
+    def __post_init__(self) -> None:
+        self.points = np.ascontiguousarray(self.points, dtype=np.float64)
+        if self.points.ndim != 2 or self.points.shape[1] != 3:
+            raise ValueError(f"Scan.points must be (N, 3), got {self.points.shape}")
+        n = len(self.points)
+        self.attributes = {str(k): np.asarray(v) for k, v in self.attributes.items()}
+        for name, values in self.attributes.items():
+            if values.shape != (n,):
+                raise ValueError(f"Scan attribute {name!r} must be ({n},), got {values.shape}")
+        if self.origins is not None:
+            self.origins = np.ascontiguousarray(self.origins, dtype=np.float64).reshape(-1, 3)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def finalize(scan: Scan, path: str | None = None) -> Scan:
+    """Apply the finite policy: drop all-NaN rows (organized clouds' no-return placeholders), reject the rest.
+
+    Any other NaN/inf coordinate means a corrupt or mis-parsed file, and a scan with nothing left cannot be
+    completed, so both raise `InputError` naming the file.
+    """
+    where = path if path is not None else scan.path
+    pts = scan.points
+    if len(pts) == 0:
+        raise InputError("contains no points", where)
+    finite = np.isfinite(pts)
+    if not finite.all():
+        placeholder = np.isnan(pts).all(axis=1)
+        bad = ~finite.all(axis=1) & ~placeholder
+        if bad.any():
+            first = int(np.flatnonzero(bad)[0])
+            raise InputError(
+                f"{int(bad.sum())} point(s) have NaN or infinite coordinates "
+                f"(first at row {first}: {pts[first].tolist()})",
+                where,
+            )
+        keep = ~placeholder
+        if not keep.any():
+            raise InputError(f"contains no points: all {len(pts)} rows are no-return (NaN) placeholders", where)
+        scan = Scan(
+            points=pts[keep],
+            attributes={k: v[keep] for k, v in scan.attributes.items()},
+            origins=scan.origins,
+            path=scan.path,
+        )
+    if scan.origins is not None and not np.isfinite(scan.origins).all():
+        raise InputError("sensor origin has NaN or infinite values", where)
+    return scan
