@@ -22,33 +22,33 @@ COMMANDS = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="hgca", description=__doc__.split("\n")[0])
     parser.add_argument("--version", action="version", version=f"hgca {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     for name, help_text in COMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
         p.set_defaults(_module=f"hgca_core.commands.{name}")
-        module = _load(name)
+        module = _load(name, argv)
         if module is not None:
             module.add_arguments(p)
     return parser
 
 
-def _load(name: str):
+def _load(name: str, argv: list[str]):
     """Import a command module only when argv names it (keeps start-up light), else None."""
-    if name not in sys.argv[1:2] and "--help" not in sys.argv and "-h" not in sys.argv:
-        return None
-    return importlib.import_module(f"hgca_core.commands.{name}")
+    return importlib.import_module(f"hgca_core.commands.{name}") if argv[:1] == [name] else None
 
 
 def main(argv: list[str] | None = None) -> int:
-    if argv is not None:
-        sys.argv = [sys.argv[0], *argv]
-    args = build_parser().parse_args()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(argv).parse_args(argv)
     module = importlib.import_module(args._module)
     try:
         return int(module.run(args) or 0)
+    except BrokenPipeError:  # `hgca info ... | head` closed the pipe: not an error
+        sys.stderr.close()
+        return 0
     except HgcaError as exc:
         print(f"hgca {args.command}: error: {exc}", file=sys.stderr)
         return 2
