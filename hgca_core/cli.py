@@ -23,7 +23,7 @@ COMMANDS = {
 
 
 def build_parser(argv: list[str]) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="hgca", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="hgca", description="LiDAR scene extrapolation with hierarchical Generative Cellular Automata (hGCA)")
     parser.add_argument("--version", action="version", version=f"hgca {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     for name, help_text in COMMANDS.items():
