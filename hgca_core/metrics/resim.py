@@ -10,7 +10,6 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import trimesh
-from skimage.measure import marching_cubes
 
 from hgca_core.errors import InputError
 from hgca_core.geometry.voxel import COARSE, FINE, cell_centers
@@ -48,6 +47,8 @@ def voxels_to_mesh(coords: np.ndarray, voxel_size: float,
                                      dtype=np.float64), (3,))
     if len(c) == 0:
         return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), process=False)
+    from skimage.measure import marching_cubes    # lazy: scikit-image's import is slow, most callers never mesh
+
     c = c.astype(np.int64)
     lo = c.min(0) - 1                               # one empty cell of padding on each side closes the surface
     occ = np.zeros(tuple(c.max(0) - lo + 2), dtype=np.float32)
