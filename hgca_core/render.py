@@ -1,0 +1,79 @@
+"""A small software renderer for previews: surface samples splatted through a z-buffer, Lambert-shaded.
+
+Used by `hgca demo` (and previews) so a PNG of a completion needs no GPU, display or extra package.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+    """World -> camera rotation (rows: right, up, forward)."""
+    f = target - eye
+    f = f / np.linalg.norm(f)
+    r = np.cross(f, up)
+    r = r / np.linalg.norm(r)
+    return np.stack([r, np.cross(r, f), f])
+
+
+def render_mesh(mesh: trimesh.Trimesh, path: str | Path, points: np.ndarray | None = None,
+                colour_by: np.ndarray | None = None, size: tuple[int, int] = (1200, 800),
+                eye: np.ndarray | None = None, target: np.ndarray | None = None, fov_deg: float = 50.0,
+                samples: int = 1_500_000, seed: int = 0) -> None:
+    """Write a PNG of `mesh` (and optional input `points` as yellow dots) seen from `eye` towards `target`.
+
+    `colour_by` is a per-vertex scalar in metres (e.g. distance to the input): near 0 = observed (grey),
+    far = generated (blue), the colouring the Blender material uses too.
+    """
+    from PIL import Image
+
+    w, h = size
+    lo, hi = mesh.bounds if len(mesh.vertices) else (np.zeros(3), np.ones(3))
+    target = (lo + hi) / 2 if target is None else np.asarray(target, float)
+    span = float(np.linalg.norm(hi - lo))
+    eye = target + np.array([-0.55, -0.75, 0.45]) * span if eye is None else np.asarray(eye, float)
+    rot = look_at(eye, target)
+    focal = 0.5 * w / np.tan(np.radians(fov_deg) / 2)
+    depth = np.full(h * w, np.inf)
+    image = np.full((h * w, 3), 255.0)
+
+    def splat(pts: np.ndarray, rgb: np.ndarray, radius: int) -> None:
+        cam = (pts - eye) @ rot.T
+        front = cam[:, 2] > 0.1
+        cam, rgb = cam[front], rgb[front]
+        u = (focal * cam[:, 0] / cam[:, 2] + w / 2).astype(np.int64)
+        v = (h / 2 - focal * cam[:, 1] / cam[:, 2]).astype(np.int64)
+        for du in range(-radius + 1, radius):
+            for dv in range(-radius + 1, radius):
+                uu, vv = u + du, v + dv
+                ok = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
+                pix = vv[ok] * w + uu[ok]
+                z = cam[ok, 2]
+                order = np.argsort(-z)  # far first, so the nearest write wins
+                pix, z, col = pix[order], z[order], rgb[ok][order]
+                closer = z < depth[pix]
+                depth[pix[closer]] = z[closer]
+                image[pix[closer]] = col[closer]
+
+    if len(mesh.faces):
+        n = min(samples, max(1000, int(mesh.area / 0.0004)))
+        pts, face = trimesh.sample.sample_surface(mesh, n, seed=seed)
+        normals = mesh.face_normals[face]
+        light = np.array([0.3, 0.4, 0.85])
+        shade = 0.35 + 0.65 * np.abs(normals @ (light / np.linalg.norm(light)))
+        base = np.tile([190.0, 190.0, 190.0], (len(pts), 1))
+        if colour_by is not None and len(colour_by) == len(mesh.vertices):
+            bary = trimesh.triangles.points_to_barycentric(mesh.triangles[face], pts)
+            value = np.einsum("ij,ij->i", bary, np.asarray(colour_by, float)[mesh.faces[face]])
+            t = np.clip(value / 0.5, 0, 1)[:, None]
+            base = (1 - t) * base + t * np.array([70.0, 130.0, 230.0])
+        splat(pts, base * shade[:, None], radius=2)
+    if points is not None and len(points):
+        p = np.asarray(points, float)
+        if len(p) > 200_000:
+            p = p[np.random.default_rng(seed).choice(len(p), 200_000, replace=False)]
+        splat(p, np.tile([245.0, 200.0, 40.0], (len(p), 1)), radius=1)
+    Image.fromarray(image.reshape(h, w, 3).clip(0, 255).astype(np.uint8)).save(path)
