@@ -1,0 +1,135 @@
+"""Gather-GEMM-scatter sparse convolution (pure PyTorch) and a one-function backend registry.
+
+The torch backend cuts the pair list of a `KernelMap` into chunks: per chunk one `index_select` of the
+input rows, one GEMM per kernel offset into a preallocated product buffer, and one `index_add_` into
+the output. Everything runs in a fixed order, so the result does not depend on the thread count (the
+CPU build of spconv gets exactly this wrong). A CUDA library can plug in with `register_backend`.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch.autograd.function import once_differentiable
+
+from hgca_core.nn.kernel_map import KernelMap
+
+# Elements (rows x channels) gathered per chunk: big enough that GEMMs amortise the per-call
+# overhead, small enough that the chunk buffers stay in cache-friendly sizes and memory stays bounded.
+CHUNK_ELEMENTS = 1 << 20
+
+
+# MKL (torch 2.13, AVX-512) takes a thread-count-dependent path for GEMMs with 5-11 rows, so results
+# change in the last bit between 1 and 2 threads. GEMMs with fewer rows than this are zero-padded.
+MIN_GEMM_ROWS = 16
+
+
+def _rows(cin: int, cout: int) -> int:
+    return max(1, CHUNK_ELEMENTS // max(cin, cout, 1))
+
+
+def _mm(a: torch.Tensor, b: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+    """a @ b (into `out`), bit-identical whatever the thread count (see MIN_GEMM_ROWS)."""
+    n = a.shape[0]
+    if n >= MIN_GEMM_ROWS or n == 0:
+        return torch.mm(a, b) if out is None else torch.mm(a, b, out=out)
+    pad = a.new_zeros((MIN_GEMM_ROWS, a.shape[1]))
+    pad[:n] = a
+    res = torch.mm(pad, b)[:n]
+    return res if out is None else out.copy_(res)
+
+
+def gemm_forward(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap) -> torch.Tensor:
+    """out[o] = sum over pairs (i, o, k) of feats[i] @ weight[k]; no autograd."""
+    kvol, cin, cout = weight.shape
+    if kmap.identity is not None:
+        out = _mm(feats, weight[kmap.identity])
+    else:
+        out = feats.new_zeros((kmap.n_out, cout))
+    for r0, r1, pieces in kmap.chunks(_rows(cin, cout)):
+        g = feats.index_select(0, kmap.in_idx[r0:r1])
+        prod = feats.new_empty((r1 - r0, cout))
+        for k, a, b in pieces:
+            _mm(g[a:b], weight[k], out=prod[a:b])
+        out.index_add_(0, kmap.out_idx[r0:r1], prod)
+    return out
+
+
+def gemm_backward(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap, grad_out: torch.Tensor,
+                  need_feats: bool, need_weight: bool) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """grad_in[i] += grad_out[o] @ W[k].T and grad_W[k] = sum feats[i].T @ grad_out[o] over pairs."""
+    kvol, cin, cout = weight.shape
+    grad_out = grad_out.contiguous()
+    grad_in = grad_w = None
+    if need_feats:
+        if kmap.identity is not None:
+            grad_in = _mm(grad_out, weight[kmap.identity].T)
+        else:
+            grad_in = feats.new_zeros((kmap.n_in, cin))
+    if need_weight:
+        grad_w = torch.zeros_like(weight)
+        if kmap.identity is not None:
+            torch.mm(feats.T, grad_out, out=grad_w[kmap.identity])
+    wt = weight.transpose(1, 2)
+    for r0, r1, pieces in kmap.chunks(_rows(cin, cout)):
+        go = grad_out.index_select(0, kmap.out_idx[r0:r1])
+        fi = feats.index_select(0, kmap.in_idx[r0:r1]) if need_weight else None
+        prod = feats.new_empty((r1 - r0, cin)) if need_feats else None
+        for k, a, b in pieces:
+            if need_weight:
+                grad_w[k].addmm_(fi[a:b].T, go[a:b])
+            if need_feats:
+                _mm(go[a:b], wt[k], out=prod[a:b])
+        if need_feats:
+            grad_in.index_add_(0, kmap.in_idx[r0:r1], prod)
+    return grad_in, grad_w
+
+
+class SparseConvFunction(torch.autograd.Function):
+    """Autograd wrapper of the gather-GEMM-scatter convolution (first-order gradients)."""
+
+    @staticmethod
+    def forward(ctx, feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap) -> torch.Tensor:
+        feats = feats.contiguous()
+        weight = weight.contiguous()
+        ctx.save_for_backward(feats, weight)
+        ctx.kmap = kmap
+        return gemm_forward(feats, weight, kmap)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_out: torch.Tensor):
+        feats, weight = ctx.saved_tensors
+        gi, gw = gemm_backward(feats, weight, ctx.kmap, grad_out, ctx.needs_input_grad[0],
+                               ctx.needs_input_grad[1])
+        return gi, gw, None
+
+
+def _torch_conv_gemm(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap) -> torch.Tensor:
+    return SparseConvFunction.apply(feats, weight, kmap)
+
+
+ConvGemm = Callable[[torch.Tensor, torch.Tensor, KernelMap], torch.Tensor]
+_BACKENDS: dict[str, ConvGemm] = {"torch": _torch_conv_gemm}
+_current = "torch"
+
+
+def register_backend(name: str, fn: ConvGemm) -> None:
+    """Add a backend: fn(feats (N_in, cin), weight (K, cin, cout), kmap) -> (N_out, cout), differentiable."""
+    _BACKENDS[name] = fn
+
+
+def set_backend(name: str) -> None:
+    global _current
+    if name not in _BACKENDS:
+        raise ValueError(f"unknown sparse conv backend {name!r}; known: {sorted(_BACKENDS)}")
+    _current = name
+
+
+def get_backend() -> str:
+    return _current
+
+
+def conv_gemm(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap) -> torch.Tensor:
+    """The one entry point every sparse conv layer calls; dispatches to the selected backend."""
+    return _BACKENDS[_current](feats, weight, kmap)

@@ -1,0 +1,172 @@
+"""Kernel maps: for every kernel offset, the (input row, output row) pairs a sparse convolution touches.
+
+Coordinates are (N, 4) int64 [b, x, y, z] rows in units of the finest cell (a tensor at stride s has
+x, y, z that are multiples of s), unique and sorted by `hgca_core.geometry.coords.pack`. Because `pack`
+is linear in each field, the key of c + d is key(c) + delta(d): all neighbour queries of a kernel are
+one broadcast add and one `searchsorted` into the sorted key table, with no per-offset Python work.
+
+Offset order (= first axis of every conv weight, shape (K, cin, cout)): lexicographic over (x, y, z),
+the order of `itertools.product` and of `coords.offsets`. For a submanifold kernel of size k the offset
+index of d in [-r, r]^3 (r = k // 2) is (dx + r) k^2 + (dy + r) k + (dz + r), i.e. dense weight
+w[cout, cin, dx + r, dy + r, dz + r]; for a strided / transposed kernel of size f it is ox f^2 + oy f + oz
+with the child's position o in [0, f)^3 inside its parent cell.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from hgca_core.geometry.coords import _BITS, offsets, pack, unpack
+
+# Coordinates (finest units) must stay this far inside pack's (-2**17, 2**17) field so that neighbour
+# keys (c + d) never borrow from the next field and alias a different cell.
+COORD_LIMIT = (1 << (_BITS - 1)) - 4096
+
+
+@dataclass(frozen=True)
+class KernelMap:
+    """Pairs of one convolution, concatenated over kernel offsets.
+
+    Pairs of offset k are rows splits[k]:splits[k+1] of in_idx / out_idx (output row out_idx[p] receives
+    feats[in_idx[p]] @ W[k]). `identity` names an offset whose pairs are the identity (the centre of a
+    submanifold kernel); its segment is empty and the convolution handles it with one plain GEMM.
+    """
+
+    in_idx: torch.Tensor
+    out_idx: torch.Tensor
+    splits: tuple[int, ...]
+    n_in: int
+    n_out: int
+    identity: int | None = None
+
+    @property
+    def volume(self) -> int:
+        return len(self.splits) - 1
+
+    @property
+    def num_pairs(self) -> int:
+        """Pairs including the implicit identity ones."""
+        return int(self.splits[-1]) + (self.n_in if self.identity is not None else 0)
+
+    def transposed(self) -> "KernelMap":
+        """The map with inputs and outputs swapped (the adjoint: down map <-> up map, grad_in pass)."""
+        return KernelMap(self.out_idx, self.in_idx, self.splits, self.n_out, self.n_in, self.identity)
+
+    def to(self, device: torch.device | str) -> "KernelMap":
+        return KernelMap(self.in_idx.to(device), self.out_idx.to(device), self.splits, self.n_in,
+                         self.n_out, self.identity)
+
+    def chunks(self, rows: int) -> list[tuple[int, int, list[tuple[int, int, int]]]]:
+        """Cut the pair list into row ranges of at most `rows` pairs.
+
+        Returns (r0, r1, pieces) with pieces (k, a, b): rows a:b of the chunk (chunk-relative) belong to
+        offset k. One gather and one scatter per chunk, one GEMM per piece.
+        """
+        out: list[tuple[int, int, list[tuple[int, int, int]]]] = []
+        total = self.splits[-1]
+        r0 = 0
+        while r0 < total:
+            r1 = min(total, r0 + rows)
+            pieces = []
+            for k in range(self.volume):
+                a, b = max(self.splits[k], r0), min(self.splits[k + 1], r1)
+                if b > a:
+                    pieces.append((k, a - r0, b - r0))
+            out.append((r0, r1, pieces))
+            r0 = r1
+        return out
+
+
+def key_delta(offs: torch.Tensor) -> torch.Tensor:
+    """(K, 3) spatial offsets -> (K,) int64 amounts to add to a packed key (pack is field-linear)."""
+    o = offs.long()
+    return (o[:, 0] << (2 * _BITS)) + (o[:, 1] << _BITS) + o[:, 2]
+
+
+def _splits(counts: torch.Tensor) -> tuple[int, ...]:
+    c = [0]
+    for n in counts.tolist():
+        c.append(c[-1] + int(n))
+    return tuple(c)
+
+
+def submanifold_map(keys: torch.Tensor, kernel_size: int, stride: int) -> KernelMap:
+    """Map of a submanifold conv (outputs = inputs) from the sorted keys of the active set.
+
+    Only the 13 (for k = 3) offsets before the centre are searched: the pairs of -d are those of d
+    swapped, and the centre is the identity.
+    """
+    if kernel_size % 2 != 1:
+        raise ValueError(f"submanifold kernel_size must be odd, got {kernel_size}")
+    n = keys.numel()
+    dev = keys.device
+    offs = offsets(kernel_size // 2, device=dev) * stride
+    kvol = len(offs)
+    centre = kvol // 2
+    if kvol == 1 or n == 0:
+        e = torch.empty(0, dtype=torch.long, device=dev)
+        return KernelMap(e, e, (0,) * (kvol + 1), n, n, centre)
+    delta = key_delta(offs[:centre])                            # offsets lexicographically < 0
+    q = keys[None, :] + delta[:, None]                          # (centre, N), each row sorted
+    idx = torch.searchsorted(keys, q.reshape(-1)).clamp_(max=n - 1)
+    found = keys[idx] == q.reshape(-1)
+    nz = found.nonzero().squeeze(1)
+    half_out = nz % n                                           # output row (the centre cell)
+    half_in = idx[nz]                                           # input row (the cell at c + d)
+    counts = found.view(centre, n).sum(1)
+    seg = _splits(counts)
+    ins, outs = [half_in], [half_out]
+    for k in range(centre - 1, -1, -1):                         # offset K-1-k = -d_k: swapped pairs
+        ins.append(half_out[seg[k]:seg[k + 1]])
+        outs.append(half_in[seg[k]:seg[k + 1]])
+    all_counts = counts.tolist() + [0] + counts.flip(0).tolist()
+    return KernelMap(torch.cat(ins), torch.cat(outs), _splits(torch.tensor(all_counts)), n, n, centre)
+
+
+def identity_map(n: int, device: torch.device | str = "cpu") -> KernelMap:
+    """Map of a 1x1x1 conv: only the identity offset."""
+    e = torch.empty(0, dtype=torch.long, device=device)
+    return KernelMap(e, e, (0, 0), n, n, 0)
+
+
+def _child_offset_index(child: torch.Tensor, parent: torch.Tensor, child_stride: int, factor: int) -> torch.Tensor:
+    o = torch.div(child[:, 1:] - parent[:, 1:], child_stride, rounding_mode="floor")
+    return (o[:, 0] * factor + o[:, 1]) * factor + o[:, 2]
+
+
+def _grouped(k: torch.Tensor, in_idx: torch.Tensor, out_idx: torch.Tensor, kvol: int, n_in: int,
+             n_out: int) -> KernelMap:
+    order = torch.sort(k, stable=True).indices
+    counts = torch.bincount(k, minlength=kvol)
+    return KernelMap(in_idx[order], out_idx[order], _splits(counts), n_in, n_out, None)
+
+
+def parent_coords(coords: torch.Tensor, parent_stride: int) -> torch.Tensor:
+    """Each cell's parent at `parent_stride` (floor), in finest units."""
+    p = coords.clone()
+    p[:, 1:] = torch.div(p[:, 1:], parent_stride, rounding_mode="floor") * parent_stride
+    return p
+
+
+def downsample_map(coords: torch.Tensor, stride: int, factor: int) -> tuple[torch.Tensor, KernelMap]:
+    """Output coords (unique parents at stride * factor) and the map of a kernel=stride=factor conv."""
+    par = parent_coords(coords, stride * factor)
+    out_keys, inv = torch.unique(pack(par), return_inverse=True)
+    k = _child_offset_index(coords, par, stride, factor)
+    n = coords.shape[0]
+    kmap = _grouped(k, torch.arange(n, device=coords.device), inv, factor ** 3, n, out_keys.numel())
+    return unpack(out_keys), kmap
+
+
+def upsample_map(in_keys: torch.Tensor, target: torch.Tensor, target_stride: int, factor: int) -> KernelMap:
+    """Map of a kernel=stride=factor transposed conv from a coarse set (sorted keys) onto `target`.
+
+    Target cells whose parent is not active receive nothing (zero before bias).
+    """
+    par = parent_coords(target, target_stride * factor)
+    src = torch.searchsorted(in_keys, pack(par)).clamp_(max=max(in_keys.numel() - 1, 0))
+    ok = in_keys[src] == pack(par) if in_keys.numel() else torch.zeros_like(src, dtype=torch.bool)
+    rows = ok.nonzero().squeeze(1)
+    k = _child_offset_index(target[rows], par[rows], target_stride, factor)
+    return _grouped(k, src[rows], rows, factor ** 3, in_keys.numel(), target.shape[0])
