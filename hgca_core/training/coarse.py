@@ -89,7 +89,7 @@ class CoarseTask:
             out = sample(loss_module.model, cs.with_batch(s0_t), grid, self.cfg.steps, gen)
             scores.append(iou(out[:, 1:].numpy(), gt_t.numpy(), vis_t.numpy()))
         loss_module.train()
-        return {"val_iou": float(np.mean(scores))}
+        return {"val_iou": float(np.nanmean(scores)) if np.any(np.isfinite(scores)) else float("nan")}
 
 
 def default_config(use_planner: bool = True) -> GCAConfig:
