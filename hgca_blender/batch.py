@@ -1,0 +1,124 @@
+"""Headless completion into a .blend, optionally with a preview render.
+
+    blender --background --python hgca_blender/batch.py -- SCAN... --samples 2 --stage coarse \\
+        --out scene.blend [--region cx,cy,cz,sx,sy,sz,yaw] [--render preview.png]
+    python -m hgca_blender.batch SCAN... --out scene.blend        (bpy module)
+
+Timers never fire in background mode, so the job is driven by calling `poll_once()` in a loop; the
+code path is otherwise the one the UI uses (import via `hgca read`, `CompletionJob`, mesh building).
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+if __name__ == "__main__" and not __package__:
+    # Run as a script (`blender --python hgca_blender/batch.py`): import the package and run from it.
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from hgca_blender import batch as _package_batch
+
+    sys.exit(_package_batch.main(_package_batch.script_args(sys.argv)))
+
+import argparse
+import time
+
+import bpy
+
+from . import jobs, operators_import, preferences, preview, region, sources
+
+
+def script_args(argv: list[str]) -> list[str]:
+    """Arguments meant for this script: after `--` when present (Blender's convention), else argv[1:]."""
+    return argv[argv.index("--") + 1:] if "--" in argv else argv[1:]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="hgca_blender.batch", description=__doc__.split("\n")[0])
+    p.add_argument("scans", nargs="+", help="scan files (any format `hgca read` accepts)")
+    p.add_argument("--poses", default=None, help="poses JSON for the scans")
+    p.add_argument("--out", required=True, help="output .blend")
+    p.add_argument("--region", default=None, help="cx,cy,cz,sx,sy,sz[,yaw_deg] (default: 38.4 x 38.4 x 8 m "
+                                                  "around the scan, 1 m below the ground)")
+    p.add_argument("--samples", type=int, default=1)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--stage", choices=("coarse", "full"), default="coarse")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    p.add_argument("--t1", type=int, default=30)
+    p.add_argument("--t2", type=int, default=15)
+    p.add_argument("--weights", default=None, help="coarse weights passed to `hgca complete --weights`")
+    p.add_argument("--python", default=None, help="interpreter with hgca_core (default: auto-detect)")
+    p.add_argument("--render", default=None, help="also render a preview PNG with Cycles (CPU)")
+    p.add_argument("--render-samples", type=int, default=16)
+    p.add_argument("--timeout", type=float, default=3600.0, help="give up on the completion after this many seconds")
+    return p
+
+
+def _log(message: str) -> None:
+    print(f"hgca batch: {message}", flush=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    python = args.python or preferences.detect_python()
+    if not python:
+        _log(f"error: no interpreter with hgca_core found: pass --python or set {preferences.ENV_VAR}")
+        return 2
+    bpy.ops.wm.read_homefile(use_empty=True)
+    scene = bpy.context.scene
+    t0 = time.perf_counter()
+    try:
+        obj, skipped = operators_import.import_scans(python, [Path(s) for s in args.scans], scene.collection,
+                                                     Path(args.poses) if args.poses else None)
+    except (jobs.CoreError, ValueError, OSError) as exc:
+        _log(f"error: {exc}")
+        return 2
+    _log(f"imported {len(obj.data.vertices):,} points as '{obj.name}' in {time.perf_counter() - t0:.1f} s"
+         + (f" (skipped attributes: {', '.join(skipped)})" if skipped else ""))
+    points = sources.world_points([obj])
+    try:
+        box = region.parse_region(args.region) if args.region else region.default_region(points)
+    except region.RegionError as exc:
+        _log(f"error: {exc}")
+        return 2
+    region.create_region_box(scene.collection, box)
+    params = jobs.CompletionParams(python=python, points=points, region=box, samples=args.samples, seed=args.seed,
+                                   stage=args.stage, device=args.device, t1=args.t1, t2=args.t2,
+                                   scene_name=scene.name,
+                                   extra_args=["--weights", args.weights] if args.weights else [])
+    try:
+        job = jobs.start_job(params)
+    except jobs.CoreError as exc:
+        _log(f"error: {exc}")
+        return 2
+    last = [""]
+
+    def show(j: jobs.Job) -> None:
+        if j.status != last[0]:
+            last[0] = j.status
+            _log(f"{j.progress * 100:5.1f}% {j.status}")
+
+    state = job.wait(timeout=args.timeout, on_poll=show)
+    jobs.poll_all()
+    if state != "done":
+        _log(f"error: completion {state}: {job.error or job.status}")
+        return 2
+    _log(f"{job.status} after {time.perf_counter() - t0:.1f} s")
+    if args.render:
+        preview.add_camera_and_sun(scene, box)
+        preview.configure_cycles(scene, samples=args.render_samples)
+    out = Path(args.out).resolve()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    bpy.ops.wm.save_as_mainfile(filepath=str(out), check_existing=False)
+    _log(f"saved {out}")
+    if args.render:
+        png = preview.render_png(scene, Path(args.render))
+        _log(f"rendered {png}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(script_args(sys.argv) if argv is None else argv)
+    return run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

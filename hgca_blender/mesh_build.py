@@ -1,0 +1,289 @@
+"""Building Blender data from arrays: point objects for scans, meshes and a material for completions.
+
+Everything goes through `vertices.add / loops.add / polygons.add` + `foreach_set` on contiguous numpy
+arrays (about 3x faster than `from_pydata`; 1M triangles in well under a second). Result building is
+transactional: if anything fails, every datablock created so far is removed again, so a failed job
+leaves the file exactly as it was.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+ROLE_KEY = "hgca_role"  # custom property marking objects the add-on created: "scan", "region", "result"
+OBSERVED_ATTRIBUTE = "observed_distance"
+# Vertices closer than this to an input point count as observed, farther ones as generated (metres).
+OBSERVED_NEAR = 0.05
+OBSERVED_FAR = 0.3
+# Coordinates farther than this from the origin are re-centred (object location holds the offset),
+# so georeferenced scans do not jitter in the viewport.
+RECENTER_ABOVE = 1000.0
+POINT_NODE_GROUP = "hGCA Points"
+
+
+class Created:
+    """Datablocks created during one operation, removed again by `rollback()` if it fails."""
+
+    def __init__(self) -> None:
+        self.objects: list[bpy.types.Object] = []
+        self.meshes: list[bpy.types.Mesh] = []
+        self.materials: list[bpy.types.Material] = []
+        self.collections: list[bpy.types.Collection] = []
+        self.node_groups: list[bpy.types.NodeTree] = []
+
+    def rollback(self) -> None:
+        for obj in self.objects:
+            bpy.data.objects.remove(obj, do_unlink=True)
+        for mesh in self.meshes:
+            bpy.data.meshes.remove(mesh, do_unlink=True)
+        for mat in self.materials:
+            bpy.data.materials.remove(mat, do_unlink=True)
+        for coll in self.collections:
+            bpy.data.collections.remove(coll, do_unlink=True)
+        for ng in self.node_groups:
+            bpy.data.node_groups.remove(ng, do_unlink=True)
+        self.__init__()
+
+
+# -------------------------------------------------------------------------------------------------
+# Point objects
+
+def _attribute_type(values: np.ndarray) -> tuple[str, np.ndarray] | None:
+    """Blender attribute type and the array converted for foreach_set, or None if unsupported."""
+    if values.ndim == 1:
+        if values.dtype == np.bool_:
+            return "BOOLEAN", values.astype(np.bool_)
+        if np.issubdtype(values.dtype, np.integer):
+            info = np.iinfo(np.int32)
+            if values.size == 0 or (values.min() >= info.min and values.max() <= info.max):
+                return "INT", values.astype(np.int32)
+            return "FLOAT", values.astype(np.float32)
+        if np.issubdtype(values.dtype, np.floating):
+            return "FLOAT", values.astype(np.float32)
+        return None
+    if values.ndim == 2 and np.issubdtype(values.dtype, np.number):
+        if values.shape[1] == 2:
+            return "FLOAT2", values.astype(np.float32)
+        if values.shape[1] == 3:
+            return "FLOAT_VECTOR", values.astype(np.float32)
+    return None
+
+
+def _attribute_name(mesh: bpy.types.Mesh, name: str) -> str:
+    """Avoid Blender's built-in and internal names ("position", ".select_vert", ...)."""
+    clean = name.strip().lstrip(".") or "attribute"
+    if clean in mesh.attributes or clean in {"position", "normal", "id", "radius", "material_index"}:
+        clean = f"hgca_{clean}"
+    return clean[:63]
+
+
+def add_point_attributes(mesh: bpy.types.Mesh, attributes: dict[str, np.ndarray]) -> list[str]:
+    """Add per-point arrays as point-domain attributes; returns the names that were skipped."""
+    n = len(mesh.vertices)
+    skipped = []
+    for name, raw in attributes.items():
+        values = np.asarray(raw)
+        converted = _attribute_type(values) if values.shape[:1] == (n,) else None
+        if converted is None:
+            skipped.append(name)
+            continue
+        kind, data = converted
+        attr = mesh.attributes.new(_attribute_name(mesh, name), kind, "POINT")
+        key = "vector" if kind in ("FLOAT2", "FLOAT_VECTOR") else "value"
+        attr.data.foreach_set(key, np.ascontiguousarray(data).ravel())
+    return skipped
+
+
+def points_mesh(name: str, points: np.ndarray, offset: np.ndarray | None = None) -> bpy.types.Mesh:
+    """A vertex-only mesh holding `points - offset` (float32 inside Blender)."""
+    pts = np.asarray(points, dtype=np.float64)
+    if offset is not None:
+        pts = pts - offset
+    mesh = bpy.data.meshes.new(name)
+    mesh.vertices.add(len(pts))
+    mesh.vertices.foreach_set("co", np.ascontiguousarray(pts, dtype=np.float32).ravel())
+    mesh.update()
+    return mesh
+
+
+def recenter_offset(points: np.ndarray) -> np.ndarray:
+    """Offset (whole metres) to move far-away scans near the origin, zero for local ones."""
+    pts = np.asarray(points, dtype=np.float64)
+    centre = (pts.min(axis=0) + pts.max(axis=0)) / 2 if len(pts) else np.zeros(3)
+    if np.max(np.abs(centre)) <= RECENTER_ABOVE:
+        return np.zeros(3)
+    return np.round(centre)
+
+
+def point_display_group(created: Created) -> bpy.types.NodeTree:
+    """Geometry Nodes group "Mesh to Points", so loose vertices show (and render) as small points."""
+    existing = bpy.data.node_groups.get(POINT_NODE_GROUP)
+    if existing is not None and existing.get(ROLE_KEY) == "points" and existing.bl_idname == "GeometryNodeTree":
+        return existing
+    ng = bpy.data.node_groups.new(POINT_NODE_GROUP, "GeometryNodeTree")
+    created.node_groups.append(ng)
+    ng[ROLE_KEY] = "points"
+    ng.interface.new_socket(name="Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    ng.interface.new_socket(name="Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    nodes, links = ng.nodes, ng.links
+    node_in = nodes.new("NodeGroupInput")
+    node_out = nodes.new("NodeGroupOutput")
+    to_points = nodes.new("GeometryNodeMeshToPoints")
+    to_points.inputs["Radius"].default_value = 0.03
+    node_in.location, to_points.location, node_out.location = (-300, 0), (0, 0), (300, 0)
+    links.new(node_in.outputs[0], to_points.inputs["Mesh"])
+    links.new(to_points.outputs["Points"], node_out.inputs[0])
+    return ng
+
+
+def build_point_object(name: str, points: np.ndarray, attributes: dict[str, np.ndarray],
+                       collection: bpy.types.Collection, show_points: bool = True) -> tuple[bpy.types.Object, list[str]]:
+    """A new point object in `collection`; returns it and the attribute names that could not be stored."""
+    created = Created()
+    try:
+        offset = recenter_offset(points)
+        mesh = points_mesh(name, points, offset)
+        created.meshes.append(mesh)
+        skipped = add_point_attributes(mesh, attributes)
+        obj = bpy.data.objects.new(name, mesh)
+        created.objects.append(obj)
+        obj.location = offset.tolist()
+        obj[ROLE_KEY] = "scan"
+        if show_points:
+            mod = obj.modifiers.new("hGCA Points", "NODES")
+            mod.node_group = point_display_group(created)
+        collection.objects.link(obj)
+    except Exception:
+        created.rollback()
+        raise
+    return obj, skipped
+
+
+# -------------------------------------------------------------------------------------------------
+# Completion results
+
+@dataclass
+class ResultArrays:
+    vertices: np.ndarray  # (V, 3) float32
+    faces: np.ndarray  # (F, 3) int32
+    observed_distance: np.ndarray  # (V,) float32
+
+
+def read_result(path: Path) -> ResultArrays:
+    """Load and check one `out_s{i}.npz` (CONTRACTS.md) before any Blender data is made from it."""
+    with np.load(path, allow_pickle=False) as data:
+        missing = [k for k in ("vertices", "faces") if k not in data.files]
+        if missing:
+            raise ValueError(f"{path.name}: missing arrays {missing}")
+        vertices = np.asarray(data["vertices"], dtype=np.float32)
+        faces = np.asarray(data["faces"])
+        if "observed_distance" in data.files:
+            observed = np.asarray(data["observed_distance"], dtype=np.float32)
+        else:
+            observed = np.zeros(len(vertices), dtype=np.float32)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"{path.name}: vertices must be (V, 3), got {vertices.shape}")
+    if faces.size == 0:
+        faces = faces.reshape(0, 3)
+    if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
+        raise ValueError(f"{path.name}: faces must be (F, 3) integers, got {faces.shape} {faces.dtype}")
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise ValueError(f"{path.name}: face indices out of range 0..{len(vertices) - 1}")
+    if observed.shape != (len(vertices),):
+        raise ValueError(f"{path.name}: observed_distance must be ({len(vertices)},), got {observed.shape}")
+    if not np.all(np.isfinite(vertices)):
+        raise ValueError(f"{path.name}: vertices contain NaN or infinite values")
+    return ResultArrays(vertices, faces.astype(np.int32), observed)
+
+
+def triangle_mesh(name: str, vertices: np.ndarray, faces: np.ndarray) -> bpy.types.Mesh:
+    """A triangle mesh from (V,3) vertices and (F,3) faces, built with foreach_set."""
+    mesh = bpy.data.meshes.new(name)
+    n_faces = len(faces)
+    mesh.vertices.add(len(vertices))
+    mesh.vertices.foreach_set("co", np.ascontiguousarray(vertices, dtype=np.float32).ravel())
+    mesh.loops.add(3 * n_faces)
+    mesh.loops.foreach_set("vertex_index", np.ascontiguousarray(faces, dtype=np.int32).ravel())
+    mesh.polygons.add(n_faces)
+    mesh.polygons.foreach_set("loop_start", np.arange(0, 3 * n_faces, 3, dtype=np.int32))
+    mesh.update(calc_edges=True)
+    return mesh
+
+
+def observed_material(name: str = "hGCA observed/generated") -> bpy.types.Material:
+    """Colour by the "observed_distance" point attribute: grey where observed, orange where generated.
+
+    Attribute -> Map Range (OBSERVED_NEAR..OBSERVED_FAR -> 0..1) -> Color Ramp -> Principled Base Color.
+    """
+    mat = bpy.data.materials.new(name)
+    if mat.node_tree is None:  # Blender 4.x; in 5.x materials always have a node tree
+        mat.use_nodes = True
+    nodes, links = mat.node_tree.nodes, mat.node_tree.links
+    bsdf = next((n for n in nodes if n.bl_idname == "ShaderNodeBsdfPrincipled"), None)
+    if bsdf is None:
+        bsdf = nodes.new("ShaderNodeBsdfPrincipled")
+        output = next((n for n in nodes if n.bl_idname == "ShaderNodeOutputMaterial"), None) \
+            or nodes.new("ShaderNodeOutputMaterial")
+        links.new(bsdf.outputs["BSDF"], output.inputs["Surface"])
+    attr = nodes.new("ShaderNodeAttribute")
+    attr.attribute_type = "GEOMETRY"
+    attr.attribute_name = OBSERVED_ATTRIBUTE
+    remap = nodes.new("ShaderNodeMapRange")
+    remap.inputs["From Min"].default_value = OBSERVED_NEAR
+    remap.inputs["From Max"].default_value = OBSERVED_FAR
+    ramp = nodes.new("ShaderNodeValToRGB")
+    elements = ramp.color_ramp.elements
+    elements[0].position, elements[0].color = 0.0, (0.55, 0.57, 0.6, 1.0)  # observed: neutral grey
+    elements[1].position, elements[1].color = 1.0, (0.95, 0.45, 0.1, 1.0)  # generated: orange
+    attr.location, remap.location, ramp.location = (-900, 200), (-650, 200), (-400, 200)
+    links.new(attr.outputs["Fac"], remap.inputs["Value"])
+    links.new(remap.outputs["Result"], ramp.inputs["Fac"])
+    links.new(ramp.outputs["Color"], bsdf.inputs["Base Color"])
+    mat.diffuse_color = (0.95, 0.45, 0.1, 1.0)  # solid-mode colour
+    mat[ROLE_KEY] = "result"
+    return mat
+
+
+def result_object(name: str, arrays: ResultArrays, material: bpy.types.Material,
+                  created: Created) -> bpy.types.Object:
+    mesh = triangle_mesh(name, arrays.vertices, arrays.faces)
+    created.meshes.append(mesh)
+    attr = mesh.attributes.new(OBSERVED_ATTRIBUTE, "FLOAT", "POINT")
+    attr.data.foreach_set("value", arrays.observed_distance)
+    mesh.materials.append(material)
+    obj = bpy.data.objects.new(name, mesh)
+    created.objects.append(obj)
+    obj[ROLE_KEY] = "result"
+    return obj
+
+
+def build_results(scene: bpy.types.Scene, outputs: list[Path], run_name: str) -> bpy.types.Collection:
+    """A new collection `run_name` in `scene` with one mesh object per sample; only sample 0 visible.
+
+    All files are read and checked first; on any failure everything created here is removed.
+    """
+    arrays = [read_result(Path(p)) for p in outputs]
+    created = Created()
+    try:
+        collection = bpy.data.collections.new(run_name)
+        created.collections.append(collection)
+        material = observed_material(f"{run_name} observed/generated")
+        created.materials.append(material)
+        objects = []
+        for i, arr in enumerate(arrays):
+            obj = result_object(f"{run_name} sample {i}", arr, material, created)
+            obj["hgca_sample"] = i
+            collection.objects.link(obj)
+            objects.append(obj)
+        scene.collection.children.link(collection)
+        for obj in objects[1:]:
+            obj.hide_render = True
+            for view_layer in scene.view_layers:
+                obj.hide_set(True, view_layer=view_layer)
+    except Exception:
+        created.rollback()
+        raise
+    return collection

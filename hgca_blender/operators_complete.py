@@ -1,0 +1,127 @@
+"""hGCA panel operators: add a region box, start a completion job, cancel it.
+
+"Complete" only gathers inputs and starts a `jobs.CompletionJob`; the meshes are built later on the
+main thread by `poll_once()` (driven by a timer in the UI).
+"""
+from __future__ import annotations
+
+import bpy
+
+from . import jobs, preferences, region, sources
+
+
+def _scene_props(context: bpy.types.Context):
+    return context.scene.hgca
+
+
+def source_objects(context: bpy.types.Context) -> list[bpy.types.Object]:
+    """The objects the panel's source settings name (the region box is never a source)."""
+    props = _scene_props(context)
+    box = props.region_object if props.region_mode == "BOX" else None
+    if props.source_mode == "COLLECTION":
+        if props.source_collection is None:
+            raise sources.SourceError("choose a source collection")
+        return sources.collection_sources(props.source_collection, exclude=box)
+    return sources.selected_sources(context, exclude=box)
+
+
+def panel_region(context: bpy.types.Context) -> region.Region:
+    props = _scene_props(context)
+    if props.region_mode == "BOX":
+        if props.region_object is None:
+            raise region.RegionError("no region box: click 'Add Region Box' or pick an object")
+        return region.region_from_object(props.region_object)
+    return region.region_from_numbers(tuple(props.region_center), tuple(props.region_size), props.region_yaw)
+
+
+def gather_params(context: bpy.types.Context) -> jobs.CompletionParams:
+    """Everything the panel says, turned into job parameters (raises with a user-facing message)."""
+    props = _scene_props(context)
+    points = sources.world_points(source_objects(context))
+    return jobs.CompletionParams(
+        python=preferences.core_python(context), points=points, region=panel_region(context),
+        samples=props.samples, seed=props.seed, stage=props.stage, device=props.device,
+        t1=props.t1, t2=props.t2, scene_name=context.scene.name,
+        extra_args=preferences.core_extra_args(context))
+
+
+class HGCA_OT_add_region_box(bpy.types.Operator):
+    """Add a 38.4 x 38.4 x 8 m box around the source points, 1 m below the estimated ground"""
+
+    bl_idname = "hgca.add_region_box"
+    bl_label = "Add Region Box"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        props = _scene_props(context)
+        try:
+            objs = source_objects(context)
+            box_region = region.default_region(sources.world_points(objs), tuple(props.region_size))
+        except (sources.SourceError, region.RegionError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        box = region.create_region_box(context.collection or context.scene.collection, box_region)
+        props.region_object = box
+        props.region_mode = "BOX"
+        props.region_center = box_region[:3]
+        props.region_yaw = 0.0
+        self.report({"INFO"}, f"Added '{box.name}' around {len(objs)} object(s)")
+        return {"FINISHED"}
+
+
+class HGCA_OT_complete(bpy.types.Operator):
+    """Complete the source scans inside the region with hGCA (runs in the background)"""
+
+    bl_idname = "hgca.complete"
+    bl_label = "Complete"
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        return context.scene is not None and jobs.active_job(context.scene.name) is None
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        props = _scene_props(context)
+        try:
+            params = gather_params(context)
+            job = jobs.start_job(params)
+        except (jobs.CoreError, sources.SourceError, region.RegionError) as exc:
+            props.status = f"Error: {exc}"
+            props.status_is_error = True
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        jobs.ensure_timer()
+        self.report({"INFO"}, f"hGCA started on {len(params.points):,} points (process {job.pid})")
+        return {"FINISHED"}
+
+
+class HGCA_OT_cancel(bpy.types.Operator):
+    """Stop the running completion; nothing is added to the scene"""
+
+    bl_idname = "hgca.cancel"
+    bl_label = "Cancel"
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        return context.scene is not None and jobs.active_job(context.scene.name) is not None
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        job = jobs.active_job(context.scene.name)
+        if job is None:
+            return {"CANCELLED"}
+        job.cancel()
+        jobs.poll_all()
+        self.report({"INFO"}, "hGCA completion cancelled")
+        return {"FINISHED"}
+
+
+CLASSES = (HGCA_OT_add_region_box, HGCA_OT_complete, HGCA_OT_cancel)
+
+
+def register() -> None:
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+
+
+def unregister() -> None:
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,133 @@
+"""File > Import > LiDAR Scan (hgca): read scans with `hgca read` and add them as one point object.
+
+Reading is the core's job (all formats, poses, accumulation); the add-on only turns the resulting
+.npz into a vertex-only mesh with point attributes. On any error nothing is added to the file.
+"""
+
+import shutil
+import tempfile
+from pathlib import Path
+
+import bpy
+import numpy as np
+from bpy.props import BoolProperty, CollectionProperty, StringProperty
+from bpy_extras.io_utils import ImportHelper
+
+from . import jobs, mesh_build, preferences
+
+EXTENSIONS = (".ply", ".las", ".laz", ".pcd", ".xyz", ".csv", ".txt", ".npy", ".npz", ".bin")
+READ_TIMEOUT_S = 3600
+
+
+def object_name(paths: list[Path]) -> str:
+    """Name after the first file ("scan", or "scan +4" for five files); drops double suffixes."""
+    stem = paths[0].name
+    for suffix in (".pcd.bin", ".copc.laz", *EXTENSIONS):
+        if stem.lower().endswith(suffix):
+            stem = stem[: -len(suffix)]
+            break
+    return stem if len(paths) == 1 else f"{stem} +{len(paths) - 1}"
+
+
+def read_scans(python: str, paths: list[Path], poses: Path | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Run `hgca read` into a temporary .npz; returns (points (N,3), per-point attributes)."""
+    tmpdir = Path(tempfile.mkdtemp(prefix="hgca_read_"))
+    try:
+        out = tmpdir / "scan.npz"
+        args = ["read", *[str(p) for p in paths]]
+        if poses is not None:
+            args += ["--poses", str(poses)]
+        jobs.run_core(python, [*args, "-o", str(out)], timeout=READ_TIMEOUT_S, cwd=tmpdir)
+        if not out.is_file():
+            raise jobs.CoreError("hgca read finished but wrote no output")
+        with np.load(out, allow_pickle=False) as data:
+            if "points" not in data.files:
+                raise jobs.CoreError("hgca read wrote no 'points' array")
+            points = np.asarray(data["points"])
+            attributes = {k: np.asarray(data[k]) for k in data.files if k not in ("points", "origins")}
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+        raise jobs.CoreError(f"no points read from {', '.join(p.name for p in paths)}")
+    return points, attributes
+
+
+def import_scans(python: str, paths: list[Path], collection: bpy.types.Collection, poses: Path | None = None,
+                 name: str = "", show_points: bool = True) -> tuple[bpy.types.Object, list[str]]:
+    """Read and add one point object to `collection`; returns it and the attributes not stored."""
+    # absolute, not resolved: the core runs elsewhere, and poses match scans by their file names
+    paths = [Path(p).absolute() for p in paths]
+    poses = Path(poses).absolute() if poses is not None else None
+    missing = [str(p) for p in paths if not p.is_file()]
+    if missing:
+        raise jobs.CoreError(f"file not found: {', '.join(missing)}")
+    if poses is not None and not poses.is_file():
+        raise jobs.CoreError(f"poses file not found: {poses}")
+    points, attributes = read_scans(python, paths, poses)
+    return mesh_build.build_point_object(name or object_name(paths), points, attributes, collection, show_points)
+
+
+class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
+    """Import LiDAR scans (PLY, LAS/LAZ, PCD, XYZ/CSV, NPY/NPZ, KITTI/nuScenes .bin) as one point object"""
+
+    bl_idname = "import_scene.hgca_lidar"
+    bl_label = "Import LiDAR Scan"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filename_ext = ".ply"
+    filter_glob: StringProperty(default=";".join(f"*{e}" for e in EXTENSIONS), options={"HIDDEN"})
+    files: CollectionProperty(type=bpy.types.OperatorFileListElement, options={"HIDDEN", "SKIP_SAVE"})
+    directory: StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
+    poses_path: StringProperty(name="Poses", subtype="FILE_PATH",
+                               description="Optional poses JSON placing each scan in the world")
+    show_points: BoolProperty(name="Show as Points", default=True,
+                              description="Add a Geometry Nodes modifier that draws the vertices as points")
+
+    def _paths(self) -> list[Path]:
+        names = [f.name for f in self.files if f.name]
+        if names and self.directory:
+            return [Path(self.directory) / n for n in names]
+        return [Path(bpy.path.abspath(self.filepath))] if self.filepath else []
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        paths = self._paths()
+        if not paths:
+            self.report({"ERROR"}, "No file selected")
+            return {"CANCELLED"}
+        poses = Path(bpy.path.abspath(self.poses_path)) if self.poses_path.strip() else None
+        python = preferences.core_python(context)
+        collection = context.collection or context.scene.collection
+        try:
+            obj, skipped = import_scans(python, paths, collection, poses, show_points=self.show_points)
+        except (jobs.CoreError, ValueError, OSError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        if skipped:
+            self.report({"WARNING"}, f"attributes not imported (not one value per point): {', '.join(skipped)}")
+        self.report({"INFO"}, f"Imported {len(obj.data.vertices):,} points as '{obj.name}'")
+        return {"FINISHED"}
+
+    def draw(self, context: bpy.types.Context) -> None:
+        layout = self.layout
+        layout.use_property_split = True
+        layout.prop(self, "poses_path")
+        layout.prop(self, "show_points")
+
+
+def menu_import(self: bpy.types.Menu, _context: bpy.types.Context) -> None:
+    self.layout.operator(HGCA_OT_import_scan.bl_idname, text="LiDAR Scan (hgca)")
+
+
+CLASSES = (HGCA_OT_import_scan,)
+
+
+def register() -> None:
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.TOPBAR_MT_file_import.append(menu_import)
+
+
+def unregister() -> None:
+    bpy.types.TOPBAR_MT_file_import.remove(menu_import)
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,101 @@
+"""The "hGCA" tab in the 3D viewport's sidebar (N panel)."""
+from __future__ import annotations
+
+import bpy
+
+from . import jobs
+
+
+class HGCA_PT_main(bpy.types.Panel):
+    bl_idname = "HGCA_PT_main"
+    bl_label = "hGCA Scene Completion"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "hGCA"
+
+    def draw(self, context: bpy.types.Context) -> None:
+        layout = self.layout
+        props = context.scene.hgca
+        layout.use_property_split = True
+        layout.use_property_decorate = False
+
+        col = layout.column(heading="Source")
+        col.prop(props, "source_mode", expand=True)
+        if props.source_mode == "COLLECTION":
+            col.prop(props, "source_collection")
+        else:
+            n = sum(1 for o in context.selected_objects if o.type in {"MESH", "POINTCLOUD"})
+            col.label(text=f"{n} selected object(s)")
+
+        col = layout.column(heading="Region")
+        col.prop(props, "region_mode", expand=True)
+        if props.region_mode == "BOX":
+            col.prop(props, "region_object")
+        else:
+            col.prop(props, "region_center")
+            col.prop(props, "region_size")
+            col.prop(props, "region_yaw")
+        col.operator("hgca.add_region_box", icon="CUBE")
+
+        col = layout.column()
+        col.prop(props, "samples")
+        col.prop(props, "seed")
+        col.prop(props, "stage")
+        col.prop(props, "device")
+
+
+class HGCA_PT_advanced(bpy.types.Panel):
+    bl_label = "Advanced"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "hGCA"
+    bl_parent_id = "HGCA_PT_main"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context: bpy.types.Context) -> None:
+        layout = self.layout
+        layout.use_property_split = True
+        props = context.scene.hgca
+        layout.prop(props, "t1")
+        row = layout.row()
+        row.enabled = props.stage == "full"
+        row.prop(props, "t2")
+
+
+class HGCA_PT_job(bpy.types.Panel):
+    bl_label = "Job"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "hGCA"
+    bl_parent_id = "HGCA_PT_main"
+    bl_options = {"HIDE_HEADER"}
+
+    def draw(self, context: bpy.types.Context) -> None:
+        layout = self.layout
+        props = context.scene.hgca
+        running = jobs.active_job(context.scene.name) is not None
+        row = layout.row(align=True)
+        row.scale_y = 1.4
+        if running:
+            row.operator("hgca.cancel", icon="CANCEL")
+            if hasattr(layout, "progress"):
+                layout.progress(factor=props.progress, type="BAR", text=props.status or "Running")
+            else:
+                layout.prop(props, "progress", slider=True, text=props.status or "Running")
+        else:
+            row.operator("hgca.complete", icon="PLAY")
+            if props.status:
+                layout.label(text=props.status, icon="ERROR" if props.status_is_error else "INFO")
+
+
+CLASSES = (HGCA_PT_main, HGCA_PT_advanced, HGCA_PT_job)
+
+
+def register() -> None:
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+
+
+def unregister() -> None:
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,75 @@
+"""Per-scene settings of the hGCA panel (`scene.hgca`), and the job's progress shown there."""
+
+import bpy
+from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty,
+                       PointerProperty, StringProperty)
+
+from .region import DEFAULT_SIZE
+
+
+def _is_region_candidate(_self: bpy.types.PropertyGroup, obj: bpy.types.Object) -> bool:
+    return obj.type in {"MESH", "EMPTY"}
+
+
+class HGCA_PG_scene(bpy.types.PropertyGroup):
+    """Settings of one completion; stored with the scene so they survive saving the file."""
+
+    source_mode: EnumProperty(
+        name="Source",
+        items=[("SELECTED", "Selected", "Use the selected point objects (or the active one)"),
+               ("COLLECTION", "Collection", "Use every point object in a collection")],
+        default="SELECTED",
+    )
+    source_collection: PointerProperty(name="Collection", type=bpy.types.Collection,
+                                       description="Collection whose point objects are completed")
+
+    region_mode: EnumProperty(
+        name="Region",
+        items=[("BOX", "Box Object", "Use an object's box (move, rotate about Z and scale it)"),
+               ("NUMBERS", "Numbers", "Type the centre, size and yaw")],
+        default="BOX",
+    )
+    region_object: PointerProperty(name="Box", type=bpy.types.Object, poll=_is_region_candidate,
+                                   description="Object whose bounding box is the completion region")
+    region_center: FloatVectorProperty(name="Centre", size=3, subtype="TRANSLATION", unit="LENGTH",
+                                       description="Centre of the region (world)")
+    region_size: FloatVectorProperty(name="Size", size=3, default=DEFAULT_SIZE, min=0.1, subtype="XYZ",
+                                     unit="LENGTH", description="Size of the region")
+    region_yaw: FloatProperty(name="Yaw", subtype="ANGLE", description="Rotation of the region about Z")
+
+    samples: IntProperty(name="Samples", default=1, min=1, max=8,
+                         description="Number of completions (one mesh each, different seeds)")
+    seed: IntProperty(name="Seed", default=0, min=0, description="Same seed and input give the same mesh")
+    stage: EnumProperty(
+        name="Stage",
+        items=[("coarse", "Coarse", "Coarse 20 cm stage only (fast)"),
+               ("full", "Full", "Coarse and fine stages")],
+        default="full",
+    )
+    device: EnumProperty(
+        name="Device",
+        items=[("cpu", "CPU", "Run the model on the CPU"), ("cuda", "CUDA", "Run the model on an NVIDIA GPU")],
+        default="cpu",
+    )
+    show_advanced: BoolProperty(name="Advanced", default=False)
+    t1: IntProperty(name="T1", default=30, min=1, max=200, description="Coarse GCA steps")
+    t2: IntProperty(name="T2", default=15, min=1, max=200, description="Fine cGCA steps")
+
+    progress: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")
+    status: StringProperty(name="Status", default="")
+    status_is_error: BoolProperty(name="Error", default=False)
+
+
+CLASSES = (HGCA_PG_scene,)
+
+
+def register() -> None:
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.hgca = PointerProperty(type=HGCA_PG_scene)
+
+
+def unregister() -> None:
+    del bpy.types.Scene.hgca
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,130 @@
+"""Completion regions in the add-on: the default box around a scan, and boxes read from objects.
+
+A region is the CLI's 7-tuple (cx, cy, cz, sx, sy, sz, yaw_deg) in world metres (CONTRACTS.md). The
+region box the add-on creates is an ordinary wireframe mesh cube of unit size whose object scale is the
+box size, so users move, rotate (about z) and scale it with the usual tools; any object's bounding box
+(or an empty's cube) works as a region too.
+"""
+from __future__ import annotations
+
+import math
+
+import bpy
+import numpy as np
+
+from .mesh_build import ROLE_KEY
+from .sources import update_transforms
+
+DEFAULT_SIZE = (38.4, 38.4, 8.0)
+BELOW_GROUND = 1.0  # the box's bottom sits this far below the estimated ground (paper: [-1, 7] m)
+GROUND_RADIUS = 10.0  # ground is estimated from points this close to the centre in x/y
+GROUND_PERCENTILE = 5.0
+MAX_TILT_DEG = 1.0
+
+
+class RegionError(ValueError):
+    """The region cannot be used (no points, a tilted box, zero size); the message says why."""
+
+
+Region = tuple[float, float, float, float, float, float, float]
+
+
+def estimate_ground(points: np.ndarray, centre_xy: np.ndarray) -> float:
+    """A low percentile of z near the centre: robust enough to place a box, cheap on millions of points."""
+    pts = np.asarray(points, dtype=np.float64)
+    d2 = np.sum((pts[:, :2] - centre_xy) ** 2, axis=1)
+    near = pts[d2 < GROUND_RADIUS ** 2]
+    if len(near) < 50:
+        near = pts[np.argsort(d2)[:1000]]
+    return float(np.percentile(near[:, 2], GROUND_PERCENTILE))
+
+
+def default_region(points: np.ndarray, size: tuple[float, float, float] = DEFAULT_SIZE) -> Region:
+    """The paper's box: centred on the points in x/y, bottom 1 m below the ground near the centre."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+        raise RegionError("cannot place a region: the source objects have no points")
+    centre_xy = np.median(pts[:, :2], axis=0)
+    ground = estimate_ground(pts, centre_xy)
+    cz = ground - BELOW_GROUND + size[2] / 2
+    return (float(centre_xy[0]), float(centre_xy[1]), float(cz), *map(float, size), 0.0)
+
+
+def _local_bounds(obj: bpy.types.Object) -> tuple[np.ndarray, np.ndarray]:
+    if obj.type == "EMPTY":
+        s = float(obj.empty_display_size)
+        return np.full(3, -s), np.full(3, s)
+    corners = np.array([tuple(c) for c in obj.bound_box], dtype=np.float64)
+    return corners.min(axis=0), corners.max(axis=0)
+
+
+def region_from_object(obj: bpy.types.Object) -> Region:
+    """The oriented box an object spans in world space (its bounds under its world matrix).
+
+    Only rotation about z is allowed: the core's regions are upright boxes.
+    """
+    update_transforms()
+    lo, hi = _local_bounds(obj)
+    m = np.array(obj.matrix_world, dtype=np.float64)
+    axes = m[:3, :3]
+    lengths = np.linalg.norm(axes, axis=0)
+    size = (hi - lo) * lengths
+    if np.any(size <= 1e-6):
+        raise RegionError(f"region object {obj.name!r} has zero size")
+    z_axis = axes[:, 2] / lengths[2]
+    if math.degrees(math.acos(min(1.0, abs(float(z_axis[2]))))) > MAX_TILT_DEG:
+        raise RegionError(f"region object {obj.name!r} is tilted: rotate it about Z only")
+    centre = m @ np.append((lo + hi) / 2, 1.0)
+    yaw = math.degrees(math.atan2(axes[1, 0], axes[0, 0]))
+    return (*map(float, centre[:3]), *map(float, size), float(yaw))
+
+
+def region_from_numbers(centre: tuple[float, float, float], size: tuple[float, float, float],
+                        yaw_rad: float) -> Region:
+    if min(size) <= 0:
+        raise RegionError(f"region size must be positive, got {tuple(size)}")
+    return (*map(float, centre), *map(float, size), math.degrees(yaw_rad))
+
+
+def _unit_cube(name: str) -> bpy.types.Mesh:
+    verts = [(x, y, z) for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)]
+    faces = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata(verts, [], faces)
+    mesh.update()
+    return mesh
+
+
+def create_region_box(collection: bpy.types.Collection, region: Region,
+                      name: str = "hGCA Region") -> bpy.types.Object:
+    """A new wireframe box object showing `region`; it never renders."""
+    obj = bpy.data.objects.new(name, _unit_cube(name))
+    obj.display_type = "WIRE"
+    obj.show_in_front = True
+    obj.hide_render = True
+    obj.location = region[:3]
+    obj.scale = region[3:6]
+    obj.rotation_euler = (0.0, 0.0, math.radians(region[6]))
+    obj[ROLE_KEY] = "region"
+    collection.objects.link(obj)
+    return obj
+
+
+def format_region(region: Region) -> str:
+    """The CLI's --region text."""
+    return ",".join(repr(float(v)) for v in region)
+
+
+def parse_region(text: str) -> Region:
+    """Parse 'cx,cy,cz,sx,sy,sz[,yaw_deg]' (batch command line)."""
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError as exc:
+        raise RegionError(f"region must be numbers 'cx,cy,cz,sx,sy,sz[,yaw]', got {text!r}") from exc
+    if len(vals) not in (6, 7):
+        raise RegionError(f"region needs 6 or 7 numbers, got {len(vals)}")
+    if len(vals) == 6:
+        vals.append(0.0)
+    if min(vals[3:6]) <= 0 or not all(math.isfinite(v) for v in vals):
+        raise RegionError(f"region size must be positive and finite, got {text!r}")
+    return tuple(vals)  # type: ignore[return-value]

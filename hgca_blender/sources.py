@@ -1,0 +1,72 @@
+"""Which objects feed a completion, and their points in world space.
+
+Sources are only read (`foreach_get`), never written: the add-on does not change the user's objects.
+"""
+from __future__ import annotations
+
+import bpy
+import numpy as np
+
+from .mesh_build import ROLE_KEY
+
+POINT_TYPES = {"MESH", "POINTCLOUD"}
+
+
+class SourceError(ValueError):
+    """No usable source points; the message tells the user what to select."""
+
+
+def is_point_source(obj: bpy.types.Object, exclude: bpy.types.Object | None = None) -> bool:
+    """Meshes and point clouds, but not region boxes or earlier completion results."""
+    return obj.type in POINT_TYPES and obj is not exclude and obj.get(ROLE_KEY) not in ("region", "result")
+
+
+def selected_sources(context: bpy.types.Context, exclude: bpy.types.Object | None = None) -> list[bpy.types.Object]:
+    objs = [o for o in (context.selected_objects or []) if is_point_source(o, exclude)]
+    active = context.active_object
+    if not objs and active is not None and is_point_source(active, exclude):
+        objs = [active]
+    return objs
+
+
+def collection_sources(collection: bpy.types.Collection,
+                       exclude: bpy.types.Object | None = None) -> list[bpy.types.Object]:
+    return [o for o in collection.all_objects if is_point_source(o, exclude)]
+
+
+def object_points(obj: bpy.types.Object) -> np.ndarray:
+    """(N, 3) float64 world-space points of one object (its data's vertices/points, matrix applied)."""
+    data = obj.data
+    if obj.type == "MESH":
+        n = len(data.vertices)
+        local = np.empty(n * 3, dtype=np.float32)
+        data.vertices.foreach_get("co", local)
+    elif obj.type == "POINTCLOUD":
+        n = len(data.points)
+        local = np.empty(n * 3, dtype=np.float32)
+        data.attributes["position"].data.foreach_get("vector", local)
+    else:
+        raise SourceError(f"{obj.name!r} is a {obj.type.lower()}, not a point object")
+    m = np.array(obj.matrix_world, dtype=np.float64)
+    pts = local.reshape(-1, 3).astype(np.float64)
+    return pts @ m[:3, :3].T + m[:3, 3]
+
+
+def update_transforms() -> None:
+    """Bring `matrix_world` up to date: it lags behind location/rotation/scale set from Python until
+    the depsgraph is evaluated, which never happens by itself in background mode."""
+    view_layer = getattr(bpy.context, "view_layer", None)
+    if view_layer is not None:
+        view_layer.update()
+
+
+def world_points(objects: list[bpy.types.Object]) -> np.ndarray:
+    """All source points stacked, in world space."""
+    if not objects:
+        raise SourceError("no source objects: select imported scans (or pick a collection) first")
+    update_transforms()
+    arrays = [object_points(o) for o in objects]
+    pts = np.concatenate(arrays) if arrays else np.zeros((0, 3))
+    if len(pts) == 0:
+        raise SourceError("the source objects have no points")
+    return pts

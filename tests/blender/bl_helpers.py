@@ -1,0 +1,67 @@
+"""Shared helpers for tests on real bpy (imported by conftest.py and the test modules).
+
+BLENDER_USER_RESOURCES must point at a private folder before `import bpy`, so the tests never read or
+write the user's Blender configuration; this module sets it before bpy is imported anywhere.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+if "bpy" in sys.modules and "BLENDER_USER_RESOURCES" not in os.environ:
+    raise RuntimeError("bpy was imported before tests/blender could isolate its user folder")
+os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="hgca_blender_user_"))
+
+import bpy  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+FIXTURES = Path(__file__).resolve().parents[3] / "shared" / "fixtures" / "real"
+NUSCENES = FIXTURES / "nuscenes_lidar_top_1532402927647951.pcd.bin"
+REPO_MODULE = "hgca_test"
+ADDON = f"bl_ext.{REPO_MODULE}.hgca"
+# A small region around the nuScenes sensor keeps a real completion to a few seconds on 2 cores.
+SMALL_REGION = (0.0, 0.0, -0.5, 9.6, 9.6, 4.0, 0.0)
+
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+
+def require_fixture(path: Path) -> Path:
+    if not path.is_file():
+        pytest.skip(f"real LiDAR fixture missing: {path} (expected ../shared/fixtures/real next to the repo)")
+    return path
+
+
+def addon_module(name: str):
+    """A submodule of the enabled add-on (e.g. "jobs"), as Blender loaded it."""
+    return sys.modules[f"{ADDON}.{name}"]
+
+
+def prefs():
+    return bpy.context.preferences.addons[ADDON].preferences
+
+
+def snapshot() -> dict:
+    """Everything a job must not change: datablock names and every object's data and transform."""
+    objects = {}
+    for obj in bpy.data.objects:
+        entry = {"matrix": np.array(obj.matrix_world).round(9).tolist(), "type": obj.type,
+                 "collections": sorted(c.name for c in obj.users_collection)}
+        if obj.type == "MESH":
+            co = np.empty(len(obj.data.vertices) * 3, dtype=np.float32)
+            obj.data.vertices.foreach_get("co", co)
+            entry["co"] = co.tobytes()
+            entry["attributes"] = sorted(a.name for a in obj.data.attributes)
+        objects[obj.name] = entry
+    return {
+        "objects": objects,
+        "meshes": sorted(m.name for m in bpy.data.meshes),
+        "materials": sorted(m.name for m in bpy.data.materials),
+        "collections": sorted(c.name for c in bpy.data.collections),
+        "scene_children": sorted(c.name for c in bpy.context.scene.collection.children),
+        "node_groups": sorted(n.name for n in bpy.data.node_groups),
+    }

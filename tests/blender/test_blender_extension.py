@@ -1,0 +1,108 @@
+"""Packaging and preferences: Blender's builder makes the zip, Blender's installer installs and enables it."""
+from __future__ import annotations
+
+import os
+import sys
+import tomllib
+import zipfile
+from pathlib import Path
+
+import addon_utils
+import bpy
+import pytest
+
+from bl_helpers import ADDON, REPO, addon_module, prefs
+
+from hgca_blender import build_extension
+
+
+def test_manifest_matches_the_package() -> None:
+    manifest = build_extension.read_manifest()
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    assert manifest["id"] == "hgca" and manifest["type"] == "add-on"
+    assert manifest["version"] == project["version"]
+    assert manifest["blender_version_min"] == "4.2.0" and manifest["schema_version"] == "1.0.0"
+    assert set(manifest["permissions"]) == {"files"}
+
+
+def test_zip_builds_installs_and_enables(addon, tmp_path: Path) -> None:
+    zip_path = build_extension.build(tmp_path / "dist")
+    assert zip_path.name == "hgca-0.1.0.zip"
+    names = set(zipfile.ZipFile(zip_path).namelist())
+    assert {"blender_manifest.toml", "__init__.py", "jobs.py", "batch.py", "panels.py"} <= names
+    assert "build_extension.py" not in names and not any("__pycache__" in n for n in names)
+
+    # The session's copy registers the same classes: step it aside while the installed one is tested.
+    addon_utils.disable(ADDON, default_set=True)
+    repo_dir = tmp_path / "installed_repo"
+    repo_dir.mkdir()
+    repos = bpy.context.preferences.extensions.repos
+    repo = repos.new(name="hgca_install", module="hgca_install", custom_directory=str(repo_dir), source="USER")
+    installed = "bl_ext.hgca_install.hgca"
+    try:
+        result = bpy.ops.extensions.package_install_files(filepath=str(zip_path), repo="hgca_install",
+                                                          enable_on_install=True)
+        assert result == {"FINISHED"}
+        assert (repo_dir / "hgca" / "blender_manifest.toml").is_file()
+        assert installed in bpy.context.preferences.addons
+        assert hasattr(bpy.types.Scene, "hgca") and hasattr(bpy.ops.import_scene, "hgca_lidar")
+        assert bpy.context.preferences.addons[installed].preferences.bl_rna.identifier
+        assert "LiDAR Scan (hgca)" in _import_menu_labels()
+    finally:
+        addon_utils.disable(installed, default_set=True)
+        repos.remove(repo)
+        assert addon_utils.enable(ADDON, default_set=True, handle_error=None) is not None
+    assert ADDON in bpy.context.preferences.addons
+
+
+def _import_menu_labels() -> list[str]:
+    """Labels the installed add-on's File > Import entries draw (its menu functions, run on a recorder)."""
+
+    class Recorder:
+        def __init__(self) -> None:
+            self.items: list[tuple[str, str]] = []
+
+        def operator(self, idname: str, text: str = "", **_kw) -> None:
+            self.items.append((idname, text))
+
+    class FakeMenu:
+        layout = Recorder()
+
+    for fn in bpy.types.TOPBAR_MT_file_import._dyn_ui_initialize():
+        if fn.__module__.startswith("bl_ext.hgca_install."):
+            fn(FakeMenu, bpy.context)
+    return [text for idname, text in FakeMenu.layout.items if idname == "import_scene.hgca_lidar"]
+
+
+def test_check_button_reports_the_core_version(addon) -> None:
+    assert bpy.ops.hgca.check_python() == {"FINISHED"}
+    assert prefs().check_result.startswith("hgca ")
+    prefs().python_path = "/nonexistent/python"
+    with pytest.raises(RuntimeError, match="not found"):
+        bpy.ops.hgca.check_python()
+    assert prefs().check_result.startswith("Error")
+
+
+def test_python_detection_order(addon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    preferences = addon_module("preferences")
+    monkeypatch.setenv("HGCA_PYTHON", "/opt/core/bin/python")
+    assert preferences.detect_python() == "/opt/core/bin/python"
+    monkeypatch.delenv("HGCA_PYTHON")
+
+    bindir = tmp_path / "bin"
+    bindir.mkdir()
+    script = bindir / "hgca"
+    script.write_text(f"#!{sys.executable}\nfrom hgca_core.cli import main\n")
+    script.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bindir}{os.pathsep}/usr/bin")
+    assert preferences.detect_python() == sys.executable
+
+    # pip's trampoline for interpreters whose path is too long for a shebang line
+    script.write_text(f"#!/bin/sh\n'''exec' \"{sys.executable}\" \"$0\" \"$@\"\n' '''\n")
+    assert preferences.detect_python() == sys.executable
+
+    # no env var, no script: the installed extension has no repo .venv, but this interpreter has hgca_core
+    monkeypatch.setenv("PATH", "/usr/bin")
+    assert preferences.detect_python() == sys.executable
+    prefs().python_path = ""
+    assert preferences.core_python() == sys.executable

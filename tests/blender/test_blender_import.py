@@ -1,0 +1,135 @@
+"""File > Import > LiDAR Scan (hgca) on real sensor files, through the registered operator."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import bpy
+import numpy as np
+import pytest
+
+from bl_helpers import FIXTURES, NUSCENES, addon_module, prefs, require_fixture, snapshot
+
+LAS_FILES = ["simple.las", "simple.laz", "simple1_4.las", "plane.laz", "simple.copc.laz", "autzen_trim.laz"]
+
+
+def world_vertices(obj: bpy.types.Object) -> np.ndarray:
+    co = np.empty(len(obj.data.vertices) * 3, dtype=np.float32)
+    obj.data.vertices.foreach_get("co", co)
+    m = np.array(obj.matrix_world)
+    return co.reshape(-1, 3).astype(np.float64) @ m[:3, :3].T + m[:3, 3]
+
+
+def new_objects(before: dict) -> list[bpy.types.Object]:
+    return [o for o in bpy.data.objects if o.name not in before["objects"]]
+
+
+def nuscenes_points(path: Path) -> np.ndarray:
+    return np.fromfile(path, dtype=np.float32).reshape(-1, 5)
+
+
+def test_import_nuscenes_sweep(addon) -> None:
+    path = require_fixture(NUSCENES)
+    raw = nuscenes_points(path)
+    before = snapshot()
+    assert bpy.ops.import_scene.hgca_lidar(filepath=str(path)) == {"FINISHED"}
+    (obj,) = new_objects(before)
+    mesh = obj.data
+    assert len(mesh.vertices) == len(raw) == path.stat().st_size // 20
+    assert len(mesh.polygons) == 0 and obj.get("hgca_role") == "scan"
+    np.testing.assert_allclose(world_vertices(obj), raw[:, :3], atol=1e-4)
+    for name in ("intensity", "scan_index"):
+        attr = mesh.attributes[name]
+        assert attr.domain == "POINT" and len(attr.data) == len(raw)
+    intensity = np.empty(len(raw), dtype=np.float32)
+    mesh.attributes["intensity"].data.foreach_get("value", intensity)
+    np.testing.assert_allclose(intensity, raw[:, 3], rtol=1e-6)
+    assert obj.modifiers["hGCA Points"].node_group.name.startswith("hGCA Points")
+
+
+@pytest.mark.parametrize("name", LAS_FILES)
+def test_import_las_family(addon, name: str) -> None:
+    import laspy
+
+    path = require_fixture(FIXTURES / name)
+    with laspy.open(path) as reader:
+        header = reader.header
+        count, mins, maxs = header.point_count, np.array(header.mins), np.array(header.maxs)
+    before = snapshot()
+    assert bpy.ops.import_scene.hgca_lidar(filepath=str(path)) == {"FINISHED"}
+    (obj,) = new_objects(before)
+    assert len(obj.data.vertices) == count
+    pts = world_vertices(obj)
+    # float32 world coordinates of aerial scans are good to a few centimetres
+    np.testing.assert_allclose(pts.min(axis=0), mins, atol=0.1)
+    np.testing.assert_allclose(pts.max(axis=0), maxs, atol=0.1)
+    if np.abs(mins).max() > 1e4:  # georeferenced: re-centred so the viewport does not jitter
+        assert np.abs(np.array(obj.location)).max() > 1e3
+        assert np.abs(np.array([v.co for v in obj.data.vertices[:10]])).max() < 1e4
+
+
+def test_import_several_files_accumulates_with_scan_index(addon) -> None:
+    a, b = require_fixture(FIXTURES / "simple.las"), require_fixture(FIXTURES / "simple.laz")
+    before = snapshot()
+    result = bpy.ops.import_scene.hgca_lidar(directory=str(a.parent), files=[{"name": a.name}, {"name": b.name}])
+    assert result == {"FINISHED"}
+    (obj,) = new_objects(before)
+    assert obj.name == "simple +1"
+    idx = np.empty(len(obj.data.vertices), dtype=np.int32)
+    obj.data.attributes["scan_index"].data.foreach_get("value", idx)
+    assert len(idx) == 2 * 1065 and np.bincount(idx).tolist() == [1065, 1065]
+
+
+def test_import_with_poses_moves_the_scan(addon, tmp_path: Path) -> None:
+    path = require_fixture(NUSCENES)
+    pose = np.eye(4)
+    pose[:3, 3] = (100.0, -20.0, 3.0)
+    poses = tmp_path / "poses.json"
+    poses.write_text(json.dumps({"scans": [{"file": path.name, "pose": pose.tolist()}]}))
+    before = snapshot()
+    assert bpy.ops.import_scene.hgca_lidar(filepath=str(path), poses_path=str(poses)) == {"FINISHED"}
+    (obj,) = new_objects(before)
+    np.testing.assert_allclose(world_vertices(obj), nuscenes_points(path)[:, :3] + pose[:3, 3], atol=1e-4)
+
+
+def test_bad_file_reports_error_and_adds_nothing(addon, tmp_path: Path) -> None:
+    bad = tmp_path / "broken.las"
+    bad.write_bytes(b"LASF" + b"\x00" * 50)
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="broken.las"):
+        bpy.ops.import_scene.hgca_lidar(filepath=str(bad))
+    assert snapshot() == before
+
+
+def test_missing_file_reports_error_and_adds_nothing(addon, tmp_path: Path) -> None:
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="file not found"):
+        bpy.ops.import_scene.hgca_lidar(filepath=str(tmp_path / "nope.ply"))
+    assert snapshot() == before
+
+
+def test_interpreter_without_core_reports_error(addon, tmp_path: Path) -> None:
+    path = require_fixture(NUSCENES)
+    fake = tmp_path / "python"
+    fake.symlink_to("/usr/bin/python3")  # a real interpreter that has no hgca_core
+    prefs().python_path = str(fake)
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="hgca_core"):
+        bpy.ops.import_scene.hgca_lidar(filepath=str(path))
+    assert snapshot() == before
+
+
+def test_attribute_conversion_keeps_types(addon) -> None:
+    mesh_build = addon_module("mesh_build")
+    coll = bpy.context.scene.collection
+    pts = np.random.default_rng(0).normal(size=(100, 3))
+    attrs = {"intensity": np.linspace(0, 1, 100), "scan_index": np.arange(100, dtype=np.uint8) % 3,
+             "position": np.ones(100), "flag": np.arange(100) % 2 == 0, "origins": np.zeros((2, 3))}
+    obj, skipped = mesh_build.build_point_object("pts", pts, attrs, coll, show_points=False)
+    attributes = obj.data.attributes
+    assert skipped == ["origins"]
+    assert attributes["intensity"].data_type == "FLOAT" and attributes["scan_index"].data_type == "INT"
+    assert attributes["flag"].data_type == "BOOLEAN" and attributes["hgca_position"].data_type == "FLOAT"
+    values = np.empty(100, dtype=np.int32)
+    attributes["scan_index"].data.foreach_get("value", values)
+    assert values.tolist() == (np.arange(100) % 3).tolist()

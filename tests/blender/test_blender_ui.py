@@ -1,0 +1,131 @@
+"""Panels, preferences and registration: the UI code runs against a recording layout.
+
+The bpy module has no windows, so `draw()` is called with a stand-in layout that checks every property
+and operator it is asked to show really exists (a typo there would otherwise only show in the GUI).
+"""
+from __future__ import annotations
+
+import addon_utils
+import bpy
+import pytest
+
+from bl_helpers import ADDON, addon_module
+
+
+class Recorder:
+    """A UILayout stand-in: validates names and records what would be drawn."""
+
+    def __init__(self, log: list[tuple[str, str]]) -> None:
+        self.log = log
+        self.use_property_split = self.use_property_decorate = False
+        self.enabled = True
+        self.scale_y = 1.0
+
+    def _sub(self, *_a, **_k) -> "Recorder":
+        return Recorder(self.log)
+
+    row = column = box = split = _sub
+
+    def prop(self, data, name: str, **_k) -> None:
+        assert name in data.bl_rna.properties, f"{type(data).__name__} has no property {name!r}"
+        self.log.append(("prop", name))
+
+    def operator(self, idname: str, **_k) -> None:
+        category, name = idname.split(".")
+        assert hasattr(getattr(bpy.ops, category), name), f"no operator {idname}"
+        self.log.append(("operator", idname))
+
+    def label(self, text: str = "", **_k) -> None:
+        self.log.append(("label", text))
+
+    def progress(self, factor: float = 0.0, type: str = "BAR", text: str = "") -> None:  # noqa: A002
+        assert 0.0 <= factor <= 1.0
+        self.log.append(("progress", text))
+
+
+def draw(panel_cls, context=None) -> list[tuple[str, str]]:
+    log: list[tuple[str, str]] = []
+    fake = type("P", (), {"layout": Recorder(log)})()
+    panel_cls.draw(fake, context or bpy.context)
+    return log
+
+
+def test_panels_draw_every_setting(addon) -> None:
+    panels = addon_module("panels")
+    props = bpy.context.scene.hgca
+    main = draw(panels.HGCA_PT_main)
+    shown = {name for kind, name in main if kind == "prop"}
+    assert {"source_mode", "region_mode", "region_object", "samples", "seed", "stage", "device"} <= shown
+    props.region_mode, props.source_mode = "NUMBERS", "COLLECTION"
+    shown = {name for kind, name in draw(panels.HGCA_PT_main) if kind == "prop"}
+    assert {"region_center", "region_size", "region_yaw", "source_collection"} <= shown
+    assert ("operator", "hgca.add_region_box") in main
+    assert {name for kind, name in draw(panels.HGCA_PT_advanced) if kind == "prop"} == {"t1", "t2"}
+    assert panels.HGCA_PT_main.bl_category == "hGCA" and panels.HGCA_PT_main.bl_region_type == "UI"
+
+
+def test_job_panel_shows_progress_and_cancel_while_running(addon) -> None:
+    panels, jobs = addon_module("panels"), addon_module("jobs")
+    assert ("operator", "hgca.complete") in draw(panels.HGCA_PT_job)
+
+    class Running:
+        running = True
+
+    scene = bpy.context.scene
+    scene.hgca.progress, scene.hgca.status = 0.25, "Coarse 3/30"
+    jobs.ACTIVE[scene.name] = Running()
+    try:
+        log = draw(panels.HGCA_PT_job)
+    finally:
+        jobs.ACTIVE.pop(scene.name)
+    assert ("operator", "hgca.cancel") in log and ("progress", "Coarse 3/30") in log
+
+
+def test_preferences_draw(addon) -> None:
+    preferences = addon_module("preferences")
+    prefs = bpy.context.preferences.addons[ADDON].preferences
+    log: list[tuple[str, str]] = []
+    fake = type("P", (), {"layout": Recorder(log), "python_path": "", "weights_path": "", "check_result": "",
+                          "bl_rna": prefs.bl_rna})()
+    preferences.HGCA_AddonPreferences.draw(fake, bpy.context)
+    assert ("prop", "python_path") in log and ("operator", "hgca.check_python") in log
+
+
+def test_disable_unregisters_everything_and_enable_restores(addon) -> None:
+    addon_utils.disable(ADDON, default_set=True)
+    try:
+        assert not hasattr(bpy.types.Scene, "hgca")
+        assert not _op_registered("import_scene.hgca_lidar")
+        assert not _op_registered("hgca.complete")
+    finally:
+        assert addon_utils.enable(ADDON, default_set=True, handle_error=None) is not None
+    assert hasattr(bpy.types.Scene, "hgca") and _op_registered("hgca.complete")
+
+
+def _op_registered(idname: str) -> bool:
+    category, name = idname.split(".")
+    try:
+        getattr(getattr(bpy.ops, category), name).get_rna_type()
+    except KeyError:
+        return False
+    return True
+
+
+def test_timer_is_registered_by_complete(addon, coarse_weights: str) -> None:
+    jobs = addon_module("jobs")
+    from bl_helpers import NUSCENES, SMALL_REGION, prefs, require_fixture
+
+    require_fixture(NUSCENES)
+    prefs().weights_path = coarse_weights
+    bpy.ops.import_scene.hgca_lidar(filepath=str(NUSCENES))
+    obj = bpy.data.objects[0]
+    obj.select_set(True)
+    props = bpy.context.scene.hgca
+    props.region_mode, props.region_center, props.region_size = "NUMBERS", SMALL_REGION[:3], SMALL_REGION[3:6]
+    assert bpy.ops.hgca.complete() == {"FINISHED"}
+    try:
+        assert bpy.app.timers.is_registered(jobs._timer_tick)
+        with pytest.raises(RuntimeError):  # one job per scene
+            bpy.ops.hgca.complete()
+    finally:
+        jobs.cancel_all()
