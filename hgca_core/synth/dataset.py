@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +16,7 @@ import numpy as np
 
 from hgca_core.geometry.region import BELOW_GROUND, DEFAULT_SIZE, Region
 from hgca_core.synth.groundtruth import RegionSurface, visible_cells
-from hgca_core.synth.lidar import EVAL128, WAYMO64, Intersector, Sensor, cast, make_intersector, range_image
+from hgca_core.synth.lidar import EVAL128, WAYMO64, Sensor, cast, make_intersector, range_image
 from hgca_core.synth.scene import StreetScene, make_scene
 
 SPLITS = {"train": 0, "val": 1_000_000, "test": 2_000_000}
@@ -44,6 +43,9 @@ class Quality:
 
 
 DEFAULT_QUALITY = Quality()
+# smoke tests and `hgca synth --quick`: the same pipeline at a fraction of the rays and samples
+QUICK_QUALITY = Quality(input_sensor=WAYMO64.with_azimuth(660), eval_sensor=EVAL128.with_azimuth(660),
+                        visibility_azimuth=400, surface_density=300.0, gt_surface_points=30_000, udf_points=30_000)
 
 
 class Drive:
@@ -69,9 +71,27 @@ class Drive:
         return m
 
 
+@dataclass
+class Simulation:
+    """A sample and what it was made from: the scene, its region, and the full (uncropped, noisy) input
+    scans in world coordinates with their sensor->world poses (ego first)."""
+
+    sample: dict
+    scene: StreetScene
+    region: Region
+    scans_world: list[np.ndarray]
+    poses_world: list[np.ndarray]
+
+
 def make_sample(seed: int, n_scans: int = 5, style: str | None = None, size: tuple[float, float, float] = DEFAULT_SIZE,
                 quality: Quality = DEFAULT_QUALITY, scene: StreetScene | None = None) -> dict:
     """The sample named by `seed`: arrays in the region frame, exactly the CONTRACTS.md keys and dtypes."""
+    return simulate(seed, n_scans, style, size, quality, scene).sample
+
+
+def simulate(seed: int, n_scans: int = 5, style: str | None = None, size: tuple[float, float, float] = DEFAULT_SIZE,
+             quality: Quality = DEFAULT_QUALITY, scene: StreetScene | None = None) -> Simulation:
+    """`make_sample`, keeping the scene and the raw scans (for `hgca synth --seed`, which writes them)."""
     if n_scans < 1:
         raise ValueError("n_scans must be at least 1")
     scene = make_scene(seed, style) if scene is None else scene
@@ -88,11 +108,13 @@ def make_sample(seed: int, n_scans: int = 5, style: str | None = None, size: tup
     # input: the ego scan first, then the others (rolling shutter over one revolution at the drive speed)
     arcs = _input_arcs(rng, s0, n_scans, quality.scan_radius, drive.length)
     speed = rng.uniform(3.0, 10.0)
-    pts, idx, poses = [], [], []
+    pts, idx, poses, raw, raw_poses = [], [], [], [], []
     for i, s in enumerate(arcs):
         pose = drive.pose(s)
         hits = cast(inter, pose, quality.input_sensor, rng, quality.point_noise, quality.pitch_noise_deg,
                     pose_end=drive.pose(min(s + 0.1 * speed, drive.length)))
+        raw.append(hits)
+        raw_poses.append(pose)
         local = region.to_local(hits)
         local = local[region.contains_local(local)]
         pts.append(local)
@@ -123,7 +145,8 @@ def make_sample(seed: int, n_scans: int = 5, style: str | None = None, size: tup
     vis_sensor = quality.eval_sensor.with_azimuth(quality.visibility_azimuth)
     for pw, pr in zip((drive.pose(s) for s in arcs), input_poses):
         vis_scans.append((pr, range_image(inter, pw, vis_sensor)[0]))
-    visible20 = visible_cells(region, vis_scans, quality.eval_sensor)
+    eval_scans = [_quantize(e, quality.quantum, region.size) for e in eval_scans]
+    visible20 = visible_cells(region, vis_scans, quality.eval_sensor, extra_points=eval_scans)
 
     street = _street_box_local(scene.street_box, region)
     meta = {"seed": int(seed), "style": scene.style, "n_scans": int(n_scans), "format_version": FORMAT_VERSION,
@@ -131,13 +154,13 @@ def make_sample(seed: int, n_scans: int = 5, style: str | None = None, size: tup
             "speed_mps": round(float(speed), 3), "scene_faces": int(len(scene.mesh.faces)),
             "labels": ["road", "sidewalk", "building", "car", "tree", "pole", "fence", "shelter"],
             "layout": scene.layout}
-    q = quality.quantum
-    f32 = lambda a: (np.round(np.asarray(a, dtype=np.float64) / q) * q).astype(np.float32)  # noqa: E731
+    size_arr = region.size
+    f32 = lambda a: _quantize(a, quality.quantum, size_arr)  # noqa: E731
     # point sets sorted by x (with their per-point arrays): the files compress a third better
     inp, inp_idx = _by_x(np.concatenate(pts), np.concatenate(idx))
     gt_surface, gt_label = _by_x(gt_surface, gt_label)
     udf_pts, udf_dist = _by_x(udf_pts, udf_dist)
-    return {
+    sample = {
         "region": np.asarray(region.as_tuple(), dtype=np.float64),
         "input_points": f32(inp),
         "input_scan_index": inp_idx,
@@ -148,7 +171,7 @@ def make_sample(seed: int, n_scans: int = 5, style: str | None = None, size: tup
         "gt_surface": f32(gt_surface),
         "gt_surface_label": gt_label.astype(np.uint8),
         "udf_points": f32(udf_pts),
-        "udf_dist": (np.round(udf_dist / (q / 4)) * (q / 4)).astype(np.float32),
+        "udf_dist": (np.round(udf_dist / (quality.quantum / 4)) * (quality.quantum / 4)).astype(np.float32),
         "eval_poses": eval_poses.astype(np.float32),
         "eval_scan_0": f32(eval_scans[0]),
         "eval_scan_1": f32(eval_scans[1]),
@@ -157,6 +180,17 @@ def make_sample(seed: int, n_scans: int = 5, style: str | None = None, size: tup
         "ground_z": np.float32(BELOW_GROUND),
         "meta": np.array(json.dumps(meta)),
     }
+    return Simulation(sample, scene, region, raw, raw_poses)
+
+
+def _quantize(points: np.ndarray, quantum: float, size: np.ndarray) -> np.ndarray:
+    """Round region-frame coordinates to `quantum` (float32 files compress far better), never pushing a
+    point inside the region across its far faces."""
+    p = np.asarray(points, dtype=np.float64)
+    q = np.round(p / quantum) * quantum
+    over = q >= size
+    q[over] = (np.floor(p / quantum) * quantum)[over]
+    return q.astype(np.float32)
 
 
 def _by_x(points: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -211,49 +245,43 @@ def _street_box_local(box: np.ndarray, region: Region) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------ files
 def save_sample(path: str | os.PathLike, sample: dict) -> str:
     """Write a compressed .npz atomically (temp file in the same folder, then os.replace)."""
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".sample.", suffix=".npz.tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            # (N, 3) arrays go column-major: runs of equal coordinates compress up to 50x better
-            np.savez_compressed(f, **{k: np.asfortranarray(sample[k]) if np.ndim(sample[k]) == 2 else sample[k]
-                                      for k in KEYS})
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    from hgca_core.io.atomic import atomic_write
+
+    missing = [k for k in KEYS if k not in sample]
+    if missing:
+        raise ValueError(f"sample lacks {', '.join(missing)}")
+    # (N, 3) arrays go column-major: runs of equal coordinates compress up to 50x better
+    arrays = {k: np.asfortranarray(sample[k]) if np.ndim(sample[k]) == 2 else sample[k] for k in KEYS}
+    return atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
 
 
 def load_sample(path: str | os.PathLike) -> dict:
-    """All arrays of a sample file; `meta` stays the JSON string (json.loads it for a dict)."""
+    """All arrays of a sample file, as np.load gives them (`json.loads(str(s["meta"]))` for the meta dict)."""
     with np.load(path, allow_pickle=False) as z:
-        out = {k: z[k] for k in z.files}
-    out["meta"] = str(out["meta"])
-    return out
+        return {k: z[k] for k in z.files}
 
 
 def sample_path(out_dir: str | os.PathLike, split: str, seed: int) -> Path:
     return Path(out_dir, split, f"sample_{seed:07d}.npz")
 
 
-def _build_one(job: tuple[str, str, int, int]) -> tuple[int, float]:
-    out_dir, split, seed, n_scans = job
+def _build_one(job: tuple[str, str, int, int, Quality]) -> tuple[int, float]:
+    out_dir, split, seed, n_scans, quality = job
     t = time.perf_counter()
-    save_sample(sample_path(out_dir, split, seed), make_sample(seed, n_scans))
+    save_sample(sample_path(out_dir, split, seed), make_sample(seed, n_scans, quality=quality))
     return seed, time.perf_counter() - t
 
 
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+
+
 def _single_thread() -> None:
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+    for var in _THREAD_VARS:
         os.environ[var] = "1"
 
 
 def build_split(out_dir: str | os.PathLike, split: str, count: int, n_scans: int = 5, workers: int = 2,
-                progress: bool = True) -> list[Path]:
+                progress: bool = True, quality: Quality = DEFAULT_QUALITY) -> list[Path]:
     """Write out_dir/<split>/sample_<seed>.npz for the split's first `count` seeds, in `workers` processes.
 
     Resumable: finished files are skipped (writes are atomic, so a file that exists is complete).
@@ -263,7 +291,7 @@ def build_split(out_dir: str | os.PathLike, split: str, count: int, n_scans: int
     seeds = [SPLITS[split] + i for i in range(count)]
     todo = [s for s in seeds if not sample_path(out_dir, split, s).exists()]
     Path(out_dir, split).mkdir(parents=True, exist_ok=True)
-    jobs = [(os.fspath(out_dir), split, s, n_scans) for s in todo]
+    jobs = [(os.fspath(out_dir), split, s, n_scans, quality) for s in todo]
     from tqdm import tqdm
 
     bar = tqdm(total=len(seeds), initial=len(seeds) - len(todo), desc=f"synth {split}", unit="sample",
@@ -276,8 +304,17 @@ def build_split(out_dir: str | os.PathLike, split: str, count: int, n_scans: int
         else:
             import multiprocessing as mp
 
-            _single_thread()  # children inherit the environment before importing numpy
-            with mp.get_context("spawn").Pool(workers, initializer=_single_thread) as pool:
+            saved = {v: os.environ.get(v) for v in _THREAD_VARS}
+            _single_thread()  # spawned children inherit this before they import numpy: one thread each
+            try:
+                pool = mp.get_context("spawn").Pool(min(workers, len(jobs)), initializer=_single_thread)
+            finally:
+                for var, val in saved.items():
+                    if val is None:
+                        os.environ.pop(var, None)
+                    else:
+                        os.environ[var] = val
+            with pool:
                 for _ in pool.imap_unordered(_build_one, jobs):
                     bar.update(1)
     finally:

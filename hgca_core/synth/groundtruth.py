@@ -142,14 +142,15 @@ def point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
 
 
 def visible_cells(region: Region, scans: list[tuple[np.ndarray, np.ndarray]], sensor: Sensor,
-                  behind: float = 0.3) -> np.ndarray:
+                  behind: float = 0.3, extra_points: list[np.ndarray] | None = None) -> np.ndarray:
     """20 cm cells visible to the LiDAR: in front of the first return or at most `behind` metres past it.
 
     `scans` holds (pose sensor->region (4, 4), range image (E, A) with inf for no return) per pose. Like
     the paper's TSDF > -0.3 mask, done projectively: every cell centre is looked up in each range image
     (nearest beam) and compared with that beam's range; no return means free space up to max range. The
     cells of the returns themselves and of the 0.3 m behind them are added, so surface cells at
-    silhouettes (where the nearest beam hit something else) are never missed.
+    silhouettes (where the nearest beam hit something else) are never missed; so are the cells of
+    `extra_points` (the stored evaluation scans, after rounding).
     """
     grid = region.grid_shape(COARSE)
     idx = np.indices(grid, dtype=np.int32).reshape(3, -1).T
@@ -176,6 +177,7 @@ def visible_cells(region: Region, scans: list[tuple[np.ndarray, np.ndarray]], se
         for extra_d in (0.0, 0.1, 0.2, behind):
             extra.append(pose[:3, 3] + (rr + extra_d)[:, None] * dirs)
     dense = visible.reshape(grid)
+    extra += list(extra_points or [])
     if extra:
         pts = np.concatenate(extra)
         c = np.round(pts / FINE).astype(np.int64) // 2

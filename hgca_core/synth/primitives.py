@@ -26,6 +26,7 @@ _BOX_SIDES = {
     "+z": [[4, 5, 7], [4, 7, 6]],
 }
 MAX_PLANES = 16
+SUPPORT_DEPTH = 0.1  # a solid without a bottom face extends this far into what it stands on
 _PAD_PLANE = np.array([0.0, 0.0, 0.0, -1.0])  # n.p + d = -1 < 0 everywhere: a no-op half-space
 
 
@@ -105,7 +106,10 @@ class MeshBuilder:
         self.add(corners, faces, label)
         if solid:
             allf = np.array([t for tris in _BOX_SIDES.values() for t in tris])
-            self.add_solid_planes(corners, allf)
+            c = np.array(corners, dtype=np.float64)
+            if "-z" in skip:  # it stands on something: the surface under it is hidden, so reach below it
+                c[:4, 2] -= SUPPORT_DEPTH
+            self.add_solid_planes(c, allf)
 
     def box(self, lo, hi, label: int, skip: tuple[str, ...] = ("-z",), solid: bool = True) -> None:
         """Axis-aligned (in the current frame) box from corner lo to corner hi."""

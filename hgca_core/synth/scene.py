@@ -57,16 +57,15 @@ def make_scene(seed: int, style: str | None = None) -> StreetScene:
     _sidewalks(b, L)
     furniture_blocked = _street_furniture(b, rng, L, city)
     parked = _parked_cars(b, rng, L, furniture_blocked, city)
+    driveway = 0 if city else _suburb_rows(b, rng, L)
     if city:
         _city_rows(b, rng, L)
-    else:
-        parked += _suburb_rows(b, rng, L)
     mesh, labels, solids = b.build()
     drive, direction = _drive(rng, L)
     y_out = L.hw + L.sw
     layout = {"road_half_width": L.hw, "sidewalk_width": L.sw, "sidewalk_height": L.hs,
               "crossroad_x": L.xc if L.cross else None, "crossroad_half_width": L.hw2 if L.cross else None,
-              "parked_cars": parked, "drive_direction": direction, "faces": int(len(mesh.faces))}
+              "parked_cars": parked, "driveway_cars": driveway, "drive_direction": direction, "faces": int(len(mesh.faces))}
     return StreetScene(mesh, labels, drive, np.array([-EXTENT, -y_out, EXTENT, y_out]), style, int(seed),
                        solids, layout)
 
@@ -248,10 +247,10 @@ def _city_rows(b: MeshBuilder, rng: np.random.Generator, L: _Layout) -> None:
                 A.simple_block(b, rng, x1 - x0, EXTENT - y_back - 1.0, rng.uniform(8.0, 25.0))
 
 
-def _suburb_rows(b: MeshBuilder, rng: np.random.Generator, L: _Layout) -> list[dict]:
+def _suburb_rows(b: MeshBuilder, rng: np.random.Generator, L: _Layout) -> int:
     """Houses behind front yards with fences or hedges, garages with cars on driveways, yard trees."""
     y_front = L.hw + L.sw
-    cars = []
+    cars = 0
     for s in (1, -1):
         lots = _lots(rng, L, 14.0, 24.0, 0.0, (0.0, 0.0), margin=0.5)
         for x0, x1 in lots:
@@ -274,7 +273,7 @@ def _suburb_rows(b: MeshBuilder, rng: np.random.Generator, L: _Layout) -> list[d
                     shape = A.CAR_SHAPES[int(rng.integers(0, len(A.CAR_SHAPES)))]
                     with b.placed(np.pi / 2 + (0.0 if rng.random() < 0.5 else np.pi), [drive_x, yard * 0.5 + 0.3, 0.0]):
                         A.car(b, rng, shape)
-                    cars.append({"shape": shape, "driveway": True})
+                    cars += 1
                 kind = rng.choice(["picket", "hedge", "panel", "wall", "none", "none"], p=[0.3, 0.25, 0.1, 0.05, 0.15, 0.15])
                 if kind != "none":  # front fence with a gap for the driveway and one for the path
                     gaps = sorted([(drive_x - 1.6, drive_x + 1.6), (hx + hw_ / 2 - 0.6, hx + hw_ / 2 + 0.6)])

@@ -1,0 +1,186 @@
+"""Samples: the CONTRACTS.md format, determinism, geometry that agrees with itself, files and splits."""
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from hgca_core.geometry.region import Region
+from hgca_core.geometry.voxel import FINE, downsample, voxelize_coarse, voxelize_fine
+from hgca_core.synth.dataset import (KEYS, QUICK_QUALITY, SPLITS, build_split, load_sample, make_sample, save_sample,
+                                     simulate)
+from hgca_core.synth.groundtruth import RegionSurface
+
+SEED = 21
+DTYPES = {"region": (np.float64, (7,)), "input_points": (np.float32, (None, 3)), "input_scan_index": (np.uint8, (None,)),
+          "input_origins": (np.float32, (3, 3)), "input_poses": (np.float32, (3, 4, 4)),
+          "gt_occ20": (np.int16, (None, 3)), "gt_occ10": (np.int16, (None, 3)), "gt_surface": (np.float32, (None, 3)),
+          "gt_surface_label": (np.uint8, (None,)), "udf_points": (np.float32, (None, 3)), "udf_dist": (np.float32, (None,)),
+          "eval_poses": (np.float32, (2, 4, 4)), "eval_scan_0": (np.float32, (None, 3)),
+          "eval_scan_1": (np.float32, (None, 3)), "visible20": (np.int16, (None, 3)), "street_box": (np.float32, (4,)),
+          "ground_z": (np.float32, ())}
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return simulate(SEED, 3, quality=QUICK_QUALITY)
+
+
+@pytest.fixture(scope="module")
+def sample(sim):
+    return sim.sample
+
+
+@pytest.fixture(scope="module")
+def surface(sim):
+    """The scene's visible surface near the region, sparsely sampled (distances are exact regardless)."""
+    return RegionSurface(sim.scene.mesh, sim.scene.face_labels, sim.scene.solids, sim.region,
+                         np.random.default_rng(0), 80.0)
+
+
+def _keys(c: np.ndarray) -> np.ndarray:
+    c = np.asarray(c, dtype=np.int64)
+    return (c[:, 0] * 1024 + c[:, 1]) * 1024 + c[:, 2]
+
+
+def _region(sample) -> Region:
+    r = sample["region"]
+    return Region(center=r[:3], size=r[3:6], yaw=float(np.radians(r[6])))
+
+
+def test_every_key_with_its_dtype_and_shape(sample):
+    assert set(sample) == set(KEYS)
+    for key, (dtype, shape) in DTYPES.items():
+        a = sample[key]
+        assert a.dtype == dtype, key
+        assert a.ndim == len(shape) and all(s is None or s == t for s, t in zip(shape, a.shape)), (key, a.shape)
+    n = len(sample["input_points"])
+    assert n > 50_000 and sample["input_scan_index"].shape == (n,)
+    assert set(np.unique(sample["input_scan_index"])) == {0, 1, 2}
+    assert len(sample["gt_surface_label"]) == len(sample["gt_surface"])
+    assert len(sample["udf_dist"]) == len(sample["udf_points"])
+    meta = json.loads(str(sample["meta"]))
+    assert meta["seed"] == SEED and meta["n_scans"] == 3 and meta["style"] in ("city", "suburb")
+    assert np.allclose(sample["region"][3:6], [38.4, 38.4, 8.0])
+    assert sample["ground_z"] == 1.0
+
+
+def test_same_seed_same_sample(sample):
+    again = make_sample(SEED, 3, quality=QUICK_QUALITY)
+    for k in KEYS:
+        assert np.array_equal(np.asarray(sample[k]), np.asarray(again[k])), k
+
+
+def test_frames_ego_first_and_region_around_it(sample):
+    size = sample["region"][3:6]
+    ego = sample["input_poses"][0]
+    assert np.allclose(ego[:2, 3], size[:2] / 2, atol=1e-4)           # region centred on the ego sensor
+    assert np.allclose(ego[:3, 0], [1, 0, 0], atol=1e-6)                # region x axis = ego heading
+    assert np.allclose(sample["input_origins"], sample["input_poses"][:, :3, 3])
+    assert np.allclose(sample["input_origins"][:, 2], 3.0, atol=0.15)   # ~2 m above the road (z = 1)
+    assert np.all(np.abs(sample["input_origins"][:, 0] - size[0] / 2) <= 15.01)
+
+
+def test_grids_and_points_inside_the_region(sample):
+    size = sample["region"][3:6]
+    for k in ("input_points", "gt_surface", "udf_points", "eval_scan_0", "eval_scan_1"):
+        p = sample[k]
+        assert np.all((p >= 0) & (p <= size)), k
+    for k, shape in (("gt_occ10", (384, 384, 80)), ("gt_occ20", (192, 192, 40)), ("visible20", (192, 192, 40))):
+        c = sample[k]
+        assert np.all((c >= 0) & (c < shape)), k
+        assert len(np.unique(_keys(c))) == len(c), k
+    assert np.array_equal(sample["gt_occ20"], downsample(sample["gt_occ10"]))
+
+
+def test_occupancy_is_the_project_voxelisation(sim, surface):
+    region, surf = sim.region, surface
+    occ10, occ20 = surf.occupancy()
+    ref10 = voxelize_fine(surf.points[surf.in_region], region.grid_shape(FINE))
+    assert np.array_equal(occ10, ref10) and np.array_equal(occ20, downsample(ref10))
+
+
+def test_input_lies_on_the_ground_truth_surface(sample, surface):
+    pts = sample["input_points"][:: max(1, len(sample["input_points"]) // 4000)].astype(np.float64)
+    d = surface.distance(pts)
+    assert np.mean(d < 0.05) > 0.95
+    assert np.median(d) < 0.02                      # 1 cm noise, 0.02 deg pitch error
+
+
+def test_udf_distances_are_exact(sample, surface):
+    """Against brute force over every triangle near the region (a lower bound: it includes hidden faces)."""
+    from hgca_core.synth.groundtruth import point_triangle_distance
+
+    step = max(1, len(sample["udf_points"]) // 150)
+    q = sample["udf_points"][::step].astype(np.float64)
+    tri = surface.triangles
+    brute = np.array([point_triangle_distance(np.repeat(p[None], len(tri), 0), tri).min() for p in q])
+    d = sample["udf_dist"][::step]
+    assert np.all(d >= brute - 2e-3)
+    assert np.mean(np.abs(d - brute) < 0.01) > 0.95
+    assert 0.02 < np.median(d) < 0.1
+
+
+def test_buildings_rise_above_the_input(sample):
+    top_input = sample["input_points"][:, 2].max()
+    gt_top = (sample["gt_occ20"][:, 2].max() + 0.75) * 0.2
+    assert gt_top > top_input + 1.0
+    assert np.sum((sample["gt_occ20"][:, 2] + 0.25) * 0.2 > top_input) > 100
+
+
+def test_eval_scans_look_higher_than_the_input(sample):
+    def max_elevation(points, origin):
+        rel = points - origin
+        return np.degrees(np.arctan2(rel[:, 2], np.linalg.norm(rel[:, :2], axis=1))).max()
+
+    inp = max(max_elevation(sample["input_points"][sample["input_scan_index"] == i], o)
+              for i, o in enumerate(sample["input_origins"]))
+    ev = max(max_elevation(sample[f"eval_scan_{i}"], sample["eval_poses"][i][:3, 3]) for i in (0, 1))
+    assert inp < 3.0 and ev > 15.0
+    size = sample["region"][3:6]
+    x = sample["eval_poses"][:, 0, 3]
+    assert x.min() < 4.0 and x.max() > size[0] - 4.0                  # where the drive enters and leaves
+
+
+def test_visible_cells_hold_the_eval_hits_and_free_space(sample):
+    vis = _keys(sample["visible20"])
+    for i in (0, 1):
+        hits = voxelize_coarse(sample[f"eval_scan_{i}"], (384, 384, 80))
+        assert len(hits) > 1000 and np.all(np.isin(_keys(hits), vis))
+    # the air above the street next to the ego is visible; deep inside the ground is not
+    ego = sample["input_origins"][0]
+    cx, cy = int(ego[0] / 0.2), int(ego[1] / 0.2)
+    assert np.isin(_keys(np.array([[cx, cy, 10]])), vis).all() and not np.isin(_keys(np.array([[cx, cy, 0]])), vis).any()
+    assert 0.2 < len(vis) / (192 * 192 * 40) < 0.95
+
+
+def test_labels_and_street_box(sample):
+    lab = sample["gt_surface_label"]
+    assert set(np.unique(lab)) <= set(range(8)) and {0, 1, 2} <= set(np.unique(lab))
+    x0, y0, x1, y1 = sample["street_box"]
+    ego = sample["input_origins"][0]
+    assert x0 <= 0.5 and x1 >= 37.9 and y0 < ego[1] < y1 and 8 < y1 - y0 < 30
+
+
+def test_save_load_roundtrip(tmp_path, sample):
+    path = save_sample(tmp_path / "s.npz", sample)
+    back = load_sample(path)
+    assert set(back) == set(KEYS)
+    for k in KEYS:
+        assert np.array_equal(np.asarray(back[k]), np.asarray(sample[k])) and back[k].dtype == sample[k].dtype, k
+    assert json.loads(str(back["meta"]))["seed"] == SEED
+    assert not [f for f in os.listdir(tmp_path) if f.endswith(".tmp")]
+
+
+def test_split_is_seeded_and_resumable(tmp_path):
+    assert SPLITS == {"train": 0, "val": 1_000_000, "test": 2_000_000}
+    paths = build_split(tmp_path, "val", 1, n_scans=2, workers=1, progress=False, quality=QUICK_QUALITY)
+    assert [p.name for p in paths] == ["sample_1000000.npz"]
+    first = paths[0].stat().st_mtime_ns
+    assert json.loads(str(load_sample(paths[0])["meta"]))["seed"] == 1_000_000
+    build_split(tmp_path, "val", 1, n_scans=2, workers=2, progress=False, quality=QUICK_QUALITY)
+    assert paths[0].stat().st_mtime_ns == first                        # finished files are skipped
+    with pytest.raises(ValueError):
+        build_split(tmp_path, "nope", 1)
