@@ -36,6 +36,13 @@ def read_weights(path: str | Path) -> dict:
 def load_coarse(path: str, device: str = "cpu") -> tuple[GCAKernel, dict]:
     """The coarse kernel in eval mode, float32, on `device`; cached per (path, device)."""
     blob = read_weights(path)
+    if "state_dict" in blob:
+        sd, meta = blob["state_dict"], blob["meta"]
+    elif "model" in blob and "config" in blob:  # a training checkpoint (runs/<stage>/ckpt.pt) works too
+        sd = {k.removeprefix("model."): v for k, v in blob["model"].items()}
+        meta = {"kind": "coarse", "steps": blob["state"]["step"], "checkpoint": str(path)}
+    else:
+        raise InputError("not an hgca weights file or training checkpoint", str(path))
     model = GCAKernel(GCAConfig.from_dict(blob["config"]))
-    model.load_state_dict({k: (v.float() if v.is_floating_point() else v) for k, v in blob["state_dict"].items()})
-    return model.to(device).eval(), blob["meta"]
+    model.load_state_dict({k: (v.float() if v.is_floating_point() else v) for k, v in sd.items()})
+    return model.to(device).eval(), meta
