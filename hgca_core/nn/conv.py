@@ -46,9 +46,15 @@ def gemm_forward(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap) -> 
         out = _mm(feats, weight[kmap.identity])
     else:
         out = feats.new_zeros((kmap.n_out, cout))
-    for r0, r1, pieces in kmap.chunks(_rows(cin, cout)):
-        g = feats.index_select(0, kmap.in_idx[r0:r1])
-        prod = feats.new_empty((r1 - r0, cout))
+    rows = _rows(cin, cout)
+    chunks = kmap.chunks(rows)
+    if chunks:
+        # one pair of buffers reused by every chunk: fresh multi-MB tensors cost page faults each time
+        rows = max(r1 - r0 for r0, r1, _ in chunks)
+        gbuf, pbuf = feats.new_empty((rows, cin)), feats.new_empty((rows, cout))
+    for r0, r1, pieces in chunks:
+        g = torch.index_select(feats, 0, kmap.in_idx[r0:r1], out=gbuf[:r1 - r0])
+        prod = pbuf[:r1 - r0]
         for k, a, b in pieces:
             _mm(g[a:b], weight[k], out=prod[a:b])
         out.index_add_(0, kmap.out_idx[r0:r1], prod)
@@ -71,10 +77,17 @@ def gemm_backward(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap, gr
         if kmap.identity is not None:
             torch.mm(feats.T, grad_out, out=grad_w[kmap.identity])
     wt = weight.transpose(1, 2)
-    for r0, r1, pieces in kmap.chunks(_rows(cin, cout)):
-        go = grad_out.index_select(0, kmap.out_idx[r0:r1])
-        fi = feats.index_select(0, kmap.in_idx[r0:r1]) if need_weight else None
-        prod = feats.new_empty((r1 - r0, cin)) if need_feats else None
+    chunks = kmap.chunks(_rows(cin, cout))
+    if chunks:
+        rows = max(r1 - r0 for r0, r1, _ in chunks)
+        gobuf = feats.new_empty((rows, cout))
+        fibuf = feats.new_empty((rows, cin)) if need_weight else None
+        pbuf = feats.new_empty((rows, cin)) if need_feats else None
+    for r0, r1, pieces in chunks:
+        n = r1 - r0
+        go = torch.index_select(grad_out, 0, kmap.out_idx[r0:r1], out=gobuf[:n])
+        fi = torch.index_select(feats, 0, kmap.in_idx[r0:r1], out=fibuf[:n]) if need_weight else None
+        prod = pbuf[:n] if need_feats else None
         for k, a, b in pieces:
             if need_weight:
                 grad_w[k].addmm_(fi[a:b].T, go[a:b])

@@ -2,8 +2,9 @@
 
 Coordinates are (N, 4) int64 [b, x, y, z] rows in units of the finest cell (a tensor at stride s has
 x, y, z that are multiples of s), unique and sorted by `hgca_core.geometry.coords.pack`. Because `pack`
-is linear in each field, the key of c + d is key(c) + delta(d): all neighbour queries of a kernel are
-one broadcast add and one `searchsorted` into the sorted key table, with no per-offset Python work.
+is linear in each field, the key of c + d is key(c) + delta(d): the neighbour queries of a kernel are
+one broadcast add and one `searchsorted` into the sorted key table, with no per-offset Python work
+(and only one query per neighbour *column*, see `_neighbours_half`).
 
 Offset order (= first axis of every conv weight, shape (K, cin, cout)): lexicographic over (x, y, z),
 the order of `itertools.product` and of `coords.offsets`. For a submanifold kernel of size k the offset
@@ -91,30 +92,63 @@ def _splits(counts: torch.Tensor) -> tuple[int, ...]:
     return tuple(c)
 
 
+def _neighbours_half(keys: torch.Tensor, r: int, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """For the offsets before the centre (lexicographic order), whether c + d is active and its row.
+
+    Cells of one (b, x, y) column are contiguous in key order and sorted by z, so one `searchsorted`
+    per neighbour column (for z - r s) finds all k = 2r + 1 z-offsets within the next k rows: (k^2 - 1)/2
+    searches of N queries instead of (k^3 - 1)/2. Returns found (centre, N) bool and rows (centre, N).
+    """
+    n, dev, k = keys.numel(), keys.device, 2 * r + 1
+    cols = [(dx, dy) for dx in range(-r, 1) for dy in range(-r, r + 1) if dx < 0 or dy < 0]
+    m = len(cols)
+    d = torch.tensor([[dx * stride, dy * stride, -r * stride] for dx, dy in cols], device=dev)
+    base = keys[None, :] + key_delta(d)[:, None]                              # (m, N): z - r s
+    p = torch.searchsorted(keys, base.reshape(-1)).view(m, n)
+    steps = torch.arange(k, device=dev)
+    cand_rows = (p[:, None, :] + steps[None, :, None]).clamp_(max=n - 1)      # (m, j, N)
+    cand = keys[cand_rows]
+    target = base[:, None, :] + (steps * stride)[None, :, None]               # (m, dz, N)
+    hit = torch.zeros((m, k, n), dtype=torch.bool, device=dev)
+    rows = torch.zeros((m, k, n), dtype=torch.long, device=dev)
+    for j in range(k):                      # keys are unique: each target matches at most one j
+        e = cand[:, j:j + 1, :] == target
+        hit |= e
+        rows = torch.where(e, cand_rows[:, j:j + 1, :], rows)
+    # own column, dz = -r .. -1: the candidates are the r rows just before the cell
+    own = torch.arange(n, device=dev)
+    own_rows = (own[None, :] - torch.arange(1, r + 1, device=dev)[:, None]).clamp_(min=0)   # (j, N)
+    own_cand = keys[own_rows]
+    own_target = keys[None, :] + (torch.arange(-r, 0, device=dev) * stride)[:, None]       # (dz, N)
+    own_hit = torch.zeros((r, n), dtype=torch.bool, device=dev)
+    own_idx = torch.zeros((r, n), dtype=torch.long, device=dev)
+    for j in range(r):
+        e = own_cand[j:j + 1] == own_target
+        own_hit |= e
+        own_idx = torch.where(e, own_rows[j:j + 1], own_idx)
+    return torch.cat([hit.view(m * k, n), own_hit]), torch.cat([rows.view(m * k, n), own_idx])
+
+
 def submanifold_map(keys: torch.Tensor, kernel_size: int, stride: int) -> KernelMap:
     """Map of a submanifold conv (outputs = inputs) from the sorted keys of the active set.
 
-    Only the 13 (for k = 3) offsets before the centre are searched: the pairs of -d are those of d
-    swapped, and the centre is the identity.
+    Only the offsets before the centre are searched: the pairs of -d are those of d swapped, and the
+    centre is the identity.
     """
     if kernel_size % 2 != 1:
         raise ValueError(f"submanifold kernel_size must be odd, got {kernel_size}")
     n = keys.numel()
     dev = keys.device
-    offs = offsets(kernel_size // 2, device=dev) * stride
-    kvol = len(offs)
+    kvol = kernel_size ** 3
     centre = kvol // 2
     if kvol == 1 or n == 0:
         e = torch.empty(0, dtype=torch.long, device=dev)
         return KernelMap(e, e, (0,) * (kvol + 1), n, n, centre)
-    delta = key_delta(offs[:centre])                            # offsets lexicographically < 0
-    q = keys[None, :] + delta[:, None]                          # (centre, N), each row sorted
-    idx = torch.searchsorted(keys, q.reshape(-1)).clamp_(max=n - 1)
-    found = keys[idx] == q.reshape(-1)
-    nz = found.nonzero().squeeze(1)
+    found, idx = _neighbours_half(keys, kernel_size // 2, stride)
+    nz = found.reshape(-1).nonzero().squeeze(1)
     half_out = nz % n                                           # output row (the centre cell)
-    half_in = idx[nz]                                           # input row (the cell at c + d)
-    counts = found.view(centre, n).sum(1)
+    half_in = idx.reshape(-1)[nz]                               # input row (the cell at c + d)
+    counts = found.sum(1)
     seg = _splits(counts)
     ins, outs = [half_in], [half_out]
     for k in range(centre - 1, -1, -1):                         # offset K-1-k = -d_k: swapped pairs
@@ -122,6 +156,32 @@ def submanifold_map(keys: torch.Tensor, kernel_size: int, stride: int) -> Kernel
         outs.append(half_in[seg[k]:seg[k + 1]])
     all_counts = counts.tolist() + [0] + counts.flip(0).tolist()
     return KernelMap(torch.cat(ins), torch.cat(outs), _splits(torch.tensor(all_counts)), n, n, centre)
+
+
+def submanifold_map_reference(keys: torch.Tensor, kernel_size: int, stride: int) -> KernelMap:
+    """Straightforward version (one searchsorted over all half offsets), kept to test the fast one."""
+    n, dev = keys.numel(), keys.device
+    offs = offsets(kernel_size // 2, device=dev) * stride
+    kvol = len(offs)
+    centre = kvol // 2
+    if kvol == 1 or n == 0:
+        e = torch.empty(0, dtype=torch.long, device=dev)
+        return KernelMap(e, e, (0,) * (kvol + 1), n, n, centre)
+    q = keys[None, :] + key_delta(offs[:centre])[:, None]
+    idx = torch.searchsorted(keys, q.reshape(-1)).clamp_(max=n - 1)
+    found = (keys[idx] == q.reshape(-1)).view(centre, n)
+    pairs_in, pairs_out, counts = [], [], []
+    for k in range(kvol):
+        if k == centre:
+            counts.append(0)
+            continue
+        kk = k if k < centre else kvol - 1 - k
+        rows = found[kk].nonzero().squeeze(1)
+        other = idx.view(centre, n)[kk][rows]
+        pairs_in.append(other if k < centre else rows)
+        pairs_out.append(rows if k < centre else other)
+        counts.append(len(rows))
+    return KernelMap(torch.cat(pairs_in), torch.cat(pairs_out), _splits(torch.tensor(counts)), n, n, centre)
 
 
 def identity_map(n: int, device: torch.device | str = "cpu") -> KernelMap:
