@@ -34,10 +34,16 @@ def city_building(b: MeshBuilder, rng: np.random.Generator, width: float, depth:
     if n_seg == 1:
         recess[:] = 0.0
     z_upper = ground_h if shop else 0.0
+    windows = rng.random() < 0.85
+    win = _window_style(rng)
     for i in range(n_seg):
         xa, xb = edges[i] - (OVERLAP if i > 0 else 0), edges[i + 1] + (OVERLAP if i < n_seg - 1 else 0)
-        skip = ("-z", "+z") if gabled else ("-z",)
-        b.box([xa, recess[i], z_upper], [xb, depth, top], BUILDING, skip=skip if not shop else (("+z",) if gabled else ()))
+        bottom_open, top_open = shop, not gabled
+        if windows:
+            facade(b, xa, xb, recess[i], depth, z_upper, top, floor_h, win, bottom_open, top_open)
+        else:
+            skip = tuple(f for f, hidden in (("-z", not bottom_open), ("+z", not top_open)) if hidden)
+            b.box([xa, recess[i], z_upper], [xb, depth, top], BUILDING, skip=skip)
     if shop:
         inset = recess.max() + rng.uniform(0.7, 1.6)
         b.box([OVERLAP, inset, 0.0], [width - OVERLAP, depth - OVERLAP, ground_h + OVERLAP], BUILDING, skip=("-z", "+z"))
@@ -109,11 +115,55 @@ def city_building(b: MeshBuilder, rng: np.random.Generator, width: float, depth:
             b.box([x0, y0, top - OVERLAP], [x0 + sw, y0 + sd, top + rng.uniform(1.5, 3.0)], BUILDING)
 
 
+def _window_style(rng: np.random.Generator, small: bool = False) -> dict:
+    """One building's window grid: width, pier width, sill height, window height, recess depth."""
+    return {"width": rng.uniform(0.9, 1.5) if small else rng.uniform(1.0, 1.9),
+            "pier": rng.uniform(1.2, 3.0) if small else rng.uniform(0.5, 1.5),
+            "sill": rng.uniform(0.8, 1.0), "height": rng.uniform(1.1, 1.5) if small else rng.uniform(1.3, 1.9),
+            "recess": rng.uniform(0.1, 0.15) if small else rng.uniform(0.12, 0.25)}
+
+
+def facade(b: MeshBuilder, x0: float, x1: float, y0: float, depth: float, z0: float, z1: float, floor_h: float,
+           win: dict, bottom_open: bool, top_open: bool) -> None:
+    """A block [x0, x1] x [y0, depth] x [z0, z1] whose front (y = y0) has a grid of recessed windows.
+
+    The body starts `recess` behind the front; piers (between window columns) and spandrels (between
+    window rows) fill the front layer, so each window is a pocket whose back is the body's face.
+    `bottom_open` / `top_open`: whether the block's underside / top is exposed (overhang, flat roof).
+    """
+    w, pier, r = win["width"], win["pier"], win["recess"]
+    n_col = int((x1 - x0 - pier) // (w + pier))
+    sill = win["sill"]
+    wh = min(win["height"], floor_h - sill - 0.3)
+    rows = []
+    zf = z0
+    while wh > 0.5 and zf + sill + wh < z1 - 0.3:
+        rows.append((zf + sill, zf + sill + wh))
+        zf += floor_h
+    skip_b = () if bottom_open else ("-z",)
+    skip_t = () if top_open else ("+z",)
+    if n_col < 1 or not rows:
+        b.box([x0, y0, z0], [x1, depth, z1], BUILDING, skip=skip_b + skip_t)
+        return
+    b.box([x0, y0 + r, z0], [x1, depth, z1], BUILDING, skip=skip_b + skip_t)
+    edge = (x1 - x0 - n_col * w - (n_col - 1) * pier) / 2
+    xs = x0 + edge + np.arange(n_col) * (w + pier)                   # left edges of the window columns
+    pier_spans = [(x0, xs[0])] + [(a + w, a + w + pier) for a in xs[:-1]] + [(xs[-1] + w, x1)]
+    front = [y0, y0 + r + OVERLAP]
+    for a, z in pier_spans:
+        b.box([a, front[0], z0], [z, front[1], z1], BUILDING, skip=skip_b + skip_t)
+    bands = [(z0, rows[0][0])] + [(rows[k][1], rows[k + 1][0]) for k in range(len(rows) - 1)] + [(rows[-1][1], z1)]
+    for k, (za, zb) in enumerate(bands):
+        sk = (skip_b if k == 0 else ()) + (skip_t if k == len(bands) - 1 else ())
+        b.box([x0, front[0], za], [x1, front[1], zb], BUILDING, skip=sk)
+
+
 def house(b: MeshBuilder, rng: np.random.Generator, width: float, depth: float) -> None:
     """Suburban house: one or two storeys, gabled roof with eaves, porch, optional garage and chimney."""
     storeys = 1 if rng.random() < 0.4 else 2
     wall_h = storeys * rng.uniform(2.7, 3.1) + rng.uniform(0.2, 0.6)
-    b.box([0, 0, 0], [width, depth, wall_h], BUILDING, skip=("-z", "+z"))
+    win = _window_style(rng, small=True)
+    facade(b, 0.0, width, 0.0, depth, 0.0, wall_h, (wall_h - 0.3) / storeys, win, False, False)
     over = rng.uniform(0.3, 0.6)
     pitch = np.radians(rng.uniform(25, 45))
     ridge_x = rng.random() < 0.7

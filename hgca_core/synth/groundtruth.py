@@ -31,9 +31,12 @@ class RegionSurface:
         v, f, idx = trimesh.remesh.subdivide_to_size(local, faces[keep], MAX_EDGE, max_iter=12, return_index=True)
         tri = v[f]
         near = _tri_box_overlap(tri, lo, hi)
-        self.triangles = tri[near]
-        self.labels = labels[keep][idx[near]]
+        tri, lab = tri[near], labels[keep][idx[near]]
         self.solids = solids.transformed(region.local_matrix())
+        # a triangle whose corners lie inside one convex solid is hidden whole: skip it before sampling
+        inside = self.solids.which(tri.reshape(-1, 3)).reshape(-1, 3)
+        buried = (inside[:, 0] >= 0) & (inside[:, 0] == inside[:, 1]) & (inside[:, 0] == inside[:, 2])
+        self.triangles, self.labels = tri[~buried], lab[~buried]
         # dense samples; keep those not hidden inside a solid and not under the ground
         pts, face = sample_triangles(self.triangles, density, rng)
         inside = np.all((pts >= lo) & (pts < hi), axis=1)
@@ -59,7 +62,7 @@ class RegionSurface:
         coarse[occ10[:, 0] // 2, occ10[:, 1] // 2, occ10[:, 2] // 2] = True
         return occ10.astype(np.int32), np.argwhere(coarse).astype(np.int32)
 
-    def distance(self, query: np.ndarray, k: int = 4, tree_points: int = 600_000) -> np.ndarray:
+    def distance(self, query: np.ndarray, k: int = 4, tree_points: int = 250_000) -> np.ndarray:
         """Unsigned distance from query points to the visible surface.
 
         A k-d tree over a subset of the samples proposes candidate triangles (those of the k nearest
@@ -68,7 +71,7 @@ class RegionSurface:
         """
         if self._tree is None:
             step = max(1, len(self.points) // tree_points)
-            self._tree = cKDTree(self.points[::step])
+            self._tree = cKDTree(self.points[::step], balanced_tree=False, compact_nodes=False)  # builds 30x faster
             self._tree_face = self.face[::step]
         q = np.asarray(query, dtype=np.float64)
         _, nn = self._tree.query(q, k=k)
@@ -156,28 +159,32 @@ def visible_cells(region: Region, scans: list[tuple[np.ndarray, np.ndarray]], se
     idx = np.indices(grid, dtype=np.int32).reshape(3, -1).T
     centers = cell_centers(idx, COARSE).astype(np.float32)
     visible = np.zeros(len(idx), dtype=bool)
+    todo = np.arange(len(idx))                       # cells no pose has seen yet: only these are looked up
     el = np.radians(np.asarray(sensor.elevations_deg, dtype=np.float64))
     el_edges = np.concatenate([[el[0] - (el[1] - el[0]) / 2], (el[1:] + el[:-1]) / 2, [el[-1] + (el[-1] - el[-2]) / 2]])
-    extra = []
+    extra = list(extra_points or [])
     for pose, rng_img in scans:
         n_az = rng_img.shape[1]
-        rel = (centers - pose[:3, 3].astype(np.float32)) @ pose[:3, :3].astype(np.float32)  # sensor frame
+        rel = (centers[todo] - pose[:3, 3].astype(np.float32)) @ pose[:3, :3].astype(np.float32)  # sensor frame
         r = np.linalg.norm(rel, axis=1)
         row = np.searchsorted(el_edges, np.arcsin(np.clip(rel[:, 2] / np.maximum(r, 1e-9), -1, 1))) - 1
-        col = np.round(np.mod(np.arctan2(rel[:, 1], rel[:, 0]), 2 * np.pi) / (2 * np.pi / n_az)).astype(np.int64) % n_az
+        col = np.round(np.arctan2(rel[:, 1], rel[:, 0]) * (n_az / (2 * np.pi))).astype(np.int64) % n_az
         ok = (row >= 0) & (row < len(el)) & (r <= sensor.max_range)
-        depth = np.full(len(r), -np.inf)
+        depth = np.full(len(r), -np.inf, dtype=np.float32)
         depth[ok] = rng_img[row[ok], col[ok]]
         depth[ok & ~np.isfinite(depth)] = sensor.max_range
-        visible |= ok & (r < depth + behind)
-        # returns and the slab behind them
+        seen = ok & (r < depth + behind)
+        visible[todo[seen]] = True
+        todo = todo[~seen]
+        # returns inside the region, and the slab behind them
         hit = np.isfinite(rng_img)
         dirs = _directions(sensor, n_az, pose)[hit]
         rr = rng_img[hit]
+        inside = region.contains_local(pose[:3, 3] + rr[:, None] * dirs)
+        dirs, rr = dirs[inside], rr[inside]
         for extra_d in (0.0, 0.1, 0.2, behind):
             extra.append(pose[:3, 3] + (rr + extra_d)[:, None] * dirs)
     dense = visible.reshape(grid)
-    extra += list(extra_points or [])
     if extra:
         pts = np.concatenate(extra)
         c = np.round(pts / FINE).astype(np.int64) // 2

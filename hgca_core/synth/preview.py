@@ -15,9 +15,9 @@ def _subsample(n: int, k: int, seed: int = 0) -> np.ndarray:
     return np.arange(n) if n <= k else np.sort(np.random.default_rng(seed).choice(n, k, replace=False))
 
 
-def render_preview(sample: dict, path: str | os.PathLike, max_points: int = 60_000) -> str:
-    """Write a 3-panel PNG: top view of the ground truth by class, top view of the input scans over the
-    ground truth with poses and the street corridor, and a 3D view of input over ground truth."""
+def render_preview(sample: dict, path: str | os.PathLike, max_points: int = 40_000) -> str:
+    """Write a PNG: top view of the ground truth by class; top view of the input scans over the ground
+    truth with poses and the street corridor; below, a 3D view of the input over the ground truth."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -31,9 +31,10 @@ def render_preview(sample: dict, path: str | os.PathLike, max_points: int = 60_0
     meta = json.loads(str(sample["meta"]))
     poses, evals = np.asarray(sample["input_poses"]), np.asarray(sample["eval_poses"])
 
-    fig = plt.figure(figsize=(21, 7.4), dpi=90)
+    fig = plt.figure(figsize=(15, 14), dpi=90)
+    grid = fig.add_gridspec(2, 2, height_ratios=(1.0, 0.75))
     # (1) ground truth by class, drawn low to high so roofs and canopies cover the ground
-    ax = fig.add_subplot(1, 3, 1)
+    ax = fig.add_subplot(grid[0, 0])
     g = _subsample(len(gt), 3 * max_points)
     order = g[np.argsort(gt[g, 2])]
     ax.scatter(gt[order, 0], gt[order, 1], s=0.4, c=LABEL_COLORS[np.minimum(lab[order], 7)], linewidths=0)
@@ -41,7 +42,7 @@ def render_preview(sample: dict, path: str | os.PathLike, max_points: int = 60_0
               loc="upper right", fontsize=7, ncol=2, framealpha=0.8)
     ax.set_title(f"ground truth by class (seed {meta.get('seed')}, {meta.get('style')})")
     # (2) input over ground truth, poses, street corridor
-    ax2 = fig.add_subplot(1, 3, 2)
+    ax2 = fig.add_subplot(grid[0, 1])
     ax2.scatter(gt[g, 0], gt[g, 1], s=0.3, c="0.8", linewidths=0)
     k = _subsample(len(inp), 2 * max_points, 1)
     ax2.scatter(inp[k, 0], inp[k, 1], s=0.4, c=sid[k], cmap="turbo", vmin=0, vmax=max(1, len(poses) - 1), linewidths=0)
@@ -60,18 +61,21 @@ def render_preview(sample: dict, path: str | os.PathLike, max_points: int = 60_0
         a.set_aspect("equal")
         a.set_xlabel("x (m, region frame)")
         a.set_ylabel("y (m)")
-    # (3) 3D: ground truth grey, input coloured by height
-    ax3 = fig.add_subplot(1, 3, 3, projection="3d")
-    g3 = _subsample(len(gt), max_points, 2)
-    ax3.scatter(gt[g3, 0], gt[g3, 1], gt[g3, 2], s=0.3, c="0.65", alpha=0.5, linewidths=0)
-    k3 = _subsample(len(inp), max_points, 3)
-    ax3.scatter(inp[k3, 0], inp[k3, 1], inp[k3, 2], s=0.4, c=inp[k3, 2], cmap="viridis", linewidths=0)
-    ax3.set_xlim(0, size[0])
-    ax3.set_ylim(0, size[1])
-    ax3.set_zlim(ground - 1, ground - 1 + size[2])
-    ax3.set_box_aspect((size[0], size[1], size[2] * 1.5))
-    ax3.view_init(elev=32, azim=-115)
-    ax3.set_title("3D: input (coloured by height) over ground truth (grey)")
+    # (3) 3D: a perspective view from above one sidewalk, ground truth by class (pale), input on top
+    ax3 = fig.add_subplot(grid[1, :])
+    g3 = _subsample(len(gt), 3 * max_points, 2)
+    k3 = _subsample(len(inp), 2 * max_points, 3)
+    eye = np.array([-12.0, size[1] * 0.5 - 4.0, ground + 15.0])                # above the street, behind it
+    target = np.array([size[0] * 0.6, size[1] * 0.5, ground + 1.0])
+    pale = 0.55 * LABEL_COLORS[np.minimum(lab[g3], 7)] + 0.45
+    pts = np.concatenate([gt[g3], inp[k3]])
+    cols = np.concatenate([pale, plt.get_cmap("plasma")(np.clip((inp[k3, 2] - ground) / 4.0, 0, 1))[:, :3] * 0.85])
+    uv, depth = _project(pts, eye, target)
+    order = np.argsort(-depth)                              # far first, near points on top
+    ax3.scatter(uv[order, 0], uv[order, 1], s=np.where(order < len(g3), 0.6, 0.9), c=cols[order], linewidths=0)
+    ax3.set_aspect("equal")
+    ax3.axis("off")
+    ax3.set_title("3D view along the street: input (coloured by height) over ground truth (pale, by class)")
     fig.tight_layout()
     path = os.fspath(path)
     tmp = f"{path}.tmp.png"
@@ -79,6 +83,18 @@ def render_preview(sample: dict, path: str | os.PathLike, max_points: int = 60_0
     plt.close(fig)
     os.replace(tmp, path)
     return path
+
+
+def _project(points: np.ndarray, eye: np.ndarray, target: np.ndarray, focal: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole projection (x right, y up on the image) of points seen from `eye` looking at `target`."""
+    fwd = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(fwd, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    rel = np.asarray(points, dtype=np.float64) - eye
+    depth = rel @ fwd
+    depth = np.maximum(depth, 1e-3)
+    return np.c_[rel @ right, rel @ up] * (focal / depth)[:, None], depth
 
 
 def _arrow(ax, pose: np.ndarray, color: str) -> None:

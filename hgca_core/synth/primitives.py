@@ -239,13 +239,17 @@ class Solids:
         return Solids(planes, bounds, ell)
 
     def contains(self, points: np.ndarray, eps: float = 0.01, cell: float = 2.0) -> np.ndarray:
-        """Which points lie deeper than `eps` inside any solid (boolean mask).
+        """Which points lie deeper than `eps` inside any solid (boolean mask)."""
+        return self.which(points, eps, cell) >= 0
+
+    def which(self, points: np.ndarray, eps: float = 0.01, cell: float = 2.0) -> np.ndarray:
+        """Index of a solid each point lies deeper than `eps` inside (polytopes first, then ellipsoids), or -1.
 
         Points are sorted into 2 m buckets in x/y once; a solid then tests only the contiguous runs of
         the buckets its bounds cover, instead of every point against every solid.
         """
         pts = np.asarray(points)
-        out = np.zeros(len(pts), dtype=bool)
+        out = np.full(len(pts), -1, dtype=np.int64)
         if len(pts) == 0:
             return out
         origin = pts[:, :2].min(axis=0).astype(np.float64)
@@ -254,7 +258,7 @@ class Solids:
         key = b[:, 0] * ny + b[:, 1]
         order = np.argsort(key, kind="stable")
         skey, sp = key[order], pts[order]
-        hidden = np.zeros(len(pts), dtype=bool)
+        hidden = np.full(len(pts), -1, dtype=np.int64)
 
         def runs(lo_xy: np.ndarray, hi_xy: np.ndarray):
             i0 = np.floor((lo_xy - origin) / cell).astype(np.int64)
@@ -269,7 +273,7 @@ class Solids:
                 if z > a:
                     yield a, z
 
-        for pl, (lo, hi) in zip(self.planes, self.bounds):
+        for k, (pl, (lo, hi)) in enumerate(zip(self.planes, self.bounds)):
             pl = pl[np.any(pl[:, :3] != 0, axis=1)].astype(pts.dtype)
             for a, z in runs(lo[:2], hi[:2]):
                 p = sp[a:z]
@@ -278,13 +282,13 @@ class Solids:
                     if not inside.any():
                         break
                     inside &= p @ n[:3] + n[3] < -eps
-                hidden[a:z] |= inside
-        for cx, cy, cz, rxy, rz in self.ellipsoids:
+                hidden[a:z][inside] = k
+        for k, (cx, cy, cz, rxy, rz) in enumerate(self.ellipsoids, start=len(self.planes)):
             c = np.array([cx, cy])
             for a, z in runs(c - rxy, c + rxy):
                 p = sp[a:z].astype(np.float64)
                 q = ((p[:, 0] - cx) ** 2 + (p[:, 1] - cy) ** 2) / max(rxy - eps, 1e-6) ** 2 \
                     + (p[:, 2] - cz) ** 2 / max(rz - eps, 1e-6) ** 2
-                hidden[a:z] |= q < 1.0
+                hidden[a:z][q < 1.0] = k
         out[order] = hidden
         return out
