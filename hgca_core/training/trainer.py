@@ -124,6 +124,8 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
             state["history"].append({"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1), "kind": "train",
                                      **{k: float(np.mean(v)) for k, v in stats_acc.items()}})
             stats_acc = {}
+            if not progress:  # a log line for runs in the background
+                print(json.dumps(state["history"][-1]), flush=True)
         if time.time() - last_val >= val_every_min * 60:
             validate()
             last_val = time.time()
