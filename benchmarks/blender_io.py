@@ -13,6 +13,7 @@ import argparse
 import json
 import os
 import platform
+import shutil
 import statistics
 import sys
 import tempfile
@@ -86,7 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     python = args.python or preferences.detect_python() or sys.executable
     work = Path(tempfile.mkdtemp(prefix="hgca_bench_"))
     results: dict = {"bpy": bpy.app.version_string, "python": platform.python_version(),
-                     "cpus": os.cpu_count(), "machine": platform.machine(), "repeat": args.repeat}
+                     "cpus": os.cpu_count(), "machine": platform.machine(), "repeat": args.repeat,
+                     "load_avg_start": round(os.getloadavg()[0], 2)}
 
     for fmt, writer in (("ply", write_scan_ply), ("npz", write_scan_npz)):
         scan = work / f"scan_{args.points}.{fmt}"
@@ -138,6 +140,8 @@ def main(argv: list[str] | None = None) -> int:
         "all_build_results_s": [round(t, 3) for t in t_insert],
     }
     print(f"insert: {results['insert_mesh']}", flush=True)
+    results["load_avg_end"] = round(os.getloadavg()[0], 2)
+    shutil.rmtree(work, ignore_errors=True)
 
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -146,7 +150,8 @@ def main(argv: list[str] | None = None) -> int:
     md = [
         "# Blender add-on I/O (bpy module)",
         "",
-        f"bpy {results['bpy']}, Python {results['python']}, {results['cpus']} CPUs (shared), median of "
+        f"bpy {results['bpy']}, Python {results['python']}, {results['cpus']} CPUs shared with other jobs "
+        f"(1-min load average {results['load_avg_start']} at start, {results['load_avg_end']} at end), median of "
         f"{args.repeat}. Produced by `benchmarks/blender_io.py`.",
         "",
         "| operation | size | total (s) | of which core `hgca read` (s) | Blender build (s) |",

@@ -14,6 +14,7 @@ import importlib.util
 import shutil
 import subprocess
 import sys
+import tempfile
 import tomllib
 from pathlib import Path
 
@@ -87,15 +88,17 @@ def build(out_dir: Path, blender_ext: Path | None = None, python: str = sys.exec
     out_dir = Path(out_dir).resolve()
     manifest = read_manifest()
     zip_path = out_dir / f"{manifest['id']}-{manifest['version']}.zip"
-    staged = stage(out_dir / "staging" / manifest["id"])
     tool = Path(blender_ext) if blender_ext else find_blender_ext()
+    out_dir.mkdir(parents=True, exist_ok=True)
     if zip_path.exists():
         zip_path.unlink()
-    cmd = [python, str(tool), "build", "--source-dir", str(staged), "--output-filepath", str(zip_path)]
-    tags = _valid_tags_file(tool)
-    if tags is not None:
-        cmd.append(f"--valid-tags={tags}")
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    with tempfile.TemporaryDirectory(prefix="hgca_ext_") as tmp:
+        staged = stage(Path(tmp) / manifest["id"])
+        cmd = [python, str(tool), "build", "--source-dir", str(staged), "--output-filepath", str(zip_path)]
+        tags = _valid_tags_file(tool)
+        if tags is not None:
+            cmd.append(f"--valid-tags={tags}")
+        proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0 or not zip_path.is_file():
         detail = (proc.stdout + proc.stderr).strip()
         raise BuildError(f"Blender's builder failed (exit {proc.returncode}): {detail}")

@@ -9,6 +9,7 @@ never fire in `blender --background` nor in the bpy module.
 """
 from __future__ import annotations
 
+import atexit
 import json
 import math
 import os
@@ -168,7 +169,8 @@ class Job:
         self._done_event: dict[str, Any] | None = None
         try:
             self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                          stdin=subprocess.DEVNULL, text=True, bufsize=1, env=_child_env(),
+                                          stdin=subprocess.DEVNULL, text=True, errors="replace", bufsize=1,
+                                          env=_child_env(),
                                           cwd=str(self.workdir), **_group_kwargs())
         except OSError as exc:
             self._cleanup()
@@ -181,17 +183,25 @@ class Job:
     # -- reader threads (never touch bpy) ---------------------------------------------------------
     def _read_stderr(self) -> None:
         assert self._proc.stderr is not None
-        for line in self._proc.stderr:
-            self._stderr.append(line.rstrip("\n"))
+        try:
+            for line in self._proc.stderr:
+                self._stderr.append(line.rstrip("\n"))
+        except (OSError, ValueError):
+            pass
 
     def _read_stdout(self) -> None:
         assert self._proc.stdout is not None
-        for line in self._proc.stdout:
-            if line.strip():
-                self._events.put(parse_progress_line(line))
-        returncode = self._proc.wait()
-        self._err_thread.join(timeout=5.0)
-        self._events.put({"stage": "_exit", "returncode": returncode})
+        try:
+            for line in self._proc.stdout:
+                if line.strip():
+                    self._events.put(parse_progress_line(line))
+        except (OSError, ValueError) as exc:  # pipe closed under us (cancel) or unreadable output
+            self._stderr.append(f"reading progress failed: {exc}")
+        finally:
+            # whatever happened, the main thread must learn that the process is over
+            returncode = self._proc.wait()
+            self._err_thread.join(timeout=5.0)
+            self._events.put({"stage": "_exit", "returncode": returncode})
 
     # -- main thread --------------------------------------------------------------------------------
     @property
@@ -234,6 +244,13 @@ class Job:
                 break
             time.sleep(interval)
         return self.state
+
+    def kill(self) -> None:
+        """Stop the process tree and remove the temporary files without touching Blender (interpreter exit)."""
+        if self.state == "running":
+            _terminate_tree(self._proc)
+            self.state = "cancelled"
+            self._cleanup()
 
     def cancel(self) -> None:
         """Kill the process (and its children) and drop the temporary files; nothing is built."""
@@ -525,6 +542,13 @@ def cancel_all() -> None:
     ACTIVE.clear()
 
 
+def _kill_all_at_exit() -> None:
+    """The core runs in its own session, so it would outlive Blender: stop it when Python exits."""
+    for job in list(ACTIVE.values()):
+        job.kill()
+    ACTIVE.clear()
+
+
 @bpy.app.handlers.persistent
 def _on_load_pre(*_args: Any) -> None:
     cancel_all()
@@ -533,9 +557,11 @@ def _on_load_pre(*_args: Any) -> None:
 def register() -> None:
     if _on_load_pre not in bpy.app.handlers.load_pre:
         bpy.app.handlers.load_pre.append(_on_load_pre)
+    atexit.register(_kill_all_at_exit)
 
 
 def unregister() -> None:
+    atexit.unregister(_kill_all_at_exit)
     cancel_all()
     if bpy.app.timers.is_registered(_timer_tick):
         bpy.app.timers.unregister(_timer_tick)

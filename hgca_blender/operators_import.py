@@ -74,7 +74,6 @@ class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
     bl_label = "Import LiDAR Scan"
     bl_options = {"REGISTER", "UNDO"}
 
-    filename_ext = ".ply"
     filter_glob: StringProperty(default=";".join(f"*{e}" for e in EXTENSIONS), options={"HIDDEN"})
     files: CollectionProperty(type=bpy.types.OperatorFileListElement, options={"HIDDEN", "SKIP_SAVE"})
     directory: StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
@@ -88,6 +87,12 @@ class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
         if names and self.directory:
             return [Path(self.directory) / n for n in names]
         return [Path(bpy.path.abspath(self.filepath))] if self.filepath else []
+
+    def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
+        # files dropped on the viewport (FileHandler) arrive with paths set: confirm in a popup
+        if self.properties.is_property_set("filepath") and hasattr(self, "invoke_popup"):
+            return self.invoke_popup(context)
+        return ImportHelper.invoke(self, context, event)
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         paths = self._paths()
@@ -114,11 +119,27 @@ class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
         layout.prop(self, "show_points")
 
 
+class HGCA_FH_lidar(bpy.types.FileHandler):
+    """Drag and drop of scan files onto the 3D viewport or outliner (Blender 4.1+).
+
+    Generic text and PLY extensions are left out so dropping them keeps going to Blender's importers.
+    """
+
+    bl_idname = "HGCA_FH_lidar"
+    bl_label = "LiDAR Scan (hgca)"
+    bl_import_operator = HGCA_OT_import_scan.bl_idname
+    bl_file_extensions = ".las;.laz;.pcd;.bin;.xyz;.npz"
+
+    @classmethod
+    def poll_drop(cls, context: bpy.types.Context) -> bool:
+        return context.area is not None and context.area.type in {"VIEW_3D", "OUTLINER"}
+
+
 def menu_import(self: bpy.types.Menu, _context: bpy.types.Context) -> None:
     self.layout.operator(HGCA_OT_import_scan.bl_idname, text="LiDAR Scan (hgca)")
 
 
-CLASSES = (HGCA_OT_import_scan,)
+CLASSES = (HGCA_OT_import_scan, HGCA_FH_lidar)
 
 
 def register() -> None:
