@@ -29,12 +29,15 @@ def run(args: argparse.Namespace) -> int:
     if not poses.exists():
         raise InputError("the bundled example is missing from the installed package", str(poses))
     scans = [str(EXAMPLE_DIR / e.file) for e in load_poses(poses)]
+    import json
+
+    region = ",".join(f"{v:.6f}" for v in json.loads(poses.read_text())["region"])  # the ego-aligned box
     stage = args.stage or ("full" if default_weights("fine").exists() else "coarse")
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     mesh_path = out_dir / "completion.ply"
     t0 = time.time()
-    complete_run(argparse.Namespace(scans=scans, out=str(mesh_path), poses=str(poses), fmt=None, region=None,
+    complete_run(argparse.Namespace(scans=scans, out=str(mesh_path), poses=str(poses), fmt=None, region=region,
                                     samples=args.samples, seed=args.seed, stage=stage, device="cpu", t1=None,
                                     t2=None, weights=None, progress=args.progress))
     seconds = time.time() - t0
