@@ -20,6 +20,7 @@ import torch
 from hgca_core.geometry.coords import pack, unique
 from hgca_core.nn.kernel_map import downsample_map, submanifold_map
 from hgca_core.nn.sparse import SparseConv3d, SparseTensor, SubMConv3d
+from hgca_core.nn.unet import SparseUNet
 
 GRID = (384, 384, 80)
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -94,6 +95,25 @@ def bench_sparse(coords: torch.Tensor, c: int, repeats: int) -> dict[str, float]
     return res
 
 
+def bench_unet(coords: torch.Tensor, repeats: int) -> dict[str, float]:
+    """Default SparseUNet (channels 32..128, 4 levels), 4 input features, fresh coords every call
+    (maps rebuilt, as in a GCA step) vs. reused coords (maps cached)."""
+    net = SparseUNet(4, 2)
+    feats = torch.randn(len(coords), 4)
+    res: dict[str, float] = {}
+    with torch.no_grad():
+        res["unet_fwd_new_coords_ms"] = timeit(lambda: net(SparseTensor(coords, feats, check=False)), repeats)
+        x = SparseTensor(coords, feats)
+        res["unet_fwd_cached_ms"] = timeit(lambda: net(x), repeats)
+
+    def fwd_bwd() -> None:
+        net.zero_grad(set_to_none=True)
+        net(SparseTensor(coords, feats, check=False)).feats.square().mean().backward()
+
+    res["unet_fwd_bwd_new_coords_ms"] = timeit(fwd_bwd, repeats)
+    return res
+
+
 def bench_dense(coords: torch.Tensor, c: int, repeats: int, mem_cap_gb: float) -> dict[str, object]:
     lo = coords[:, 1:].min(0).values
     hi = coords[:, 1:].max(0).values
@@ -122,7 +142,7 @@ def bench_dense(coords: torch.Tensor, c: int, repeats: int, mem_cap_gb: float) -
     return out
 
 
-def to_markdown(meta: dict, rows: list[dict]) -> str:
+def to_markdown(meta: dict, rows: list[dict], unet_rows: list[dict]) -> str:
     def f(v: object) -> str:
         return f"{v:.0f}" if isinstance(v, float) else str(v)
 
@@ -145,7 +165,19 @@ def to_markdown(meta: dict, rows: list[dict]) -> str:
             f"{f(r['map_build_down_ms'])} | {f(r['subm_fwd_ms'])} | {f(r['subm_fwd_bwd_ms'])} | "
             f"{f(r['down_fwd_ms'])} | {f(r['down_fwd_bwd_ms'])} | {f(r['dense_fwd_ms'])} | "
             f"{f(r['dense_fwd_bwd_ms'])} | {'x'.join(map(str, r['dense_grid']))} |")
-    lines.append("")
+    lines += [
+        "",
+        "Default `SparseUNet(4, 2)` (channels 32-48-64-96-128, 4 stride-2 levels, batch norm) on the same "
+        "cells; 'new coords' rebuilds every kernel map (a GCA step), 'cached' reuses them.",
+        "",
+        "| N | U-Net fwd (new coords) | U-Net fwd (cached maps) | U-Net fwd+bwd (new coords) |",
+        "|---|---|---|---|",
+    ]
+    for u in unet_rows:
+        lines.append(f"| {u['n']} | {f(u['unet_fwd_new_coords_ms'])} | {f(u['unet_fwd_cached_ms'])} | "
+                     f"{f(u['unet_fwd_bwd_new_coords_ms'])} |")
+    lines += ["", f"Load average (1 min) before / after the run: {meta['load_before']} / {meta['load_after']} "
+              "(the machine is shared; other jobs inflate medians).", ""]
     return "\n".join(lines)
 
 
@@ -164,9 +196,9 @@ def main() -> None:
     meta = {
         "cpu": cpu_model(), "cores": os.cpu_count(), "threads": torch.get_num_threads(),
         "torch": torch.__version__, "date": time.strftime("%Y-%m-%d"), "repeats": args.repeats,
-        "dense_repeats": args.dense_repeats, "grid": list(GRID),
+        "dense_repeats": args.dense_repeats, "grid": list(GRID), "load_before": os.getloadavg()[0],
     }
-    rows = []
+    rows, unet_rows = [], []
     for n in args.sizes:
         coords = surface_cells(n)
         for c in args.channels:
@@ -174,10 +206,14 @@ def main() -> None:
             r.update(bench_dense(coords, c, args.dense_repeats, args.dense_mem_gb))
             rows.append(r)
             print(json.dumps(r), flush=True)
+        u = {"n": n, **bench_unet(coords, max(3, args.repeats // 2))}
+        unet_rows.append(u)
+        print(json.dumps(u), flush=True)
+    meta["load_after"] = os.getloadavg()[0]
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(json.dumps({"meta": meta, "results": rows}, indent=2) + "\n")
-    args.out.with_suffix(".md").write_text(to_markdown(meta, rows))
-    print(to_markdown(meta, rows))
+    args.out.with_suffix(".json").write_text(json.dumps({"meta": meta, "results": rows, "unet": unet_rows}, indent=2) + "\n")
+    args.out.with_suffix(".md").write_text(to_markdown(meta, rows, unet_rows))
+    print(to_markdown(meta, rows, unet_rows))
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ from hgca_core.nn.kernel_map import (COORD_LIMIT, KernelMap, downsample_map, ide
                                      upsample_map)
 
 __all__ = [
-    "SparseTensor", "sparse_cat", "KernelMap", "SubMConv3d", "SparseConv3d", "SparseConvTranspose3d",
+    "SparseTensor", "sparse_cat", "cat", "KernelMap", "SubMConv3d", "SparseConv3d", "SparseConvTranspose3d",
     "SparseLinear", "SparseBatchNorm", "SparseInstanceNorm", "SparseLayerNorm", "SparseReLU",
     "make_norm", "conv_gemm", "set_backend", "get_backend", "register_backend",
 ]
@@ -153,6 +153,9 @@ def sparse_cat(*tensors: SparseTensor) -> SparseTensor:
     return first.replace_feats(torch.cat([t.feats for t in tensors], dim=1))
 
 
+cat = sparse_cat
+
+
 # -- convolution layers ---------------------------------------------------------------------------
 def _init_weight(weight: torch.Tensor, fan_in: int) -> None:
     # Kaiming-uniform for ReLU nets (gain sqrt 2): keeps activations O(1) through the U-Net.
@@ -236,6 +239,7 @@ class SparseConvTranspose3d(_ConvBase):
             raise ValueError(f"SparseConvTranspose3d supports kernel_size == stride >= 2, got {kernel_size}, {stride}")
         super().__init__(in_channels, out_channels, stride ** 3, bias)
         self.factor = stride
+        _init_weight(self.weight.data, in_channels)     # each output cell receives exactly one tap
 
     def forward(self, x: SparseTensor, target: SparseTensor) -> SparseTensor:
         f = self.factor
