@@ -60,7 +60,7 @@ class MeshBuilder:
         self._count = 0
         self._planes: list[np.ndarray] = []      # (MAX_PLANES, 4) per convex solid, world n.p + d <= 0 inside
         self._bounds: list[np.ndarray] = []      # (2, 3) lo/hi corner per convex solid
-        self._ellipsoids: list[np.ndarray] = []  # (cx, cy, cz, r_xy, r_z) with the inscribed scale applied
+        self._ellipsoids: list[np.ndarray] = []  # (cx, cy, cz, r_xy, r_z, yaw, subdivisions) icosphere blobs
         self.frame = Frame()
 
     @contextlib.contextmanager
@@ -169,13 +169,12 @@ class MeshBuilder:
             self.add_solid_planes(v, faces)
 
     def ellipsoid(self, center, radius_xy: float, radius_z: float, label: int, subdivisions: int = 1) -> None:
-        """Icosphere blob (tree canopy); its inscribed ellipsoid is recorded as a solid."""
+        """Icosphere blob (tree canopy), also recorded as a solid (the exact convex polyhedron)."""
         ico = _icosphere(subdivisions)
         scale = np.array([radius_xy, radius_xy, radius_z])
         self.add(ico.vertices * scale + np.asarray(center, dtype=np.float64), ico.faces, label)
-        inner = _inradius(subdivisions)
         c = self.frame.apply(np.asarray(center, dtype=np.float64)[None])[0]
-        self._ellipsoids.append(np.array([*c, radius_xy * inner, radius_z * inner]))
+        self._ellipsoids.append(np.array([*c, radius_xy, radius_z, self.frame.yaw, subdivisions]))
 
     def ground_tiles(self, xmin: float, ymin: float, xmax: float, ymax: float, z: float, tile: float, label: int) -> None:
         """A flat rectangle split into tiles, so later cropping to a region wastes little."""
@@ -195,7 +194,7 @@ class MeshBuilder:
         mesh = trimesh.Trimesh(np.vstack(self._verts), np.vstack(self._faces), process=False)
         solids = Solids(np.array(self._planes).reshape(-1, MAX_PLANES, 4),
                         np.array(self._bounds).reshape(-1, 2, 3),
-                        np.array(self._ellipsoids).reshape(-1, 5))
+                        np.array(self._ellipsoids).reshape(-1, 7))
         return mesh, np.concatenate(self._labels), solids
 
 
@@ -208,16 +207,17 @@ def _icosphere(subdivisions: int) -> trimesh.Trimesh:
     return _ICO[subdivisions]
 
 
-def _inradius(subdivisions: int) -> float:
-    """Distance from the centre to the nearest face plane of the unit icosphere (its inscribed sphere)."""
+def _ico_planes(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
+    """Face normals and plane offsets of the unit icosphere (inside: n.p < d)."""
     ico = _icosphere(subdivisions)
-    return float(np.min(np.abs(np.einsum("ij,ij->i", ico.face_normals, ico.triangles[:, 0]))))
+    n = np.asarray(ico.face_normals)
+    return n, np.einsum("ij,ij->i", n, ico.triangles[:, 0])
 
 
 @dataclass
 class Solids:
-    """Convex polytopes (planes n.p + d < 0 inside, padded to MAX_PLANES; bounds lo/hi) and ellipsoids
-    (cx, cy, cz, r_xy, r_z), used to drop surface hidden inside other objects."""
+    """Convex polytopes (planes n.p + d < 0 inside, padded to MAX_PLANES; bounds lo/hi) and icosphere
+    blobs (cx, cy, cz, r_xy, r_z, yaw, subdivisions), used to drop surface hidden inside other objects."""
 
     planes: np.ndarray
     bounds: np.ndarray
@@ -236,16 +236,17 @@ class Solids:
         ell = self.ellipsoids.copy()
         if len(ell):
             ell[:, :3] = self.ellipsoids[:, :3] @ r.T + t
+            ell[:, 5] += np.arctan2(r[1, 0], r[0, 0])
         return Solids(planes, bounds, ell)
 
-    def contains(self, points: np.ndarray, eps: float = 0.01, cell: float = 2.0) -> np.ndarray:
+    def contains(self, points: np.ndarray, eps: float = 0.01, cell: float = 1.0) -> np.ndarray:
         """Which points lie deeper than `eps` inside any solid (boolean mask)."""
         return self.which(points, eps, cell) >= 0
 
-    def which(self, points: np.ndarray, eps: float = 0.01, cell: float = 2.0) -> np.ndarray:
+    def which(self, points: np.ndarray, eps: float = 0.01, cell: float = 1.0) -> np.ndarray:
         """Index of a solid each point lies deeper than `eps` inside (polytopes first, then ellipsoids), or -1.
 
-        Points are sorted into 2 m buckets in x/y once; a solid then tests only the contiguous runs of
+        Points are sorted into 1 m buckets in x/y once; a solid then tests only the contiguous runs of
         the buckets its bounds cover, instead of every point against every solid.
         """
         pts = np.asarray(points)
@@ -275,20 +276,30 @@ class Solids:
 
         for k, (pl, (lo, hi)) in enumerate(zip(self.planes, self.bounds)):
             pl = pl[np.any(pl[:, :3] != 0, axis=1)].astype(pts.dtype)
+            lo32, hi32 = lo.astype(pts.dtype), hi.astype(pts.dtype)
             for a, z in runs(lo[:2], hi[:2]):
                 p = sp[a:z]
-                inside = (p[:, 2] > lo[2]) & (p[:, 2] < hi[2])
-                for n in pl:
-                    if not inside.any():
+                sel = np.flatnonzero(np.all((p > lo32) & (p < hi32), axis=1))
+                for n in pl:                                   # keep the points inside every half-space
+                    if len(sel) == 0:
                         break
-                    inside &= p @ n[:3] + n[3] < -eps
-                hidden[a:z][inside] = k
-        for k, (cx, cy, cz, rxy, rz) in enumerate(self.ellipsoids, start=len(self.planes)):
+                    sel = sel[p[sel] @ n[:3] + n[3] < -eps]
+                hidden[a + sel] = k
+        for k, (cx, cy, cz, rxy, rz, yaw, sub) in enumerate(self.ellipsoids, start=len(self.planes)):
             c = np.array([cx, cy])
+            normals, offsets = _ico_planes(int(sub))
+            rot = np.array([[np.cos(yaw), np.sin(yaw), 0.0], [-np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
+            margin = eps / max(rxy, rz)
+            inner = offsets.min() - margin                      # inside this sphere: inside the blob
             for a, z in runs(c - rxy, c + rxy):
-                p = sp[a:z].astype(np.float64)
-                q = ((p[:, 0] - cx) ** 2 + (p[:, 1] - cy) ** 2) / max(rxy - eps, 1e-6) ** 2 \
-                    + (p[:, 2] - cz) ** 2 / max(rz - eps, 1e-6) ** 2
-                hidden[a:z][q < 1.0] = k
+                p = sp[a:z]
+                near = np.flatnonzero(np.abs(p[:, 2] - cz) < rz)
+                q = ((p[near].astype(np.float64) - [cx, cy, cz]) @ rot.T) / [rxy, rxy, rz]  # unit-blob frame
+                r2 = np.einsum("ij,ij->i", q, q)
+                inside = r2 < inner * inner
+                band = np.flatnonzero(~inside & (r2 < 1.0))
+                if len(band):
+                    inside[band] = np.all(q[band] @ normals.T < offsets - margin, axis=1)
+                hidden[a + near[inside]] = k
         out[order] = hidden
         return out
