@@ -14,7 +14,14 @@ from hgca_core.synth.primitives import MeshBuilder
 ROAD, SIDEWALK, BUILDING, CAR, TREE, POLE, FENCE, SHELTER = range(8)
 LABEL_NAMES = ("road", "sidewalk", "building", "car", "tree", "pole", "fence", "shelter")
 OVERLAP = 0.05
-CAR_SHAPES = ("sedan", "hatchback", "van", "suv", "pickup")
+CAR_SHAPES = ("sedan", "hatchback", "van", "suv", "pickup", "truck")
+CAR_SHAPE_P = (0.27, 0.20, 0.13, 0.20, 0.12, 0.08)
+CAR_LENGTH_MAX = {"sedan": 4.9, "hatchback": 4.2, "van": 5.3, "suv": 4.9, "pickup": 5.6, "truck": 7.8}
+
+
+def pick_car_shape(rng: np.random.Generator) -> str:
+    """A body shape, mostly cars, sometimes a van, pickup or box truck."""
+    return CAR_SHAPES[int(rng.choice(len(CAR_SHAPES), p=CAR_SHAPE_P))]
 
 
 # ------------------------------------------------------------------------------------------- buildings
@@ -209,6 +216,8 @@ def simple_block(b: MeshBuilder, rng: np.random.Generator, width: float, depth: 
 # ------------------------------------------------------------------------------------------------- cars
 def car(b: MeshBuilder, rng: np.random.Generator, shape: str) -> tuple[float, float]:
     """A parked car centred at the origin, x forward; returns (length, width)."""
+    if shape == "truck":
+        return _box_truck(b, rng)
     dims = {"sedan": ((4.4, 4.9), (1.75, 1.85), (1.40, 1.50), 0.31),
             "hatchback": ((3.8, 4.2), (1.70, 1.80), (1.45, 1.55), 0.30),
             "van": ((4.8, 5.3), (1.90, 2.00), (1.95, 2.30), 0.34),
@@ -247,6 +256,26 @@ def car(b: MeshBuilder, rng: np.random.Generator, shape: str) -> tuple[float, fl
     for side in (-1.0, 1.0):  # mirrors, just ahead of the cabin
         y_c = side * (hy + 0.15)
         b.box([cab[1] - 0.25, y_c - 0.1, belt], [cab[1] - 0.05, y_c + 0.1, belt + 0.15], CAR, skip=())
+    return L, W
+
+
+def _box_truck(b: MeshBuilder, rng: np.random.Generator) -> tuple[float, float]:
+    """Box truck: chassis, a cab with a sloped windscreen, a tall cargo box (well above the LiDAR's top beam)."""
+    L, W, H = rng.uniform(6.5, 7.8), rng.uniform(2.3, 2.45), rng.uniform(3.0, 3.5)
+    r = rng.uniform(0.45, 0.5)
+    hx, hy = L / 2, W / 2
+    cab = rng.uniform(2.0, 2.4)
+    b.box([-hx, -hy + 0.1, r * 0.8], [hx, hy - 0.1, r * 0.8 + 0.35], CAR, skip=())           # chassis
+    _tapered(b, [hx - cab, -hy, r * 0.8 + 0.3], [hx, hy, 1.45], 0.05, CAR)
+    h_cab = rng.uniform(2.5, 2.8)
+    corners = np.array([[x, y, z] for z in (1.45 - OVERLAP, h_cab) for y in (-hy + 0.05, hy - 0.05)
+                        for x in ((hx - cab, hx - 0.05) if z < 2 else (hx - cab, hx - 0.55))])
+    b.hexahedron(corners, CAR, skip=("-z",))
+    b.box([-hx, -hy, r * 0.8 + 0.3], [hx - cab - 0.1, hy, H], CAR, skip=())                  # cargo box
+    for x in (-hx + 1.2, hx - 1.3):
+        for side in (-1.0, 1.0):
+            y_out = side * (hy - 0.05)
+            b.cylinder([x, y_out, r], [x, y_out - side * 0.3, r], r, CAR, segments=10)
     return L, W
 
 

@@ -189,8 +189,8 @@ def _parked_cars(b: MeshBuilder, rng: np.random.Generator, L: _Layout, blocked: 
             taken.append((L.xc - L.hw2 - 5.0, L.xc + L.hw2 + 5.0))
         for x_lo in np.arange(-EXTENT, EXTENT - 1.0, BLOCK):
             for _ in range(min(int(rng.poisson(2.0)), 7)):
-                shape = A.CAR_SHAPES[int(rng.integers(0, len(A.CAR_SHAPES)))]
-                length = {"hatchback": 4.2, "van": 5.3, "pickup": 5.6}.get(shape, 4.9)
+                shape = A.pick_car_shape(rng)
+                length = A.CAR_LENGTH_MAX[shape]
                 x = _free_position(rng, max(x_lo, -EXTENT + 1), min(x_lo + BLOCK, EXTENT - 1), length, taken, 0.6)
                 if x is None:
                     continue
@@ -205,7 +205,7 @@ def _parked_cars(b: MeshBuilder, rng: np.random.Generator, L: _Layout, blocked: 
         for sx in (-1, 1):
             for _ in range(min(int(rng.poisson(1.0)), 3)):
                 y = rng.uniform(L.hw + L.sw + 4, EXTENT - 4) * rng.choice([-1, 1])
-                shape = A.CAR_SHAPES[int(rng.integers(0, len(A.CAR_SHAPES)))]
+                shape = A.pick_car_shape(rng)
                 with b.placed(np.pi / 2 + (0.0 if rng.random() < 0.5 else np.pi), [L.xc + sx * (L.hw2 - 1.2), y, 0.0]):
                     A.car(b, rng, shape)
     return out
@@ -271,7 +271,7 @@ def _suburb_rows(b: MeshBuilder, rng: np.random.Generator, L: _Layout) -> int:
                         A.garage(b, rng, 3.5, 6.0)
                 drive_x = gx + 1.75 if has_garage else min(hx + hw_ + 2.0, lot_w - 1.5)
                 if rng.random() < 0.5 and drive_x + 1.2 < lot_w:
-                    shape = A.CAR_SHAPES[int(rng.integers(0, len(A.CAR_SHAPES)))]
+                    shape = A.CAR_SHAPES[int(rng.choice(4, p=[0.3, 0.25, 0.2, 0.25]))]   # no trucks on driveways
                     with b.placed(np.pi / 2 + (0.0 if rng.random() < 0.5 else np.pi), [drive_x, yard * 0.5 + 0.3, 0.0]):
                         A.car(b, rng, shape)
                     cars += 1
