@@ -80,4 +80,8 @@ def run(args: argparse.Namespace) -> int:
         out.write_text(json.dumps({"split": args.split, "files": [p.name for p in files], "rows": rows,
                                    "samples": args.samples, "t1": args.t1}, indent=1))
         out.with_suffix(".md").write_text(table + "\n")
+        if out.resolve().parent == weights_path(True).parent:  # results beside the weights go on the card
+            from hgca_core.training.card import write_model_card
+
+            write_model_card()
     return 0

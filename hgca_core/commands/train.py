@@ -62,5 +62,7 @@ def run(args: argparse.Namespace) -> int:
                 "crop": args.crop}
         dest = weights_path(use_planner)
         save_weights(module.model, ck["config"], dest, meta)
-        print(f"wrote {dest} ({dest.stat().st_size / 1e6:.1f} MB)")
+        from hgca_core.training.card import write_model_card
+
+        print(f"wrote {dest} ({dest.stat().st_size / 1e6:.1f} MB) and {write_model_card()}")
     return 0
