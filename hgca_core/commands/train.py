@@ -58,7 +58,8 @@ def run(args: argparse.Namespace) -> int:
         module.load_state_dict(ck["model"])
         st = ck["state"]
         meta = {"kind": "coarse", "stage": args.stage, "steps": st["step"], "train_wall_s": round(st["elapsed_s"], 1),
-                "sessions": st["sessions"], "history_tail": st["history"][-5:], "data": str(args.data),
+                "sessions": st["sessions"], "data": str(args.data),
+                "history_tail": [h for h in st["history"] if h["kind"] == "val"] + [h for h in st["history"] if h["kind"] == "train"][-3:],
                 "crop": args.crop}
         dest = weights_path(use_planner)
         save_weights(module.model, ck["config"], dest, meta)
