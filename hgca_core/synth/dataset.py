@@ -20,7 +20,8 @@ from hgca_core.synth.lidar import EVAL128, WAYMO64, Sensor, cast, make_intersect
 from hgca_core.synth.scene import StreetScene, make_scene
 
 SPLITS = {"train": 0, "val": 1_000_000, "test": 2_000_000}
-FORMAT_VERSION = 1
+FORMAT_VERSION = 1      # layout of the sample file (CONTRACTS.md)
+GENERATOR_VERSION = 5   # bumped whenever the same seed would produce different content
 KEYS = ("region", "input_points", "input_scan_index", "input_origins", "input_poses", "gt_occ20", "gt_occ10",
         "gt_surface", "gt_surface_label", "udf_points", "udf_dist", "eval_poses", "eval_scan_0", "eval_scan_1",
         "visible20", "street_box", "ground_z", "meta")
@@ -150,6 +151,7 @@ def simulate(seed: int, n_scans: int = 5, style: str | None = None, size: tuple[
 
     street = _street_box_local(scene.street_box, region)
     meta = {"seed": int(seed), "style": scene.style, "n_scans": int(n_scans), "format_version": FORMAT_VERSION,
+            "generator_version": GENERATOR_VERSION,
             "ego_arc": round(float(s0), 3), "input_arcs": [round(float(a), 3) for a in arcs],
             "speed_mps": round(float(speed), 3), "scene_faces": int(len(scene.mesh.faces)),
             "labels": ["road", "sidewalk", "building", "car", "tree", "pole", "fence", "shelter"],

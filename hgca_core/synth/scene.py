@@ -238,7 +238,7 @@ def _city_rows(b: MeshBuilder, rng: np.random.Generator, L: _Layout) -> None:
             height = rng.uniform(6.0, 25.0)
             with b.placed(*_side_frame(s, x0 if s > 0 else x1, y_front + setback)):
                 A.city_building(b, rng, w, depth, height)
-            if nxt is not None and nxt[0] - x1 > 1.2 and rng.random() < 0.4:  # wall or gate across the gap
+            if nxt is not None and 1.2 < nxt[0] - x1 < 5.0 and rng.random() < 0.4:  # wall or gate across a gap
                 kind = "wall" if rng.random() < 0.6 else "panel"
                 with b.placed(*_side_frame(s, x1 if s > 0 else nxt[0], y_front + 0.3)):
                     A.fence(b, rng, nxt[0] - x1, kind)
