@@ -90,6 +90,7 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
                          f"to {np.round(pts.max(0), 2).tolist()}")
     s0 = voxelize_coarse(local[inside], region.grid_shape(FINE))
     grid = region.grid_shape(COARSE)
+    report("voxelise", 1, 1, f"{len(s0)} cells at 20 cm")
 
     from hgca_core.models.checkpoint import load_coarse
     from hgca_core.models.gca import sample as gca_sample

@@ -99,6 +99,8 @@ def sample(model: GCAKernel, s0: torch.Tensor, grid: tuple[int, int, int], steps
     model.eval()
     batch = int(s0[:, 0].max().item()) + 1 if len(s0) else 1
     bev = model.bev(s0, batch, grid)
+    if progress is not None:  # the planner's share of the time ends here
+        progress(0, steps)
     state = s0
     for t in range(steps):
         nbhd = model.neighbourhood(state, grid)

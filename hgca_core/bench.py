@@ -1,0 +1,169 @@
+"""Time and peak memory of one completion per stage, for the default region and 40 x w m strips.
+
+Each configuration runs in its own process (`python -m hgca_core.bench --worker JSON`), so its peak RSS
+(and `torch.cuda.max_memory_allocated` on a GPU) belongs to that run alone. Stage times come from the
+pipeline's own progress events: the time between consecutive events is charged to the stage that ends.
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+WIDTHS = (40, 60, 80, 100, 120)
+
+
+def scene_inputs(width: float, seed: int = 4_000_000, depth: float = 40.0) -> tuple[np.ndarray, np.ndarray, "object"]:
+    """Input points (world) of scans every ~8 m along a synthetic drive, and a width x depth x 8 m region
+    centred on the drive, aligned with it (the paper's 40 x w m strips; depth 38.4 for the default)."""
+    from hgca_core.geometry.region import Region
+    from hgca_core.synth.dataset import Drive
+    from hgca_core.synth.lidar import WAYMO64, cast, make_intersector
+    from hgca_core.synth.scene import make_scene
+
+    scene = make_scene(seed, "city")
+    drive = Drive(scene.drive)
+    mid = drive.length / 2
+    n = max(5, int(round(width / 8)))
+    half = min(width / 2 - 2.0, mid - 1.0)
+    inter = make_intersector(scene.mesh)
+    rng = np.random.default_rng(seed)
+    poses = [drive.pose(s) for s in mid + np.linspace(-half, half, n)]
+    pts = np.concatenate([cast(inter, p, WAYMO64, rng, 0.01, 0.02) for p in poses])
+    ego = drive.pose(mid)
+    region = Region.around(ego[None, :3, 3], sensor=ego[:3, 3], ground_z=0.0, size=(width, depth, 8.0),
+                           yaw=float(np.arctan2(ego[1, 0], ego[0, 0])))
+    return pts, np.array([p[:3, 3] for p in poses]), region
+
+
+def run_one(width: float, depth: float, stage: str, device: str, t1: int | None, seed: int) -> dict:
+    """One completion with per-stage wall times (s) and peak memory (bytes)."""
+    import torch
+
+    from hgca_core.pipeline import complete
+
+    pts, origins, region = scene_inputs(width, depth=depth)
+    events: list[tuple[str, float]] = []
+    t_start = time.perf_counter()
+
+    def progress(stage_name: str, step: int, total: int, message: str = "") -> None:
+        events.append((stage_name, time.perf_counter()))
+
+    res = complete(pts, region=region, origins=origins, samples=1, seed=seed, stage=stage, device=device, t1=t1,
+                   progress=progress)[0]
+    t_mesh = time.perf_counter()
+    from hgca_core.io import write_mesh
+
+    out = Path(os.environ.get("TMPDIR", "/tmp")) / f"hgca_bench_{os.getpid()}.ply"
+    write_mesh(out, res.mesh)
+    out.unlink()
+    total = time.perf_counter() - t_start
+    stages: dict[str, float] = {}
+    prev = t_start
+    for name, t in events:
+        stages[name] = stages.get(name, 0.0) + (t - prev)
+        prev = t
+    stages["write"] = time.perf_counter() - t_mesh
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    gpu = torch.cuda.max_memory_allocated() if device.startswith("cuda") else None
+    return {"width": width, "depth": depth, "stage": stage, "device": device, "points": int(len(pts)),
+            "coarse_cells": int(len(res.coarse_cells)), "triangles": int(len(res.mesh.faces)),
+            "seconds": round(total, 2), "stages_s": {k: round(v, 3) for k, v in stages.items()},
+            "peak_rss_gib": round(rss / 2**30, 3), "gpu_peak_gib": None if gpu is None else round(gpu / 2**30, 3)}
+
+
+def machine() -> dict:
+    import torch
+
+    cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")),
+               platform.processor()) if Path("/proc/cpuinfo").exists() else platform.processor()
+    info = {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "torch": torch.__version__,
+            "threads": torch.get_num_threads(), "python": platform.python_version(),
+            "date": time.strftime("%Y-%m-%d %H:%M")}
+    if torch.cuda.is_available():
+        info["gpu"] = torch.cuda.get_device_name(0)
+    return info
+
+
+def run(widths: list[float], default: bool, stage: str, device: str, t1: int | None, out_dir: Path,
+        name: str, timeout: int = 3600) -> dict:
+    configs = ([(38.4, 38.4)] if default else []) + [(w, 40.0) for w in widths]
+    rows = []
+    for width, depth in configs:
+        job = json.dumps({"width": width, "depth": depth, "stage": stage, "device": device, "t1": t1, "seed": 0})
+        proc = subprocess.run([sys.executable, "-m", "hgca_core.bench", "--worker", job], capture_output=True,
+                              text=True, timeout=timeout)
+        if proc.returncode != 0:
+            rows.append({"width": width, "depth": depth, "error": proc.stderr.strip().splitlines()[-1:]})
+        else:
+            rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+        print(json.dumps(rows[-1]), flush=True)
+    result = {"machine": machine(), "stage": stage, "device": device, "t1": t1, "rows": rows}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / f"{name}.json").write_text(json.dumps(result, indent=1))
+    (out_dir / f"{name}.md").write_text(table(result))
+    plot(result, out_dir / f"{name}.png")
+    return result
+
+
+def table(result: dict) -> str:
+    m = result["machine"]
+    stage_names = sorted({k for r in result["rows"] for k in r.get("stages_s", {})})
+    head = ["region (m)", "input points", "coarse cells", "total (s)", *[f"{s} (s)" for s in stage_names],
+            "peak RSS (GiB)", "GPU peak (GiB)"]
+    lines = [f"Completion benchmark, stage {result['stage']}, device {result['device']}, T1 = {result['t1'] or 'default'}",
+             f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']} ({m['threads']} threads), {m['date']}"
+             + (f", GPU {m['gpu']}" if "gpu" in m else ""), "",
+             "| " + " | ".join(head) + " |", "|" + "|".join(["---:"] * len(head)) + "|"]
+    for r in result["rows"]:
+        if "error" in r:
+            lines.append(f"| {r['depth']} x {r['width']} | error: {' '.join(r['error'])} |")
+            continue
+        cells = [f"{r['depth']} x {r['width']}", str(r["points"]), str(r["coarse_cells"]), f"{r['seconds']:.1f}",
+                 *[f"{r['stages_s'].get(s, 0.0):.2f}" for s in stage_names], f"{r['peak_rss_gib']:.2f}",
+                 "-" if r["gpu_peak_gib"] is None else f"{r['gpu_peak_gib']:.2f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in result["rows"] if "error" not in r and r["depth"] == 40.0]
+    if not rows:
+        return
+    w = [r["width"] for r in rows]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    ax[0].plot(w, [r["seconds"] for r in rows], "o-")
+    ax[0].set(xlabel="region width w (m), 40 x w", ylabel="seconds", title="completion time")
+    ax[1].plot(w, [r["peak_rss_gib"] for r in rows], "o-", label="peak RSS")
+    if rows[0]["gpu_peak_gib"] is not None:
+        ax[1].plot(w, [r["gpu_peak_gib"] for r in rows], "s-", label="GPU peak")
+    ax[1].set(xlabel="region width w (m), 40 x w", ylabel="GiB", title="peak memory")
+    ax[1].legend()
+    fig.suptitle(f"{result['machine']['cpu']} ({result['machine']['cores']} cores), {result['device']}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _worker(job: str) -> int:
+    args = json.loads(job)
+    print(json.dumps(run_one(args["width"], args["depth"], args["stage"], args["device"], args["t1"], args["seed"])))
+    return 0
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 3 and sys.argv[1] == "--worker":
+        sys.exit(_worker(sys.argv[2]))
+    sys.exit("usage: python -m hgca_core.bench --worker JSON (use `hgca bench`)")

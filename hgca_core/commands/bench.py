@@ -1,0 +1,27 @@
+"""`hgca bench`: completion time and peak memory per stage, default region and 40 x w m strips."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--widths", default="40,60,80,100,120", help="strip widths w (m) of 40 x w regions; '' for none")
+    p.add_argument("--no-default", action="store_true", help="skip the default 38.4 x 38.4 m region")
+    p.add_argument("--stage", choices=("coarse", "full"), default="coarse")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--t1", type=int, default=None)
+    p.add_argument("--out", default="benchmarks/results")
+    p.add_argument("--name", default=None, help="result file stem (default completion_<stage>_<device>)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from hgca_core.bench import run as bench_run
+
+    widths = [float(w) for w in args.widths.split(",") if w.strip()]
+    name = args.name or f"completion_{args.stage}_{args.device.split(':')[0]}"
+    result = bench_run(widths, not args.no_default, args.stage, args.device, args.t1, Path(args.out), name)
+    from hgca_core.bench import table
+
+    print(table(result))
+    return 0
