@@ -103,7 +103,7 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
         gen = torch.Generator(device=device).manual_seed(seed + i)
         s0_t = cs.with_batch(torch.from_numpy(s0).to(device))
         occ = gca_sample(model, s0_t, grid, steps, gen,
-                         lambda t, n: report("coarse", t, n, f"sample {i + 1}/{samples}"))
+                         lambda t, n: report("planner" if t == 0 else "coarse", t, n, f"sample {i + 1}/{samples}"))
         cells = occ[:, 1:].cpu().numpy()
         from hgca_core.meshing import voxel_mesh
 
