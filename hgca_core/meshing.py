@@ -160,7 +160,7 @@ def _tile_members(g: np.ndarray, tile: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def marching_tiles(g: np.ndarray, vals: np.ndarray, level: float, fill: float,
-                   tile: int = 64) -> tuple[np.ndarray, np.ndarray]:
+                   tile: int = 32) -> tuple[np.ndarray, np.ndarray]:
     """Marching cubes over sparse grid samples, one dense (tile + 1)^3 block at a time.
 
     Returns vertices in grid-index units (float64) and faces; vertices on shared tile faces appear once per tile
@@ -265,7 +265,7 @@ def project_to_zero(field: UdfFn, points: np.ndarray, steps: int = 1, max_dist: 
 
 def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.Tensor | None = None,
              lower_corner: float | np.ndarray | None = None, voxel: float = 0.1, res: float = 0.05,
-             level: float | None = None, chunk: int = 1 << 15, tile: int = 64, min_faces: int = 16,
+             level: float | None = None, chunk: int = 1 << 15, tile: int = 32, min_faces: int = 16,
              project: int = 0) -> trimesh.Trimesh:
     """Mesh of the unsigned distance field around occupied 10 cm cells (paper: 5 cm marching cubes).
 
@@ -287,7 +287,7 @@ def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.T
     shift = np.asarray(-voxel / 2 if lower_corner is None else lower_corner, dtype=np.float64) + voxel / 2
     g, vals = udf_grid(decoder, cells, latents, voxel, res, chunk)
     v, f = marching_tiles(g, vals, level, fill=voxel, tile=tile)
-    v, f = weld(v, f, tol=1e-4)  # grid units: 5 um at 5 cm
+    v, f = weld(v, f, tol=1e-3)  # grid units: 50 um at 5 cm
     v, f = drop_small_components(v, f, min_faces)
     v = v * res
     if project and len(v):
