@@ -117,11 +117,4 @@ class HGCA_OT_cancel(bpy.types.Operator):
 CLASSES = (HGCA_OT_add_region_box, HGCA_OT_complete, HGCA_OT_cancel)
 
 
-def register() -> None:
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
-
-
-def unregister() -> None:
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(CLASSES)

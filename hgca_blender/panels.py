@@ -91,11 +91,4 @@ class HGCA_PT_job(bpy.types.Panel):
 CLASSES = (HGCA_PT_main, HGCA_PT_advanced, HGCA_PT_job)
 
 
-def register() -> None:
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
-
-
-def unregister() -> None:
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(CLASSES)

@@ -147,11 +147,4 @@ class HGCA_AddonPreferences(bpy.types.AddonPreferences):
 CLASSES = (HGCA_OT_check_python, HGCA_AddonPreferences)
 
 
-def register() -> None:
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
-
-
-def unregister() -> None:
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(CLASSES)
