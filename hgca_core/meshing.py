@@ -85,7 +85,8 @@ def _as_field(decoder: object, cells: torch.Tensor, latents: torch.Tensor | None
 
 
 def _cells_tensor(cells: np.ndarray | torch.Tensor) -> torch.Tensor:
-    return (cells.cpu() if isinstance(cells, torch.Tensor) else torch.from_numpy(np.asarray(cells))).long().reshape(-1, 3)
+    t = cells.cpu() if isinstance(cells, torch.Tensor) else torch.from_numpy(np.asarray(cells))
+    return t.long().reshape(-1, 3)
 
 
 def _ratio(voxel: float, res: float) -> int:

@@ -3,11 +3,13 @@
 Frames and units: the *cell frame* puts the centre of 10 cm cell c at c * voxel (the region frame, since 10 cm
 cells are made by rounding). Internally distances and offsets are in cell units (metres / voxel).
 
-Encoder g: a PointNet over the (offset of the point from its cell centre, distance) pairs that fall in each cell
-(offset in [-0.5, 0.5]^3, distance clamped at one cell), with two max-pools per cell (ConvONet's local pooling),
-vectorised with `scatter_reduce`. At inference the input cells see raw LiDAR points with distance 0; in training
-the encoder sees random subsets of distance pairs at varying density, mixed with such zero-distance points, so
-both kinds of input land in the same latent space.
+Encoder g: a PointNet over the (offset of the point from the cell centre, distance) pairs in and around each cell
+(offset in [-1.5, 1.5]^3 with the 26 neighbours, distance clamped at one cell), with two max-pools per cell
+(ConvONet's local pooling), vectorised with `scatter_reduce`. The neighbours matter for our data: the synthetic
+samples hold ~0.8 distance pairs per GT 10 cm cell and half of the GT cells have none of their own. At inference
+the input cells see raw LiDAR points with distance 0; in training the encoder sees random subsets of distance
+pairs at varying density, mixed with such zero-distance points, so both kinds of input land in the same latent
+space.
 
 Decoder f: two submanifold 3x3x3 convolutions over the latent grid (so a cell's code is read in the context of
 its neighbours') give a feature h_c per occupied cell; an MLP on (query offset from a cell centre, h_c) gives
@@ -18,8 +20,8 @@ cell centres, blending their estimates with trilinear weights renormalised over 
 
 This is continuous in q wherever an occupied corner has a non-zero weight (no seams at cell faces, which a
 nearest-cell rule would have), costs one MLP row per (query, occupied corner) pair with non-zero weight (on the
-5 cm meshing grid 3.4 pairs per point on average, 1 at cell centres), and gives the MLP the query position
-explicitly, which a feature-interpolation decoder (cGCA's) does not. Output: one cell * sigmoid, i.e. metres
+5 cm meshing grid: 27 per occupied cell, see `grid_udf`), and gives the MLP the query position explicitly,
+which a feature-interpolation decoder (cGCA's) does not. Output: one cell * sigmoid, i.e. metres
 clamped at 0.1 m; training uses L1 on distances clamped at one cell, like cGCA.
 """
 from __future__ import annotations
@@ -45,7 +47,8 @@ class AutoencoderConfig:
     mlp_hidden: int = 32        # the MLP runs ~27 times per occupied cell when meshing: keep it small
     mlp_blocks: int = 1
     voxel: float = 0.1
-    cap: int = 16               # encoder points kept per cell (max-pooling saturates; bounds LiDAR near the sensor)
+    enc_radius: int = 1         # 0: a cell pools its own pairs; 1: also its 26 neighbours' (sparse data, see encode)
+    cap: int = 16               # pairs pooled per cell, nearest first (max-pooling saturates; bounds dense LiDAR)
     reg: float = 1e-3           # weight of the latent-norm penalty (cGCA), keeps the code scale fixed for cGCA
     steps: int = 4              # training: uses of one example (crop) before the chain buffer draws a new one
     queries: int = 12000        # training: distance pairs supervised per example and step
@@ -154,11 +157,13 @@ class Autoencoder(nn.Module):
         """Latents of the cells holding the points.
 
         points (P, 3) cell-frame metres, dist (P,) metres (0 for raw LiDAR points), batch (P,) sample index.
-        cells: the cells to encode ((N, 3) or (N, 4)); points outside them are dropped and cells without points
-        get zero latents. Default: every cell holding a point. cap: points kept per cell, the first ones in the
-        given order (default cfg.cap; shuffle first for a random subset).
-        Returns (cells (N, 4) sorted by key, latents (N, K)). Without autograd the points are processed in
-        chunks of whole cells, so a dense scan does not allocate per-point features all at once.
+        Each cell pools the pairs in its own cell and, with cfg.enc_radius = 1, its 26 neighbours (offsets then
+        span [-1.5, 1.5] cells), keeping the `cap` pairs nearest to its centre (default cfg.cap): own-cell pairs
+        first, so dense LiDAR cells stay local while sparse ones borrow from around them.
+        cells: the cells to encode ((N, 3) or (N, 4)); cells without pairs get zero latents. Default: every
+        cell that holds a point.
+        Returns (cells (N, 4) sorted by key, latents (N, K)). Without autograd the pairs are processed in
+        chunks of whole cells, so a dense scan does not allocate per-pair features all at once.
         """
         v = self.cfg.voxel
         dev = self.encoder.fc_z.weight.device
@@ -167,30 +172,41 @@ class Autoencoder(nn.Module):
         pc = torch.round(u).long()
         b = torch.zeros(len(pc), dtype=torch.long, device=dev) if batch is None else batch.to(dev).long()
         pc4 = torch.cat([b[:, None], pc], dim=1)
-        pkeys = cs.pack(pc4)
         if cells is None:
-            keys, inv = torch.unique(pkeys, return_inverse=True)
+            keys = torch.unique(cs.pack(pc4))
             cells4 = cs.unpack(keys)
         else:
             keys, _, cells4 = _sorted(batched_cells(cells).to(dev))
-            inv = cs.lookup(pkeys, keys)
-        keep = inv >= 0
+        offs = cs.offsets(self.cfg.enc_radius, device=dev) if self.cfg.enc_radius > 0 else \
+            torch.zeros((1, 3), dtype=torch.long, device=dev)
+        pts, cell = [], []
+        step = max(1, (1 << 20) // len(offs))                     # bounded candidate rows per pass
+        for a in range(0, len(pc4), step):
+            cand = pc4[a:a + step, None, :].clone().repeat(1, len(offs), 1)
+            cand[:, :, 1:] += offs[None]
+            idx = cs.lookup(cs.pack(cand.reshape(-1, 4)), keys).view(-1, len(offs))
+            i, o = torch.nonzero(idx >= 0, as_tuple=True)
+            pts.append(i + a)
+            cell.append(idx[i, o])
+        pi, cell = torch.cat(pts), torch.cat(cell)
+        off = u[pi] - cells4[cell, 1:].float()
+        near = (off * off).sum(1)
+        order = torch.sort(near, stable=True).indices             # nearest first, then grouped by cell
+        order = order[torch.sort(cell[order], stable=True).indices]
+        pi, cell, off = pi[order], cell[order], off[order]
         cap = self.cfg.cap if cap is None else cap
         if cap is not None and cap > 0:
-            keep &= _rank_in_group(torch.where(keep, inv, torch.full_like(inv, -1))) < cap
-        idx = torch.nonzero(keep).squeeze(1)
-        cell = inv[idx]
-        order = torch.sort(cell, stable=True).indices
-        idx, cell = idx[order], cell[order]
-        feats = torch.cat([u[idx] - pc[idx].float(), (dist[idx] / v).clamp(0, 1)[:, None]], dim=1)
+            keep = _rank_in_sorted(cell) < cap
+            pi, cell, off = pi[keep], cell[keep], off[keep]
+        feats = torch.cat([off, (dist[pi] / v).clamp(0, 1)[:, None]], dim=1)
         n = len(keys)
-        if torch.is_grad_enabled() or len(idx) <= chunk_points:
+        if torch.is_grad_enabled() or len(pi) <= chunk_points:
             return cells4, self.encoder(feats, cell, n)
         z = feats.new_zeros((n, self.cfg.latent))
         a = 0
-        while a < len(idx):  # cut at cell boundaries: every cell's points stay in one chunk
-            e = min(len(idx), a + chunk_points)
-            if e < len(idx):
+        while a < len(pi):  # cut at cell boundaries: every cell's pairs stay in one chunk
+            e = min(len(pi), a + chunk_points)
+            if e < len(pi):
                 e = int(torch.searchsorted(cell, cell[e], right=False))
                 e = e if e > a else int(torch.searchsorted(cell, cell[a], right=True))
             c0, c1 = int(cell[a]), int(cell[e - 1]) + 1
@@ -284,16 +300,13 @@ class Autoencoder(nn.Module):
         return UdfField(self, cells, latents)
 
 
-def _rank_in_group(group: torch.Tensor) -> torch.Tensor:
-    """Position of each element among the elements of its group, in the given order (group -1 = ignored)."""
-    order = torch.sort(group, stable=True).indices
-    g = group[order]
-    start = torch.ones_like(g, dtype=torch.bool)
-    start[1:] = g[1:] != g[:-1]
-    first = torch.cummax(torch.where(start, torch.arange(len(g), device=g.device), torch.zeros_like(g)), 0).values
-    rank = torch.empty_like(group)
-    rank[order] = torch.arange(len(g), device=g.device) - first
-    return rank
+def _rank_in_sorted(group: torch.Tensor) -> torch.Tensor:
+    """Position of each element within its run of equal values (group must be sorted)."""
+    n = len(group)
+    start = torch.ones(n, dtype=torch.bool, device=group.device)
+    start[1:] = group[1:] != group[:-1]
+    pos = torch.arange(n, device=group.device)
+    return pos - torch.cummax(torch.where(start, pos, torch.zeros_like(pos)), 0).values
 
 
 def save_autoencoder(model: Autoencoder, path: str, meta: dict) -> None:

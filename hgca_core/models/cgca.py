@@ -7,12 +7,16 @@ width, plus a 3D sinusoidal positional encoding; its output is an occupancy logi
 transition samples o_c ~ Bernoulli(sigmoid(logit)) and z_c ~ N(mu_c, sigma^2 I) with a small fixed sigma; the
 last of the T2 = 15 steps takes the most likely state (o_c = [p > 0.5], z_c = mu_c).
 
-Neighbourhood metric: cells within L1 distance 2 of an occupied cell (the octahedron of 25 offsets), built as
-two radius-1 L1 dilations. On the thin shells a scene is made of, every radius-2 metric grows a layer to the
-same thickness (5 cells), so L1 keeps the kernel's reach while holding 7 - 20 % fewer cells than the
-Chebyshev cube on the default region (it trims edges and corners), and its dilation is 3-4x cheaper (two
-7-offset passes instead of 125 offsets at once; measured numbers in the report / benchmarks). cGCA itself
-uses the same "hypercross" padding.
+Neighbourhood metric: cells within L1 distance 2 of an occupied cell (the octahedron of 25 offsets; cGCA's
+"hypercross" padding). On the thin shells a scene is made of, every radius-2 metric grows a layer to the same
+thickness (5 cells), so the metrics differ at edges and corners only: on a default-region sample (x^t = the GT
+10 cm cells, 262,713) N(x^t) holds 1,098,430 cells for L1, 1,104,965 for L2 and 1,228,100 for the Chebyshev
+cube (+12 %); from x^0 (487,678 cells) 1,341,810 vs 1,446,184 (+8 %). Every kernel layer scales with that count;
+a chain still crosses the 3-cell body diagonal in two steps. The dilation itself runs on a dense boolean grid
+(~0.1 s for any metric; sorting the ~5 M candidate keys took 3 s for L1 and 21 s for the cube).
+
+Kernel layout (`unet_stride`, see CGCAKernel): by default the U-Net runs on the 20 cm parents of N(x^t), with
+per-child layers in and out at 10 cm; 3.4 s instead of 12-17 s per step on the default region on one busy core.
 
 x^0 = union(cells of the input points at 10 cm, with latents encoded from the raw points at distance 0;
 upsample2(coarse cells) with zero latents), as in the paper.
@@ -31,7 +35,7 @@ from torch import nn
 from hgca_core.geometry import coords as cs
 from hgca_core.models.autoencoder import Autoencoder, autoencoder_from_blob
 from hgca_core.nn.encoding import sinusoidal
-from hgca_core.nn.sparse import SparseTensor
+from hgca_core.nn.sparse import SparseConv3d, SparseConvTranspose3d, SparseTensor
 from hgca_core.nn.unet import SparseUNet
 
 
@@ -41,6 +45,7 @@ class CGCAConfig:
     channels: tuple[int, ...] = (16, 24, 32, 48, 64)   # U-Net widths per level (4 stride-2 levels)
     blocks: int = 1
     in_proj: int = 24                                  # per-cell projection of the 2 + 2K + PE input features
+    unet_stride: int = 2                               # 1: U-Net on the 10 cm cells; 2: on their 20 cm parents
     radius: int = 2
     metric: str = "l1"
     pe_freq: int = 3
@@ -136,16 +141,33 @@ def _gather(nbhd_keys: torch.Tensor, keys: torch.Tensor, z: torch.Tensor) -> tup
 
 
 class CGCAKernel(nn.Module):
-    """Transition kernel; `forward` returns (occupancy logits (M,), latent means (M, K)) on N(x^t)."""
+    """Transition kernel; `forward` returns (occupancy logits (M,), latent means (M, K)) on N(x^t).
+
+    unet_stride 1: the sparse U-Net runs on the 10 cm cells of N(x^t) (the paper's layout).
+    unet_stride 2 (the CPU default): the 10 cm cells keep only per-cell layers; a stride-2 conv gathers each
+    2 x 2 x 2 block of children (one weight per child position) into its 20 cm parent, the U-Net runs on the
+    parents, and a transposed conv hands every child its own decoding of its parent's features, concatenated
+    with the child's input features for the per-cell head. Every 3 x 3 x 3 conv then runs on ~1/3 of the cells
+    with ~1/2 of the pairs per cell, which on 2 CPU cores is the difference between ~15 s and ~4 s per step on
+    the default region (one 3 x 3 x 3 conv over its ~1.1 M cells costs ~1.5 s whatever the width).
+    """
 
     def __init__(self, cfg: CGCAConfig) -> None:
         super().__init__()
         self.cfg = cfg
         in_ch = 2 + 2 * cfg.latent + 3 * 2 * cfg.pe_freq
-        # The projection keeps the U-Net's first 3x3x3 conv at in_proj input channels rather than ~80: on CPU
-        # that conv over ~10^6 cells is the largest single cost of a step.
+        # The projection keeps the first conv at in_proj input channels rather than ~80.
         self.proj = nn.Sequential(nn.Linear(in_ch, cfg.in_proj), nn.ReLU())
-        self.unet = SparseUNet(cfg.in_proj, 1 + cfg.latent, channels=cfg.channels, blocks=cfg.blocks)
+        if cfg.unet_stride == 1:
+            self.unet = SparseUNet(cfg.in_proj, 1 + cfg.latent, channels=cfg.channels, blocks=cfg.blocks)
+        elif cfg.unet_stride == 2:
+            c0 = cfg.channels[0]
+            self.down = SparseConv3d(cfg.in_proj, c0, 2, 2, bias=True)
+            self.unet = SparseUNet(c0, c0, channels=cfg.channels, blocks=cfg.blocks)
+            self.up = SparseConvTranspose3d(c0, c0, 2, 2, bias=True)
+            self.head = nn.Sequential(nn.Linear(cfg.in_proj + c0, c0), nn.ReLU(), nn.Linear(c0, 1 + cfg.latent))
+        else:
+            raise ValueError(f"unet_stride must be 1 or 2, got {cfg.unet_stride}")
 
     def neighbourhood(self, state: torch.Tensor, grid: tuple[int, int, int]) -> torch.Tensor:
         return neighbourhood(state, self.cfg.radius, self.cfg.metric, grid)
@@ -159,7 +181,16 @@ class CGCAKernel(nn.Module):
         g = torch.tensor(grid, dtype=torch.float32, device=nbhd.device)
         pe = sinusoidal((nbhd[:, 1:].float() + 0.5) / g, self.cfg.pe_freq)
         feats = self.proj(torch.cat([in_t, in_0, zt, zz, pe], dim=1))
-        out = self.unet(SparseTensor(nbhd, feats, check=False)).feats
+        x = SparseTensor(nbhd, feats, check=False)
+        if self.cfg.unet_stride == 1:
+            out = self.unet(x).feats
+        else:
+            p = self.down(x)                                   # parents, coords multiples of 2, stride 2
+            pc = p.coords.clone()
+            pc[:, 1:] = torch.div(pc[:, 1:], 2, rounding_mode="floor")    # the same cells in 20 cm units
+            h = self.unet(SparseTensor(pc, p.feats, check=False)).feats
+            u = self.up(SparseTensor(p.coords, h, 2, p.cache, check=False), x)  # reuses the down map
+            out = self.head(torch.cat([feats, torch.relu(u.feats)], dim=1))
         return out[:, 0], out[:, 1:]
 
 

@@ -140,32 +140,39 @@ class AutoencoderLoss(nn.Module):
         self.cfg = cfg
         self.model = Autoencoder(cfg)
 
-    def _encoder_input(self, ex: dict[str, torch.Tensor], gt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Random (points, distances) for one example; in the GT mode only points in GT cells are kept."""
+    def _encoder_input(self, ex: dict[str, torch.Tensor],
+                       gt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Random (points, distances, cells to encode) for one example.
+
+        LiDAR mode: zero-distance points alone, encoded into the cells they fall in (the inference input).
+        GT mode: a random share of the distance pairs and of the surface points, encoded into the GT cells that
+        have a pair within the encoder's reach (what `gt_latents` does with all of them).
+        """
         v = self.cfg.voxel
         if float(torch.rand(())) < self.lidar_prob:
             src = ex["lidar"] if len(ex["lidar"]) and float(torch.rand(())) < 0.5 else ex["surf"]
             frac = 10 ** float(torch.empty(()).uniform_(-1.5, 0.0))
             p = src[torch.rand(len(src)) < frac]
-            return p, torch.zeros(len(p))
+            return p, torch.zeros(len(p)), torch.unique(torch.round(p / v).long(), dim=0)
         f_pairs = 10 ** float(torch.empty(()).uniform_(-1.5, 0.0))
         f_surf = float(torch.rand(())) if float(torch.rand(())) < 0.7 else 0.0
         mp, ms = torch.rand(len(ex["udf_p"])) < f_pairs, torch.rand(len(ex["surf"])) < f_surf
         p = torch.cat([ex["udf_p"][mp], ex["surf"][ms]])
         d = torch.cat([ex["udf_d"][mp], torch.zeros(int(ms.sum()))])
-        inside = cs.isin(cs.with_batch(torch.round(p / v).long()), cs.with_batch(gt))
-        return p[inside], d[inside]
+        own = cs.unique(cs.with_batch(torch.round(p / v).long()))
+        reach = cs.dilate(own, self.cfg.enc_radius) if self.cfg.enc_radius > 0 else own
+        return p, d, gt[cs.isin(cs.with_batch(gt), reach)]
 
     def forward(self, chains: list[Chain]) -> tuple[torch.Tensor, dict, list[torch.Tensor]]:
         cfg = self.cfg
-        ps, ds, bs, qs, qd, qb = [], [], [], [], [], []
+        ps, ds, bs, cells, qs, qd, qb = [], [], [], [], [], [], []
         for b, ch in enumerate(chains):
             ex = ch.extra
-            p, d = self._encoder_input(ex, ch.gt)
-            perm = torch.randperm(len(p))              # the per-cell cap keeps a random subset
-            ps.append(p[perm])
-            ds.append(d[perm])
+            p, d, c = self._encoder_input(ex, ch.gt)
+            ps.append(p)
+            ds.append(d)
             bs.append(torch.full((len(p),), b))
+            cells.append(cs.with_batch(c, b))
             n_pairs = min(len(ex["udf_p"]), cfg.queries)
             n_surf = min(len(ex["surf"]), cfg.queries // 4)
             ip = torch.randperm(len(ex["udf_p"]))[:n_pairs]
@@ -173,7 +180,7 @@ class AutoencoderLoss(nn.Module):
             qs += [ex["udf_p"][ip], ex["surf"][isf]]
             qd += [ex["udf_d"][ip], torch.zeros(n_surf)]
             qb.append(torch.full((n_pairs + n_surf,), b))
-        cells4, z = self.model.encode(torch.cat(ps), torch.cat(ds), torch.cat(bs))
+        cells4, z = self.model.encode(torch.cat(ps), torch.cat(ds), torch.cat(bs), cells=torch.cat(cells))
         keys, order = torch.sort(cs.pack(cells4))
         hp = self.model.cell_features(cells4[order], z[order])
         q, qdist = torch.cat(qs), torch.cat(qd)
@@ -241,7 +248,9 @@ class AutoencoderTask:
 
 # -- cGCA ---------------------------------------------------------------------------------------------------------
 def _batched(sets: list[torch.Tensor]) -> torch.Tensor:
-    return torch.cat([cs.with_batch(s, b) for b, s in enumerate(sets)]) if sets else torch.zeros((0, 4), dtype=torch.long)
+    if not sets:
+        return torch.zeros((0, 4), dtype=torch.long)
+    return torch.cat([cs.with_batch(s, b) for b, s in enumerate(sets)])
 
 
 class FineLoss(nn.Module):

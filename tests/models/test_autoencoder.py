@@ -10,7 +10,7 @@ from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig, load_au
 from hgca_core.training.fine import AutoencoderTask, chamfer, export_autoencoder
 from hgca_core.training.trainer import train
 
-SMALL = AutoencoderConfig(enc_hidden=16, mlp_hidden=16, dec_channels=16, latent=8)
+SMALL = AutoencoderConfig(enc_hidden=16, mlp_hidden=16, dec_channels=16, latent=8)  # enc_radius 1
 
 
 def _box_udf(p: np.ndarray, c: np.ndarray, h: np.ndarray) -> np.ndarray:
@@ -72,7 +72,7 @@ def one_thread():
 
 def test_encoder_pools_per_cell_whatever_the_order_and_chunking():
     torch.manual_seed(0)
-    ae = Autoencoder(SMALL).eval()
+    ae = Autoencoder(AutoencoderConfig.from_dict(SMALL.to_dict())).eval()   # its own config: mutated below
     pts = torch.rand(500, 3) * 0.4 + 0.05           # a few 10 cm cells
     d = torch.rand(500) * 0.05
     with torch.no_grad():
@@ -84,16 +84,21 @@ def test_encoder_pools_per_cell_whatever_the_order_and_chunking():
     assert torch.equal(cells, torch.unique(torch.cat([torch.zeros(500, 1), torch.round(pts / 0.1)], 1), dim=0).long())
     torch.testing.assert_close(z_p, z)
     torch.testing.assert_close(z_c, z)
-    # the cap keeps the first points of each cell: equal to encoding just those
-    one_cell = torch.tensor([[0.01, 0.02, 0.03], [0.02, -0.01, 0.0], [0.03, 0.03, 0.01], [-0.02, 0.0, 0.04]])
+    # the cap keeps the pairs nearest to the cell centre: equal to encoding just those
+    one_cell = torch.tensor([[0.03, 0.03, 0.01], [0.02, -0.01, 0.0], [-0.02, 0.0, 0.04], [0.01, 0.0, 0.005]])
     dd = torch.tensor([0.0, 0.01, 0.02, 0.03])
     with torch.no_grad():
         _, z2 = ae.encode(one_cell, dd, cap=2)
-        _, z2_ref = ae.encode(one_cell[:2], dd[:2], cap=0)
-        # explicit cells: points outside are dropped, a cell without points gets a zero latent
-        cells_e, z_e = ae.encode(one_cell, dd, cells=torch.tensor([[0, 0, 0], [5, 5, 5]]))
+        _, z2_ref = ae.encode(one_cell[[3, 1]], dd[[3, 1]], cap=0)
+        # explicit cells: a cell far from every pair gets a zero latent; a neighbour of the pairs' cell borrows
+        # them (enc_radius 1) unless the encoder looks at own cells only
+        cells_e, z_e = ae.encode(one_cell, dd, cells=torch.tensor([[0, 0, 0], [1, 0, 0], [5, 5, 5]]))
+        ae.cfg.enc_radius = 0
+        _, z_own = ae.encode(one_cell, dd, cells=torch.tensor([[0, 0, 0], [1, 0, 0], [5, 5, 5]]))
+        ae.cfg.enc_radius = 1
     torch.testing.assert_close(z2, z2_ref)
-    assert len(cells_e) == 2 and torch.all(z_e[1] == 0) and torch.any(z_e[0] != 0)
+    assert len(cells_e) == 3 and torch.all(z_e[2] == 0) and torch.any(z_e[0] != 0) and torch.any(z_e[1] != 0)
+    assert torch.all(z_own[1] == 0) and torch.any(z_own[0] != 0)
 
 
 def test_field_is_continuous_clamped_and_differentiable():
@@ -124,7 +129,7 @@ def test_training_reconstructs_held_out_surfaces(tmp_path):
     5.2 cm on these scenes); 2.2 cm after these 110 steps."""
     torch.manual_seed(0)
     data = write_dataset(tmp_path / "data", range(4), (100, 101))
-    cfg = AutoencoderConfig(enc_hidden=16, mlp_hidden=16, dec_channels=16, mlp_blocks=2, cap=32, queries=2000,
+    cfg = AutoencoderConfig(enc_hidden=16, mlp_hidden=16, dec_channels=16, mlp_blocks=2, cap=16, queries=2000,
                             crop=None, steps=1000)
     task = AutoencoderTask(str(data), cfg, val_count=2)
     state = train(task, tmp_path / "run", minutes=5, max_steps=110, batch=2, buffer_size=4, lr=5e-3,
