@@ -68,12 +68,14 @@ def check_memory(region: Region) -> None:
 def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarray | None = None,
              samples: int = 1, seed: int = 0, stage: str = "coarse", device: str = "cpu",
              t1: int | None = None, t2: int | None = None, weights: str | Path | None = None,
-             progress: ProgressFn | None = None) -> list[Completion]:
+             fine_weights: str | Path | None = None, progress: ProgressFn | None = None) -> list[Completion]:
     """Complete accumulated LiDAR points. Sample i uses seed + i, so a (seed, i) pair names one mesh."""
     if stage not in ("coarse", "full"):
         raise InputError(f"stage must be 'coarse' or 'full', not {stage!r}")
-    if stage == "full" and not default_weights("fine").exists():
-        raise InputError("the fine stage has no shipped weights yet (hgca_core/weights/fine.pt): use --stage coarse")
+    fine_path = Path(fine_weights or default_weights("fine"))
+    if stage == "full" and not fine_path.exists():
+        raise InputError("no fine-stage weights (train them with `hgca train fine`, or pass --fine-weights); "
+                         "use --stage coarse", str(fine_path))
     if samples < 1:
         raise InputError(f"samples must be at least 1, got {samples}")
     pts = check_points(points)
@@ -105,10 +107,19 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
         occ = gca_sample(model, s0_t, grid, steps, gen,
                          lambda t, n: report("planner" if t == 0 else "coarse", t, n, f"sample {i + 1}/{samples}"))
         cells = occ[:, 1:].cpu().numpy()
-        from hgca_core.meshing import voxel_mesh
+        if stage == "full":
+            from hgca_core.models.cgca import decode_mesh, load_fine, upsample
 
-        report("mesh", i, samples, f"sample {i + 1}/{samples}")
-        mesh = voxel_mesh(cells, COARSE, lower_corner=-FINE / 2)
+            fine_model, autoencoder, _ = load_fine(str(fine_path), device)
+            cells10, latents = upsample(fine_model, autoencoder, local[inside], cells, region.grid_shape(FINE), t2, gen,
+                                        lambda t, n: report("fine", t, n, f"sample {i + 1}/{samples}"))
+            report("mesh", i, samples, f"sample {i + 1}/{samples}")
+            mesh = decode_mesh(autoencoder, cells10, latents)
+        else:
+            from hgca_core.meshing import voxel_mesh
+
+            report("mesh", i, samples, f"sample {i + 1}/{samples}")
+            mesh = voxel_mesh(cells, COARSE, lower_corner=-FINE / 2)
         mesh.vertices = region.to_world(mesh.vertices)
         dist = tree.query(mesh.vertices, workers=-1)[0].astype(np.float32) if len(mesh.vertices) else np.zeros(0, np.float32)
         mesh.vertex_attributes["observed_distance"] = dist

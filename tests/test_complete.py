@@ -91,3 +91,27 @@ def test_bad_output_and_nan_input(small_weights, scan, tmp_path):
     np.savez(bad, points=np.full((10, 3), np.nan))
     res = _run(bad, "-o", tmp_path / "y.ply", "--weights", small_weights)
     assert res.returncode == 2 and "nan.npz" in res.stderr
+
+
+def test_full_stage_runs_the_fine_path(small_weights, scan, tmp_path):
+    """With fine weights (untrained, small), --stage full upsamples at 10 cm and meshes the decoded distance."""
+    from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
+    from hgca_core.models.cgca import CGCAConfig, CGCAKernel, save_fine
+
+    torch.manual_seed(0)
+    fine = tmp_path / "fine_small.pt"
+    save_fine(CGCAKernel(CGCAConfig(channels=(8, 8, 8, 8, 8), steps=2)), Autoencoder(AutoencoderConfig()), str(fine),
+              {"stage": "test"})
+    out = tmp_path / "full.npz"
+    res = _run(scan, "-o", out, "--weights", small_weights, "--fine-weights", fine, "--stage", "full",
+               "--region", REGION, "--progress", "jsonl")
+    assert res.returncode == 0, res.stderr[-2000:]
+    stages = {json.loads(line)["stage"] for line in res.stdout.splitlines()}
+    assert {"coarse", "fine", "mesh", "done"} <= stages
+    a = np.load(tmp_path / "full_s0.npz")
+    assert len(a["vertices"]) == len(a["observed_distance"])
+    if len(a["vertices"]):
+        assert np.all(a["vertices"][:, 0] > 99.5) and np.all(a["vertices"][:, 0] < 106.5)
+    missing = _run(scan, "-o", tmp_path / "m.ply", "--weights", small_weights, "--fine-weights", tmp_path / "nope.pt",
+                   "--stage", "full", "--region", REGION)
+    assert missing.returncode == 2 and "nope.pt" in missing.stderr

@@ -24,6 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--t1", type=int, default=None, help="coarse steps T1 (default from the weights: 30)")
     p.add_argument("--t2", type=int, default=None, help="fine steps T2 (default 15)")
     p.add_argument("--weights", default=None, help="coarse weights file (default: the shipped ones)")
+    p.add_argument("--fine-weights", default=None, help="fine weights file (default: the shipped ones)")
     p.add_argument("--progress", choices=("bar", "jsonl", "none"), default="bar")
 
 
@@ -69,6 +70,7 @@ def _run(args: argparse.Namespace, progress) -> list[Path]:
     region = Region.parse(args.region) if args.region else None
     results = complete(scan.points, region=region, origins=scan.origins, samples=args.samples, seed=args.seed,
                        stage=args.stage, device=args.device, t1=args.t1, t2=args.t2, weights=args.weights,
+                       fine_weights=args.fine_weights,
                        progress=progress)
     for i, (res, path) in enumerate(zip(results, paths)):
         progress("write", i, len(paths), path.name)
