@@ -190,9 +190,9 @@ class Autoencoder(nn.Module):
             cell.append(idx[i, o])
         pi, cell = torch.cat(pts), torch.cat(cell)
         off = u[pi] - cells4[cell, 1:].float()
-        near = (off * off).sum(1)
-        order = torch.sort(near, stable=True).indices             # nearest first, then grouped by cell
-        order = order[torch.sort(cell[order], stable=True).indices]
+        # one sort by (cell, squared distance to its centre quantised to 2^-18 cells^2): grouped, nearest first
+        near = ((off * off).sum(1) * (1 << 18)).long().clamp_(max=(1 << 22) - 1)
+        order = torch.sort(cell * (1 << 22) + near).indices
         pi, cell, off = pi[order], cell[order], off[order]
         cap = self.cfg.cap if cap is None else cap
         if cap is not None and cap > 0:

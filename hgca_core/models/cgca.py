@@ -49,6 +49,7 @@ class CGCAConfig:
     radius: int = 2
     metric: str = "l1"
     pe_freq: int = 3
+    pe_axes: str = "z"                                 # axes in the positional encoding (see CGCAKernel)
     steps: int = 15                                    # T2
     alpha0: float = 0.15                               # infusion alpha_t = alpha0 + alpha1 * t
     alpha1: float = 0.005
@@ -150,12 +151,17 @@ class CGCAKernel(nn.Module):
     with the child's input features for the per-cell head. Every 3 x 3 x 3 conv then runs on ~1/3 of the cells
     with ~1/2 of the pairs per cell, which on 2 CPU cores is the difference between ~15 s and ~4 s per step on
     the default region (one 3 x 3 x 3 conv over its ~1.1 M cells costs ~1.5 s whatever the width).
+
+    Positional encoding: of the height only by default (pe_axes = "z"). Training runs on x/y crops with random
+    flips, so an x/y encoding would be crop-relative in training and region-relative at inference; height (ground,
+    kerb, facade, roof) means the same in both. pe_axes = "xyz" gives the paper's 3D encoding.
     """
 
     def __init__(self, cfg: CGCAConfig) -> None:
         super().__init__()
         self.cfg = cfg
-        in_ch = 2 + 2 * cfg.latent + 3 * 2 * cfg.pe_freq
+        self.pe_axes = ["xyz".index(a) for a in cfg.pe_axes]
+        in_ch = 2 + 2 * cfg.latent + len(self.pe_axes) * 2 * cfg.pe_freq
         # The projection keeps the first conv at in_proj input channels rather than ~80.
         self.proj = nn.Sequential(nn.Linear(in_ch, cfg.in_proj), nn.ReLU())
         if cfg.unet_stride == 1:
@@ -178,8 +184,8 @@ class CGCAKernel(nn.Module):
         nk = cs.pack(nbhd)
         in_t, zt = _gather(nk, *_table(state, z_state))
         in_0, zz = _gather(nk, *_table(x0, z0))
-        g = torch.tensor(grid, dtype=torch.float32, device=nbhd.device)
-        pe = sinusoidal((nbhd[:, 1:].float() + 0.5) / g, self.cfg.pe_freq)
+        g = torch.tensor(grid, dtype=torch.float32, device=nbhd.device)[self.pe_axes]
+        pe = sinusoidal((nbhd[:, 1:][:, self.pe_axes].float() + 0.5) / g, self.cfg.pe_freq)
         feats = self.proj(torch.cat([in_t, in_0, zt, zz, pe], dim=1))
         x = SparseTensor(nbhd, feats, check=False)
         if self.cfg.unet_stride == 1:

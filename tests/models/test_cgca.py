@@ -54,9 +54,10 @@ def _state(grid=(8, 8, 6), seed=0):
     return x0, torch.randn(len(x0), K, generator=g), st, torch.randn(len(st), K, generator=g), grid
 
 
-def test_kernel_shapes_and_gradients():
+@pytest.mark.parametrize("layout", [dict(), dict(unet_stride=1, pe_axes="xyz")])
+def test_kernel_shapes_and_gradients(layout):
     torch.manual_seed(0)
-    model = CGCAKernel(TINY)
+    model = CGCAKernel(CGCAConfig(**{**TINY.to_dict(), **layout}))
     x0, z0, st, zt, grid = _state()
     nbhd = model.neighbourhood(st, grid)
     logits, mu = model(nbhd, st, zt, x0, z0, grid)
@@ -64,7 +65,8 @@ def test_kernel_shapes_and_gradients():
     (logits.sum() + mu.square().sum()).backward()
     for name, p in model.named_parameters():
         assert p.grad is not None and torch.isfinite(p.grad).all(), name
-    assert model.proj[0].weight.grad.abs().sum() > 0 and model.unet.head.weight.grad.abs().sum() > 0
+    head = model.unet.head if model.cfg.unet_stride == 1 else model.head[-1]
+    assert model.proj[0].weight.grad.abs().sum() > 0 and head.weight.grad.abs().sum() > 0
     # the latent inputs matter: changing z^t changes the output
     with torch.no_grad():
         _, mu2 = model.eval()(nbhd, st, zt + 1.0, x0, z0, grid)
