@@ -1,5 +1,4 @@
-"""Shared fixtures: tiny synthetic samples in the CONTRACTS.md format, made without the simulator so model and
-trainer tests stay fast and independent of the scene generator."""
+"""Shared fixtures: a tiny dataset on disk (see hgca_testdata) and the real fixture folder."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,39 +6,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hgca_testdata import tiny_sample
+
 REPO = Path(__file__).resolve().parents[1]
 REAL_FIXTURES = REPO.parent / "shared" / "fixtures" / "real"
-
-
-def tiny_sample(seed: int, size: float = 6.0) -> dict[str, np.ndarray]:
-    """A ground plane, a wall and a box in a size x size x 4 m region; the input sees the lower part only."""
-    rng = np.random.default_rng(seed)
-    n = 6000
-    ground = np.c_[rng.uniform(0, size, (n, 2)), np.full(n, 1.0)]
-    wall_x = rng.uniform(1.0, size - 1.0)
-    wall = np.c_[np.full(n, wall_x), rng.uniform(0, size, n), rng.uniform(1.0, 3.8, n)]
-    bx = rng.uniform(1.0, size - 2.0, 2)
-    box = np.c_[rng.uniform(bx[0], bx[0] + 1.0, n // 2), rng.uniform(bx[1], bx[1] + 1.0, n // 2),
-                rng.uniform(1.0, 2.0, n // 2)]
-    surface = np.concatenate([ground, wall, box])
-    from hgca_core.geometry.voxel import downsample, voxelize_fine
-
-    fine_grid = (int(round(size / 0.1)), int(round(size / 0.1)), 40)
-    occ10 = voxelize_fine(surface, fine_grid)
-    occ20 = downsample(occ10)
-    visible = surface[(surface[:, 2] < 3.0)]
-    inp = visible[rng.random(len(visible)) < 0.05] + rng.normal(0, 0.01, (1, 3))
-    inp = inp[inp[:, 2] < 2.2]
-    return {
-        "region": np.array([size / 2, size / 2, 1.0, size, size, 4.0, 0.0]),
-        "input_points": inp.astype(np.float32),
-        "input_scan_index": np.zeros(len(inp), np.uint8),
-        "input_origins": np.array([[size / 2, size / 2, 3.0]], np.float32),
-        "gt_occ20": occ20.astype(np.int16),
-        "gt_occ10": occ10.astype(np.int16),
-        "gt_surface": surface.astype(np.float32),
-        "visible20": occ20.astype(np.int16),
-    }
 
 
 @pytest.fixture(scope="session")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import tiny_sample
+from hgca_testdata import tiny_sample
 from hgca_core.models.checkpoint import save_weights
 from hgca_core.models.gca import GCAConfig, GCAKernel
 
