@@ -177,6 +177,8 @@ class Autoencoder(nn.Module):
             cells4 = cs.unpack(keys)
         else:
             keys, _, cells4 = _sorted(batched_cells(cells).to(dev))
+        if len(pc4) == 0 or len(keys) == 0:
+            return cells4, torch.zeros((len(keys), self.cfg.latent), device=dev)
         offs = cs.offsets(self.cfg.enc_radius, device=dev) if self.cfg.enc_radius > 0 else \
             torch.zeros((1, 3), dtype=torch.long, device=dev)
         pts, cell = [], []

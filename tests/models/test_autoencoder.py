@@ -99,6 +99,11 @@ def test_encoder_pools_per_cell_whatever_the_order_and_chunking():
     torch.testing.assert_close(z2, z2_ref)
     assert len(cells_e) == 3 and torch.all(z_e[2] == 0) and torch.any(z_e[0] != 0) and torch.any(z_e[1] != 0)
     assert torch.all(z_own[1] == 0) and torch.any(z_own[0] != 0)
+    # no points at all (a crop without LiDAR): no cells, or zero latents for the cells asked for
+    with torch.no_grad():
+        c0, z0 = ae.encode(torch.zeros(0, 3), torch.zeros(0))
+        c1, z1 = ae.encode(torch.zeros(0, 3), torch.zeros(0), cells=torch.tensor([[1, 2, 3]]))
+    assert c0.shape == (0, 4) and z0.shape == (0, SMALL.latent) and c1.shape == (1, 4) and torch.all(z1 == 0)
 
 
 def test_field_is_continuous_clamped_and_differentiable():
