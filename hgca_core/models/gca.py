@@ -1,8 +1,9 @@
 """The coarse stage: a GCA transition kernel p_theta(s^{t+1} | s^t, s^0) at 20 cm, optionally with the planner.
 
 The kernel is a sparse U-Net evaluated on the neighbourhood N(s^t) (cells within `radius` of occupied cells,
-Chebyshev metric, i.e. the 3x3x3 cube for r = 1), with input features [in s^t, in s^0] + a 3D sinusoidal
-positional encoding; it outputs one Bernoulli logit per cell (Eq. 2-3). With the planner, the decoder
+Chebyshev metric, i.e. the 3x3x3 cube for r = 1), with input features [in s^t, in s^0] + a sinusoidal
+positional encoding (of height only by default: training sees random x/y crops, inference whole regions, so
+an x/y encoding would mean different things in the two); it outputs one Bernoulli logit per cell (Eq. 2-3). With the planner, the decoder
 features are de-normalised per BEV pillar by SPADE (gamma, beta) maps computed once from s^0.
 """
 from __future__ import annotations
@@ -26,6 +27,7 @@ class GCAConfig:
     blocks: int = 1
     radius: int = 1
     pe_freq: int = 3
+    pe_axes: str = "z"                # encoded axes: height only, so crops (training) and regions agree
     use_planner: bool = True
     z_r: int = 4
     beta: float = 0.1
@@ -40,6 +42,7 @@ class GCAConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "GCAConfig":
         fields = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in cls.__dataclass_fields__}
+        fields.setdefault("pe_axes", "xyz")  # files written before pe_axes existed encoded all three axes
         return cls(**fields)
 
 
@@ -49,7 +52,8 @@ class GCAKernel(nn.Module):
     def __init__(self, cfg: GCAConfig) -> None:
         super().__init__()
         self.cfg = cfg
-        in_ch = 2 + 3 * 2 * cfg.pe_freq
+        self.pe_axes = ["xyz".index(a) for a in cfg.pe_axes]
+        in_ch = 2 + len(self.pe_axes) * 2 * cfg.pe_freq
         self.unet = SparseUNet(in_ch, 1, channels=cfg.channels, blocks=cfg.blocks)
         self.planner = Planner(list(self.unet.channels[: self.unet.num_levels]), z_r=cfg.z_r) if cfg.use_planner else None
 
@@ -63,8 +67,8 @@ class GCAKernel(nn.Module):
                 grid: tuple[int, int, int], bev: BevOutput | None) -> torch.Tensor:
         in_state = cs.isin(nbhd, state).float()[:, None]
         in_s0 = cs.isin(nbhd, s0).float()[:, None]
-        g = torch.tensor(grid, dtype=torch.float32, device=nbhd.device)
-        pe = sinusoidal((nbhd[:, 1:].float() + 0.5) / g, self.cfg.pe_freq)
+        g = torch.tensor(grid, dtype=torch.float32, device=nbhd.device)[self.pe_axes]
+        pe = sinusoidal((nbhd[:, 1:][:, self.pe_axes].float() + 0.5) / g, self.cfg.pe_freq)
         x = SparseTensor(nbhd, torch.cat([in_state, in_s0, pe], dim=1))
         out = self.unet(x, modulate=self._spade(bev, grid) if bev is not None else None)
         return out.feats[:, 0]

@@ -25,8 +25,9 @@ completions are rough; real scans (nuScenes, Waymo) are out of distribution.
 
 def _section(path: Path) -> str:
     blob = torch.load(path, map_location="cpu", weights_only=False)
-    meta, cfg = blob["meta"], blob["config"]
-    n_params = sum(v.numel() for v in blob["state_dict"].values())
+    meta, cfg = blob["meta"], blob.get("config", {})
+    dicts = [blob.get("state_dict", {})] + ([blob["autoencoder"]["state_dict"]] if "autoencoder" in blob else [])
+    n_params = sum(v.numel() for d in dicts for v in d.values())
     sessions = meta.get("sessions", [])
     lines = [f"## `{path.name}` ({meta.get('stage', meta.get('kind'))})", "",
              f"- file size: {path.stat().st_size / 1e6:.2f} MB, parameters: {n_params:,}",
@@ -39,10 +40,15 @@ def _section(path: Path) -> str:
                      f"{s['threads']} thread(s), world size {s['world_size']}")
     vals = [h for h in meta.get("history_tail", []) if h.get("kind") == "val"]
     trains = [h for h in meta.get("history_tail", []) if h.get("kind") == "train"]
+    for note in meta.get("notes", []):
+        lines.append(f"- note: {note}")
     if trains:
         lines.append(f"- last logged training loss: {trains[-1]['loss']:.4f} at step {trains[-1]['step']}")
     if vals:
-        lines.append(f"- last validation IoU (val crops, T1 steps): {vals[-1]['val_iou']:.4f} at step {vals[-1]['step']}")
+        lines.append("- validation on val-split crops (IoU at the stage's resolution; CD in metres):")
+        for h in vals:
+            scores = ", ".join(f"{k} {v:.4f}" for k, v in h.items() if k.startswith("val_"))
+            lines.append(f"  - step {h['step']}: {scores}")
     return "\n".join(lines)
 
 
