@@ -46,16 +46,17 @@ def surface_cells(n: int) -> torch.Tensor:
     return c[:n]
 
 
-def timeit(fn: Callable[[], object], repeats: int, warmup: int = 1) -> float:
-    """Median wall time in ms."""
+def timeit(fn: Callable[[], object], repeats: int, warmup: int = 1,
+           clock: Callable[[], float] = time.perf_counter) -> dict[str, float]:
+    """Median and minimum time in ms (wall clock by default); the minimum shows the quiet-machine cost."""
     for _ in range(warmup):
         fn()
     ts = []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0 = clock()
         fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts) * 1e3
+        ts.append(clock() - t0)
+    return {"median": statistics.median(ts) * 1e3, "min": min(ts) * 1e3}
 
 
 def cpu_model() -> str:
@@ -68,12 +69,12 @@ def cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
-def bench_sparse(coords: torch.Tensor, c: int, repeats: int) -> dict[str, float]:
+def bench_sparse(coords: torch.Tensor, c: int, repeats: int) -> dict[str, object]:
     feats = torch.randn(len(coords), c)
     conv = SubMConv3d(c, c, 3)
     down = SparseConv3d(c, c, 2, 2)
     keys = pack(coords)
-    res: dict[str, float] = {}
+    res: dict[str, object] = {}
     res["map_build_subm_ms"] = timeit(lambda: submanifold_map(keys, 3, 1), repeats)
     res["map_build_down_ms"] = timeit(lambda: downsample_map(coords, 1, 2), repeats)
     x = SparseTensor(coords, feats)
@@ -92,15 +93,24 @@ def bench_sparse(coords: torch.Tensor, c: int, repeats: int) -> dict[str, float]
 
     res["subm_fwd_bwd_ms"] = timeit(lambda: fwd_bwd(conv), repeats)
     res["down_fwd_bwd_ms"] = timeit(lambda: fwd_bwd(down), repeats)
+    # CPU time of one thread: nearly insensitive to other jobs on a shared machine
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with torch.no_grad():
+            res["subm_fwd_cpu1_ms"] = timeit(lambda: conv(x), repeats, clock=time.process_time)
+        res["subm_fwd_bwd_cpu1_ms"] = timeit(lambda: fwd_bwd(conv), repeats, clock=time.process_time)
+    finally:
+        torch.set_num_threads(threads)
     return res
 
 
-def bench_unet(coords: torch.Tensor, repeats: int) -> dict[str, float]:
+def bench_unet(coords: torch.Tensor, repeats: int) -> dict[str, object]:
     """Default SparseUNet (channels 32..128, 4 levels), 4 input features, fresh coords every call
     (maps rebuilt, as in a GCA step) vs. reused coords (maps cached)."""
     net = SparseUNet(4, 2)
     feats = torch.randn(len(coords), 4)
-    res: dict[str, float] = {}
+    res: dict[str, object] = {}
     with torch.no_grad():
         res["unet_fwd_new_coords_ms"] = timeit(lambda: net(SparseTensor(coords, feats, check=False)), repeats)
         x = SparseTensor(coords, feats)
@@ -144,27 +154,31 @@ def bench_dense(coords: torch.Tensor, c: int, repeats: int, mem_cap_gb: float) -
 
 def to_markdown(meta: dict, rows: list[dict], unet_rows: list[dict]) -> str:
     def f(v: object) -> str:
+        if isinstance(v, dict):
+            return f"{v['median']:.0f} ({v['min']:.0f})"
         return f"{v:.0f}" if isinstance(v, float) else str(v)
 
     lines = [
         "# Sparse conv benchmark (CPU)",
         "",
         f"{meta['cpu']}, {meta['threads']} threads ({meta['cores']} cores visible), torch {meta['torch']}, "
-        f"{meta['date']}. Median of {meta['repeats']} runs (dense: {meta['dense_repeats']}), times in ms.",
+        f"{meta['date']}, OMP_WAIT_POLICY={meta['omp_wait_policy']}. Times in ms: median (minimum) of "
+        f"{meta['repeats']} runs (dense: {meta['dense_repeats']}, U-Net: {meta['unet_repeats']}).",
         "Surface-like cells (wavy ground + facades in a 384x384x80 grid), 3x3x3 submanifold and 2x2x2 "
         "stride-2 convs, C in = C out. Map build = kernel-map construction for new coordinates "
         "(cached afterwards, shared by every layer of a level).",
         "",
         "| N | C | pairs/cell | map subm | map down | SubM fwd | SubM fwd+bwd | down fwd | down fwd+bwd "
-        "| dense 3x3x3 fwd | dense fwd+bwd | dense grid |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| dense 3x3x3 fwd | dense fwd+bwd | dense grid | SubM fwd, 1-thread CPU | SubM fwd+bwd, 1-thread CPU |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['n']} | {r['c']} | {r['pairs_per_cell']:.1f} | {f(r['map_build_subm_ms'])} | "
             f"{f(r['map_build_down_ms'])} | {f(r['subm_fwd_ms'])} | {f(r['subm_fwd_bwd_ms'])} | "
             f"{f(r['down_fwd_ms'])} | {f(r['down_fwd_bwd_ms'])} | {f(r['dense_fwd_ms'])} | "
-            f"{f(r['dense_fwd_bwd_ms'])} | {'x'.join(map(str, r['dense_grid']))} |")
+            f"{f(r['dense_fwd_bwd_ms'])} | {'x'.join(map(str, r['dense_grid']))} | "
+            f"{f(r['subm_fwd_cpu1_ms'])} | {f(r['subm_fwd_bwd_cpu1_ms'])} |")
     lines += [
         "",
         "Default `SparseUNet(4, 2)` (channels 32-48-64-96-128, 4 stride-2 levels, batch norm) on the same "
@@ -176,8 +190,9 @@ def to_markdown(meta: dict, rows: list[dict], unet_rows: list[dict]) -> str:
     for u in unet_rows:
         lines.append(f"| {u['n']} | {f(u['unet_fwd_new_coords_ms'])} | {f(u['unet_fwd_cached_ms'])} | "
                      f"{f(u['unet_fwd_bwd_new_coords_ms'])} |")
-    lines += ["", f"Load average (1 min) before / after the run: {meta['load_before']} / {meta['load_after']} "
-              "(the machine is shared; other jobs inflate medians).", ""]
+    lines += ["", f"Load average (1 min) before / after the run: {meta['load_before']:.2f} / "
+              f"{meta['load_after']:.2f}. The machine is shared with other jobs, which inflate wall-clock medians "
+              "(2 threads); the 1-thread CPU-time columns are the contention-robust measure.", ""]
     return "\n".join(lines)
 
 
@@ -197,6 +212,8 @@ def main() -> None:
         "cpu": cpu_model(), "cores": os.cpu_count(), "threads": torch.get_num_threads(),
         "torch": torch.__version__, "date": time.strftime("%Y-%m-%d"), "repeats": args.repeats,
         "dense_repeats": args.dense_repeats, "grid": list(GRID), "load_before": os.getloadavg()[0],
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default"),
+        "unet_repeats": max(3, args.repeats // 2),
     }
     rows, unet_rows = [], []
     for n in args.sizes:
@@ -206,7 +223,7 @@ def main() -> None:
             r.update(bench_dense(coords, c, args.dense_repeats, args.dense_mem_gb))
             rows.append(r)
             print(json.dumps(r), flush=True)
-        u = {"n": n, **bench_unet(coords, max(3, args.repeats // 2))}
+        u = {"n": n, **bench_unet(coords, meta["unet_repeats"])}
         unet_rows.append(u)
         print(json.dumps(u), flush=True)
     meta["load_after"] = os.getloadavg()[0]
