@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from hgca_testdata import tiny_sample
 
@@ -20,3 +21,12 @@ def tiny_dataset(tmp_path_factory) -> Path:
         for s in seeds:
             np.savez(root / split / f"sample_{s:07d}.npz", **tiny_sample(s))
     return root
+
+
+@pytest.fixture
+def one_thread():
+    """Small tensors: one torch thread beats two that wait for each other on a busy 2-core machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -7,13 +7,7 @@ from scipy.spatial import cKDTree
 from hgca_core.meshing import (LEVEL_FRACTION, drop_small_components, udf_grid, udf_grid_points, udf_mesh,
                                udf_surface_points, weld)
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small tensors: one thread beats two that wait for each other on a busy 2-core machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 CENTRE = np.array([1.03, 0.97, 1.01])

@@ -20,13 +20,7 @@ K = 4
 TINY = CGCAConfig(latent=K, channels=(8, 16), in_proj=8, pe_freq=1, crop=None)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small tensors: one thread beats two that wait for each other on a busy 2-core machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _random_cells(n: int, grid: tuple[int, int, int], batches: int = 2, seed: int = 0) -> torch.Tensor:
