@@ -59,6 +59,29 @@ def timeit(fn: Callable[[], object], repeats: int, warmup: int = 1,
     return {"median": statistics.median(ts) * 1e3, "min": min(ts) * 1e3}
 
 
+def _cpu_idle_fraction(seconds: float) -> float:
+    """Share of CPU time idle over the next `seconds` (Linux /proc/stat; 1.0 where unavailable)."""
+    def read() -> tuple[int, int]:
+        vals = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+        return vals[3] + vals[4], sum(vals)
+    try:
+        i0, t0 = read()
+        time.sleep(seconds)
+        i1, t1 = read()
+    except (OSError, ValueError, IndexError):
+        return 1.0
+    return (i1 - i0) / max(1, t1 - t0)
+
+
+def wait_idle(max_wait_s: float, threshold: float = 0.8) -> float:
+    """On a shared machine, wait (at most max_wait_s) until other jobs leave the CPU mostly idle."""
+    deadline = time.monotonic() + max_wait_s
+    idle = _cpu_idle_fraction(2.0)
+    while idle < threshold and time.monotonic() < deadline:
+        idle = _cpu_idle_fraction(5.0)
+    return idle
+
+
 def cpu_model() -> str:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -190,6 +213,10 @@ def to_markdown(meta: dict, rows: list[dict], unet_rows: list[dict]) -> str:
     for u in unet_rows:
         lines.append(f"| {u['n']} | {f(u['unet_fwd_new_coords_ms'])} | {f(u['unet_fwd_cached_ms'])} | "
                      f"{f(u['unet_fwd_bwd_new_coords_ms'])} |")
+    idles = [f"{r['n']}/{r.get('c', 'U-Net')}: {r['cpu_idle_before']:.0%}" for r in rows + unet_rows
+             if r.get("cpu_idle_before") is not None]
+    if idles:
+        lines += ["", "CPU idle just before each configuration (others' jobs): " + ", ".join(idles) + "."]
     lines += ["", f"Load average (1 min) before / after the run: {meta['load_before']:.2f} / "
               f"{meta['load_after']:.2f}. The machine is shared with other jobs, which inflate wall-clock medians "
               "(2 threads); the 1-thread CPU-time columns are the contention-robust measure.", ""]
@@ -204,6 +231,8 @@ def main() -> None:
     ap.add_argument("--dense-repeats", type=int, default=3)
     ap.add_argument("--dense-mem-gb", type=float, default=6.0, help="skip dense convs needing more")
     ap.add_argument("--threads", type=int, default=torch.get_num_threads())
+    ap.add_argument("--wait-idle", type=float, default=0.0,
+                    help="before each configuration wait up to this many seconds for an idle CPU")
     ap.add_argument("--out", type=Path, default=RESULTS / "sparse_conv")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -219,11 +248,13 @@ def main() -> None:
     for n in args.sizes:
         coords = surface_cells(n)
         for c in args.channels:
-            r = {"n": n, "c": c, **bench_sparse(coords, c, args.repeats)}
+            idle = wait_idle(args.wait_idle) if args.wait_idle > 0 else None
+            r = {"n": n, "c": c, "cpu_idle_before": idle, **bench_sparse(coords, c, args.repeats)}
             r.update(bench_dense(coords, c, args.dense_repeats, args.dense_mem_gb))
             rows.append(r)
             print(json.dumps(r), flush=True)
-        u = {"n": n, **bench_unet(coords, meta["unet_repeats"])}
+        idle = wait_idle(args.wait_idle) if args.wait_idle > 0 else None
+        u = {"n": n, "cpu_idle_before": idle, **bench_unet(coords, meta["unet_repeats"])}
         unet_rows.append(u)
         print(json.dumps(u), flush=True)
     meta["load_after"] = os.getloadavg()[0]
