@@ -10,7 +10,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from hgca_core.errors import HgcaError, InputError
-from hgca_core.geometry.voxel import COARSE, FINE, unique_rows
+from hgca_core.geometry.voxel import COARSE, FINE, downsample, voxelize_fine
 from hgca_core.metrics.chamfer import as_points
 from hgca_core.metrics.resim import voxels_to_mesh
 
@@ -26,14 +26,14 @@ def voxelize_points(points: np.ndarray, voxel: float = COARSE,
     With `grid_shape` (cells of `voxel`), cells outside [0, grid_shape) are dropped, as for a region.
     """
     p = as_points(points, "points")
-    c = np.round(p / FINE).astype(np.int64)
-    if np.isclose(voxel, COARSE):
-        c = np.floor_divide(c, 2)
-    elif not np.isclose(voxel, FINE):
+    if np.isclose(voxel, FINE):
+        return voxelize_fine(p, None if grid_shape is None else tuple(grid_shape)).astype(np.int64)
+    if not np.isclose(voxel, COARSE):
         raise InputError(f"voxel must be {FINE} or {COARSE} m (the model's two resolutions), got {voxel}")
+    c = downsample(voxelize_fine(p, None)).astype(np.int64)
     if grid_shape is not None:
         c = c[np.all((c >= 0) & (c < np.asarray(grid_shape, dtype=np.int64)), axis=1)]
-    return unique_rows(c)
+    return c
 
 
 def input_baseline(points: np.ndarray, voxel: float = COARSE,

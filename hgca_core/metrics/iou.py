@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from hgca_core.errors import InputError
-from hgca_core.geometry.voxel import FINE
+from hgca_core.geometry.voxel import FINE, voxelize_coarse
 
 _BITS = 21
 _OFF = 1 << (_BITS - 1)
@@ -58,9 +58,5 @@ def points_to_cells20(points: np.ndarray, region_size: np.ndarray | None = None)
     Same cells as `hgca_core.geometry.voxel.voxelize_coarse` (cells outside the region dropped when
     `region_size` is given) but through 1-D packed keys, which is much faster for millions of points.
     """
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    c = np.round(p / FINE).astype(np.int64)
-    if region_size is not None:
-        n10 = np.round(np.asarray(region_size, dtype=np.float64) / FINE).astype(np.int64)
-        c = c[np.all((c >= 0) & (c < n10), axis=1)]
-    return unpack_cells(pack_cells(np.floor_divide(c, 2), "points"))
+    fine = None if region_size is None else tuple(np.round(np.asarray(region_size, float) / FINE).astype(int))
+    return voxelize_coarse(np.asarray(points, dtype=np.float64), fine).astype(np.int64)
