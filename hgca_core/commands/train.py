@@ -99,8 +99,10 @@ def export(args: argparse.Namespace, task, ckpt: Path) -> Path:
         from hgca_core.models.checkpoint import save_weights
         from hgca_core.training.coarse import weights_path
 
+        from hgca_core.training.trainer import trained_weights
+
         module = task.build()
-        module.load_state_dict(ck["model"])
+        module.load_state_dict(trained_weights(ck))
         dest = weights_path(args.stage == "coarse")
         save_weights(module.model, ck["config"], dest, {**meta, "kind": "coarse", "crop": task.crop})
     elif args.stage == "autoencoder":

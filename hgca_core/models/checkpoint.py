@@ -39,7 +39,9 @@ def load_coarse(path: str, device: str = "cpu") -> tuple[GCAKernel, dict]:
     if "state_dict" in blob:
         sd, meta = blob["state_dict"], blob["meta"]
     elif "model" in blob and "config" in blob:  # a training checkpoint (runs/<stage>/ckpt.pt) works too
-        sd = {k.removeprefix("model."): v for k, v in blob["model"].items()}
+        from hgca_core.training.trainer import trained_weights
+
+        sd = {k.removeprefix("model."): v for k, v in trained_weights(blob).items()}
         meta = {"kind": "coarse", "steps": blob["state"]["step"], "checkpoint": str(path)}
     else:
         raise InputError("not an hgca weights file or training checkpoint", str(path))

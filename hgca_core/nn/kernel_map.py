@@ -15,6 +15,7 @@ with the child's position o in [0, f)^3 inside its parent cell.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import torch
 
@@ -32,6 +33,10 @@ class KernelMap:
     Pairs of offset k are rows splits[k]:splits[k+1] of in_idx / out_idx (output row out_idx[p] receives
     feats[in_idx[p]] @ W[k]). `identity` names an offset whose pairs are the identity (the centre of a
     submanifold kernel); its segment is empty and the convolution handles it with one plain GEMM.
+
+    Every map built here has at most one pair per (output, offset), so it can also be read as a
+    neighbour `table` (n_out, K). `symmetric` marks submanifold maps, whose adjoint is the same map with
+    the offsets reversed (the pairs of -d are those of d swapped).
     """
 
     in_idx: torch.Tensor
@@ -40,6 +45,7 @@ class KernelMap:
     n_in: int
     n_out: int
     identity: int | None = None
+    symmetric: bool = False
 
     @property
     def volume(self) -> int:
@@ -50,13 +56,29 @@ class KernelMap:
         """Pairs including the implicit identity ones."""
         return int(self.splits[-1]) + (self.n_in if self.identity is not None else 0)
 
+    @property
+    def density(self) -> float:
+        """Share of (output, offset) slots that hold a pair: how much of a dense table would be real work."""
+        return self.num_pairs / max(1, self.n_out * self.volume)
+
+    @cached_property
+    def table(self) -> torch.Tensor:
+        """(n_out, K) int64: the input row of each (output, offset), n_in where there is none (built once)."""
+        t = torch.full((self.n_out, self.volume), self.n_in, dtype=torch.long, device=self.in_idx.device)
+        for k in range(self.volume):
+            a, b = self.splits[k], self.splits[k + 1]
+            t[self.out_idx[a:b], k] = self.in_idx[a:b]
+        if self.identity is not None:
+            t[:, self.identity] = torch.arange(self.n_in, device=t.device)
+        return t
+
     def transposed(self) -> "KernelMap":
         """The map with inputs and outputs swapped (the adjoint: down map <-> up map, grad_in pass)."""
-        return KernelMap(self.out_idx, self.in_idx, self.splits, self.n_out, self.n_in, self.identity)
+        return KernelMap(self.out_idx, self.in_idx, self.splits, self.n_out, self.n_in, self.identity, self.symmetric)
 
     def to(self, device: torch.device | str) -> "KernelMap":
         return KernelMap(self.in_idx.to(device), self.out_idx.to(device), self.splits, self.n_in,
-                         self.n_out, self.identity)
+                         self.n_out, self.identity, self.symmetric)
 
     def chunks(self, rows: int) -> list[tuple[int, int, list[tuple[int, int, int]]]]:
         """Cut the pair list into row ranges of at most `rows` pairs.
@@ -143,7 +165,7 @@ def submanifold_map(keys: torch.Tensor, kernel_size: int, stride: int) -> Kernel
     centre = kvol // 2
     if kvol == 1 or n == 0:
         e = torch.empty(0, dtype=torch.long, device=dev)
-        return KernelMap(e, e, (0,) * (kvol + 1), n, n, centre)
+        return KernelMap(e, e, (0,) * (kvol + 1), n, n, centre, True)
     found, idx = _neighbours_half(keys, kernel_size // 2, stride)
     nz = found.reshape(-1).nonzero().squeeze(1)
     half_out = nz % n                                           # output row (the centre cell)
@@ -155,7 +177,7 @@ def submanifold_map(keys: torch.Tensor, kernel_size: int, stride: int) -> Kernel
         ins.append(half_out[seg[k]:seg[k + 1]])
         outs.append(half_in[seg[k]:seg[k + 1]])
     all_counts = counts.tolist() + [0] + counts.flip(0).tolist()
-    return KernelMap(torch.cat(ins), torch.cat(outs), _splits(torch.tensor(all_counts)), n, n, centre)
+    return KernelMap(torch.cat(ins), torch.cat(outs), _splits(torch.tensor(all_counts)), n, n, centre, True)
 
 
 def submanifold_map_reference(keys: torch.Tensor, kernel_size: int, stride: int) -> KernelMap:
@@ -166,7 +188,7 @@ def submanifold_map_reference(keys: torch.Tensor, kernel_size: int, stride: int)
     centre = kvol // 2
     if kvol == 1 or n == 0:
         e = torch.empty(0, dtype=torch.long, device=dev)
-        return KernelMap(e, e, (0,) * (kvol + 1), n, n, centre)
+        return KernelMap(e, e, (0,) * (kvol + 1), n, n, centre, True)
     q = keys[None, :] + key_delta(offs[:centre])[:, None]
     idx = torch.searchsorted(keys, q.reshape(-1)).clamp_(max=n - 1)
     found = (keys[idx] == q.reshape(-1)).view(centre, n)
@@ -181,13 +203,13 @@ def submanifold_map_reference(keys: torch.Tensor, kernel_size: int, stride: int)
         pairs_in.append(other if k < centre else rows)
         pairs_out.append(rows if k < centre else other)
         counts.append(len(rows))
-    return KernelMap(torch.cat(pairs_in), torch.cat(pairs_out), _splits(torch.tensor(counts)), n, n, centre)
+    return KernelMap(torch.cat(pairs_in), torch.cat(pairs_out), _splits(torch.tensor(counts)), n, n, centre, True)
 
 
 def identity_map(n: int, device: torch.device | str = "cpu") -> KernelMap:
     """Map of a 1x1x1 conv: only the identity offset."""
     e = torch.empty(0, dtype=torch.long, device=device)
-    return KernelMap(e, e, (0, 0), n, n, 0)
+    return KernelMap(e, e, (0, 0), n, n, 0, True)
 
 
 def _child_offset_index(child: torch.Tensor, parent: torch.Tensor, child_stride: int, factor: int) -> torch.Tensor:

@@ -35,6 +35,7 @@ from hgca_core.models.cgca import CGCAConfig, CGCAKernel, _gather, _table, alpha
 from hgca_core.models.checkpoint import WEIGHTS_DIR
 from hgca_core.training.buffer import Chain
 from hgca_core.training.data import grids, load_arrays, split_files
+from hgca_core.training.trainer import trained_weights
 
 KEYS = ("input_points", "gt_occ10", "gt_occ20", "gt_surface", "udf_points", "udf_dist")
 CD_PENALTY = 1.0  # metres: Chamfer reported when a decoded crop has no surface at all
@@ -376,7 +377,7 @@ def export_autoencoder(ckpt_path: str | Path, dest: str | Path | None = None, me
 
     ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
     module = AutoencoderLoss(AutoencoderConfig.from_dict(ck["config"]))
-    module.load_state_dict(ck["model"])
+    module.load_state_dict(trained_weights(ck))
     dest = Path(dest or autoencoder_weights_path())
     save_autoencoder(module.model, str(dest), _run_meta(ck, "autoencoder", meta or {}))
     return dest
@@ -389,7 +390,7 @@ def export_fine(ckpt_path: str | Path, autoencoder: str | Path, dest: str | Path
 
     ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
     module = FineLoss(CGCAConfig.from_dict(ck["config"]))
-    module.load_state_dict(ck["model"])
+    module.load_state_dict(trained_weights(ck))
     dest = Path(dest or fine_weights_path())
     save_fine(module.model, load_autoencoder(str(autoencoder)), str(dest),
               _run_meta(ck, "fine", {"autoencoder": str(autoencoder), **(meta or {})}))

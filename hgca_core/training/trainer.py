@@ -1,12 +1,17 @@
-"""The one training loop of both stages: time budget, exact resume, atomic checkpoints, DDP.
+"""The one training loop of both stages: time budget, exact resume, atomic checkpoints, DDP, weight EMA.
 
 A task (coarse or fine) supplies the loss module, fresh examples for the chain buffer and a validation
 metric. The loop trains until its time budget is spent, then checkpoints, so training can continue across
 sessions with `--resume`. Under `torchrun` every rank keeps its own chains; gradients are all-reduced by
 DistributedDataParallel (gloo on CPU, NCCL on GPUs) and rank 0 writes checkpoints and logs.
+
+Validation and the shipped weights use an exponential moving average of the weights: with Adam at a constant
+5e-4 (the paper's setting) consecutive checkpoints of the coarse model differed by up to 0.24 validation IoU;
+the average removes that step-to-step noise.
 """
 from __future__ import annotations
 
+import copy
 import json
 import os
 import time
@@ -31,6 +36,38 @@ class Task(Protocol):
     def validate(self, loss_module: nn.Module, seed: int = 0) -> dict: ...
 
 
+class EMA:
+    """Exponential moving average of a module's weights (buffers are copied), with the usual warm-up
+    decay min(decay, (1 + n) / (10 + n)) so short runs are averaged over their own steps only."""
+
+    def __init__(self, module: nn.Module, decay: float = 0.999) -> None:
+        self.decay, self.n = decay, 0
+        self.module = copy.deepcopy(module).eval()
+        for p in self.module.parameters():
+            p.requires_grad_(False)
+
+    @torch.no_grad()
+    def update(self, module: nn.Module) -> None:
+        d = min(self.decay, (1 + self.n) / (10 + self.n))
+        for e, p in zip(self.module.parameters(), module.parameters()):
+            e.lerp_(p.detach(), 1.0 - d)
+        for e, b in zip(self.module.buffers(), module.buffers()):
+            e.copy_(b)
+        self.n += 1
+
+    def state_dict(self) -> dict:
+        return {"n": self.n, "decay": self.decay, "model": self.module.state_dict()}
+
+    def load_state_dict(self, d: dict) -> None:
+        self.n, self.decay = d["n"], d["decay"]
+        self.module.load_state_dict(d["model"])
+
+
+def trained_weights(ck: dict) -> dict:
+    """The weights to ship or evaluate from a training checkpoint: the EMA when it has one."""
+    return ck["ema"]["model"] if ck.get("ema") else ck["model"]
+
+
 def _atomic_save(obj: Any, path: Path) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
     torch.save(obj, tmp)
@@ -48,7 +85,7 @@ def _dist() -> tuple[int, int]:
 def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False, batch: int = 2,
           buffer_size: int = 8, lr: float = 5e-4, clip: float = 0.5, seed: int = 0,
           val_every_min: float = 10.0, ckpt_every_min: float = 5.0, max_steps: int | None = None,
-          progress: bool = True) -> dict:
+          progress: bool = True, ema_decay: float = 0.999) -> dict:
     """Train `task` for `minutes` of wall time (or `max_steps`), resuming from out_dir/ckpt.pt if asked."""
     rank, world = _dist()
     out = Path(out_dir)
@@ -67,7 +104,10 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
         if rank == 0 and ck.get("buffer") is not None:
             buffer.load_state_dict(ck["buffer"])
         torch.set_rng_state(ck["torch_rng"])
-    elif resume and rank == 0:
+    ema = EMA(module, ema_decay)  # a checkpoint from before the EMA existed starts it at its weights
+    if resume and ckpt_path.exists() and ck.get("ema"):
+        ema.load_state_dict(ck["ema"])
+    if resume and not ckpt_path.exists() and rank == 0:
         print(f"no checkpoint at {ckpt_path}: starting from scratch")
     ddp = nn.parallel.DistributedDataParallel(module) if world > 1 else module
     module.train()
@@ -75,14 +115,13 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
     def checkpoint() -> None:
         if rank == 0:
             _atomic_save({"model": module.state_dict(), "optim": optim.state_dict(), "state": state,
-                          "buffer": buffer.state_dict(), "torch_rng": torch.get_rng_state(),
+                          "buffer": buffer.state_dict(), "torch_rng": torch.get_rng_state(), "ema": ema.state_dict(),
                           "config": task.cfg.to_dict(), "task": task.name}, ckpt_path)
 
     def validate() -> None:
         if rank == 0:
-            module.eval()
-            metrics = task.validate(module)
-            module.train()
+            metrics = task.validate(ema.module)
+            ema.module.eval()
             state["history"].append({"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1),
                                      "kind": "val", **metrics})
             plot_history(state["history"], out / "curve.png", task.name)
@@ -110,6 +149,7 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
         loss.backward()
         torch.nn.utils.clip_grad_norm_(module.parameters(), clip)
         optim.step()
+        ema.update(module)
         for i, s in zip(idx, new_states):
             buffer.advance(i, s)
         dt = time.time() - t0

@@ -8,7 +8,7 @@ import torch
 from hgca_core.geometry.voxel import downsample, voxelize_fine
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig, load_autoencoder
 from hgca_core.training.fine import AutoencoderTask, chamfer, export_autoencoder
-from hgca_core.training.trainer import train
+from hgca_core.training.trainer import train, trained_weights
 
 SMALL = AutoencoderConfig(enc_hidden=16, mlp_hidden=16, dec_channels=16, latent=8)  # enc_radius 1
 
@@ -151,7 +151,7 @@ def test_training_reconstructs_held_out_surfaces(tmp_path):
     ae2 = load_autoencoder(str(dest))
     ck = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=False)
     ae1 = Autoencoder(cfg)
-    ae1.load_state_dict({k[len("model."):]: v for k, v in ck["model"].items()})
+    ae1.load_state_dict({k[len("model."):]: v for k, v in trained_weights(ck).items()})
     cells = torch.tensor([[x, y, 3] for x in range(4) for y in range(4)])
     z = torch.randn(len(cells), cfg.latent) * 0.3
     q = torch.rand(200, 3) * torch.tensor([0.35, 0.35, 0.1]) + torch.tensor([0.0, 0.0, 0.25])

@@ -46,9 +46,16 @@ def gen() -> torch.Generator:
     return torch.Generator().manual_seed(0)
 
 
+@pytest.fixture(params=["table", "pairs"])
+def path(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Run a test on both ways of executing a map (output-stationary table, and pair list + scatter)."""
+    monkeypatch.setattr(conv_mod, "TABLE_MIN_DENSITY", 0.0 if request.param == "table" else 2.0)
+    return request.param
+
+
 @pytest.mark.parametrize("stride", [1, 2])
 @pytest.mark.parametrize("kernel", [3, 5])
-def test_submconv_matches_dense(gen: torch.Generator, stride: int, kernel: int) -> None:
+def test_submconv_matches_dense(path: str, gen: torch.Generator, stride: int, kernel: int) -> None:
     size, cin, cout = 9, 3, 4
     coords = random_coords(gen, 2, size, 0.3, stride)
     x = SparseTensor(coords, torch.randn(len(coords), cin, generator=gen, dtype=torch.float64), stride)
@@ -62,7 +69,7 @@ def test_submconv_matches_dense(gen: torch.Generator, stride: int, kernel: int) 
 
 
 @pytest.mark.parametrize("stride", [1, 2])
-def test_strided_conv_matches_dense(gen: torch.Generator, stride: int) -> None:
+def test_strided_conv_matches_dense(path: str, gen: torch.Generator, stride: int) -> None:
     size, cin, cout = 10, 3, 5
     coords = random_coords(gen, 2, size, 0.25, stride)
     x = SparseTensor(coords, torch.randn(len(coords), cin, generator=gen, dtype=torch.float64), stride)
@@ -78,7 +85,7 @@ def test_strided_conv_matches_dense(gen: torch.Generator, stride: int) -> None:
 
 
 @pytest.mark.parametrize("from_down", [False, True])
-def test_transposed_conv_matches_dense(gen: torch.Generator, from_down: bool) -> None:
+def test_transposed_conv_matches_dense(path: str, gen: torch.Generator, from_down: bool) -> None:
     size, cin, cout = 10, 4, 3
     fine = random_coords(gen, 2, size, 0.3)
     if from_down:   # decoder case: the coarse set is the downsampled target, map comes from the cache
@@ -113,7 +120,7 @@ def test_fast_submanifold_map_equals_reference(gen: torch.Generator, kernel: int
         assert torch.equal(a.in_idx, b.in_idx) and torch.equal(a.out_idx, b.out_idx)
 
 
-def test_batches_do_not_mix(gen: torch.Generator) -> None:
+def test_batches_do_not_mix(path: str, gen: torch.Generator) -> None:
     """Sample 1 alone gives the same features as sample 1 next to a different sample 0."""
     c1 = random_coords(gen, 1, 8, 0.4)
     c0 = random_coords(gen, 1, 8, 0.4)
@@ -137,7 +144,7 @@ def _gradcheck_layer(fn, feats: torch.Tensor, weight: torch.Tensor) -> None:
     assert torch.autograd.gradcheck(fn, (feats, weight), eps=1e-6, atol=1e-8)
 
 
-def test_gradcheck_submconv(gen: torch.Generator) -> None:
+def test_gradcheck_submconv(path: str, gen: torch.Generator) -> None:
     coords = random_coords(gen, 2, 3, 0.5)
     kmap = submanifold_map(pack(coords), 3, 1)
     f = torch.randn(len(coords), 2, generator=gen, dtype=torch.float64, requires_grad=True)
@@ -145,7 +152,7 @@ def test_gradcheck_submconv(gen: torch.Generator) -> None:
     _gradcheck_layer(lambda a, b: SparseConvFunction.apply(a, b, kmap), f, w)
 
 
-def test_gradcheck_strided_and_transposed(gen: torch.Generator) -> None:
+def test_gradcheck_strided_and_transposed(path: str, gen: torch.Generator) -> None:
     coords = random_coords(gen, 2, 4, 0.5)
     out_c, kmap = downsample_map(coords, 1, 2)
     f = torch.randn(len(coords), 2, generator=gen, dtype=torch.float64, requires_grad=True)
@@ -157,7 +164,7 @@ def test_gradcheck_strided_and_transposed(gen: torch.Generator) -> None:
     _gradcheck_layer(lambda a, b: SparseConvFunction.apply(a, b, upmap), g, w)
 
 
-def test_layer_gradients_match_dense(gen: torch.Generator) -> None:
+def test_layer_gradients_match_dense(path: str, gen: torch.Generator) -> None:
     """Gradients through the modules (bias included) equal those of the dense reference."""
     size = 6
     coords = random_coords(gen, 1, size, 0.4)
@@ -192,9 +199,10 @@ def _run_all(threads: int, coords: torch.Tensor, feats: torch.Tensor, seed: int)
         torch.set_num_threads(prev)
 
 
-def test_bit_identical_across_thread_counts(gen: torch.Generator, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_bit_identical_across_thread_counts(path: str, gen: torch.Generator, monkeypatch: pytest.MonkeyPatch) -> None:
     """1 vs 2 threads give bit-identical forward and backward (with several chunks per map)."""
     monkeypatch.setattr(conv_mod, "CHUNK_ELEMENTS", 1 << 14)
+    monkeypatch.setattr(conv_mod, "TABLE_CHUNK_ELEMENTS", 1 << 14)
     coords = random_coords(gen, 2, 24, 0.15)
     feats = torch.randn(len(coords), 16, generator=gen)
     a = _run_all(1, coords, feats, 3)
@@ -203,12 +211,13 @@ def test_bit_identical_across_thread_counts(gen: torch.Generator, monkeypatch: p
         assert torch.equal(u, v)
 
 
-def test_chunking_does_not_change_results(gen: torch.Generator, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_chunking_does_not_change_results(path: str, gen: torch.Generator, monkeypatch: pytest.MonkeyPatch) -> None:
     coords = random_coords(gen, 1, 12, 0.3)
     f = torch.randn(len(coords), 4, generator=gen, dtype=torch.float64)
     conv = SubMConv3d(4, 4).double()
     ref = conv(SparseTensor(coords, f)).feats
     monkeypatch.setattr(conv_mod, "CHUNK_ELEMENTS", 7)
+    monkeypatch.setattr(conv_mod, "TABLE_CHUNK_ELEMENTS", 7 * 27 * 4)
     torch.testing.assert_close(conv(SparseTensor(coords, f)).feats, ref, rtol=1e-12, atol=1e-12)
 
 
@@ -293,7 +302,7 @@ def test_backend_registry(gen: torch.Generator) -> None:
     assert conv_gemm is conv_mod.conv_gemm
 
 
-def test_empty_input() -> None:
+def test_empty_input(path: str) -> None:
     x = SparseTensor(torch.zeros((0, 4), dtype=torch.long), torch.zeros(0, 3))
     y = SubMConv3d(3, 4)(x)
     d = SparseConv3d(3, 4)(x)

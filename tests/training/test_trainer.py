@@ -7,7 +7,7 @@ import torch
 
 from hgca_core.training.coarse import CoarseTask
 from hgca_core.models.gca import GCAConfig
-from hgca_core.training.trainer import train
+from hgca_core.training.trainer import EMA, train, trained_weights
 
 SMALL = dict(channels=(8, 8, 16, 16, 16))
 
@@ -24,8 +24,12 @@ def test_budgeted_training_checkpoints_and_resumes_exactly(tiny_dataset, tmp_pat
     assert ck["state"]["step"] == 3 and len(ck["buffer"]["chains"]) == 3
     ts = [c["t"] for c in ck["buffer"]["chains"]]
     assert max(ts) >= 1  # chains advanced by infusion steps
+    assert ck["ema"]["n"] == 3
+    assert any(not torch.equal(ck["ema"]["model"][k], ck["model"][k]) for k in ck["model"])  # an average, not a copy
+    assert trained_weights(ck) is ck["ema"]["model"]
     s2 = train(_task(tiny_dataset), out, minutes=5, max_steps=2, resume=True, batch=2, buffer_size=3, progress=False)
     assert s2["step"] == 5 and len(s2["sessions"]) == 2
+    assert torch.load(out / "ckpt.pt", weights_only=False)["ema"]["n"] == 5  # the average resumes too
     hist = json.loads((out / "history.json").read_text())
     assert [h for h in hist if h["kind"] == "val"] and all(0.0 <= h["val_iou"] <= 1.0 for h in hist if h["kind"] == "val")
 
@@ -47,3 +51,21 @@ def test_torchrun_two_cpu_ranks(tiny_dataset, tmp_path):
     assert res.returncode == 0, res.stderr[-3000:]
     ck = torch.load(tmp_path / "ddp" / "ckpt.pt", weights_only=False)
     assert ck["state"]["step"] == 2 and ck["state"]["sessions"][0]["world_size"] == 2
+
+
+def test_ema_warms_up_then_averages():
+    lin = torch.nn.Linear(1, 1, bias=False)
+    with torch.no_grad():
+        lin.weight.fill_(0.0)
+    ema = EMA(lin, decay=0.9)
+    with torch.no_grad():
+        lin.weight.fill_(1.0)
+    ema.update(lin)              # warm-up decay (1 + 0) / (10 + 0) = 0.1
+    assert abs(float(ema.module.weight) - 0.9) < 1e-6
+    for _ in range(200):
+        ema.update(lin)
+    assert abs(float(ema.module.weight) - 1.0) < 1e-6 and not ema.module.weight.requires_grad
+    with torch.no_grad():
+        lin.weight.fill_(0.0)
+    ema.update(lin)              # decay capped at 0.9 once n is large
+    assert abs(float(ema.module.weight) - 0.9) < 1e-6
