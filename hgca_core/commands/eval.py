@@ -6,16 +6,21 @@ import json
 import time
 from pathlib import Path
 
-METHODS = ("input", "poisson", "gca", "hgca")
+METHODS = ("input", "poisson", "gca", "hgca", "hgca-full")
+DEFAULT_METHODS = ("input", "poisson", "gca", "hgca")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", default="data/synth", help="dataset folder (hgca synth --split test)")
     p.add_argument("--split", default="test", choices=("val", "test"))
-    p.add_argument("--stage", default="coarse", choices=("coarse",), help="which hGCA output to score")
+    p.add_argument("--stage", default="coarse", choices=("coarse", "full"),
+                   help="full adds the fine stage's rows (hGCA 10 cm voxels and implicit mesh; needs fine weights)")
+    p.add_argument("--fine-weights", default=None, help="fine-stage weights (default: the shipped fine.pt)")
+    p.add_argument("--t2", type=int, default=None, help="fine steps (default from the weights)")
     p.add_argument("--count", type=int, default=None, help="evaluate only the first N samples")
     p.add_argument("--samples", type=int, default=3, help="completions k per input (min/avg/TMD)")
-    p.add_argument("--methods", default=",".join(METHODS), help=f"comma list of {', '.join(METHODS)}")
+    p.add_argument("--methods", default=None,
+                   help=f"comma list of {', '.join(METHODS)} (default: the coarse ones, plus hgca-full with --stage full)")
     p.add_argument("--t1", type=int, default=None, help="coarse steps (default from the weights)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="write the rows as JSON and the table as .md next to it")
@@ -38,14 +43,22 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.training.coarse import weights_path
     from hgca_core.training.data import coarse_pair, split_files
 
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    default = DEFAULT_METHODS + (("hgca-full",) if args.stage == "full" else ())
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else list(default)
     unknown = set(methods) - set(METHODS)
     if unknown:
         raise InputError(f"unknown methods {sorted(unknown)}; choose from {', '.join(METHODS)}")
     files = split_files(args.data, args.split)[: args.count]
-    models = {m: load_coarse(str(weights_path(m == "hgca")))[0] for m in methods if m in ("gca", "hgca")}
-    results: dict[str, list[dict]] = {m: [] for m in methods}
-    timings: dict[str, list[float]] = {m: [] for m in methods}
+    models = {m: load_coarse(str(weights_path(m != "gca")))[0] for m in methods if m in ("gca", "hgca", "hgca-full")}
+    if "hgca-full" in methods:
+        from hgca_core.models.cgca import load_fine
+        from hgca_core.pipeline import default_weights
+
+        fine_model, autoencoder, _ = load_fine(str(args.fine_weights or default_weights("fine")))
+    rows_of = {m: [m] for m in methods}
+    rows_of["hgca-full"] = ["hgca-10cm", "hgca-implicit"]
+    results: dict[str, list[dict]] = {r: [] for m in methods for r in rows_of[m]}
+    timings: dict[str, list[float]] = {r: [] for m in methods for r in rows_of[m]}
     for path in tqdm(files, desc=f"eval {args.split}", unit="scene"):
         sample = load_sample(path)
         pts = np.asarray(sample["input_points"], dtype=np.float64)
@@ -57,6 +70,28 @@ def run(args: argparse.Namespace) -> int:
                 res = evaluate_sample(sample, [mesh], [cells])
             elif m == "poisson":
                 res = evaluate_sample(sample, [poisson_baseline(pts, np.asarray(sample["input_origins"]))])
+            elif m == "hgca-full":  # one fine run per sample, scored as 10 cm voxels and as the implicit mesh
+                from hgca_core.geometry.voxel import downsample
+                from hgca_core.models.cgca import decode_mesh, upsample
+
+                model = models[m]
+                grid10 = tuple(int(v) for v in np.round(np.asarray(sample["region"])[3:6] / FINE))
+                fine, meshes, t_mesh = [], [], 0.0
+                for i in range(args.samples):
+                    gen = torch.Generator().manual_seed(args.seed + i)
+                    occ = gca_sample(model, cs.with_batch(torch.from_numpy(s0)), grid, args.t1 or model.cfg.steps, gen)
+                    cells10, z = upsample(fine_model, autoencoder, pts, occ[:, 1:].numpy(), grid10, args.t2, gen)
+                    fine.append(cells10.numpy())
+                    t1 = time.time()
+                    meshes.append(decode_mesh(autoencoder, cells10, z))
+                    t_mesh += time.time() - t1
+                t_gen = time.time() - t0 - t_mesh
+                vox = [voxel_mesh(c, FINE, lower_corner=-FINE / 2) for c in fine]
+                results["hgca-10cm"].append(evaluate_sample(sample, vox, [downsample(c) for c in fine]))
+                results["hgca-implicit"].append(evaluate_sample(sample, meshes))
+                timings["hgca-10cm"].append(t_gen / args.samples)
+                timings["hgca-implicit"].append((t_gen + t_mesh) / args.samples)
+                continue
             else:
                 model = models[m]
                 steps = args.t1 or model.cfg.steps
@@ -65,16 +100,17 @@ def run(args: argparse.Namespace) -> int:
                        for i in range(args.samples)]
                 meshes = [voxel_mesh(o, COARSE, lower_corner=-FINE / 2) for o in occ]
                 res = evaluate_sample(sample, meshes, occ)
-            timings[m].append(time.time() - t0)
+            timings[m].append((time.time() - t0) / (args.samples if m in models else 1))
             results[m].append(res)
     names = {"input": ("input", "20cm^3 points"), "poisson": ("Poisson (Open3D)", "mesh"),
-             "gca": ("GCA (no planner)", "20cm^3"), "hgca": ("hGCA coarse (planner)", "20cm^3")}
-    rows = {names[m][0]: {**aggregate(results[m]), "representation": names[m][1],
-                          "seconds_per_scene": float(np.mean(timings[m]))} for m in methods}
+             "gca": ("GCA (no planner)", "20cm^3"), "hgca": ("hGCA coarse (planner)", "20cm^3"),
+             "hgca-10cm": ("hGCA (10 cm voxels)", "10cm^3"), "hgca-implicit": ("hGCA (implicit)", "implicit")}
+    rows = {names[r][0]: {**aggregate(results[r]), "representation": names[r][1],
+                          "seconds_per_completion": float(np.mean(timings[r]))} for r in results}
     table = format_table(rows)
     print(table)
     for name, r in rows.items():
-        print(f"{name}: {r['seconds_per_scene']:.1f} s per scene")
+        print(f"{name}: {r['seconds_per_completion']:.1f} s per completion")
     if args.out:
         out = Path(args.out)
         out.write_text(json.dumps({"split": args.split, "files": [p.name for p in files], "rows": rows,
