@@ -125,6 +125,8 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
             state["history"].append({"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1),
                                      "kind": "val", **metrics})
             plot_history(state["history"], out / "curve.png", task.name)
+            if not progress:
+                print(json.dumps(state["history"][-1]), flush=True)
 
     session_start = time.time()
     budget = minutes * 60.0
