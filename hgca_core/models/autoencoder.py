@@ -27,19 +27,20 @@ clamped at 0.1 m; training uses L1 on distances clamped at one cell, like cGCA.
 from __future__ import annotations
 
 import itertools
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 
 from hgca_core.geometry import coords as cs
+from hgca_core.models.config import Config
 from hgca_core.nn.sparse import SparseLinear, SparseTensor, SubMConv3d
 
 _CORNERS = torch.tensor(list(itertools.product((0, 1), repeat=3)), dtype=torch.long)  # (8, 3)
 
 
 @dataclass
-class AutoencoderConfig:
+class AutoencoderConfig(Config):
     latent: int = 32            # K
     enc_hidden: int = 32
     enc_blocks: int = 3         # >= 1; every block after the first sees the cell's max-pooled features
@@ -53,13 +54,6 @@ class AutoencoderConfig:
     steps: int = 4              # training: uses of one example (crop) before the chain buffer draws a new one
     queries: int = 12000        # training: distance pairs supervised per example and step
     crop: int | None = 64       # training: x/y crop in 10 cm cells
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "AutoencoderConfig":
-        return cls(**{k: v for k, v in d.items() if k in cls.__dataclass_fields__})
 
 
 class ResBlockFC(nn.Module):

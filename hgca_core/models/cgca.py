@@ -23,7 +23,7 @@ upsample2(coarse cells) with zero latents), as in the paper.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from functools import lru_cache
 from typing import Callable
 
@@ -34,13 +34,14 @@ from torch import nn
 
 from hgca_core.geometry import coords as cs
 from hgca_core.models.autoencoder import Autoencoder, autoencoder_from_blob
+from hgca_core.models.config import Config
 from hgca_core.nn.encoding import sinusoidal
 from hgca_core.nn.sparse import SparseConv3d, SparseConvTranspose3d, SparseTensor
 from hgca_core.nn.unet import SparseUNet
 
 
 @dataclass
-class CGCAConfig:
+class CGCAConfig(Config):
     latent: int = 32                                   # K, must match the autoencoder
     channels: tuple[int, ...] = (16, 24, 32, 48, 64)   # U-Net widths per level (4 stride-2 levels)
     blocks: int = 1
@@ -57,14 +58,6 @@ class CGCAConfig:
     latent_weight: float = 1.0                         # weight of the latent NLL term (1 / 2 sigma^2 folded in)
     crop: int | None = 64                              # training: x/y crop in 10 cm cells
     grid: tuple[int, int, int] = (384, 384, 80)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "CGCAConfig":
-        fields = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in cls.__dataclass_fields__}
-        return cls(**fields)
 
 
 def alpha(cfg: CGCAConfig, t: int) -> float:

@@ -8,13 +8,14 @@ features are de-normalised per BEV pillar by SPADE (gamma, beta) maps computed o
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
-from typing import Callable
+from dataclasses import dataclass
+from typing import Callable, ClassVar
 
 import torch
 from torch import nn
 
 from hgca_core.geometry import coords as cs
+from hgca_core.models.config import Config
 from hgca_core.models.planner import BevOutput, Planner, pillar_index
 from hgca_core.nn.encoding import sinusoidal
 from hgca_core.nn.sparse import SparseTensor
@@ -22,7 +23,7 @@ from hgca_core.nn.unet import SparseUNet
 
 
 @dataclass
-class GCAConfig:
+class GCAConfig(Config):
     channels: tuple[int, ...] = (16, 32, 48, 64, 96)
     blocks: int = 1
     radius: int = 1
@@ -36,14 +37,7 @@ class GCAConfig:
     alpha1: float = 0.005
     grid: tuple[int, int, int] = (192, 192, 40)
 
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "GCAConfig":
-        fields = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in cls.__dataclass_fields__}
-        fields.setdefault("pe_axes", "xyz")  # files written before pe_axes existed encoded all three axes
-        return cls(**fields)
+    legacy: ClassVar[dict] = {"pe_axes": "xyz"}  # files written before pe_axes existed encoded all three axes
 
 
 class GCAKernel(nn.Module):

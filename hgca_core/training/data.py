@@ -1,6 +1,7 @@
 """Training examples from synthetic samples: sparse voxel sets, random crops and flips."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
@@ -8,8 +9,7 @@ import numpy as np
 import torch
 
 from hgca_core.errors import InputError
-from hgca_core.geometry.voxel import COARSE, FINE, voxelize_coarse
-
+from hgca_core.geometry.voxel import COARSE, FINE, unique_rows, voxelize_coarse
 
 
 def split_files(data_dir: str | Path, split: str) -> list[Path]:
@@ -42,23 +42,54 @@ def coarse_pair(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[int, in
     return voxelize_coarse(a["input_points"], fine).astype(np.int64), a["gt_occ20"].astype(np.int64), coarse
 
 
-def crop_flip(sets: list[np.ndarray], grid: tuple[int, int, int], crop: int | None,
-              rng: np.random.Generator) -> tuple[list[torch.Tensor], tuple[int, int, int]]:
-    """Cut the same random x/y window from every set and flip it at random; returns tensors and the grid."""
-    if crop is None or crop >= grid[0]:
+@dataclass(frozen=True)
+class CropSpec:
+    """An x/y window [ox, ox + size) x [oy, oy + size) of a grid's cells, then optional flips of x and y.
+
+    One crop for both stages: `cells` works on any grid (20 cm coarse, 10 cm fine); `points` on 10 cm cells."""
+
+    ox: int
+    oy: int
+    fx: bool
+    fy: bool
+    grid: tuple[int, int, int]
+
+    def cells(self, c: np.ndarray) -> np.ndarray:
+        c = np.asarray(c, dtype=np.int64).reshape(-1, 3) - np.array([self.ox, self.oy, 0])
+        c = c[(c[:, 0] >= 0) & (c[:, 0] < self.grid[0]) & (c[:, 1] >= 0) & (c[:, 1] < self.grid[1])]
+        if self.fx:
+            c[:, 0] = self.grid[0] - 1 - c[:, 0]
+        if self.fy:
+            c[:, 1] = self.grid[1] - 1 - c[:, 1]
+        return unique_rows(c)
+
+    def points(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(points in the crop frame, mask of the kept input rows): a point is kept when its 10 cm cell is,
+        and a flip maps cell c to size - 1 - c, i.e. x to (size - 1) * 0.1 - x."""
+        p = np.asarray(p, dtype=np.float64).reshape(-1, 3) - np.array([self.ox, self.oy, 0]) * FINE
+        c = np.round(p[:, :2] / FINE)
+        keep = (c[:, 0] >= 0) & (c[:, 0] < self.grid[0]) & (c[:, 1] >= 0) & (c[:, 1] < self.grid[1])
+        p = p[keep]
+        if self.fx:
+            p[:, 0] = (self.grid[0] - 1) * FINE - p[:, 0]
+        if self.fy:
+            p[:, 1] = (self.grid[1] - 1) * FINE - p[:, 1]
+        return p.astype(np.float32), keep
+
+
+def draw_crop(grid: tuple[int, int, int], crop: int | None, rng: np.random.Generator) -> CropSpec:
+    """A random crop (the whole grid when crop is None or too large) and random flips."""
+    if crop is None or crop >= min(grid[0], grid[1]):
         ox = oy = 0
-        out_grid = grid
+        out = grid
     else:
         ox, oy = (int(rng.integers(0, g - crop + 1)) for g in grid[:2])
-        out_grid = (crop, crop, grid[2])
-    fx, fy = rng.random() < 0.5, rng.random() < 0.5
-    out = []
-    for s in sets:
-        c = s - np.array([ox, oy, 0])
-        c = c[(c[:, 0] >= 0) & (c[:, 0] < out_grid[0]) & (c[:, 1] >= 0) & (c[:, 1] < out_grid[1])]
-        if fx:
-            c[:, 0] = out_grid[0] - 1 - c[:, 0]
-        if fy:
-            c[:, 1] = out_grid[1] - 1 - c[:, 1]
-        out.append(torch.from_numpy(np.ascontiguousarray(c)).long())
-    return out, out_grid
+        out = (crop, crop, grid[2])
+    return CropSpec(ox, oy, bool(rng.random() < 0.5), bool(rng.random() < 0.5), out)
+
+
+def crop_flip(sets: list[np.ndarray], grid: tuple[int, int, int], crop: int | None,
+              rng: np.random.Generator) -> tuple[list[torch.Tensor], tuple[int, int, int]]:
+    """Cut the same random x/y window from every cell set and flip it at random; returns tensors and the grid."""
+    spec = draw_crop(grid, crop, rng)
+    return [torch.from_numpy(spec.cells(s)) for s in sets], spec.grid

@@ -34,7 +34,7 @@ from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig, load_au
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel, _gather, _table, alpha, sample
 from hgca_core.models.checkpoint import WEIGHTS_DIR
 from hgca_core.training.buffer import Chain
-from hgca_core.training.data import grids, load_arrays, split_files
+from hgca_core.training.data import draw_crop, grids, load_arrays, split_files
 from hgca_core.training.trainer import trained_weights
 
 KEYS = ("input_points", "gt_occ10", "gt_occ20", "gt_surface", "udf_points", "udf_dist")
@@ -42,50 +42,6 @@ CD_PENALTY = 1.0  # metres: Chamfer reported when a decoded crop has no surface 
 
 
 # -- crops ----------------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class CropSpec:
-    """An x/y window [ox, ox + size) x [oy, oy + size) of 10 cm cells, then optional flips of x and y."""
-
-    ox: int
-    oy: int
-    fx: bool
-    fy: bool
-    grid: tuple[int, int, int]
-
-    def cells(self, c: np.ndarray) -> np.ndarray:
-        c = np.asarray(c, dtype=np.int64).reshape(-1, 3) - np.array([self.ox, self.oy, 0])
-        c = c[(c[:, 0] >= 0) & (c[:, 0] < self.grid[0]) & (c[:, 1] >= 0) & (c[:, 1] < self.grid[1])]
-        if self.fx:
-            c[:, 0] = self.grid[0] - 1 - c[:, 0]
-        if self.fy:
-            c[:, 1] = self.grid[1] - 1 - c[:, 1]
-        return unique_rows(c)
-
-    def points(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(points in the crop frame, mask of the kept input rows): a point is kept when its 10 cm cell is,
-        and a flip maps cell c to size - 1 - c, i.e. x to (size - 1) * 0.1 - x."""
-        p = np.asarray(p, dtype=np.float64).reshape(-1, 3) - np.array([self.ox, self.oy, 0]) * FINE
-        c = np.round(p[:, :2] / FINE)
-        keep = (c[:, 0] >= 0) & (c[:, 0] < self.grid[0]) & (c[:, 1] >= 0) & (c[:, 1] < self.grid[1])
-        p = p[keep]
-        if self.fx:
-            p[:, 0] = (self.grid[0] - 1) * FINE - p[:, 0]
-        if self.fy:
-            p[:, 1] = (self.grid[1] - 1) * FINE - p[:, 1]
-        return p.astype(np.float32), keep
-
-
-def draw_crop(grid: tuple[int, int, int], crop: int | None, rng: np.random.Generator) -> CropSpec:
-    """A random crop (the whole grid when crop is None or too large) and random flips."""
-    if crop is None or crop >= min(grid[0], grid[1]):
-        ox = oy = 0
-        out = grid
-    else:
-        ox, oy = (int(rng.integers(0, g - crop + 1)) for g in grid[:2])
-        out = (crop, crop, grid[2])
-    return CropSpec(ox, oy, bool(rng.random() < 0.5), bool(rng.random() < 0.5), out)
-
-
 def upsample2_np(c20: np.ndarray) -> np.ndarray:
     """20 cm cells -> their eight 10 cm children."""
     kids = np.stack(np.meshgrid((0, 1), (0, 1), (0, 1), indexing="ij"), -1).reshape(-1, 3)
