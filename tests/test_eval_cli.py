@@ -49,6 +49,17 @@ def test_eval_full_stage_table(small_split, small_fine, tmp_path):
     assert rows["hGCA (implicit)"]["seconds_per_completion"] > rows["hGCA (10 cm voxels)"]["seconds_per_completion"]
     table = out.with_suffix(".md").read_text()
     assert "hGCA (implicit)" in table and "10cm^3" in table
+    # a later run of one method keeps the other rows of the earlier file, and refuses other samples
+    again = tmp_path / "again.json"
+    res = subprocess.run(cmd[:8] + ["--methods", "input", "--samples", "2", "--reuse", str(out), "--out", str(again)],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    rows2 = json.loads(again.read_text())["rows"]
+    assert set(rows2) == set(rows) and "reused_from" not in rows2["input"]
+    assert rows2["hGCA (implicit)"] == {**rows["hGCA (implicit)"], "reused_from": "eval.json"}
+    bad = subprocess.run(cmd[:8] + ["--methods", "input", "--samples", "3", "--reuse", str(out)],
+                         capture_output=True, text=True, timeout=600)
+    assert bad.returncode == 2 and "other samples" in bad.stderr
 
 
 def test_eval_full_stage_without_fine_weights_is_a_clear_error(small_split, tmp_path):

@@ -24,6 +24,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--t1", type=int, default=None, help="coarse steps (default from the weights)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="write the rows as JSON and the table as .md next to it")
+    p.add_argument("--reuse", default=None, metavar="JSON",
+                   help="copy rows of an earlier `--out` file on the same samples (e.g. the slow Poisson baseline) "
+                        "into the table, for methods not run now")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -107,10 +110,13 @@ def run(args: argparse.Namespace) -> int:
              "hgca-10cm": ("hGCA (10 cm voxels)", "10cm^3"), "hgca-implicit": ("hGCA (implicit)", "implicit")}
     rows = {names[r][0]: {**aggregate(results[r]), "representation": names[r][1],
                           "seconds_per_completion": float(np.mean(timings[r]))} for r in results}
+    if args.reuse:
+        rows = {**reused_rows(args.reuse, [p.name for p in files], args.split, args.samples, set(rows)), **rows}
     table = format_table(rows)
     print(table)
     for name, r in rows.items():
-        print(f"{name}: {r['seconds_per_completion']:.1f} s per completion")
+        sec = r.get("seconds_per_completion", r.get("seconds_per_scene", float("nan")))
+        print(f"{name}: {sec:.1f} s per completion" + (f" (from {r['reused_from']})" if "reused_from" in r else ""))
     if args.out:
         out = Path(args.out)
         out.write_text(json.dumps({"split": args.split, "files": [p.name for p in files], "rows": rows,
@@ -121,3 +127,19 @@ def run(args: argparse.Namespace) -> int:
 
             write_model_card()
     return 0
+
+
+def reused_rows(path: str, files: list[str], split: str, samples: int, skip: set[str]) -> dict:
+    """Rows of an earlier eval on exactly the same samples, split and k, minus those computed now."""
+    import json
+
+    from hgca_core.errors import InputError
+
+    try:
+        old = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read earlier eval results ({exc.__class__.__name__})", path) from exc
+    if old.get("files") != files or old.get("split") != split or old.get("samples") != samples:
+        raise InputError(f"earlier results are for other samples ({old.get('split')}: {old.get('files')}, "
+                         f"k = {old.get('samples')}); rerun those methods instead", path)
+    return {name: {**r, "reused_from": Path(path).name} for name, r in old["rows"].items() if name not in skip}

@@ -14,6 +14,8 @@ from __future__ import annotations
 import copy
 import json
 import os
+import signal
+import threading
 import time
 from pathlib import Path
 from typing import Any, Protocol
@@ -66,6 +68,28 @@ class EMA:
 def trained_weights(ck: dict) -> dict:
     """The weights to ship or evaluate from a training checkpoint: the EMA when it has one."""
     return ck["ema"]["model"] if ck.get("ema") else ck["model"]
+
+
+class _StopOnSignal:
+    """Ctrl-C / SIGTERM end training after the current step, with validation and a checkpoint, like the end of
+    the time budget; a second signal interrupts at once."""
+
+    def __init__(self) -> None:
+        self.flag = False
+        self.saved = {}
+        if threading.current_thread() is threading.main_thread():
+            self.saved = {sig: signal.signal(sig, self._handle) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def _handle(self, signum: int, frame: object) -> None:
+        if self.flag:
+            raise KeyboardInterrupt
+        self.flag = True
+        print(f"{signal.Signals(signum).name}: stopping after this step (checkpoint follows)", flush=True)
+
+    def restore(self) -> None:
+        for sig, handler in self.saved.items():
+            signal.signal(sig, handler)
+        self.saved = {}
 
 
 def _atomic_save(obj: Any, path: Path) -> None:
@@ -128,6 +152,7 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
             if not progress:
                 print(json.dumps(state["history"][-1]), flush=True)
 
+    stop_asked = _StopOnSignal()
     session_start = time.time()
     budget = minutes * 60.0
     last_ckpt = last_val = time.time()
@@ -136,7 +161,7 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
     steps_this_session = 0
     while True:
         spent = time.time() - session_start
-        stop = spent >= budget or (max_steps is not None and steps_this_session >= max_steps)
+        stop = spent >= budget or (max_steps is not None and steps_this_session >= max_steps) or stop_asked.flag
         if world > 1:  # every rank stops at the same step
             flag = torch.tensor([1.0 if stop else 0.0])
             dist.all_reduce(flag, op=dist.ReduceOp.MAX)
@@ -175,6 +200,7 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
             checkpoint()
             last_ckpt = time.time()
     bar.close()
+    stop_asked.restore()
     validate()
     state["sessions"].append({"ended": time.strftime("%Y-%m-%d %H:%M:%S"), "steps": steps_this_session,
                               "wall_s": round(time.time() - session_start, 1), "world_size": world,

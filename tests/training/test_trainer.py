@@ -69,3 +69,27 @@ def test_ema_warms_up_then_averages():
         lin.weight.fill_(0.0)
     ema.update(lin)              # decay capped at 0.9 once n is large
     assert abs(float(ema.module.weight) - 0.9) < 1e-6
+
+
+def test_sigterm_stops_after_the_step_with_a_checkpoint(tiny_dataset, tmp_path):
+    import signal
+    import time
+
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "hgca_core.cli", "train", "coarse-noplanner", "--data", str(tiny_dataset), "--out",
+           str(tmp_path / "sig"), "--minutes", "10", "--crop", "24", "--channels", "8,8,16,16,16", "--no-progress"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        for line in proc.stdout:               # the first log line comes after step 10
+            if '"kind": "train"' in line:
+                break
+        proc.send_signal(signal.SIGTERM)
+        t0 = time.time()
+        out, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err[-2000:]
+    assert time.time() - t0 < 60 and "SIGTERM: stopping" in out
+    ck = torch.load(tmp_path / "sig" / "ckpt.pt", weights_only=False)
+    assert ck["state"]["step"] >= 10 and len(ck["state"]["sessions"]) == 1
+    assert [h for h in ck["state"]["history"] if h["kind"] == "val"]   # validated on the way out
