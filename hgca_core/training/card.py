@@ -14,12 +14,18 @@ INTRO = """# hgca model card
 
 Weights trained by this project on its own procedural street scenes (`hgca_core/synth`: two styles, city
 and suburb; Waymo-like 64-beam LiDAR with 1 cm point noise and 0.02 deg pitch noise; 5 scans per sample).
-Training uses only the train split (seeds 0..99,999); validation uses seeds 1,000,000+; the evaluation
-below uses the test split (seeds 2,000,000+), which trains nothing. Stored as fp16, loaded as float32.
+Training uses only the train split (seeds 0..99,999; each file below lists the samples it saw); validation
+uses seeds 1,000,000+; the evaluation below uses the test split (seeds 2,000,000+), which trains nothing.
+The shipped weights are the exponential moving average of the training weights where the run kept one
+(decay 0.999). Stored as fp16, loaded as float32.
 
-Intended use: completing street-level LiDAR (vehicle-mounted, 32-128 beams) into coarse 20 cm geometry.
-Limits: trained on synthetic content only and, so far, for far fewer steps than the paper (400k), so
-completions are rough; real scans (nuScenes, Waymo) are out of distribution.
+Stages: `coarse.pt` (GCA + BEV planner, 20 cm) and `coarse_noplanner.pt` (the ablation) complete the
+input's 20 cm occupancy; `fine.pt` (cGCA at 10 cm with the local implicit autoencoder packed inside)
+upsamples it into a surface; `autoencoder.pt` is that autoencoder alone, the one `hgca train fine` reads.
+
+Intended use: completing street-level LiDAR (vehicle-mounted, 32-128 beams) into 20 cm geometry and 10 cm
+implicit surfaces. Limits: trained on synthetic content only, on 2 CPU cores, for far fewer steps than the
+paper (400k), so completions are rough; real scans (nuScenes, Waymo) are out of distribution.
 """
 
 
@@ -32,12 +38,14 @@ def _section(path: Path) -> str:
     lines = [f"## `{path.name}` ({meta.get('stage', meta.get('kind'))})", "",
              f"- file size: {path.stat().st_size / 1e6:.2f} MB, parameters: {n_params:,}",
              f"- architecture: {json.dumps(cfg)}",
-             f"- training data: {meta.get('data')} (train split), crop {meta.get('crop')} cells",
+             f"- training data: {meta.get('data')} (train split){_samples(meta.get('train_samples'))}, "
+             f"crop {meta.get('crop', cfg.get('crop'))} cells",
              f"- steps: {meta.get('steps')}, summed step wall time: {meta.get('train_wall_s')} s "
              f"over {len(sessions)} session(s)"]
     for s in sessions:
-        lines.append(f"  - session ended {s['ended']}: {s['steps']} steps in {s['wall_s']} s, device {s['device']}, "
-                     f"{s['threads']} thread(s), world size {s['world_size']}")
+        lines.append(f"  - session ended {s['ended']}: {s['steps']} steps in {s['wall_s']} s, device {s['device']}"
+                     f"{' (' + s['cpu'] + ')' if s.get('cpu') else ''}, {s['threads']} thread(s), "
+                     f"world size {s['world_size']}")
     vals = [h for h in meta.get("history_tail", []) if h.get("kind") == "val"]
     trains = [h for h in meta.get("history_tail", []) if h.get("kind") == "train"]
     for note in meta.get("notes", []):
@@ -50,6 +58,14 @@ def _section(path: Path) -> str:
             scores = ", ".join(f"{k} {v:.4f}" for k, v in h.items() if k.startswith("val_"))
             lines.append(f"  - step {h['step']}: {scores}")
     return "\n".join(lines)
+
+
+def _samples(names: list[str] | None) -> str:
+    """'64 samples, seeds 0-63' from the sample file names a run trained on."""
+    if not names:
+        return ""
+    seeds = sorted(int(n.split("_")[1].split(".")[0]) for n in names)
+    return f": {len(seeds)} samples, seeds {seeds[0]}-{seeds[-1]}"
 
 
 def write_model_card(weights_dir: Path = WEIGHTS_DIR) -> Path:

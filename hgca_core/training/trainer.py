@@ -204,11 +204,17 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
     validate()
     state["sessions"].append({"ended": time.strftime("%Y-%m-%d %H:%M:%S"), "steps": steps_this_session,
                               "wall_s": round(time.time() - session_start, 1), "world_size": world,
-                              "device": "cpu", "threads": torch.get_num_threads()})
+                              "device": "cpu", "threads": torch.get_num_threads(), "cpu": _cpu_name()})
     checkpoint()
     if rank == 0:
         (out / "history.json").write_text(json.dumps(state["history"], indent=1))
     return state
+
+
+def _cpu_name() -> str:
+    from hgca_core.bench import machine
+
+    return machine()["cpu"]
 
 
 def plot_history(history: list[dict], path: Path, title: str) -> None:
