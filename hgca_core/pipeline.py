@@ -36,6 +36,16 @@ class Completion:
     region: Region
     seed: int
 
+    @property
+    def vertices(self) -> np.ndarray:
+        """(V, 3) float64 vertex positions, world frame."""
+        return np.asarray(self.mesh.vertices)
+
+    @property
+    def faces(self) -> np.ndarray:
+        """(F, 3) int64 triangle vertex indices."""
+        return np.asarray(self.mesh.faces)
+
 
 def default_weights(stage: str) -> Path:
     from hgca_core.models.checkpoint import WEIGHTS_DIR

@@ -115,3 +115,29 @@ def test_full_stage_runs_the_fine_path(small_weights, scan, tmp_path):
     missing = _run(scan, "-o", tmp_path / "m.ply", "--weights", small_weights, "--fine-weights", tmp_path / "nope.pt",
                    "--stage", "full", "--region", REGION)
     assert missing.returncode == 2 and "nope.pt" in missing.stderr
+
+
+def test_python_api_returns_arrays_and_is_seeded(small_weights, scan):
+    import subprocess as sp
+
+    import hgca_core
+
+    # `import hgca_core` stays light: the API loads torch only when first used
+    light = sp.run([sys.executable, "-c", "import sys, hgca_core; print('torch' in sys.modules)"],
+                   capture_output=True, text=True)
+    assert light.stdout.strip() == "False"
+    pts = np.load(scan)["points"]
+    region = hgca_core.Region.parse(REGION)
+    a = hgca_core.complete(pts, region=region, samples=2, seed=5, weights=small_weights)
+    b = hgca_core.complete(pts, region=region, samples=2, seed=5, weights=small_weights)
+    assert [r.seed for r in a] == [5, 6]
+    for r, s in zip(a, b):
+        assert r.vertices.shape[1] == 3 and r.faces.shape[1] == 3 and len(r.observed_distance) == len(r.vertices)
+        np.testing.assert_array_equal(r.vertices, s.vertices)
+        np.testing.assert_array_equal(r.faces, s.faces)
+    # every vertex lies in the region (world frame), and the observed distance is a real distance
+    lo, hi = region.center - region.size / 2 - 0.1, region.center + region.size / 2 + 0.1
+    assert np.all((a[0].vertices >= lo) & (a[0].vertices <= hi))
+    assert np.all(a[0].observed_distance >= 0)
+    with pytest.raises(hgca_core.InputError, match="NaN"):
+        hgca_core.complete(np.full((10, 3), np.nan), region=region, weights=small_weights)
