@@ -64,20 +64,73 @@ def offsets(radius: int, metric: str = "chebyshev", device: torch.device | str =
     return offs
 
 
-def dilate(coords: torch.Tensor, radius: int, metric: str = "chebyshev",
-           bounds: tuple[int, int, int] | None = None) -> torch.Tensor:
-    """The neighbourhood N(s): all cells within `radius` of a cell in the set (the set included).
+# Bounded dilations of grids up to this many cells (x batch) run on a dense boolean grid (256 MB at most).
+DENSE_LIMIT = 1 << 28
 
-    With `bounds`, cells outside [0, bounds) on any axis are dropped, so growth stays inside the region.
+
+def dilate(coords: torch.Tensor, radius: int, metric: str = "chebyshev",
+           bounds: tuple[int, int, int] | None = None, dense_limit: int = DENSE_LIMIT) -> torch.Tensor:
+    """The neighbourhood N(s): all cells within `radius` of a cell in the set (the set included), sorted by key.
+
+    With `bounds`, cells outside [0, bounds) on any axis are dropped, so growth stays inside the region, and
+    (when the grid has at most `dense_limit` cells and every cell lies inside) the dilation runs on a dense
+    boolean grid: an L1 ball grown as `radius` passes of the 7-cell cross, a Chebyshev cube as one
+    (2r + 1)-segment per axis, an L2 ball offset by offset; `nonzero` returns the cells already in key order.
+    On the 10 cm default region that takes ~0.1 s where sorting the ~5 M candidate keys takes 2-9 s.
     """
+    coords = coords.long()
+    if len(coords) == 0 or radius == 0:
+        return unique(coords)
+    if bounds is not None:
+        b = torch.tensor(bounds, device=coords.device)
+        nb = int(coords[:, 0].max()) + 1
+        inside = bool(((coords[:, 1:] >= 0) & (coords[:, 1:] < b)).all()) and int(coords[:, 0].min()) >= 0
+        if inside and nb * bounds[0] * bounds[1] * bounds[2] <= dense_limit:
+            return _dilate_dense(coords, radius, metric, (nb, *bounds))
     offs = offsets(radius, metric, coords.device)
     full = torch.zeros((len(offs), 4), dtype=torch.long, device=coords.device)
     full[:, 1:] = offs
-    grown = (coords.long()[:, None, :] + full[None]).reshape(-1, 4)
+    grown = (coords[:, None, :] + full[None]).reshape(-1, 4)
     if bounds is not None:
-        b = torch.tensor(bounds, device=coords.device)
         grown = grown[((grown[:, 1:] >= 0) & (grown[:, 1:] < b)).all(1)]
     return unique(grown)
+
+
+def _dilate_dense(coords: torch.Tensor, radius: int, metric: str, shape: tuple[int, ...]) -> torch.Tensor:
+    occ = torch.zeros(shape, dtype=torch.bool, device=coords.device)
+    occ[coords[:, 0], coords[:, 1], coords[:, 2], coords[:, 3]] = True
+    if metric == "l1":
+        unit = [d for d in offsets(1, "l1").tolist() if any(d)]
+        for _ in range(radius):
+            grown = occ.clone()
+            for d in unit:
+                _or_shifted(grown, occ, tuple(d))
+            occ = grown
+    elif metric == "chebyshev":
+        for axis in range(3):
+            grown = occ.clone()
+            for k in range(-radius, radius + 1):
+                if k:
+                    d = [0, 0, 0]
+                    d[axis] = k
+                    _or_shifted(grown, occ, tuple(d))
+            occ = grown
+    else:
+        grown = occ.clone()
+        for d in offsets(radius, metric).tolist():
+            if any(d):
+                _or_shifted(grown, occ, tuple(d))
+        occ = grown
+    return torch.nonzero(occ)
+
+
+def _or_shifted(out: torch.Tensor, src: torch.Tensor, d: tuple[int, int, int]) -> None:
+    """out[:, x + dx, y + dy, z + dz] |= src[:, x, y, z] where both are inside the grid."""
+    dst_sl, src_sl = [slice(None)], [slice(None)]
+    for k, n in zip(d, src.shape[1:]):
+        dst_sl.append(slice(max(k, 0), n + min(k, 0)))
+        src_sl.append(slice(max(-k, 0), n - max(k, 0)))
+    out[tuple(dst_sl)] |= src[tuple(src_sl)]
 
 
 def upsample2(coords: torch.Tensor) -> torch.Tensor:

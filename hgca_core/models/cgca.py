@@ -65,60 +65,6 @@ def alpha(cfg: CGCAConfig, t: int) -> float:
     return float(min(max(cfg.alpha0 + cfg.alpha1 * t, 0.0), 1.0))
 
 
-def _or_shifted(out: torch.Tensor, src: torch.Tensor, d: tuple[int, int, int]) -> None:
-    """out[:, x + dx, y + dy, z + dz] |= src[:, x, y, z] where both are inside the grid."""
-    dst_sl, src_sl = [slice(None)], [slice(None)]
-    for k, n in zip(d, src.shape[1:]):
-        dst_sl.append(slice(max(k, 0), n + min(k, 0)))
-        src_sl.append(slice(max(-k, 0), n - max(k, 0)))
-    out[tuple(dst_sl)] |= src[tuple(src_sl)]
-
-
-def neighbourhood(cells: torch.Tensor, radius: int, metric: str, bounds: tuple[int, int, int],
-                  dense_limit: int = 1 << 30) -> torch.Tensor:
-    """N(x): cells within `radius` of an occupied cell under `metric`, inside [0, bounds), sorted by key.
-
-    Dilation runs on a dense boolean occupancy grid of the region (11.8 MB for the default 384 x 384 x 80 grid):
-    an L1 ball is grown as `radius` passes of the 7-cell cross, a Chebyshev cube as one (2r + 1)-segment per
-    axis, an L2 ball offset by offset; `nonzero` then returns the cells already in key order. On the default
-    region this takes ~0.1 s where sorting ~5 M candidate keys (`coords.dilate`) takes 2-9 s, every step. Grids
-    over `dense_limit` cells fall back to the sparse `coords.dilate`.
-    """
-    cells = cells.long()
-    if len(cells) == 0 or radius == 0:
-        return cs.unique(cells)
-    nb = int(cells[:, 0].max()) + 1
-    if nb * bounds[0] * bounds[1] * bounds[2] > dense_limit:
-        return cs.dilate(cells, radius, metric, bounds)
-    occ = torch.zeros((nb, *bounds), dtype=torch.bool, device=cells.device)
-    inside = ((cells[:, 1:] >= 0) & (cells[:, 1:] < torch.tensor(bounds, device=cells.device))).all(1)
-    c = cells[inside]
-    occ[c[:, 0], c[:, 1], c[:, 2], c[:, 3]] = True
-    if metric == "l1":
-        unit = [d for d in cs.offsets(1, "l1").tolist() if any(d)]
-        for _ in range(radius):
-            grown = occ.clone()
-            for d in unit:
-                _or_shifted(grown, occ, tuple(d))
-            occ = grown
-    elif metric == "chebyshev":
-        for axis in range(3):
-            grown = occ.clone()
-            for k in range(-radius, radius + 1):
-                if k:
-                    d = [0, 0, 0]
-                    d[axis] = k
-                    _or_shifted(grown, occ, tuple(d))
-            occ = grown
-    else:
-        grown = occ.clone()
-        for d in cs.offsets(radius, metric).tolist():
-            if any(d):
-                _or_shifted(grown, occ, tuple(d))
-        occ = grown
-    return torch.nonzero(occ)
-
-
 def _table(cells: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(sorted keys, latents in key order) of a batched cell set."""
     keys, order = torch.sort(cs.pack(cells))
@@ -169,7 +115,7 @@ class CGCAKernel(nn.Module):
             raise ValueError(f"unet_stride must be 1 or 2, got {cfg.unet_stride}")
 
     def neighbourhood(self, state: torch.Tensor, grid: tuple[int, int, int]) -> torch.Tensor:
-        return neighbourhood(state, self.cfg.radius, self.cfg.metric, grid)
+        return cs.dilate(state, self.cfg.radius, self.cfg.metric, grid)
 
     def forward(self, nbhd: torch.Tensor, state: torch.Tensor, z_state: torch.Tensor, x0: torch.Tensor,
                 z0: torch.Tensor, grid: tuple[int, int, int]) -> tuple[torch.Tensor, torch.Tensor]:

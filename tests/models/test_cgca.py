@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 from hgca_core.geometry import coords as cs
 from hgca_core.geometry.voxel import downsample, voxelize_fine
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig, save_autoencoder
-from hgca_core.models.cgca import (CGCAConfig, CGCAKernel, decode_mesh, initial_state, load_fine, neighbourhood,
+from hgca_core.models.cgca import (CGCAConfig, CGCAKernel, decode_mesh, initial_state, load_fine,
                                    sample, upsample)
 from hgca_core.training.buffer import Chain, ChainBuffer
 from hgca_core.training.fine import FineLoss, FineTask, export_fine
@@ -35,9 +35,8 @@ def _random_cells(n: int, grid: tuple[int, int, int], batches: int = 2, seed: in
 def test_dense_neighbourhood_equals_sparse_dilation(metric, radius):
     grid = (10, 12, 6)
     cells = _random_cells(40, grid)
-    got = neighbourhood(cells, radius, metric, grid)
-    assert torch.equal(got, cs.dilate(cells, radius, metric, grid))
-    assert torch.equal(neighbourhood(cells, radius, metric, grid, dense_limit=0), got)  # the sparse fallback
+    got = cs.dilate(cells, radius, metric, grid)                              # dense grid path
+    assert torch.equal(cs.dilate(cells, radius, metric, grid, dense_limit=0), got)  # the sparse path
     assert torch.equal(cs.pack(got), torch.sort(cs.pack(got)).values)
 
 
@@ -88,7 +87,7 @@ def test_one_infusion_step_and_full_infusion_copies_the_truth():
     full = FineLoss(CGCAConfig(**{**TINY.to_dict(), "alpha0": 1.0}))
     ch = _chain(x0, torch.zeros(len(x0), K), gt, torch.randn(len(gt), K), grid)
     _, _, (s,) = full([ch])
-    reach = neighbourhood(cs.with_batch(x0), 2, "l1", grid)
+    reach = cs.dilate(cs.with_batch(x0), 2, "l1", grid)
     want = gt[cs.isin(cs.with_batch(gt), reach)]
     assert torch.equal(s, want)
     torch.testing.assert_close(ch.extra["zt"], ch.extra["zgt"][cs.isin(cs.with_batch(gt), reach)])
