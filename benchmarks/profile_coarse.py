@@ -19,6 +19,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--precision", choices=("fp32", "bf16"), default="fp32", help="GEMM precision of the convs")
     ap.add_argument("--out", default="benchmarks/results/profile_coarse.txt")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -46,8 +47,11 @@ def main() -> None:
             state = nbhd[torch.rand(len(nbhd), generator=gen) < torch.sigmoid(model(nbhd, state, s0, grid, bev))]
         from torch.profiler import ProfilerActivity, profile, record_function
 
+        from hgca_core.nn.conv import gemm_precision
+
         t0 = time.perf_counter()
-        with profile(activities=[ProfilerActivity.CPU], record_shapes=False) as prof:
+        with gemm_precision(torch.bfloat16 if args.precision == "bf16" else None), \
+                profile(activities=[ProfilerActivity.CPU], record_shapes=False) as prof:
             for _ in range(args.steps):
                 with record_function("neighbourhood"):
                     nbhd = model.neighbourhood(state, grid)
@@ -57,7 +61,7 @@ def main() -> None:
         wall = (time.perf_counter() - t0) / args.steps
     table = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=30)
     head = (f"coarse step on the example's default region: {len(state)} occupied, {len(nbhd)} neighbourhood cells, "
-            f"{wall:.2f} s/step (profiled, {args.threads} thread(s))\n")
+            f"{wall:.2f} s/step (profiled, {args.threads} thread(s), {args.precision} GEMMs)\n")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(head + table)
     print(head + table)

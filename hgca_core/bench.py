@@ -43,7 +43,8 @@ def scene_inputs(width: float, seed: int = 4_000_000, depth: float = 40.0) -> tu
     return pts, np.array([p[:3, 3] for p in poses]), region
 
 
-def run_one(width: float, depth: float, stage: str, device: str, t1: int | None, seed: int) -> dict:
+def run_one(width: float, depth: float, stage: str, device: str, t1: int | None, seed: int,
+            precision: str = "auto") -> dict:
     """One completion with per-stage wall times (s) and peak memory (bytes)."""
     import torch
 
@@ -57,7 +58,7 @@ def run_one(width: float, depth: float, stage: str, device: str, t1: int | None,
         events.append((stage_name, time.perf_counter()))
 
     res = complete(pts, region=region, origins=origins, samples=1, seed=seed, stage=stage, device=device, t1=t1,
-                   progress=progress)[0]
+                   progress=progress, precision=precision)[0]
     t_mesh = time.perf_counter()
     from hgca_core.io import write_mesh
 
@@ -73,7 +74,10 @@ def run_one(width: float, depth: float, stage: str, device: str, t1: int | None,
     stages["write"] = time.perf_counter() - t_mesh
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     gpu = torch.cuda.max_memory_allocated() if device.startswith("cuda") else None
-    return {"width": width, "depth": depth, "stage": stage, "device": device, "points": int(len(pts)),
+    from hgca_core.nn.conv import resolve_precision
+
+    gemm = "fp32" if resolve_precision(precision, device) is None else "bf16"
+    return {"width": width, "depth": depth, "stage": stage, "device": device, "precision": gemm, "points": int(len(pts)),
             "coarse_cells": int(len(res.coarse_cells)), "triangles": int(len(res.mesh.faces)),
             "seconds": round(total, 2), "stages_s": {k: round(v, 3) for k, v in stages.items()},
             "peak_rss_gib": round(rss / 2**30, 3), "gpu_peak_gib": None if gpu is None else round(gpu / 2**30, 3)}
@@ -93,11 +97,12 @@ def machine() -> dict:
 
 
 def run(widths: list[float], default: bool, stage: str, device: str, t1: int | None, out_dir: Path,
-        name: str, timeout: int = 3600) -> dict:
+        name: str, timeout: int = 3600, precision: str = "auto") -> dict:
     configs = ([(38.4, 38.4)] if default else []) + [(w, 40.0) for w in widths]
     rows = []
     for width, depth in configs:
-        job = json.dumps({"width": width, "depth": depth, "stage": stage, "device": device, "t1": t1, "seed": 0})
+        job = json.dumps({"width": width, "depth": depth, "stage": stage, "device": device, "t1": t1, "seed": 0,
+                          "precision": precision})
         proc = subprocess.run([sys.executable, "-m", "hgca_core.bench", "--worker", job], capture_output=True,
                               text=True, timeout=timeout)
         if proc.returncode != 0:
@@ -105,7 +110,7 @@ def run(widths: list[float], default: bool, stage: str, device: str, t1: int | N
         else:
             rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
         print(json.dumps(rows[-1]), flush=True)
-    result = {"machine": machine(), "stage": stage, "device": device, "t1": t1, "rows": rows}
+    result = {"machine": machine(), "stage": stage, "device": device, "t1": t1, "precision": precision, "rows": rows}
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / f"{name}.json").write_text(json.dumps(result, indent=1))
     (out_dir / f"{name}.md").write_text(table(result))
@@ -118,7 +123,9 @@ def table(result: dict) -> str:
     stage_names = sorted({k for r in result["rows"] for k in r.get("stages_s", {})})
     head = ["region (m)", "input points", "coarse cells", "total (s)", *[f"{s} (s)" for s in stage_names],
             "peak RSS (GiB)", "GPU peak (GiB)"]
-    lines = [f"Completion benchmark, stage {result['stage']}, device {result['device']}, T1 = {result['t1'] or 'default'}",
+    gemm = sorted({r["precision"] for r in result["rows"] if "precision" in r})
+    lines = [f"Completion benchmark, stage {result['stage']}, device {result['device']}, T1 = {result['t1'] or 'default'}"
+             + (f", sparse-conv GEMMs in {'/'.join(gemm)}" if gemm else ""),
              f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']} ({m['threads']} threads), {m['date']}"
              + (f", GPU {m['gpu']}" if "gpu" in m else ""), "",
              "| " + " | ".join(head) + " |", "|" + "|".join(["---:"] * len(head)) + "|"]
@@ -159,7 +166,8 @@ def plot(result: dict, path: Path) -> None:
 
 def _worker(job: str) -> int:
     args = json.loads(job)
-    print(json.dumps(run_one(args["width"], args["depth"], args["stage"], args["device"], args["t1"], args["seed"])))
+    print(json.dumps(run_one(args["width"], args["depth"], args["stage"], args["device"], args["t1"], args["seed"],
+                             args.get("precision", "auto"))))
     return 0
 
 

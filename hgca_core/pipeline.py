@@ -78,8 +78,12 @@ def check_memory(region: Region) -> None:
 def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarray | None = None,
              samples: int = 1, seed: int = 0, stage: str = "coarse", device: str = "cpu",
              t1: int | None = None, t2: int | None = None, weights: str | Path | None = None,
-             fine_weights: str | Path | None = None, progress: ProgressFn | None = None) -> list[Completion]:
-    """Complete accumulated LiDAR points. Sample i uses seed + i, so a (seed, i) pair names one mesh."""
+             fine_weights: str | Path | None = None, progress: ProgressFn | None = None,
+             precision: str = "auto") -> list[Completion]:
+    """Complete accumulated LiDAR points. Sample i uses seed + i, so a (seed, i) pair names one mesh.
+
+    `precision` is the GEMM precision of the sparse convs while sampling ('auto': bf16 where the hardware has
+    it, see `hgca_core.nn.conv.resolve_precision`); a (seed, precision) pair names one result."""
     if stage not in ("coarse", "full"):
         raise InputError(f"stage must be 'coarse' or 'full', not {stage!r}")
     fine_path = Path(fine_weights or default_weights("fine"))
@@ -106,23 +110,30 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
 
     from hgca_core.models.checkpoint import load_coarse
     from hgca_core.models.gca import sample as gca_sample
+    from hgca_core.nn.conv import gemm_precision, resolve_precision
 
     model, _ = load_coarse(str(weights or default_weights("coarse")), device)
+    try:
+        gemm_dtype = resolve_precision(precision, device)
+    except ValueError as exc:
+        raise InputError(str(exc)) from exc
     steps = t1 or model.cfg.steps
     tree = cKDTree(pts[inside])
     results = []
     for i in range(samples):
         gen = torch.Generator(device=device).manual_seed(seed + i)
         s0_t = cs.with_batch(torch.from_numpy(s0).to(device))
-        occ = gca_sample(model, s0_t, grid, steps, gen,
-                         lambda t, n: report("planner" if t == 0 else "coarse", t, n, f"sample {i + 1}/{samples}"))
+        with gemm_precision(gemm_dtype):
+            occ = gca_sample(model, s0_t, grid, steps, gen,
+                             lambda t, n: report("planner" if t == 0 else "coarse", t, n, f"sample {i + 1}/{samples}"))
         cells = occ[:, 1:].cpu().numpy()
         if stage == "full":
             from hgca_core.models.cgca import decode_mesh, load_fine, upsample
 
             fine_model, autoencoder, _ = load_fine(str(fine_path), device)
-            cells10, latents = upsample(fine_model, autoencoder, local[inside], cells, region.grid_shape(FINE), t2, gen,
-                                        lambda t, n: report("fine", t, n, f"sample {i + 1}/{samples}"))
+            with gemm_precision(gemm_dtype):
+                cells10, latents = upsample(fine_model, autoencoder, local[inside], cells, region.grid_shape(FINE), t2,
+                                            gen, lambda t, n: report("fine", t, n, f"sample {i + 1}/{samples}"))
             report("mesh", i, samples, f"sample {i + 1}/{samples}")
             mesh = decode_mesh(autoencoder, cells10, latents)
         else:

@@ -11,6 +11,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stage", choices=("coarse", "full"), default="coarse")
     p.add_argument("--device", default="cpu")
     p.add_argument("--t1", type=int, default=None)
+    p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto", help="as in `hgca complete`")
     p.add_argument("--out", default="benchmarks/results")
     p.add_argument("--name", default=None, help="result file stem (default completion_<stage>_<device>)")
 
@@ -20,7 +21,8 @@ def run(args: argparse.Namespace) -> int:
 
     widths = [float(w) for w in args.widths.split(",") if w.strip()]
     name = args.name or f"completion_{args.stage}_{args.device.split(':')[0]}"
-    result = bench_run(widths, not args.no_default, args.stage, args.device, args.t1, Path(args.out), name)
+    result = bench_run(widths, not args.no_default, args.stage, args.device, args.t1, Path(args.out), name,
+                       precision=args.precision)
     from hgca_core.bench import table
 
     print(table(result))

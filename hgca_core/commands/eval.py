@@ -17,6 +17,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="full adds the fine stage's rows (hGCA 10 cm voxels and implicit mesh; needs fine weights)")
     p.add_argument("--fine-weights", default=None, help="fine-stage weights (default: the shipped fine.pt)")
     p.add_argument("--t2", type=int, default=None, help="fine steps (default from the weights)")
+    p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+                   help="GEMM precision of the sparse convs while sampling (as in `hgca complete`)")
     p.add_argument("--count", type=int, default=None, help="evaluate only the first N samples")
     p.add_argument("--samples", type=int, default=3, help="completions k per input (min/avg/TMD)")
     p.add_argument("--methods", default=None,
@@ -51,7 +53,10 @@ def run(args: argparse.Namespace) -> int:
     unknown = set(methods) - set(METHODS)
     if unknown:
         raise InputError(f"unknown methods {sorted(unknown)}; choose from {', '.join(METHODS)}")
+    from hgca_core.nn.conv import gemm_precision, resolve_precision
+
     files = split_files(args.data, args.split)[: args.count]
+    gemm_dtype = resolve_precision(args.precision)
     models = {m: load_coarse(str(weights_path(m != "gca")))[0] for m in methods if m in ("gca", "hgca", "hgca-full")}
     if "hgca-full" in methods:
         from hgca_core.models.cgca import load_fine
@@ -82,8 +87,10 @@ def run(args: argparse.Namespace) -> int:
                 fine, meshes, t_mesh = [], [], 0.0
                 for i in range(args.samples):
                     gen = torch.Generator().manual_seed(args.seed + i)
-                    occ = gca_sample(model, cs.with_batch(torch.from_numpy(s0)), grid, args.t1 or model.cfg.steps, gen)
-                    cells10, z = upsample(fine_model, autoencoder, pts, occ[:, 1:].numpy(), grid10, args.t2, gen)
+                    with gemm_precision(gemm_dtype):
+                        occ = gca_sample(model, cs.with_batch(torch.from_numpy(s0)), grid, args.t1 or model.cfg.steps,
+                                         gen)
+                        cells10, z = upsample(fine_model, autoencoder, pts, occ[:, 1:].numpy(), grid10, args.t2, gen)
                     fine.append(cells10.numpy())
                     t1 = time.time()
                     meshes.append(decode_mesh(autoencoder, cells10, z))
@@ -98,9 +105,10 @@ def run(args: argparse.Namespace) -> int:
             else:
                 model = models[m]
                 steps = args.t1 or model.cfg.steps
-                occ = [gca_sample(model, cs.with_batch(torch.from_numpy(s0)), grid, steps,
-                                  torch.Generator().manual_seed(args.seed + i))[:, 1:].numpy()
-                       for i in range(args.samples)]
+                with gemm_precision(gemm_dtype):
+                    occ = [gca_sample(model, cs.with_batch(torch.from_numpy(s0)), grid, steps,
+                                      torch.Generator().manual_seed(args.seed + i))[:, 1:].numpy()
+                           for i in range(args.samples)]
                 meshes = [voxel_mesh(o, COARSE, lower_corner=-FINE / 2) for o in occ]
                 res = evaluate_sample(sample, meshes, occ)
             timings[m].append((time.time() - t0) / (args.samples if m in models else 1))
@@ -120,7 +128,8 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         out = Path(args.out)
         out.write_text(json.dumps({"split": args.split, "files": [p.name for p in files], "rows": rows,
-                                   "samples": args.samples, "t1": args.t1}, indent=1))
+                                   "samples": args.samples, "t1": args.t1,
+                                   "precision": "fp32" if gemm_dtype is None else "bf16"}, indent=1))
         out.with_suffix(".md").write_text(table + "\n")
         if out.resolve().parent == weights_path(True).parent:  # results beside the weights go on the card
             from hgca_core.training.card import write_model_card

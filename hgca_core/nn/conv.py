@@ -12,11 +12,17 @@ Two ways to run a `KernelMap`, both in a fixed order, so the result does not dep
 * sparse maps (transposed convs, whose outputs have one pair each): the pair list cut into chunks, one
   `index_select` of the input rows, one GEMM per offset, one `index_add_` into the output.
 
+Inference may run the GEMMs in bfloat16 (`gemm_precision`): inputs and weights are rounded to bf16, products
+accumulate in float32 inside the GEMM, outputs and everything between convolutions stay float32. On a CPU with
+AVX512-BF16 that makes the finest-level convs ~2.8x faster at ~0.3% relative error per conv. Training never
+takes this path: a conv whose inputs need gradients ignores the setting.
+
 A CUDA library can plug in with `register_backend`.
 """
 from __future__ import annotations
 
-from typing import Callable
+from contextlib import contextmanager
+from typing import Callable, Iterator
 
 import torch
 from torch.autograd.function import once_differentiable
@@ -53,21 +59,58 @@ def _mm(a: torch.Tensor, b: torch.Tensor, out: torch.Tensor | None = None) -> to
 TABLE_MIN_DENSITY = 0.6
 
 
-def table_gemm(feats: torch.Tensor, weight: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
-    """out[o] = sum_k feats[table[o, k]] @ weight[k], where row len(feats) of `table` means none."""
+_gemm_dtype: torch.dtype | None = None
+
+
+@contextmanager
+def gemm_precision(dtype: torch.dtype | None) -> Iterator[None]:
+    """Within the block, convolutions that need no gradients run their GEMMs in `dtype` (None: as the features)."""
+    global _gemm_dtype
+    saved, _gemm_dtype = _gemm_dtype, dtype
+    try:
+        yield
+    finally:
+        _gemm_dtype = saved
+
+
+PRECISIONS = ("auto", "fp32", "bf16")
+
+
+def resolve_precision(name: str, device: str = "cpu") -> torch.dtype | None:
+    """GEMM dtype for inference: 'fp32' -> None (full precision), 'bf16' -> bfloat16, 'auto' -> bfloat16 where
+    the hardware does it natively (CPUs with AVX512-BF16 / AMX, CUDA GPUs with bf16 support), else None."""
+    if name not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, not {name!r}")
+    if name == "auto":
+        if str(device).startswith("cuda"):
+            native = torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+        else:
+            native = bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+        name = "bf16" if native else "fp32"
+    return torch.bfloat16 if name == "bf16" else None
+
+
+def table_gemm(feats: torch.Tensor, weight: torch.Tensor, table: torch.Tensor,
+               dtype: torch.dtype | None = None) -> torch.Tensor:
+    """out[o] = sum_k feats[table[o, k]] @ weight[k], where row len(feats) of `table` means none; GEMMs in
+    `dtype` (default: the features'), output in the features' dtype."""
     kvol, cin, cout = weight.shape
+    dt = dtype or feats.dtype
     n_out = table.shape[0]
     out = feats.new_empty((n_out, cout))
     if n_out == 0:
         return out
-    padded = torch.cat([feats, feats.new_zeros((1, cin))])
-    w2 = weight.reshape(kvol * cin, cout)
+    padded = torch.cat([feats.to(dt), feats.new_zeros((1, cin), dtype=dt)])
+    w2 = weight.reshape(kvol * cin, cout).to(dt)
     rows = max(1, TABLE_CHUNK_ELEMENTS // (kvol * cin))
-    buf = feats.new_empty((min(rows, n_out) * kvol, cin))
+    buf = padded.new_empty((min(rows, n_out) * kvol, cin))
     for r0 in range(0, n_out, rows):
         r1 = min(n_out, r0 + rows)
         g = torch.index_select(padded, 0, table[r0:r1].reshape(-1), out=buf[:(r1 - r0) * kvol])
-        _mm(g.view(r1 - r0, kvol * cin), w2, out=out[r0:r1])
+        if dt == out.dtype:
+            _mm(g.view(r1 - r0, kvol * cin), w2, out=out[r0:r1])
+        else:
+            out[r0:r1] = _mm(g.view(r1 - r0, kvol * cin), w2)
     return out
 
 
@@ -88,13 +131,17 @@ def table_weight_grad(feats: torch.Tensor, grad_out: torch.Tensor, table: torch.
 TABLE_CHUNK_ELEMENTS = 1 << 22
 
 
-def gemm_forward(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap) -> torch.Tensor:
-    """out[o] = sum over pairs (i, o, k) of feats[i] @ weight[k]; no autograd."""
+def gemm_forward(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap,
+                 dtype: torch.dtype | None = None) -> torch.Tensor:
+    """out[o] = sum over pairs (i, o, k) of feats[i] @ weight[k]; no autograd. GEMMs in `dtype` (default: the
+    features'), sums and output in the features' dtype."""
     kvol, cin, cout = weight.shape
     if kvol > 1 and kmap.density >= TABLE_MIN_DENSITY:
-        return table_gemm(feats, weight, kmap.table)
+        return table_gemm(feats, weight, kmap.table, dtype)
+    dt = dtype or feats.dtype
+    f, w = feats.to(dt), weight.to(dt)
     if kmap.identity is not None:
-        out = _mm(feats, weight[kmap.identity])
+        out = _mm(f, w[kmap.identity]).to(feats.dtype)
     else:
         out = feats.new_zeros((kmap.n_out, cout))
     rows = _rows(cin, cout)
@@ -102,13 +149,13 @@ def gemm_forward(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap) -> 
     if chunks:
         # one pair of buffers reused by every chunk: fresh multi-MB tensors cost page faults each time
         rows = max(r1 - r0 for r0, r1, _ in chunks)
-        gbuf, pbuf = feats.new_empty((rows, cin)), feats.new_empty((rows, cout))
+        gbuf, pbuf = f.new_empty((rows, cin)), f.new_empty((rows, cout))
     for r0, r1, pieces in chunks:
-        g = torch.index_select(feats, 0, kmap.in_idx[r0:r1], out=gbuf[:r1 - r0])
+        g = torch.index_select(f, 0, kmap.in_idx[r0:r1], out=gbuf[:r1 - r0])
         prod = pbuf[:r1 - r0]
         for k, a, b in pieces:
-            _mm(g[a:b], weight[k], out=prod[a:b])
-        out.index_add_(0, kmap.out_idx[r0:r1], prod)
+            _mm(g[a:b], w[k], out=prod[a:b])
+        out.index_add_(0, kmap.out_idx[r0:r1], prod.to(out.dtype))
     return out
 
 
@@ -160,12 +207,13 @@ class SparseConvFunction(torch.autograd.Function):
     """Autograd wrapper of the gather-GEMM-scatter convolution (first-order gradients)."""
 
     @staticmethod
-    def forward(ctx, feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap) -> torch.Tensor:
+    def forward(ctx, feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap,
+                dtype: torch.dtype | None = None) -> torch.Tensor:
         feats = feats.contiguous()
         weight = weight.contiguous()
         ctx.save_for_backward(feats, weight)
         ctx.kmap = kmap
-        return gemm_forward(feats, weight, kmap)
+        return gemm_forward(feats, weight, kmap, dtype)
 
     @staticmethod
     @once_differentiable
@@ -173,11 +221,12 @@ class SparseConvFunction(torch.autograd.Function):
         feats, weight = ctx.saved_tensors
         gi, gw = gemm_backward(feats, weight, ctx.kmap, grad_out, ctx.needs_input_grad[0],
                                ctx.needs_input_grad[1])
-        return gi, gw, None
+        return gi, gw, None, None
 
 
 def _torch_conv_gemm(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap) -> torch.Tensor:
-    return SparseConvFunction.apply(feats, weight, kmap)
+    grads = torch.is_grad_enabled() and (feats.requires_grad or weight.requires_grad)
+    return SparseConvFunction.apply(feats, weight, kmap, None if grads else _gemm_dtype)  # training: full precision
 
 
 ConvGemm = Callable[[torch.Tensor, torch.Tensor, KernelMap], torch.Tensor]

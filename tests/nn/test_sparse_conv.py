@@ -308,3 +308,36 @@ def test_empty_input(path: str) -> None:
     d = SparseConv3d(3, 4)(x)
     u = SparseConvTranspose3d(4, 2)(d, x)
     assert y.feats.shape == (0, 4) and d.feats.shape == (0, 4) and u.feats.shape == (0, 2)
+
+
+def test_bf16_gemms_for_inference_only(gen: torch.Generator, path: str) -> None:
+    """gemm_precision(bf16) changes no-grad convs by ~bf16 rounding, leaves training (grad) convs exact, and is
+    deterministic across thread counts."""
+    from hgca_core.nn.conv import gemm_precision, resolve_precision
+
+    coords = random_coords(gen, 1, 20, 0.3)
+    feats = torch.randn(len(coords), 16, generator=gen)
+    sub, down, up = SubMConv3d(16, 16), SparseConv3d(16, 24), SparseConvTranspose3d(24, 16)
+
+    def run(threads: int | None = None) -> torch.Tensor:
+        prev = torch.get_num_threads()
+        torch.set_num_threads(threads or prev)
+        try:
+            x = SparseTensor(coords, feats)
+            return up(down(sub(x)), x).feats
+        finally:
+            torch.set_num_threads(prev)
+
+    with torch.no_grad():
+        ref = run()
+        with gemm_precision(torch.bfloat16):
+            low, low1, low2 = run(), run(1), run(2)
+    assert not torch.equal(low, ref)                                        # the bf16 path ran
+    assert (low - ref).abs().max() < 0.02 * ref.abs().max()                 # ... at bf16 accuracy
+    assert torch.equal(low1, low2) and low.dtype == torch.float32
+    with gemm_precision(torch.bfloat16):
+        trained = run()                                                     # weights need grads: full precision
+    assert torch.equal(trained.detach(), ref)
+    assert resolve_precision("fp32") is None and resolve_precision("bf16") is torch.bfloat16
+    with pytest.raises(ValueError, match="precision"):
+        resolve_precision("fp8")
