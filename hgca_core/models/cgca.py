@@ -120,12 +120,7 @@ class CGCAKernel(nn.Module):
     def forward(self, nbhd: torch.Tensor, state: torch.Tensor, z_state: torch.Tensor, x0: torch.Tensor,
                 z0: torch.Tensor, grid: tuple[int, int, int]) -> tuple[torch.Tensor, torch.Tensor]:
         """nbhd (M, 4) sorted unique cells; state / x0 (N, 4) cells with latents (N, K); grid bounds x, y, z."""
-        nk = cs.pack(nbhd)
-        in_t, zt = _gather(nk, *_table(state, z_state))
-        in_0, zz = _gather(nk, *_table(x0, z0))
-        g = torch.tensor(grid, dtype=torch.float32, device=nbhd.device)[self.pe_axes]
-        pe = sinusoidal((nbhd[:, 1:][:, self.pe_axes].float() + 0.5) / g, self.cfg.pe_freq)
-        feats = self.proj(torch.cat([in_t, in_0, zt, zz, pe], dim=1))
+        feats = self.project(nbhd, state, z_state, x0, z0, grid)
         x = SparseTensor(nbhd, feats, check=False)
         if self.cfg.unet_stride == 1:
             out = self.unet(x).feats
@@ -135,8 +130,39 @@ class CGCAKernel(nn.Module):
             pc[:, 1:] = torch.div(pc[:, 1:], 2, rounding_mode="floor")    # the same cells in 20 cm units
             h = self.unet(SparseTensor(pc, p.feats, check=False)).feats
             u = self.up(SparseTensor(p.coords, h, 2, p.cache, check=False), x)  # reuses the down map
-            out = self.head(torch.cat([feats, torch.relu(u.feats)], dim=1))
+            # head(cat([feats, relu(u)])) with its first layer split by input block: no (M, 40) concatenation
+            first, c = self.head[0], feats.shape[1]
+            hid = torch.addmm(first.bias, feats, first.weight[:, :c].T).addmm_(torch.relu(u.feats), first.weight[:, c:].T)
+            out = self.head[2](torch.relu_(hid) if not hid.requires_grad else torch.relu(hid))
         return out[:, 0], out[:, 1:]
+
+    def project(self, nbhd: torch.Tensor, state: torch.Tensor, z_state: torch.Tensor, x0: torch.Tensor,
+                z0: torch.Tensor, grid: tuple[int, int, int]) -> torch.Tensor:
+        """relu(proj([in x^t, in x^0, z^t, z^0, PE])) per neighbourhood cell, computed block by block.
+
+        The same linear map as on the concatenated (M, 2 + 2K + PE) input, but the latent blocks are multiplied
+        only on the rows that have a latent (the ~20 % of N(x) in x^t or x^0; the rest are zeros), and a height-only
+        encoding is a per-z table: on the default region this drops a 1.2 M x 78 concatenation and most of the
+        projection's multiply-adds, every step.
+        """
+        lin, k = self.proj[0], self.cfg.latent
+        w = lin.weight                                                  # (P, 2 + 2K + PE)
+        g = torch.tensor(grid, dtype=torch.float32, device=nbhd.device)[self.pe_axes]
+        if self.pe_axes == [2]:
+            levels = sinusoidal(((torch.arange(grid[2], device=nbhd.device).float() + 0.5) / g)[:, None],
+                                self.cfg.pe_freq)
+            h = torch.addmm(lin.bias, levels, w[:, 2 + 2 * k:].T)[nbhd[:, 3]]
+        else:
+            pe = sinusoidal((nbhd[:, 1:][:, self.pe_axes].float() + 0.5) / g, self.cfg.pe_freq)
+            h = torch.addmm(lin.bias, pe, w[:, 2 + 2 * k:].T)
+        nk = cs.pack(nbhd)
+        for col, (cells, z) in enumerate(((state, z_state), (x0, z0))):
+            keys, zs = _table(cells, z)
+            idx = cs.lookup(nk, keys)
+            rows = (idx >= 0).nonzero().squeeze(1)
+            lat = w[:, 2 + col * k: 2 + (col + 1) * k]
+            h = h.index_add(0, rows, (zs[idx[rows]] @ lat.T) + w[:, col])   # membership flag + latent block
+        return torch.relu(h)
 
 
 @torch.no_grad()
@@ -155,11 +181,11 @@ def sample(model: CGCAKernel, x0: torch.Tensor, z0: torch.Tensor, grid: tuple[in
         logits, mu = model(nbhd, state, z, x0, z0, grid)
         if t == steps - 1:
             keep = logits > 0
-            z_new = mu
+            state, z = nbhd[keep], mu[keep]
         else:
             keep = torch.rand(logits.shape, generator=generator, device=logits.device) < torch.sigmoid(logits)
-            z_new = mu + model.cfg.sigma * torch.randn(mu.shape, generator=generator, device=mu.device)
-        state, z = nbhd[keep], z_new[keep]
+            state, z = nbhd[keep], mu[keep]   # latent noise only for the cells kept (~1/5 of N(x))
+            z = z + model.cfg.sigma * torch.randn(z.shape, generator=generator, device=z.device)
         if progress is not None:
             progress(t + 1, steps)
         if len(state) == 0:  # the chain died out: nothing left to grow from
