@@ -26,9 +26,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--t1", type=int, default=None, help="coarse steps (default from the weights)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="write the rows as JSON and the table as .md next to it")
-    p.add_argument("--reuse", default=None, metavar="JSON",
-                   help="copy rows of an earlier `--out` file on the same samples (e.g. the slow Poisson baseline) "
-                        "into the table, for methods not run now")
+    p.add_argument("--reuse", nargs="+", default=None, metavar="JSON",
+                   help="copy rows of earlier `--out` files on the same samples (e.g. the slow Poisson baseline) "
+                        "into the table, for methods not run now; a later file's row wins over an earlier one's")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -118,8 +118,8 @@ def run(args: argparse.Namespace) -> int:
              "hgca-10cm": ("hGCA (10 cm voxels)", "10cm^3"), "hgca-implicit": ("hGCA (implicit)", "implicit")}
     rows = {names[r][0]: {**aggregate(results[r]), "representation": names[r][1],
                           "seconds_per_completion": float(np.mean(timings[r]))} for r in results}
-    if args.reuse:
-        rows = {**reused_rows(args.reuse, [p.name for p in files], args.split, args.samples, set(rows)), **rows}
+    for path in reversed(args.reuse or []):  # rows computed now first in priority, then the later files
+        rows = {**reused_rows(path, [p.name for p in files], args.split, args.samples, set(rows)), **rows}
     table = format_table(rows)
     print(table)
     for name, r in rows.items():
@@ -151,4 +151,5 @@ def reused_rows(path: str, files: list[str], split: str, samples: int, skip: set
     if old.get("files") != files or old.get("split") != split or old.get("samples") != samples:
         raise InputError(f"earlier results are for other samples ({old.get('split')}: {old.get('files')}, "
                          f"k = {old.get('samples')}); rerun those methods instead", path)
-    return {name: {**r, "reused_from": Path(path).name} for name, r in old["rows"].items() if name not in skip}
+    return {name: {**r, "reused_from": r.get("reused_from", Path(path).name)}  # keep the first origin
+            for name, r in old["rows"].items() if name not in skip}
