@@ -100,7 +100,9 @@ def table_gemm(feats: torch.Tensor, weight: torch.Tensor, table: torch.Tensor,
     out = feats.new_empty((n_out, cout))
     if n_out == 0:
         return out
-    padded = torch.cat([feats.to(dt), feats.new_zeros((1, cin), dtype=dt)])
+    padded = feats.new_empty((len(feats) + 1, cin), dtype=dt)   # one copy (and cast) of the features + a zero row
+    padded[:-1] = feats
+    padded[-1] = 0
     w2 = weight.reshape(kvol * cin, cout).to(dt)
     rows = max(1, TABLE_CHUNK_ELEMENTS // (kvol * cin))
     buf = padded.new_empty((min(rows, n_out) * kvol, cin))
