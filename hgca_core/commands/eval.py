@@ -120,6 +120,8 @@ def run(args: argparse.Namespace) -> int:
                           "seconds_per_completion": float(np.mean(timings[r]))} for r in results}
     for path in reversed(args.reuse or []):  # rows computed now first in priority, then the later files
         rows = {**reused_rows(path, [p.name for p in files], args.split, args.samples, set(rows)), **rows}
+    order = [v[0] for v in names.values()]     # the paper's row order, whichever file a row came from
+    rows = dict(sorted(rows.items(), key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order)))
     table = format_table(rows)
     print(table)
     for name, r in rows.items():
