@@ -41,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                   "around the scan, 1 m below the ground)")
     p.add_argument("--samples", type=int, default=1)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--stage", choices=("coarse", "full"), default="coarse")
+    p.add_argument("--stage", choices=("coarse", "full"), default="full")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     p.add_argument("--t1", type=int, default=30)
     p.add_argument("--t2", type=int, default=15)

@@ -215,3 +215,33 @@ def test_progress_parsing_tracks_samples(addon, tmp_path: Path) -> None:
     assert values[3] < 0.6 < values[4], "the second sample starts past the middle"
     assert jobs.parse_progress_line("not json")["stage"] == "log"
     assert jobs.parse_progress_line('{"stage": "done", "outputs": []}')["stage"] == "done"
+
+
+def test_full_stage_with_shipped_weights_inserts_the_implicit_mesh(addon) -> None:
+    """The default stage (full) on the shipped coarse and fine weights: one 10 cm implicit mesh, whose finer
+    surface has more faces than the 20 cm voxel mesh of the same coarse run, with the fine progress stage seen."""
+    jobs = addon_module("jobs")
+    prefs().weights_path = ""                       # the shipped weights
+    import_nuscenes()
+    counts = {}
+    for stage in ("coarse", "full"):
+        use_numbers(SMALL_REGION, samples=1, t1=4)
+        props = bpy.context.scene.hgca
+        props.stage, props.t2 = stage, 2
+        before = snapshot()
+        assert bpy.ops.hgca.complete() == {"FINISHED"}
+        job = jobs.active_job(bpy.context.scene.name)
+        stages = []
+        deadline = time.monotonic() + JOB_TIMEOUT_S
+        while job.poll_once():
+            stages.append(props.status)
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        assert job.state == "done", job.error
+        assert any(st.startswith("Fine") for st in stages) == (stage == "full"), stages
+        after = snapshot()
+        (coll,) = set(after["collections"]) - set(before["collections"])
+        (obj,) = bpy.data.collections[coll].objects
+        counts[stage] = len(obj.data.polygons)
+        assert "observed_distance" in obj.data.attributes
+    assert counts["full"] > counts["coarse"] > 0
