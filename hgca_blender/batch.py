@@ -45,6 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     p.add_argument("--t1", type=int, default=30)
     p.add_argument("--t2", type=int, default=15)
+    p.add_argument("--max-faces", type=int, default=1_000_000, help="simplify each mesh to this many triangles (0: keep all)")
     p.add_argument("--weights", default=None, help="coarse weights passed to `hgca complete --weights`")
     p.add_argument("--python", default=None, help="interpreter with hgca_core (default: auto-detect)")
     p.add_argument("--render", default=None, help="also render a preview PNG with Cycles (CPU)")
@@ -82,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
     region.create_region_box(scene.collection, box)
     params = jobs.CompletionParams(python=python, points=points, region=box, samples=args.samples, seed=args.seed,
                                    stage=args.stage, device=args.device, t1=args.t1, t2=args.t2,
+                                   max_faces=args.max_faces,
                                    scene_name=scene.name,
                                    extra_args=["--weights", args.weights] if args.weights else [])
     try:

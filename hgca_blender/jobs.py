@@ -375,6 +375,7 @@ class CompletionParams:
     device: str = "cpu"
     t1: int = 30
     t2: int = 15
+    max_faces: int = 0           # 0: no limit
     scene_name: str = ""
     run_name: str = ""
     extra_args: list[str] = field(default_factory=list)
@@ -400,6 +401,8 @@ def validate_params(params: CompletionParams) -> np.ndarray:
         raise CoreError(f"device must be 'cpu' or 'cuda', got {params.device!r}")
     if int(params.t1) < 1 or int(params.t2) < 1:
         raise CoreError("T1 and T2 must be at least 1")
+    if int(params.max_faces) != 0 and int(params.max_faces) < 1000:
+        raise CoreError(f"max faces must be 0 (no limit) or at least 1000, got {params.max_faces}")
     return pts
 
 
@@ -409,6 +412,7 @@ def completion_args(params: CompletionParams, in_path: Path, out_path: Path) -> 
     return ["complete", str(in_path), f"--region={region}", "--samples", str(int(params.samples)),
             "--seed", str(int(params.seed)), "--stage", params.stage, "--device", params.device,
             "--t1", str(int(params.t1)), "--t2", str(int(params.t2)), "--progress", "jsonl",
+            *(["--max-faces", str(int(params.max_faces))] if int(params.max_faces) else []),
             *params.extra_args, "-o", str(out_path)]
 
 

@@ -41,7 +41,7 @@ def gather_params(context: bpy.types.Context) -> jobs.CompletionParams:
     return jobs.CompletionParams(
         python=preferences.core_python(context), points=points, region=panel_region(context),
         samples=props.samples, seed=props.seed, stage=props.stage, device=props.device,
-        t1=props.t1, t2=props.t2, scene_name=context.scene.name,
+        t1=props.t1, t2=props.t2, max_faces=props.max_faces, scene_name=context.scene.name,
         extra_args=preferences.core_extra_args(context))
 
 

@@ -41,6 +41,7 @@ class HGCA_PT_main(bpy.types.Panel):
         col.prop(props, "samples")
         col.prop(props, "seed")
         col.prop(props, "stage")
+        col.prop(props, "max_faces")
         col.prop(props, "device")
 
 

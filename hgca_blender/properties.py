@@ -54,6 +54,9 @@ class HGCA_PG_scene(bpy.types.PropertyGroup):
     show_advanced: BoolProperty(name="Advanced", default=False)
     t1: IntProperty(name="T1", default=30, min=1, max=200, description="Coarse GCA steps")
     t2: IntProperty(name="T2", default=15, min=1, max=200, description="Fine cGCA steps")
+    max_faces: IntProperty(name="Max Faces", default=1_000_000, min=0, soft_max=10_000_000,
+                           description="Simplify each completed mesh to at most this many triangles "
+                                       "(0: keep all; a full-stage region gives 5-7 million)")
 
     progress: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")
     status: StringProperty(name="Status", default="")

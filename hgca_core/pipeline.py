@@ -79,11 +79,12 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
              samples: int = 1, seed: int = 0, stage: str = "coarse", device: str = "cpu",
              t1: int | None = None, t2: int | None = None, weights: str | Path | None = None,
              fine_weights: str | Path | None = None, progress: ProgressFn | None = None,
-             precision: str = "auto") -> list[Completion]:
+             precision: str = "auto", max_faces: int | None = None) -> list[Completion]:
     """Complete accumulated LiDAR points. Sample i uses seed + i, so a (seed, i) pair names one mesh.
 
     `precision` is the GEMM precision of the sparse convs while sampling ('auto': bf16 where the hardware has
-    it, see `hgca_core.nn.conv.resolve_precision`); a (seed, precision) pair names one result."""
+    it, see `hgca_core.nn.conv.resolve_precision`); a (seed, precision) pair names one result. `max_faces`
+    simplifies each mesh to at most that many triangles (`hgca_core.meshing.decimate`)."""
     if stage not in ("coarse", "full"):
         raise InputError(f"stage must be 'coarse' or 'full', not {stage!r}")
     fine_path = Path(fine_weights or default_weights("fine"))
@@ -92,6 +93,8 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
                          "use --stage coarse", str(fine_path))
     if samples < 1:
         raise InputError(f"samples must be at least 1, got {samples}")
+    if max_faces is not None and max_faces < 1000:
+        raise InputError(f"max_faces must be at least 1000 (or None for no limit), got {max_faces}")
     pts = check_points(points)
     if region is None:
         sensor = None if origins is None or len(origins) == 0 else np.asarray(origins)[0]
@@ -141,6 +144,11 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
 
             report("mesh", i, samples, f"sample {i + 1}/{samples}")
             mesh = voxel_mesh(cells, COARSE, lower_corner=-FINE / 2)
+        if max_faces is not None and len(mesh.faces) > max_faces:
+            from hgca_core.meshing import decimate
+
+            report("mesh", i, samples, f"sample {i + 1}/{samples}: simplifying {len(mesh.faces)} faces")
+            mesh = decimate(mesh, max_faces)
         mesh.vertices = region.to_world(mesh.vertices)
         dist = tree.query(mesh.vertices, workers=-1)[0].astype(np.float32) if len(mesh.vertices) else np.zeros(0, np.float32)
         mesh.vertex_attributes["observed_distance"] = dist

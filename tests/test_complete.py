@@ -141,3 +141,17 @@ def test_python_api_returns_arrays_and_is_seeded(small_weights, scan):
     assert np.all(a[0].observed_distance >= 0)
     with pytest.raises(hgca_core.InputError, match="NaN"):
         hgca_core.complete(np.full((10, 3), np.nan), region=region, weights=small_weights)
+
+
+def test_max_faces_simplifies_each_mesh(small_weights, scan, tmp_path):
+    full = _run(scan, "-o", tmp_path / "a.npz", "--weights", small_weights, "--region", REGION, "--progress", "none")
+    assert full.returncode == 0, full.stderr[-2000:]
+    n = len(np.load(tmp_path / "a_s0.npz")["faces"])
+    assert n > 2000
+    res = _run(scan, "-o", tmp_path / "b.npz", "--weights", small_weights, "--region", REGION, "--progress", "none",
+               "--max-faces", "1000")
+    assert res.returncode == 0, res.stderr[-2000:]
+    b = np.load(tmp_path / "b_s0.npz")
+    assert 500 < len(b["faces"]) <= 1000 and len(b["observed_distance"]) == len(b["vertices"])
+    bad = _run(scan, "-o", tmp_path / "c.npz", "--weights", small_weights, "--region", REGION, "--max-faces", "10")
+    assert bad.returncode == 2 and "max_faces" in bad.stderr

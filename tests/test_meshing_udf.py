@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 import torch
+import trimesh
 from scipy.spatial import cKDTree
 
 from hgca_core.meshing import (LEVEL_FRACTION, drop_small_components, udf_grid, udf_grid_points, udf_mesh,
@@ -138,3 +139,18 @@ def test_empty_and_bad_level():
     assert len(udf_surface_points(sphere_udf, np.zeros((0, 3), int))) == 0
     with pytest.raises(ValueError):
         udf_mesh(sphere_udf, band_cells(sphere_udf), level=0.2)
+
+
+def test_decimate_keeps_the_surface_with_fewer_faces():
+    from hgca_core.meshing import decimate
+
+    mesh = udf_mesh(sphere_udf, band_cells(sphere_udf))
+    n = len(mesh.faces)
+    small = decimate(mesh, n // 5)
+    assert len(small.faces) <= n // 5 and len(small.faces) > n // 10
+    # every simplified vertex stays on the original surface (within a millimetre-scale tolerance)
+    _, dist, _ = trimesh.proximity.closest_point(mesh, small.vertices)
+    assert dist.max() < 0.01, dist.max()
+    assert decimate(mesh, n) is mesh                       # nothing to do
+    with pytest.raises(ValueError):
+        decimate(mesh, 0)

@@ -21,6 +21,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stage", choices=("coarse", "full"), default="coarse",
                    help="coarse: 20 cm voxels only; full: + 10 cm cGCA upsampling and an implicit mesh")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--max-faces", type=int, default=None,
+                   help="simplify each mesh to at most this many triangles (a default region gives 5-7 M at 5 cm)")
     p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
                    help="GEMM precision of the sparse convs while sampling (auto: bf16 where the hardware has it)")
     p.add_argument("--t1", type=int, default=None, help="coarse steps T1 (default from the weights: 30)")
@@ -72,7 +74,8 @@ def _run(args: argparse.Namespace, progress) -> list[Path]:
     region = Region.parse(args.region) if args.region else None
     results = complete(scan.points, region=region, origins=scan.origins, samples=args.samples, seed=args.seed,
                        stage=args.stage, device=args.device, t1=args.t1, t2=args.t2, weights=args.weights,
-                       fine_weights=args.fine_weights, progress=progress, precision=args.precision)
+                       fine_weights=args.fine_weights, progress=progress, precision=args.precision,
+                       max_faces=args.max_faces)
     for i, (res, path) in enumerate(zip(results, paths)):
         progress("write", i, len(paths), path.name)
         if path.suffix.lower() == ".npz":

@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.time()
     complete_run(argparse.Namespace(scans=scans, out=str(mesh_path), poses=str(poses), fmt=None, region=region,
                                     samples=args.samples, seed=args.seed, stage=stage, device="cpu", t1=None,
-                                    t2=None, weights=None, fine_weights=None, precision="auto",
+                                    t2=None, weights=None, fine_weights=None, precision="auto", max_faces=None,
                                     progress=args.progress))
     seconds = time.time() - t0
     import numpy as np

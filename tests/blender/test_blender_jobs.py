@@ -218,8 +218,8 @@ def test_progress_parsing_tracks_samples(addon, tmp_path: Path) -> None:
 
 
 def test_full_stage_with_shipped_weights_inserts_the_implicit_mesh(addon) -> None:
-    """The default stage (full) on the shipped coarse and fine weights: one 10 cm implicit mesh, whose finer
-    surface has more faces than the 20 cm voxel mesh of the same coarse run, with the fine progress stage seen."""
+    """The default stage (full) on the shipped coarse and fine weights: one 10 cm implicit mesh, simplified to
+    the panel's face limit, with the fine progress stage seen; the coarse stage passes no limit."""
     jobs = addon_module("jobs")
     prefs().weights_path = ""                       # the shipped weights
     import_nuscenes()
@@ -227,7 +227,7 @@ def test_full_stage_with_shipped_weights_inserts_the_implicit_mesh(addon) -> Non
     for stage in ("coarse", "full"):
         use_numbers(SMALL_REGION, samples=1, t1=4)
         props = bpy.context.scene.hgca
-        props.stage, props.t2 = stage, 2
+        props.stage, props.t2, props.max_faces = stage, 2, (5000 if stage == "full" else 0)
         before = snapshot()
         assert bpy.ops.hgca.complete() == {"FINISHED"}
         job = jobs.active_job(bpy.context.scene.name)
@@ -238,10 +238,11 @@ def test_full_stage_with_shipped_weights_inserts_the_implicit_mesh(addon) -> Non
             assert time.monotonic() < deadline
             time.sleep(0.05)
         assert job.state == "done", job.error
+        assert ("--max-faces" in job.cmd) == (stage == "full")
         assert any(st.startswith("Fine") for st in stages) == (stage == "full"), stages
         after = snapshot()
         (coll,) = set(after["collections"]) - set(before["collections"])
         (obj,) = bpy.data.collections[coll].objects
         counts[stage] = len(obj.data.polygons)
         assert "observed_distance" in obj.data.attributes
-    assert counts["full"] > counts["coarse"] > 0
+    assert counts["coarse"] > 0 and 0 < counts["full"] <= 5000

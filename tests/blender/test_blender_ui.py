@@ -55,7 +55,7 @@ def test_panels_draw_every_setting(addon) -> None:
     props = bpy.context.scene.hgca
     main = draw(panels.HGCA_PT_main)
     shown = {name for kind, name in main if kind == "prop"}
-    assert {"source_mode", "region_mode", "region_object", "samples", "seed", "stage", "device"} <= shown
+    assert {"source_mode", "region_mode", "region_object", "samples", "seed", "stage", "max_faces", "device"} <= shown
     props.region_mode, props.source_mode = "NUMBERS", "COLLECTION"
     shown = {name for kind, name in draw(panels.HGCA_PT_main) if kind == "prop"}
     assert {"region_center", "region_size", "region_yaw", "source_collection"} <= shown
