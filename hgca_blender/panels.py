@@ -6,12 +6,17 @@ import bpy
 from . import jobs
 
 
-class HGCA_PT_main(bpy.types.Panel):
-    bl_idname = "HGCA_PT_main"
-    bl_label = "hGCA Scene Completion"
+class _SidebarTab:
+    """Where every hGCA panel lives: the "hGCA" tab of the 3D viewport's sidebar."""
+
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "hGCA"
+
+
+class HGCA_PT_main(_SidebarTab, bpy.types.Panel):
+    bl_idname = "HGCA_PT_main"
+    bl_label = "hGCA Scene Completion"
 
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.layout
@@ -45,11 +50,8 @@ class HGCA_PT_main(bpy.types.Panel):
         col.prop(props, "device")
 
 
-class HGCA_PT_advanced(bpy.types.Panel):
+class HGCA_PT_advanced(_SidebarTab, bpy.types.Panel):
     bl_label = "Advanced"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "hGCA"
     bl_parent_id = "HGCA_PT_main"
     bl_options = {"DEFAULT_CLOSED"}
 
@@ -63,11 +65,8 @@ class HGCA_PT_advanced(bpy.types.Panel):
         row.prop(props, "t2")
 
 
-class HGCA_PT_job(bpy.types.Panel):
+class HGCA_PT_job(_SidebarTab, bpy.types.Panel):
     bl_label = "Job"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "hGCA"
     bl_parent_id = "HGCA_PT_main"
     bl_options = {"HIDE_HEADER"}
 
