@@ -21,9 +21,11 @@ from hgca_core.geometry.region import Region
 from hgca_core.geometry.voxel import COARSE, FINE, voxelize_coarse
 
 ProgressFn = Callable[[str, int, int, str], None]
-# Peak memory per square metre of region, measured for the default region (benchmarks/) with margin;
+# Peak memory of a full-stage completion, linear in the region's area: benchmarks/results/completion_full_cpu
+# measured 2.90 GiB at 40 x 40 m and 5.31 GiB at 40 x 120 m (0.81 MB per m^2 on top of ~1.7 GiB). With margin,
 # used to refuse regions that cannot fit before spending minutes on them.
-BYTES_PER_M2 = 3.0e6
+BASE_BYTES = 2.0 * 2**30
+BYTES_PER_M2 = 1.5e6
 
 
 @dataclass
@@ -68,7 +70,7 @@ def check_memory(region: Region) -> None:
     """Refuse a region whose estimated peak memory exceeds what this machine has available."""
     import psutil
 
-    need = float(region.size[0] * region.size[1]) * BYTES_PER_M2
+    need = BASE_BYTES + float(region.size[0] * region.size[1]) * BYTES_PER_M2
     avail = psutil.virtual_memory().available
     if need > avail:
         raise InputError(f"region {region.size[0]:.1f} x {region.size[1]:.1f} m needs about {need / 2**30:.1f} GiB, "

@@ -125,8 +125,8 @@ def run(args: argparse.Namespace) -> int:
     table = format_table(rows)
     print(table)
     for name, r in rows.items():
-        sec = r.get("seconds_per_completion", r.get("seconds_per_scene", float("nan")))
-        print(f"{name}: {sec:.1f} s per completion" + (f" (from {r['reused_from']})" if "reused_from" in r else ""))
+        origin = f" (from {r['reused_from']})" if "reused_from" in r else ""
+        print(f"{name}: {r['seconds_per_completion']:.1f} s per completion{origin}")
     if args.out:
         out = Path(args.out)
         out.write_text(json.dumps({"split": args.split, "files": [p.name for p in files], "rows": rows,
@@ -153,5 +153,12 @@ def reused_rows(path: str, files: list[str], split: str, samples: int, skip: set
     if old.get("files") != files or old.get("split") != split or old.get("samples") != samples:
         raise InputError(f"earlier results are for other samples ({old.get('split')}: {old.get('files')}, "
                          f"k = {old.get('samples')}); rerun those methods instead", path)
-    return {name: {**r, "reused_from": r.get("reused_from", Path(path).name)}  # keep the first origin
-            for name, r in old["rows"].items() if name not in skip}
+    rows = {}
+    for name, r in old["rows"].items():
+        if name in skip:
+            continue
+        r = {**r, "reused_from": r.get("reused_from", Path(path).name)}  # keep the first origin
+        if "seconds_per_scene" in r and "seconds_per_completion" not in r:  # files from before per-completion times
+            r["seconds_per_completion"] = r.pop("seconds_per_scene") / max(1, int(r.get("k", 1)))
+        rows[name] = r
+    return rows

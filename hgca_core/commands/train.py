@@ -93,7 +93,7 @@ def export(args: argparse.Namespace, task, ckpt: Path) -> Path:
     st = ck["state"]
     meta = {"stage": args.stage, "steps": st["step"], "train_wall_s": round(st["elapsed_s"], 1),
             "sessions": st["sessions"], "data": str(args.data), "notes": st.get("notes", []),
-            "train_samples": [p.name for p in task.train_files],
+            "train_samples": sorted({n for ses in st["sessions"] for n in ses.get("train_samples", [])}),
             "history_tail": [h for h in st["history"] if h["kind"] == "val"]
             + [h for h in st["history"] if h["kind"] == "train"][-3:]}
     if args.stage.startswith("coarse"):

@@ -83,6 +83,10 @@ def write_model_card(weights_dir: Path = WEIGHTS_DIR) -> Path:
         if js.exists():
             info = json.loads(js.read_text())
             parts.append(f"Scenes: {', '.join(info['files'])}; k = {info['samples']} samples; T1 = {info['t1'] or 'default'}.")
+            for name, r in info["rows"].items():
+                sec = r.get("seconds_per_completion", r.get("seconds_per_scene"))
+                origin = f", row from the earlier run `{r['reused_from']}`" if r.get("reused_from") else ""
+                parts.append(f"- {name}: {sec:.1f} s per completion (eval process, CPU){origin}")
             parts.append("")
     out = weights_dir / "MODEL_CARD.md"
     out.write_text("\n".join(parts))

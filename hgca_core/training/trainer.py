@@ -204,7 +204,8 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
     validate()
     state["sessions"].append({"ended": time.strftime("%Y-%m-%d %H:%M:%S"), "steps": steps_this_session,
                               "wall_s": round(time.time() - session_start, 1), "world_size": world,
-                              "device": "cpu", "threads": torch.get_num_threads(), "cpu": _cpu_name()})
+                              "device": "cpu", "threads": torch.get_num_threads(), "cpu": _cpu_name(),
+                              "train_samples": [Path(f).name for f in getattr(task, "train_files", [])]})
     checkpoint()
     if rank == 0:
         (out / "history.json").write_text(json.dumps(state["history"], indent=1))
