@@ -74,9 +74,9 @@ def run_one(width: float, depth: float, stage: str, device: str, t1: int | None,
     stages["write"] = time.perf_counter() - t_mesh
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     gpu = torch.cuda.max_memory_allocated() if device.startswith("cuda") else None
-    from hgca_core.nn.conv import resolve_precision
+    from hgca_core.nn.conv import precision_name, resolve_precision
 
-    gemm = "fp32" if resolve_precision(precision, device) is None else "bf16"
+    gemm = precision_name(resolve_precision(precision, device))
     return {"width": width, "depth": depth, "stage": stage, "device": device, "precision": gemm, "points": int(len(pts)),
             "coarse_cells": int(len(res.coarse_cells)), "triangles": int(len(res.mesh.faces)),
             "seconds": round(total, 2), "stages_s": {k: round(v, 3) for k, v in stages.items()},

@@ -23,13 +23,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--max-faces", type=int, default=None,
                    help="simplify each mesh to at most this many triangles (a default region gives 5-7 M at 5 cm)")
-    p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
-                   help="GEMM precision of the sparse convs while sampling (auto: bf16 where the hardware has it)")
+    add_precision_argument(p)
     p.add_argument("--t1", type=int, default=None, help="coarse steps T1 (default from the weights: 30)")
     p.add_argument("--t2", type=int, default=None, help="fine steps T2 (default 15)")
     p.add_argument("--weights", default=None, help="coarse weights file (default: the shipped ones)")
     p.add_argument("--fine-weights", default=None, help="fine weights file (default: the shipped ones)")
     p.add_argument("--progress", choices=("bar", "jsonl", "none"), default="bar")
+
+
+def add_precision_argument(p: argparse.ArgumentParser) -> None:
+    """`--precision`, shared by complete, eval and bench. The choices are `hgca_core.nn.conv.PRECISIONS`, spelt
+    out so that parsing arguments does not import torch (a test holds the two equal)."""
+    p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+                   help="GEMM precision of the sparse convs while sampling (auto: bf16 where the hardware has it)")
 
 
 def output_paths(out: str, samples: int) -> list[Path]:

@@ -11,14 +11,15 @@ DEFAULT_METHODS = ("input", "poisson", "gca", "hgca")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from hgca_core.commands.complete import add_precision_argument
+
     p.add_argument("--data", default="data/synth", help="dataset folder (hgca synth --split test)")
     p.add_argument("--split", default="test", choices=("val", "test"))
     p.add_argument("--stage", default="coarse", choices=("coarse", "full"),
                    help="full adds the fine stage's rows (hGCA 10 cm voxels and implicit mesh; needs fine weights)")
     p.add_argument("--fine-weights", default=None, help="fine-stage weights (default: the shipped fine.pt)")
     p.add_argument("--t2", type=int, default=None, help="fine steps (default from the weights)")
-    p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
-                   help="GEMM precision of the sparse convs while sampling (as in `hgca complete`)")
+    add_precision_argument(p)
     p.add_argument("--count", type=int, default=None, help="evaluate only the first N samples")
     p.add_argument("--samples", type=int, default=3, help="completions k per input (min/avg/TMD)")
     p.add_argument("--methods", default=None,
@@ -53,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     unknown = set(methods) - set(METHODS)
     if unknown:
         raise InputError(f"unknown methods {sorted(unknown)}; choose from {', '.join(METHODS)}")
-    from hgca_core.nn.conv import gemm_precision, resolve_precision
+    from hgca_core.nn.conv import gemm_precision, precision_name, resolve_precision
 
     files = split_files(args.data, args.split)[: args.count]
     gemm_dtype = resolve_precision(args.precision)
@@ -131,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
         out = Path(args.out)
         out.write_text(json.dumps({"split": args.split, "files": [p.name for p in files], "rows": rows,
                                    "samples": args.samples, "t1": args.t1,
-                                   "precision": "fp32" if gemm_dtype is None else "bf16"}, indent=1))
+                                   "precision": precision_name(gemm_dtype)}, indent=1))
         out.with_suffix(".md").write_text(table + "\n")
         if out.resolve().parent == weights_path(True).parent:  # results beside the weights go on the card
             from hgca_core.training.card import write_model_card

@@ -85,35 +85,29 @@ def run(args: argparse.Namespace) -> int:
 
 def export(args: argparse.Namespace, task, ckpt: Path) -> Path:
     """Shipped weights from the run's checkpoint, with its training record as metadata, then the card."""
-    import torch
-
     from hgca_core.training.card import write_model_card
 
-    ck = torch.load(ckpt, map_location="cpu", weights_only=False)
-    st = ck["state"]
-    meta = {"stage": args.stage, "steps": st["step"], "train_wall_s": round(st["elapsed_s"], 1),
-            "sessions": st["sessions"], "data": str(args.data), "notes": st.get("notes", []),
-            "train_samples": sorted({n for ses in st["sessions"] for n in ses.get("train_samples", [])}),
-            "history_tail": [h for h in st["history"] if h["kind"] == "val"]
-            + [h for h in st["history"] if h["kind"] == "train"][-3:]}
+    extra = {"stage": args.stage, "data": str(args.data)}
     if args.stage.startswith("coarse"):
+        import torch
+
         from hgca_core.models.checkpoint import save_weights
         from hgca_core.training.coarse import weights_path
+        from hgca_core.training.trainer import run_record, trained_weights
 
-        from hgca_core.training.trainer import trained_weights
-
+        ck = torch.load(ckpt, map_location="cpu", weights_only=False)
         module = task.build()
         module.load_state_dict(trained_weights(ck))
         dest = weights_path(args.stage == "coarse")
-        save_weights(module.model, ck["config"], dest, {**meta, "kind": "coarse", "crop": task.crop})
+        save_weights(module.model, ck["config"], dest, {"kind": "coarse", **run_record(ck), **extra, "crop": task.crop})
     elif args.stage == "autoencoder":
         from hgca_core.training.fine import export_autoencoder
 
-        dest = export_autoencoder(ckpt, meta={**meta, "kind": "autoencoder"})
+        dest = export_autoencoder(ckpt, meta=extra)
     else:
         from hgca_core.models.checkpoint import WEIGHTS_DIR
         from hgca_core.training.fine import export_fine
 
-        dest = export_fine(ckpt, args.autoencoder or WEIGHTS_DIR / "autoencoder.pt", meta=meta)
+        dest = export_fine(ckpt, args.autoencoder or WEIGHTS_DIR / "autoencoder.pt", meta=extra)
     write_model_card()
     return Path(dest)

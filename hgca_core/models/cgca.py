@@ -133,7 +133,7 @@ class CGCAKernel(nn.Module):
             # head(cat([feats, relu(u)])) with its first layer split by input block: no (M, 40) concatenation
             first, c = self.head[0], feats.shape[1]
             hid = torch.addmm(first.bias, feats, first.weight[:, :c].T).addmm_(torch.relu(u.feats), first.weight[:, c:].T)
-            out = self.head[2](torch.relu_(hid) if not hid.requires_grad else torch.relu(hid))
+            out = self.head[2](torch.relu(hid))
         return out[:, 0], out[:, 1:]
 
     def project(self, nbhd: torch.Tensor, state: torch.Tensor, z_state: torch.Tensor, x0: torch.Tensor,

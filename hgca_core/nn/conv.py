@@ -57,6 +57,8 @@ def _mm(a: torch.Tensor, b: torch.Tensor, out: torch.Tensor | None = None) -> to
 # Maps with at least this share of filled (output, offset) slots run output-stationary (`table_gemm`);
 # measured per layer on a coarse step: the table wins at level 0 (density 0.78), pairs win at 0.5 and below.
 TABLE_MIN_DENSITY = 0.6
+# Elements gathered per chunk on the table path (n rows x K * cin): 16 MB of float32.
+TABLE_CHUNK_ELEMENTS = 1 << 22
 
 
 _gemm_dtype: torch.dtype | None = None
@@ -90,29 +92,41 @@ def resolve_precision(name: str, device: str = "cpu") -> torch.dtype | None:
     return torch.bfloat16 if name == "bf16" else None
 
 
+def precision_name(dtype: torch.dtype | None) -> str:
+    """The name `resolve_precision` maps to `dtype` (for result files)."""
+    return "bf16" if dtype == torch.bfloat16 else "fp32"
+
+
+def _table_blocks(feats: torch.Tensor, table: torch.Tensor,
+                  dtype: torch.dtype) -> Iterator[tuple[int, int, torch.Tensor]]:
+    """(r0, r1, block): for each chunk of table rows, every offset's input row side by side, an (r1 - r0, K * cin)
+    block in `dtype`, with zeros where the table says none (row len(feats)). The block's buffer is reused."""
+    n_out, kvol = table.shape
+    cin = feats.shape[1]
+    padded = feats.new_empty((len(feats) + 1, cin), dtype=dtype)   # one copy (and cast) of the features + a zero row
+    padded[:-1] = feats
+    padded[-1] = 0
+    rows = max(1, TABLE_CHUNK_ELEMENTS // (kvol * cin))
+    buf = padded.new_empty((min(rows, n_out) * kvol, cin))
+    for r0 in range(0, n_out, rows):
+        r1 = min(n_out, r0 + rows)
+        g = torch.index_select(padded, 0, table[r0:r1].reshape(-1), out=buf[:(r1 - r0) * kvol])
+        yield r0, r1, g.view(r1 - r0, kvol * cin)
+
+
 def table_gemm(feats: torch.Tensor, weight: torch.Tensor, table: torch.Tensor,
                dtype: torch.dtype | None = None) -> torch.Tensor:
     """out[o] = sum_k feats[table[o, k]] @ weight[k], where row len(feats) of `table` means none; GEMMs in
     `dtype` (default: the features'), output in the features' dtype."""
     kvol, cin, cout = weight.shape
     dt = dtype or feats.dtype
-    n_out = table.shape[0]
-    out = feats.new_empty((n_out, cout))
-    if n_out == 0:
-        return out
-    padded = feats.new_empty((len(feats) + 1, cin), dtype=dt)   # one copy (and cast) of the features + a zero row
-    padded[:-1] = feats
-    padded[-1] = 0
+    out = feats.new_empty((table.shape[0], cout))
     w2 = weight.reshape(kvol * cin, cout).to(dt)
-    rows = max(1, TABLE_CHUNK_ELEMENTS // (kvol * cin))
-    buf = padded.new_empty((min(rows, n_out) * kvol, cin))
-    for r0 in range(0, n_out, rows):
-        r1 = min(n_out, r0 + rows)
-        g = torch.index_select(padded, 0, table[r0:r1].reshape(-1), out=buf[:(r1 - r0) * kvol])
+    for r0, r1, block in _table_blocks(feats, table, dt):
         if dt == out.dtype:
-            _mm(g.view(r1 - r0, kvol * cin), w2, out=out[r0:r1])
+            _mm(block, w2, out=out[r0:r1])
         else:
-            out[r0:r1] = _mm(g.view(r1 - r0, kvol * cin), w2)
+            out[r0:r1] = _mm(block, w2)
     return out
 
 
@@ -120,17 +134,9 @@ def table_weight_grad(feats: torch.Tensor, grad_out: torch.Tensor, table: torch.
     """grad_W[k] = sum_o feats[table[o, k]].T @ grad_out[o], chunk by chunk, as (K, cin, cout)."""
     cin, cout = feats.shape[1], grad_out.shape[1]
     grad = feats.new_zeros((kvol * cin, cout))
-    padded = torch.cat([feats, feats.new_zeros((1, cin))])
-    rows = max(1, TABLE_CHUNK_ELEMENTS // (kvol * cin))
-    for r0 in range(0, table.shape[0], rows):
-        r1 = min(table.shape[0], r0 + rows)
-        g = torch.index_select(padded, 0, table[r0:r1].reshape(-1)).view(r1 - r0, kvol * cin)
-        grad.addmm_(g.T, grad_out[r0:r1])
+    for r0, r1, block in _table_blocks(feats, table, feats.dtype):
+        grad.addmm_(block.T, grad_out[r0:r1])
     return grad.view(kvol, cin, cout)
-
-
-# Elements gathered per chunk on the table path (n rows x K * cin): 16 MB of float32.
-TABLE_CHUNK_ELEMENTS = 1 << 22
 
 
 def gemm_forward(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap,

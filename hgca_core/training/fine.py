@@ -35,7 +35,7 @@ from hgca_core.models.cgca import CGCAConfig, CGCAKernel, _gather, _table, alpha
 from hgca_core.models.checkpoint import WEIGHTS_DIR
 from hgca_core.training.buffer import Chain
 from hgca_core.training.data import draw_crop, grids, load_arrays, split_files
-from hgca_core.training.trainer import trained_weights
+from hgca_core.training.trainer import run_record, trained_weights
 
 KEYS = ("input_points", "gt_occ10", "gt_occ20", "gt_surface", "udf_points", "udf_dist")
 CD_PENALTY = 1.0  # metres: Chamfer reported when a decoded crop has no surface at all
@@ -321,12 +321,6 @@ def fine_weights_path() -> Path:
     return WEIGHTS_DIR / "fine.pt"
 
 
-def _run_meta(ck: dict, kind: str, extra: dict) -> dict:
-    st = ck["state"]
-    return {"kind": kind, "steps": st["step"], "train_wall_s": round(st["elapsed_s"], 1),
-            "sessions": st["sessions"], "history_tail": st["history"][-5:], **extra}
-
-
 def export_autoencoder(ckpt_path: str | Path, dest: str | Path | None = None, meta: dict | None = None) -> Path:
     """Write the autoencoder of a training checkpoint as shipped weights (default hgca_core/weights/)."""
     from hgca_core.models.autoencoder import save_autoencoder
@@ -335,7 +329,7 @@ def export_autoencoder(ckpt_path: str | Path, dest: str | Path | None = None, me
     module = AutoencoderLoss(AutoencoderConfig.from_dict(ck["config"]))
     module.load_state_dict(trained_weights(ck))
     dest = Path(dest or autoencoder_weights_path())
-    save_autoencoder(module.model, str(dest), _run_meta(ck, "autoencoder", meta or {}))
+    save_autoencoder(module.model, str(dest), {"kind": "autoencoder", **run_record(ck), **(meta or {})})
     return dest
 
 
@@ -349,5 +343,5 @@ def export_fine(ckpt_path: str | Path, autoencoder: str | Path, dest: str | Path
     module.load_state_dict(trained_weights(ck))
     dest = Path(dest or fine_weights_path())
     save_fine(module.model, load_autoencoder(str(autoencoder)), str(dest),
-              _run_meta(ck, "fine", {"autoencoder": str(autoencoder), **(meta or {})}))
+              {"kind": "fine", **run_record(ck), "autoencoder": str(autoencoder), **(meta or {})})
     return dest

@@ -70,6 +70,17 @@ def trained_weights(ck: dict) -> dict:
     return ck["ema"]["model"] if ck.get("ema") else ck["model"]
 
 
+def run_record(ck: dict) -> dict:
+    """What shipped weights record of the run that made them (the model card renders it): steps, summed step
+    time, sessions, notes, the samples any session trained on, validation history and the last training logs."""
+    st = ck["state"]
+    return {"steps": st["step"], "train_wall_s": round(st["elapsed_s"], 1), "sessions": st["sessions"],
+            "notes": st.get("notes", []),
+            "train_samples": sorted({n for ses in st["sessions"] for n in ses.get("train_samples", [])}),
+            "history_tail": [h for h in st["history"] if h["kind"] == "val"]
+            + [h for h in st["history"] if h["kind"] == "train"][-3:]}
+
+
 class _StopOnSignal:
     """Ctrl-C / SIGTERM end training after the current step, with validation and a checkpoint, like the end of
     the time budget; a second signal interrupts at once."""
@@ -120,6 +131,7 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
     optim = torch.optim.Adam(module.parameters(), lr=lr)
     buffer = ChainBuffer(buffer_size, task.new_example, task.cfg.steps, np.random.default_rng(seed + 7919 * rank))
     state = {"step": 0, "elapsed_s": 0.0, "history": [], "sessions": []}
+    ema_state = None
     if resume and ckpt_path.exists():
         ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
         module.load_state_dict(ck["model"])
@@ -128,11 +140,12 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
         if rank == 0 and ck.get("buffer") is not None:
             buffer.load_state_dict(ck["buffer"])
         torch.set_rng_state(ck["torch_rng"])
-    ema = EMA(module, ema_decay)  # a checkpoint from before the EMA existed starts it at its weights
-    if resume and ckpt_path.exists() and ck.get("ema"):
-        ema.load_state_dict(ck["ema"])
-    if resume and not ckpt_path.exists() and rank == 0:
+        ema_state = ck.get("ema")
+    elif resume and rank == 0:
         print(f"no checkpoint at {ckpt_path}: starting from scratch")
+    ema = EMA(module, ema_decay)  # a checkpoint from before the EMA existed starts it at its weights
+    if ema_state:
+        ema.load_state_dict(ema_state)
     ddp = nn.parallel.DistributedDataParallel(module) if world > 1 else module
     module.train()
 
