@@ -60,6 +60,16 @@ def test_eval_full_stage_table(small_split, small_fine, tmp_path):
     bad = subprocess.run(cmd[:8] + ["--methods", "input", "--samples", "3", "--reuse", str(out)],
                          capture_output=True, text=True, timeout=600)
     assert bad.returncode == 2 and "other samples" in bad.stderr
+    # hgca and hgca-full share their coarse chains in one process; alone, hgca-full runs them itself, same result
+    alone = tmp_path / "alone.json"
+    res = subprocess.run([*cmd[:cmd.index("--methods")], "--methods", "hgca-full",
+                          *cmd[cmd.index("--methods") + 2:cmd.index("--out")], "--out", str(alone)],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    rows3 = json.loads(alone.read_text())["rows"]
+    for name in ("hGCA (10 cm voxels)", "hGCA (implicit)"):
+        for key in ("iou", "resim_min", "resim_avg", "tmd"):
+            assert rows3[name][key] == rows[name][key], (name, key)
 
 
 def test_eval_full_stage_without_fine_weights_is_a_clear_error(small_split, tmp_path):

@@ -18,7 +18,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hgca_core.commands.complete import run as complete_run
+    import json
+
+    import numpy as np
+
+    from hgca_core.commands.complete import add_arguments as complete_arguments, run as complete_run
     from hgca_core.errors import InputError
     from hgca_core.io import read_scans
     from hgca_core.io.poses import load_poses
@@ -29,20 +33,19 @@ def run(args: argparse.Namespace) -> int:
     if not poses.exists():
         raise InputError("the bundled example is missing from the installed package", str(poses))
     scans = [str(EXAMPLE_DIR / e.file) for e in load_poses(poses)]
-    import json
-
-    region = ",".join(f"{v:.6f}" for v in json.loads(poses.read_text())["region"])  # the ego-aligned box
+    *box, yaw = json.loads(poses.read_text())["region"]  # the ego-aligned box; the file keeps yaw in radians
+    region = ",".join(f"{v:.6f}" for v in (*box, np.degrees(yaw)))
     stage = args.stage or ("full" if default_weights("fine").exists() else "coarse")
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     mesh_path = out_dir / "completion.ply"
     t0 = time.time()
-    complete_run(argparse.Namespace(scans=scans, out=str(mesh_path), poses=str(poses), fmt=None, region=region,
-                                    samples=args.samples, seed=args.seed, stage=stage, device="cpu", t1=None,
-                                    t2=None, weights=None, fine_weights=None, precision="auto", max_faces=None,
-                                    progress=args.progress))
+    parser = argparse.ArgumentParser()   # complete's own parser: its defaults, present and future, apply here too
+    complete_arguments(parser)
+    complete_run(parser.parse_args([*scans, "-o", str(mesh_path), f"--poses={poses}", f"--region={region}",
+                                    f"--samples={args.samples}", f"--seed={args.seed}", f"--stage={stage}",
+                                    f"--progress={args.progress}"]))
     seconds = time.time() - t0
-    import numpy as np
     from plyfile import PlyData
     import trimesh
 

@@ -97,7 +97,11 @@ class _StopOnSignal:
         self.flag = True
         print(f"{signal.Signals(signum).name}: stopping after this step (checkpoint follows)", flush=True)
 
-    def restore(self) -> None:
+    def __enter__(self) -> "_StopOnSignal":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Give the handlers back however the loop ends, an exception included."""
         for sig, handler in self.saved.items():
             signal.signal(sig, handler)
         self.saved = {}
@@ -165,55 +169,54 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
             if not progress:
                 print(json.dumps(state["history"][-1]), flush=True)
 
-    stop_asked = _StopOnSignal()
     session_start = time.time()
     budget = minutes * 60.0
     last_ckpt = last_val = time.time()
     stats_acc: dict[str, list[float]] = {}
     bar = tqdm(total=round(budget), unit="s", desc=f"train {task.name}", disable=not progress or rank != 0)
     steps_this_session = 0
-    while True:
-        spent = time.time() - session_start
-        stop = spent >= budget or (max_steps is not None and steps_this_session >= max_steps) or stop_asked.flag
-        if world > 1:  # every rank stops at the same step
-            flag = torch.tensor([1.0 if stop else 0.0])
-            dist.all_reduce(flag, op=dist.ReduceOp.MAX)
-            stop = bool(flag.item())
-        if stop:
-            break
-        t0 = time.time()
-        idx = buffer.take(batch)
-        chains = [buffer.chains[i] for i in idx]
-        loss, stats, new_states = ddp(chains)
-        optim.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(module.parameters(), clip)
-        optim.step()
-        ema.update(module)
-        for i, s in zip(idx, new_states):
-            buffer.advance(i, s)
-        dt = time.time() - t0
-        state["step"] += 1
-        state["elapsed_s"] += dt
-        steps_this_session += 1
-        for k, v in {"loss": float(loss.detach()), **stats, "step_s": dt}.items():
-            stats_acc.setdefault(k, []).append(v)
-        bar.n = min(round(time.time() - session_start), round(budget))
-        bar.set_postfix(step=state["step"], loss=f"{float(loss.detach()):.4f}")
-        if state["step"] % 10 == 0 and rank == 0:
-            state["history"].append({"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1), "kind": "train",
-                                     **{k: float(np.mean(v)) for k, v in stats_acc.items()}})
-            stats_acc = {}
-            if not progress:  # a log line for runs in the background
-                print(json.dumps(state["history"][-1]), flush=True)
-        if time.time() - last_val >= val_every_min * 60:
-            validate()
-            last_val = time.time()
-        if time.time() - last_ckpt >= ckpt_every_min * 60:
-            checkpoint()
-            last_ckpt = time.time()
+    with _StopOnSignal() as stop_asked:
+        while True:
+            spent = time.time() - session_start
+            stop = spent >= budget or (max_steps is not None and steps_this_session >= max_steps) or stop_asked.flag
+            if world > 1:  # every rank stops at the same step
+                flag = torch.tensor([1.0 if stop else 0.0])
+                dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+                stop = bool(flag.item())
+            if stop:
+                break
+            t0 = time.time()
+            idx = buffer.take(batch)
+            chains = [buffer.chains[i] for i in idx]
+            loss, stats, new_states = ddp(chains)
+            optim.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(module.parameters(), clip)
+            optim.step()
+            ema.update(module)
+            for i, s in zip(idx, new_states):
+                buffer.advance(i, s)
+            dt = time.time() - t0
+            state["step"] += 1
+            state["elapsed_s"] += dt
+            steps_this_session += 1
+            for k, v in {"loss": float(loss.detach()), **stats, "step_s": dt}.items():
+                stats_acc.setdefault(k, []).append(v)
+            bar.n = min(round(time.time() - session_start), round(budget))
+            bar.set_postfix(step=state["step"], loss=f"{float(loss.detach()):.4f}")
+            if state["step"] % 10 == 0 and rank == 0:
+                state["history"].append({"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1),
+                                         "kind": "train", **{k: float(np.mean(v)) for k, v in stats_acc.items()}})
+                stats_acc = {}
+                if not progress:  # a log line for runs in the background
+                    print(json.dumps(state["history"][-1]), flush=True)
+            if time.time() - last_val >= val_every_min * 60:
+                validate()
+                last_val = time.time()
+            if time.time() - last_ckpt >= ckpt_every_min * 60:
+                checkpoint()
+                last_ckpt = time.time()
     bar.close()
-    stop_asked.restore()
     validate()
     state["sessions"].append({"ended": time.strftime("%Y-%m-%d %H:%M:%S"), "steps": steps_this_session,
                               "wall_s": round(time.time() - session_start, 1), "world_size": world,

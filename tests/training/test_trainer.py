@@ -93,3 +93,21 @@ def test_sigterm_stops_after_the_step_with_a_checkpoint(tiny_dataset, tmp_path):
     ck = torch.load(tmp_path / "sig" / "ckpt.pt", weights_only=False)
     assert ck["state"]["step"] >= 10 and len(ck["state"]["sessions"]) == 1
     assert [h for h in ck["state"]["history"] if h["kind"] == "val"]   # validated on the way out
+
+
+def test_signal_handlers_come_back_when_a_step_raises(tiny_dataset, tmp_path, monkeypatch):
+    import signal
+
+    import pytest
+
+    from hgca_core.training.coarse import CoarseLoss
+
+    def broken(self, chains):
+        raise RuntimeError("step failed")
+
+    monkeypatch.setattr(CoarseLoss, "forward", broken)
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    with pytest.raises(RuntimeError, match="step failed"):
+        train(_task(tiny_dataset, planner=False), tmp_path / "b", minutes=5, max_steps=3, batch=1, buffer_size=1,
+              progress=False)
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
