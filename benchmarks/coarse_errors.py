@@ -77,7 +77,9 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     weights = args.weights or [str(weights_path(True)), str(weights_path(False))]
     files = split_files(args.data, args.split)
-    methods = {"input": None, **{Path(w).stem: load_coarse(w)[0] for w in weights}}
+    stems = [Path(w).stem for w in weights]
+    names = stems if len(set(stems)) == len(stems) else weights   # two files of one name: tell them by path
+    methods = {"input": None, **{n: load_coarse(w)[0] for n, w in zip(names, weights)}}
     acc: dict[str, dict[str, dict]] = {m: {} for m in methods}
     ious: dict[str, list[float]] = {m: [] for m in methods}
     labels: list[str] = []
@@ -115,9 +117,11 @@ def main() -> None:
                     a["found"] += r["found"]
                     a["false_cells"] += r["false_cells"]
                     a["gain"].append(r["iou_if_perfect"] - ious[name][-1])
+    per = {m: len(ious[m]) / len(files) for m in methods}    # completions per scene: counts are per completion
     rows = {m: {"iou": float(np.mean(ious[m])),
-                "parts": {p: {"gt_cells": a["gt_cells"], "recall": a["found"] / max(a["gt_cells"], 1),
-                              "false_cells": a["false_cells"], "iou_gain_if_perfect": float(np.mean(a["gain"]))}
+                "parts": {p: {"gt_cells": round(a["gt_cells"] / per[m]), "recall": a["found"] / max(a["gt_cells"], 1),
+                              "false_cells": round(a["false_cells"] / per[m]),
+                              "iou_gain_if_perfect": float(np.mean(a["gain"]))}
                           for p, a in acc[m].items() if a["gt_cells"] or a["false_cells"]}}
             for m in methods}
     out = Path(args.out)
@@ -128,7 +132,7 @@ def main() -> None:
              f"{args.samples} completion(s) each)", ""]
     for m, r in rows.items():
         lines += [f"## {m}: IoU {100 * r['iou']:.2f} %", "",
-                  "| part | visible GT cells | recall (%) | false cells | IoU gain if perfect (points) |",
+                  "| part | visible GT cells | recall (%) | false cells (per completion) | IoU gain if perfect (points) |",
                   "|---|---:|---:|---:|---:|"]
         lines += [f"| {p} | {a['gt_cells']} | {100 * a['recall']:.1f} | {a['false_cells']} | "
                   f"{100 * a['iou_gain_if_perfect']:.2f} |" for p, a in r["parts"].items()]
