@@ -1,5 +1,5 @@
 """`hgca demo` as `make demo` runs it (coarse stage, to keep it quick): the mesh lies in the example's region,
-which the bundled poses.json stores with its yaw in radians."""
+which the bundled poses.json stores as `Region.as_tuple()` (the --region form, yaw in degrees)."""
 import json
 import subprocess
 import sys
@@ -17,8 +17,7 @@ def test_demo_completes_the_bundled_example_in_its_region(tmp_path):
     assert res.returncode == 0, res.stderr[-3000:]
     assert (tmp_path / "completion_s0.png").stat().st_size > 10_000
     v = PlyData.read(str(tmp_path / "completion_s0.ply"))["vertex"]
-    cx, cy, cz, sx, sy, sz, yaw = json.loads((EXAMPLE_DIR / "poses.json").read_text())["region"]
-    region = Region(center=np.array([cx, cy, cz]), size=np.array([sx, sy, sz]), yaw=yaw)
+    region = Region.parse(",".join(map(str, json.loads((EXAMPLE_DIR / "poses.json").read_text())["region"])))
     local = region.to_local(np.c_[v["x"], v["y"], v["z"]].astype(np.float64))
     assert len(local) > 10_000
     # voxel faces reach at most half a 10 cm cell outside the box; a box turned by a wrong yaw pokes out by metres

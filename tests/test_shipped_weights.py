@@ -24,7 +24,7 @@ def example():
     scans = read_scans([str(EXAMPLE_DIR / e.file) for e in load_poses(poses)], poses=str(poses))
     cx, cy, cz, sx, sy, sz, yaw = json.loads(poses.read_text())["region"]
     # a piece of the demo region beside the drive, at its full height
-    region = hgca_core.Region.parse(f"{cx},{cy},{cz},12.8,12.8,{sz},{np.degrees(yaw)}")
+    region = hgca_core.Region.parse(f"{cx},{cy},{cz},12.8,12.8,{sz},{yaw}")   # poses.json: yaw in degrees
     local = region.to_local(scans.points)
     return scans.points[region.contains_local(local)], region
 

@@ -33,8 +33,8 @@ def run(args: argparse.Namespace) -> int:
     if not poses.exists():
         raise InputError("the bundled example is missing from the installed package", str(poses))
     scans = [str(EXAMPLE_DIR / e.file) for e in load_poses(poses)]
-    *box, yaw = json.loads(poses.read_text())["region"]  # the ego-aligned box; the file keeps yaw in radians
-    region = ",".join(f"{v:.6f}" for v in (*box, np.degrees(yaw)))
+    # the ego-aligned box, stored as `Region.as_tuple()`: the --region form, yaw in degrees
+    region = ",".join(f"{v:.6f}" for v in json.loads(poses.read_text())["region"])
     stage = args.stage or ("full" if default_weights("fine").exists() else "coarse")
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
