@@ -34,13 +34,10 @@ def cell_labels(sample: dict, cells: np.ndarray) -> np.ndarray:
     return lab[cKDTree(centres).query(cells + 0.5, workers=-1)[1]]
 
 
-def part_stats(pred: np.ndarray, gt: np.ndarray, groups_gt: np.ndarray, groups_pred: np.ndarray,
+def part_stats(hit_gt: np.ndarray, true_pred: np.ndarray, groups_gt: np.ndarray, groups_pred: np.ndarray,
                names: list[str]) -> list[dict]:
-    """Counts per group of ground-truth cells (`groups_gt`) and of predicted cells (`groups_pred`)."""
-    from hgca_core.metrics.iou import pack_cells
-
-    hit_gt = np.isin(pack_cells(gt), pack_cells(pred))
-    true_pred = np.isin(pack_cells(pred), pack_cells(gt))
+    """Counts per group of ground-truth cells (`groups_gt`) and of predicted cells (`groups_pred`), given which
+    ground-truth cells the completion found (`hit_gt`) and which of its cells are true (`true_pred`)."""
     tp, fp, fn = int(hit_gt.sum()), int((~true_pred).sum()), int((~hit_gt).sum())
     rows = []
     for g, name in enumerate(names):
@@ -66,6 +63,7 @@ def main() -> None:
     from scipy.spatial import cKDTree
 
     from hgca_core.geometry import coords as cs
+    from hgca_core.geometry.voxel import COARSE, cell_centers
     from hgca_core.metrics.iou import iou, pack_cells
     from hgca_core.models.checkpoint import load_coarse
     from hgca_core.models.gca import sample as gca_sample
@@ -91,8 +89,8 @@ def main() -> None:
         vis = pack_cells(np.asarray(sample["visible20"], dtype=np.int64))
         gt = gt[np.isin(pack_cells(gt), vis)]
         gt_class = cell_labels(sample, gt)
-        height = (gt[:, 2] + 0.5) * 0.2 - float(sample["ground_z"])
-        band = np.digitize(height, edges)
+        ground = float(sample["ground_z"])
+        band = np.digitize(cell_centers(gt, COARSE)[:, 2] - ground, edges)
         tree = cKDTree(gt)
         for name, model in methods.items():
             seeds = [None] if model is None else range(args.samples)
@@ -108,9 +106,11 @@ def main() -> None:
                 pred = pred[np.isin(pack_cells(pred), vis)]
                 ious[name].append(iou(pred, gt))
                 near = tree.query(pred, workers=-1)[1]
-                pred_h = (pred[:, 2] + 0.5) * 0.2 - float(sample["ground_z"])
-                parts = (part_stats(pred, gt, gt_class, gt_class[near], labels)
-                         + part_stats(pred, gt, band, np.digitize(pred_h, edges), [b[2] for b in BANDS]))
+                pred_band = np.digitize(cell_centers(pred, COARSE)[:, 2] - ground, edges)
+                hit_gt = np.isin(pack_cells(gt), pack_cells(pred))
+                true_pred = np.isin(pack_cells(pred), pack_cells(gt))
+                parts = (part_stats(hit_gt, true_pred, gt_class, gt_class[near], labels)
+                         + part_stats(hit_gt, true_pred, band, pred_band, [b[2] for b in BANDS]))
                 for r in parts:
                     a = acc[name].setdefault(r["part"], {"gt_cells": 0, "found": 0, "false_cells": 0, "gain": []})
                     a["gt_cells"] += r["gt_cells"]
