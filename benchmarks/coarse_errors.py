@@ -65,15 +65,14 @@ def main() -> None:
     from hgca_core.geometry import coords as cs
     from hgca_core.geometry.voxel import COARSE, cell_centers
     from hgca_core.metrics.iou import iou, pack_cells
-    from hgca_core.models.checkpoint import load_coarse
+    from hgca_core.models.weights import load_coarse, shipped
     from hgca_core.models.gca import sample as gca_sample
     from hgca_core.nn.conv import gemm_precision, resolve_precision
     from hgca_core.synth.dataset import load_sample
-    from hgca_core.training.coarse import weights_path
     from hgca_core.training.data import coarse_pair, split_files
 
     torch.set_num_threads(args.threads)
-    weights = args.weights or [str(weights_path(True)), str(weights_path(False))]
+    weights = args.weights or [str(shipped("coarse")), str(shipped("coarse-noplanner"))]
     files = split_files(args.data, args.split)
     stems = [Path(w).stem for w in weights]
     names = stems if len(set(stems)) == len(stems) else weights   # two files of one name: tell them by path

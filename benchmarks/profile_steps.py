@@ -34,7 +34,7 @@ def main() -> None:
     from hgca_core.geometry.region import Region
     from hgca_core.geometry.voxel import COARSE, FINE, voxelize_coarse
     from hgca_core.io.read import read_scans
-    from hgca_core.models.checkpoint import WEIGHTS_DIR, load_coarse
+    from hgca_core.models.weights import load_coarse, load_fine
     from hgca_core.models.gca import sample as gca_sample
     from hgca_core.nn.conv import gemm_precision
 
@@ -45,7 +45,7 @@ def main() -> None:
     local = local[region.contains_local(local)]
     s0 = cs.with_batch(torch.from_numpy(voxelize_coarse(local, region.grid_shape(FINE))))
     grid = region.grid_shape(COARSE)
-    model, _ = load_coarse(str(WEIGHTS_DIR / "coarse.pt"))
+    model, _ = load_coarse()
     gen = torch.Generator().manual_seed(0)
     dtype = torch.bfloat16 if args.precision == "bf16" else None
     with torch.no_grad(), gemm_precision(dtype):
@@ -65,9 +65,9 @@ def main() -> None:
                 state = nbhd[torch.rand(len(nbhd), generator=gen) < torch.sigmoid(logits)]
                 return len(state), len(nbhd)
         else:
-            from hgca_core.models.cgca import initial_state, load_fine
+            from hgca_core.models.cgca import initial_state
 
-            fine, ae, _ = load_fine(str(args.fine_weights or WEIGHTS_DIR / "fine.pt"))
+            fine, ae, _ = load_fine(args.fine_weights)
             cells = gca_sample(model, s0, grid, model.cfg.steps, gen)[:, 1:]
             grid10 = region.grid_shape(FINE)
             x0, z0 = initial_state(ae, local, cells, grid10)

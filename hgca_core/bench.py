@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -16,6 +15,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from hgca_core.hardware import machine
 
 WIDTHS = (40, 60, 80, 100, 120)
 
@@ -81,19 +82,6 @@ def run_one(width: float, depth: float, stage: str, device: str, t1: int | None,
             "coarse_cells": int(len(res.coarse_cells)), "triangles": int(len(res.mesh.faces)),
             "seconds": round(total, 2), "stages_s": {k: round(v, 3) for k, v in stages.items()},
             "peak_rss_gib": round(rss / 2**30, 3), "gpu_peak_gib": None if gpu is None else round(gpu / 2**30, 3)}
-
-
-def machine() -> dict:
-    import torch
-
-    cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")),
-               platform.processor()) if Path("/proc/cpuinfo").exists() else platform.processor()
-    info = {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "torch": torch.__version__,
-            "threads": torch.get_num_threads(), "python": platform.python_version(),
-            "date": time.strftime("%Y-%m-%d %H:%M")}
-    if torch.cuda.is_available():
-        info["gpu"] = torch.cuda.get_device_name(0)
-    return info
 
 
 def run(widths: list[float], default: bool, stage: str, device: str, t1: int | None, out_dir: Path,

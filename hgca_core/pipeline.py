@@ -49,12 +49,6 @@ class Completion:
         return np.asarray(self.mesh.faces)
 
 
-def default_weights(stage: str) -> Path:
-    from hgca_core.models.checkpoint import WEIGHTS_DIR
-
-    return WEIGHTS_DIR / f"{stage}.pt"
-
-
 def check_points(points: np.ndarray, what: str = "input") -> np.ndarray:
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
@@ -89,10 +83,10 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
     simplifies each mesh to at most that many triangles (`hgca_core.meshing.decimate`)."""
     if stage not in ("coarse", "full"):
         raise InputError(f"stage must be 'coarse' or 'full', not {stage!r}")
-    fine_path = Path(fine_weights or default_weights("fine"))
-    if stage == "full" and not fine_path.exists():
-        raise InputError("no fine-stage weights (train them with `hgca train fine`, or pass --fine-weights); "
-                         "use --stage coarse", str(fine_path))
+    from hgca_core.models.weights import load_coarse, load_fine
+
+    model, _ = load_coarse(weights, device)       # both files are checked before any work (cached per file)
+    fine_model, autoencoder, _ = load_fine(fine_weights, device) if stage == "full" else (None, None, None)
     if samples < 1:
         raise InputError(f"samples must be at least 1, got {samples}")
     if max_faces is not None and max_faces < 1000:
@@ -113,11 +107,9 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
     grid = region.grid_shape(COARSE)
     report("voxelise", 1, 1, f"{len(s0)} cells at 20 cm")
 
-    from hgca_core.models.checkpoint import load_coarse
     from hgca_core.models.gca import sample as gca_sample
     from hgca_core.nn.conv import gemm_precision, resolve_precision
 
-    model, _ = load_coarse(str(weights or default_weights("coarse")), device)
     try:
         gemm_dtype = resolve_precision(precision, device)
     except ValueError as exc:
@@ -133,9 +125,8 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
                              lambda t, n: report("planner" if t == 0 else "coarse", t, n, f"sample {i + 1}/{samples}"))
         cells = occ[:, 1:].cpu().numpy()
         if stage == "full":
-            from hgca_core.models.cgca import decode_mesh, load_fine, upsample
+            from hgca_core.models.cgca import decode_mesh, upsample
 
-            fine_model, autoencoder, _ = load_fine(str(fine_path), device)
             with gemm_precision(gemm_dtype):
                 cells10, latents = upsample(fine_model, autoencoder, local[inside], cells, region.grid_shape(FINE), t2,
                                             gen, lambda t, n: report("fine", t, n, f"sample {i + 1}/{samples}"))

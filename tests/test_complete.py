@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from hgca_testdata import tiny_sample
-from hgca_core.models.checkpoint import save_weights
+from hgca_core.models.weights import save_weights
 from hgca_core.models.gca import GCAConfig, GCAKernel
 
 
@@ -18,7 +18,7 @@ def small_weights(tmp_path_factory):
     torch.manual_seed(0)
     cfg = GCAConfig(channels=(8, 8, 16, 16, 16), steps=3)
     path = tmp_path_factory.mktemp("w") / "coarse_small.pt"
-    save_weights(GCAKernel(cfg), cfg.to_dict(), path, {"kind": "coarse", "stage": "test"})
+    save_weights(path, GCAKernel(cfg), {"stage": "test"})
     return path
 
 
@@ -96,12 +96,12 @@ def test_bad_output_and_nan_input(small_weights, scan, tmp_path):
 def test_full_stage_runs_the_fine_path(small_weights, scan, tmp_path):
     """With fine weights (untrained, small), --stage full upsamples at 10 cm and meshes the decoded distance."""
     from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
-    from hgca_core.models.cgca import CGCAConfig, CGCAKernel, save_fine
+    from hgca_core.models.cgca import CGCAConfig, CGCAKernel
 
     torch.manual_seed(0)
     fine = tmp_path / "fine_small.pt"
-    save_fine(CGCAKernel(CGCAConfig(channels=(8, 8, 8, 8, 8), steps=2)), Autoencoder(AutoencoderConfig()), str(fine),
-              {"stage": "test"})
+    save_weights(fine, CGCAKernel(CGCAConfig(channels=(8, 8, 8, 8, 8), steps=2)), {"stage": "test"},
+                 autoencoder=Autoencoder(AutoencoderConfig()))
     out = tmp_path / "full.npz"
     res = _run(scan, "-o", out, "--weights", small_weights, "--fine-weights", fine, "--stage", "full",
                "--region", REGION, "--progress", "jsonl")
@@ -165,3 +165,56 @@ def test_region_too_large_for_memory_is_refused_before_any_work(small_weights, s
         hgca_core.complete(pts, region=hgca_core.Region.parse("103,203,1,2000,2000,8"), weights=small_weights)
     res = _run(scan, "-o", "/tmp/never.ply", "--weights", small_weights, "--region", "103,203,1,2000,2000,8")
     assert res.returncode == 2 and "GiB" in res.stderr and "Traceback" not in res.stderr
+
+
+class Payload:
+    """A weights file's content whose unpickling would run `touch MARKER`."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        import os
+
+        return os.system, (f"touch {self.marker}",)
+
+
+@pytest.mark.parametrize("flag", ["--weights", "--fine-weights"])
+def test_weights_that_would_run_code_neither_run_nor_crash(small_weights, scan, tmp_path, flag):
+    marker = tmp_path / "payload_ran"
+    evil = tmp_path / "evil.pt"
+    torch.save({"kind": "coarse", "config": Payload(marker), "state_dict": {}, "meta": {}}, evil)
+    weights = ["--weights", evil] if flag == "--weights" else ["--weights", small_weights, "--fine-weights", evil,
+                                                               "--stage", "full"]
+    res = _run(scan, "-o", tmp_path / "x.ply", *weights, "--region", REGION, "--progress", "none")
+    assert res.returncode == 2 and not marker.exists()
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"hgca complete: error: {evil}: refused: it holds pickled"), lines
+    assert not list(tmp_path.glob("x_s*"))
+
+
+def test_weights_for_another_flag_say_what_they_are_before_any_work(small_weights, tmp_path, capsys):
+    """The scan does not exist: an error about the weights shows they were checked before anything was read."""
+    from hgca_core.cli import main
+    from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
+    from hgca_core.models.cgca import CGCAConfig, CGCAKernel
+    from hgca_core.models.weights import load_file, save_file
+
+    ae = save_weights(tmp_path / "autoencoder.pt", Autoencoder(AutoencoderConfig()))
+    fine = save_weights(tmp_path / "fine.pt", CGCAKernel(CGCAConfig(channels=(8, 8, 8, 8, 8), steps=2)),
+                        autoencoder=Autoencoder(AutoencoderConfig()))
+    empty = save_file({**load_file(small_weights), "config": {}}, tmp_path / "empty_config.pt")
+    cases = [(["--weights", fine], "fine.pt: this file holds fine-stage weights (cGCA kernel with its autoencoder), "
+                                   "which `hgca complete --fine-weights` takes; `hgca complete --weights` takes "
+                                   "coarse-stage weights"),
+             (["--weights", ae], "autoencoder.pt: this file holds autoencoder weights"),
+             (["--weights", empty], "empty_config.pt: the config is empty"),
+             (["--weights", small_weights, "--stage", "full", "--fine-weights", small_weights],
+              "coarse_small.pt: this file holds coarse-stage weights (GCA kernel), which `hgca complete --weights` "
+              "takes; `hgca complete --fine-weights` takes fine-stage weights")]
+    for args, message in cases:
+        code = main(["complete", str(tmp_path / "missing_scan.las"), "-o", str(tmp_path / "x.ply"),
+                     "--progress", "none", *map(str, args)])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and len(err.splitlines()) == 1 and message in err, err
+        assert "missing_scan" not in err and "Traceback" not in err

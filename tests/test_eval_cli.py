@@ -24,12 +24,13 @@ def small_split(tmp_path_factory):
 @pytest.fixture(scope="module")
 def small_fine(tmp_path_factory):
     from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
-    from hgca_core.models.cgca import CGCAConfig, CGCAKernel, save_fine
+    from hgca_core.models.cgca import CGCAConfig, CGCAKernel
+    from hgca_core.models.weights import save_weights
 
     torch.manual_seed(0)
     path = tmp_path_factory.mktemp("fw") / "fine_small.pt"
-    save_fine(CGCAKernel(CGCAConfig(channels=(8, 8, 8, 8, 8), steps=2)), Autoencoder(AutoencoderConfig()), str(path),
-              {"stage": "test"})
+    save_weights(path, CGCAKernel(CGCAConfig(channels=(8, 8, 8, 8, 8), steps=2)), {"stage": "test"},
+                 autoencoder=Autoencoder(AutoencoderConfig()))
     return path
 
 

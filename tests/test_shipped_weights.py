@@ -15,7 +15,7 @@ import hgca_core
 from hgca_core.commands.demo import EXAMPLE_DIR
 from hgca_core.io import read_scans
 from hgca_core.io.poses import load_poses
-from hgca_core.pipeline import default_weights
+from hgca_core.models.weights import shipped
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +31,7 @@ def example():
 
 @pytest.mark.parametrize("stage", ["coarse", "full"])
 def test_shipped_weights_complete_the_example(example, stage, one_thread):
-    assert default_weights("coarse" if stage == "coarse" else "fine").exists(), "the package must ship its weights"
+    assert shipped("coarse" if stage == "coarse" else "fine").exists(), "the package must ship its weights"
     pts, region = example
     res = hgca_core.complete(pts, region=region, samples=1, seed=0, stage=stage)[0]
     v = res.vertices

@@ -26,7 +26,7 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.errors import InputError
     from hgca_core.io import read_scans
     from hgca_core.io.poses import load_poses
-    from hgca_core.pipeline import default_weights
+    from hgca_core.models.weights import shipped
     from hgca_core.render import render_mesh
 
     poses = EXAMPLE_DIR / "poses.json"
@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     scans = [str(EXAMPLE_DIR / e.file) for e in load_poses(poses)]
     # the ego-aligned box, stored as `Region.as_tuple()`: the --region form, yaw in degrees
     region = ",".join(f"{v:.6f}" for v in json.loads(poses.read_text())["region"])
-    stage = args.stage or ("full" if default_weights("fine").exists() else "coarse")
+    stage = args.stage or ("full" if shipped("fine").exists() else "coarse")
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     mesh_path = out_dir / "completion.ply"

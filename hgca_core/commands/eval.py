@@ -43,10 +43,9 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.meshing import voxel_mesh
     from hgca_core.metrics.baselines import input_baseline, poisson_baseline
     from hgca_core.metrics.evaluate import aggregate, evaluate_sample, format_table
-    from hgca_core.models.checkpoint import load_coarse
+    from hgca_core.models.weights import WEIGHTS_DIR, load_coarse, load_fine, shipped
     from hgca_core.models.gca import sample as gca_sample
     from hgca_core.synth.dataset import load_sample
-    from hgca_core.training.coarse import weights_path
     from hgca_core.training.data import coarse_pair, split_files
 
     default = DEFAULT_METHODS + (("hgca-full",) if args.stage == "full" else ())
@@ -58,13 +57,10 @@ def run(args: argparse.Namespace) -> int:
 
     files = split_files(args.data, args.split)[: args.count]
     gemm_dtype = resolve_precision(args.precision)
-    coarse_models = {planner: load_coarse(str(weights_path(planner)))[0]
+    coarse_models = {planner: load_coarse(shipped("coarse" if planner else "coarse-noplanner"))[0]
                      for planner in {m != "gca" for m in methods if m in ("gca", "hgca", "hgca-full")}}
     if "hgca-full" in methods:
-        from hgca_core.models.cgca import load_fine
-        from hgca_core.pipeline import default_weights
-
-        fine_model, autoencoder, _ = load_fine(str(args.fine_weights or default_weights("fine")))
+        fine_model, autoencoder, _ = load_fine(args.fine_weights)
     rows_of = {m: [m] for m in methods}
     rows_of["hgca-full"] = ["hgca-10cm", "hgca-implicit"]
     results: dict[str, list[dict]] = {r: [] for m in methods for r in rows_of[m]}
@@ -148,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
                                    "samples": args.samples, "t1": args.t1,
                                    "precision": precision_name(gemm_dtype)}, indent=1))
         out.with_suffix(".md").write_text(table + "\n")
-        if out.resolve().parent == weights_path(True).parent:  # results beside the weights go on the card
+        if out.resolve().parent == WEIGHTS_DIR:  # results beside the weights go on the card
             from hgca_core.training.card import write_model_card
 
             write_model_card()

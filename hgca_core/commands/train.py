@@ -19,7 +19,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--minutes", type=float, default=10.0, help="wall-time budget of this session (0: only --export)")
     p.add_argument("--max-steps", type=int, default=None, help="stop after this many steps (tests)")
     p.add_argument("--resume", action="store_true", help="continue from <out>/ckpt.pt")
-    p.add_argument("--batch", type=int, default=2, help="chains per step (per rank under torchrun)")
+    p.add_argument("--batch", type=int, default=2,
+                   help="chains per step (per rank under torchrun; the paper uses 6 for coarse, 3 for fine)")
     p.add_argument("--buffer", type=int, default=8, help="persistent chains kept (per rank)")
     p.add_argument("--crop", type=int, default=None,
                    help="training crop in the stage's cells (coarse: 20 cm, default 64; fine: 10 cm, default 64)")
@@ -27,14 +28,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--autoencoder", default=None, help="fine: autoencoder weights (default: the shipped ones)")
     p.add_argument("--val-every", type=float, default=10.0, help="minutes between validation runs")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (1 is fastest on a busy machine)")
+    p.add_argument("--device", default="cpu",
+                   help="cpu, cuda or cuda:N (under torchrun, cuda puts each rank on its own GPU, cuda:LOCAL_RANK)")
     p.add_argument("--export", action="store_true", help="after training, write hgca_core/weights/<stage>.pt")
     p.add_argument("--no-progress", action="store_true")
 
 
 def _saved_config(ckpt: Path) -> dict | None:
-    import torch
+    from hgca_core.models.weights import load_file
 
-    return torch.load(ckpt, map_location="cpu", weights_only=False)["config"] if ckpt.exists() else None
+    return load_file(ckpt)["config"] if ckpt.exists() else None
 
 
 def build_task(args: argparse.Namespace, ckpt: Path):
@@ -54,13 +57,13 @@ def build_task(args: argparse.Namespace, ckpt: Path):
 
         return AutoencoderTask(args.data, AutoencoderConfig.from_dict(saved) if saved else AutoencoderConfig())
     from hgca_core.models.cgca import CGCAConfig
-    from hgca_core.models.checkpoint import WEIGHTS_DIR
+    from hgca_core.models.weights import shipped
     from hgca_core.training.fine import FineTask
 
     cfg = CGCAConfig.from_dict(saved) if saved else CGCAConfig()
     if args.crop and not saved:
         cfg.crop = args.crop
-    return FineTask(args.data, cfg, autoencoder=args.autoencoder or str(WEIGHTS_DIR / "autoencoder.pt"))
+    return FineTask(args.data, cfg, autoencoder=args.autoencoder or str(shipped("autoencoder")))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -75,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
     task = build_task(args, ckpt)
     if args.minutes > 0 or args.max_steps:
         state = train(task, out, args.minutes, resume=args.resume, batch=args.batch, buffer_size=args.buffer,
-                      val_every_min=args.val_every, max_steps=args.max_steps, progress=not args.no_progress)
+                      val_every_min=args.val_every, max_steps=args.max_steps, progress=not args.no_progress,
+                      device=args.device)
         last_val = next((h for h in reversed(state["history"]) if h["kind"] == "val"), {})
         print(json.dumps({"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1), **last_val}))
     if args.export:
@@ -89,25 +93,21 @@ def export(args: argparse.Namespace, task, ckpt: Path) -> Path:
 
     extra = {"stage": args.stage, "data": str(args.data)}
     if args.stage.startswith("coarse"):
-        import torch
+        from hgca_core.models.weights import load_file, save_weights, shipped, trained_weights
+        from hgca_core.training.trainer import run_record
 
-        from hgca_core.models.checkpoint import save_weights
-        from hgca_core.training.coarse import weights_path
-        from hgca_core.training.trainer import run_record, trained_weights
-
-        ck = torch.load(ckpt, map_location="cpu", weights_only=False)
+        ck = load_file(ckpt)
         module = task.build()
         module.load_state_dict(trained_weights(ck))
-        dest = weights_path(args.stage == "coarse")
-        save_weights(module.model, ck["config"], dest, {"kind": "coarse", **run_record(ck), **extra, "crop": task.crop})
+        dest = save_weights(shipped(args.stage), module.model, {**run_record(ck), **extra, "crop": task.crop})
     elif args.stage == "autoencoder":
         from hgca_core.training.fine import export_autoencoder
 
         dest = export_autoencoder(ckpt, meta=extra)
     else:
-        from hgca_core.models.checkpoint import WEIGHTS_DIR
+        from hgca_core.models.weights import shipped
         from hgca_core.training.fine import export_fine
 
-        dest = export_fine(ckpt, args.autoencoder or WEIGHTS_DIR / "autoencoder.pt", meta=extra)
+        dest = export_fine(ckpt, args.autoencoder or shipped("autoencoder"), meta=extra)
     write_model_card()
     return Path(dest)

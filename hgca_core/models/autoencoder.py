@@ -303,23 +303,3 @@ def _rank_in_sorted(group: torch.Tensor) -> torch.Tensor:
     start[1:] = group[1:] != group[:-1]
     pos = torch.arange(n, device=group.device)
     return pos - torch.cummax(torch.where(start, pos, torch.zeros_like(pos)), 0).values
-
-
-def save_autoencoder(model: Autoencoder, path: str, meta: dict) -> None:
-    """Ship the autoencoder: config + fp16 weights + metadata (same layout as the coarse weights)."""
-    from hgca_core.models.checkpoint import save_weights
-
-    save_weights(model, model.cfg.to_dict(), path, {**meta, "kind": "autoencoder"})
-
-
-def autoencoder_from_blob(blob: dict) -> Autoencoder:
-    """An eval-mode float32 autoencoder from a {'config', 'state_dict'} dict."""
-    model = Autoencoder(AutoencoderConfig.from_dict(blob["config"]))
-    model.load_state_dict({k: (v.float() if v.is_floating_point() else v) for k, v in blob["state_dict"].items()})
-    return model.eval()
-
-
-def load_autoencoder(path: str, device: str = "cpu") -> Autoencoder:
-    from hgca_core.models.checkpoint import read_weights
-
-    return autoencoder_from_blob(read_weights(path)).to(device)

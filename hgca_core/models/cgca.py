@@ -24,7 +24,6 @@ upsample2(coarse cells) with zero latents), as in the paper.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Callable
 
 import numpy as np
@@ -33,7 +32,7 @@ import trimesh
 from torch import nn
 
 from hgca_core.geometry import coords as cs
-from hgca_core.models.autoencoder import Autoencoder, autoencoder_from_blob
+from hgca_core.models.autoencoder import Autoencoder
 from hgca_core.models.config import Config
 from hgca_core.nn.encoding import sinusoidal
 from hgca_core.nn.sparse import SparseConv3d, SparseConvTranspose3d, SparseTensor
@@ -247,38 +246,3 @@ def decode_mesh(autoencoder: Autoencoder, cells: torch.Tensor | np.ndarray, late
     with torch.no_grad():
         return udf_mesh(autoencoder, cells, latents, voxel=autoencoder.cfg.voxel, res=res, level=level,
                         chunk=chunk, tile=tile, min_faces=min_faces, project=project)
-
-
-# -- shipped weights: the kernel and the autoencoder it was trained with, in one file ---------------------------
-def save_fine(model: CGCAKernel, autoencoder: Autoencoder, path: str, meta: dict) -> None:
-    """fp16 state dicts of both networks + configs + metadata, written atomically."""
-    from pathlib import Path
-
-    def half(m: nn.Module) -> dict:
-        return {k: (v.half() if v.is_floating_point() else v) for k, v in m.state_dict().items()}
-
-    path = Path(path)
-    tmp = path.with_suffix(".tmp")
-    torch.save({"kind": "fine", "config": model.cfg.to_dict(), "state_dict": half(model),
-                "autoencoder": {"config": autoencoder.cfg.to_dict(), "state_dict": half(autoencoder)},
-                "meta": {**meta, "kind": "fine"}}, tmp)
-    tmp.replace(path)
-
-
-def fine_from_blob(blob: dict) -> tuple[CGCAKernel, Autoencoder]:
-    model = CGCAKernel(CGCAConfig.from_dict(blob["config"]))
-    model.load_state_dict({k: (v.float() if v.is_floating_point() else v) for k, v in blob["state_dict"].items()})
-    return model.eval(), autoencoder_from_blob(blob["autoencoder"])
-
-
-@lru_cache(maxsize=4)
-def load_fine(path: str, device: str = "cpu") -> tuple[CGCAKernel, Autoencoder, dict]:
-    """(kernel, autoencoder, meta) in eval mode, float32, on `device`; cached per (path, device)."""
-    from hgca_core.errors import InputError
-    from hgca_core.models.checkpoint import read_weights
-
-    blob = read_weights(path)
-    if blob.get("kind") != "fine" or "autoencoder" not in blob:
-        raise InputError("not a fine-stage weights file (expected kind 'fine' with an autoencoder)", str(path))
-    model, ae = fine_from_blob(blob)
-    return model.to(device).eval(), ae.to(device).eval(), blob["meta"]

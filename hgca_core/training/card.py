@@ -8,7 +8,8 @@ from pathlib import Path
 
 import torch
 
-from hgca_core.models.checkpoint import WEIGHTS_DIR
+from hgca_core.io.atomic import atomic_write
+from hgca_core.models.weights import WEIGHTS_DIR, load_file
 
 INTRO = """# hgca model card
 
@@ -35,7 +36,7 @@ paper (400k), so completions are rough; real scans (nuScenes, Waymo) are out of 
 
 
 def _section(path: Path) -> str:
-    blob = torch.load(path, map_location="cpu", weights_only=False)
+    blob = load_file(path)
     meta, cfg = blob["meta"], blob.get("config", {})
     dicts = [blob.get("state_dict", {})] + ([blob["autoencoder"]["state_dict"]] if "autoencoder" in blob else [])
     n_params = sum(v.numel() for d in dicts for v in d.values())
@@ -48,8 +49,9 @@ def _section(path: Path) -> str:
              f"- steps: {meta.get('steps')}, summed step wall time: {meta.get('train_wall_s')} s "
              f"over {len(sessions)} session(s)"]
     for s in sessions:
+        hardware = s.get("device_name") or s.get("cpu")   # runs before device_name was recorded kept the CPU's
         lines.append(f"  - session ended {s['ended']}: {s['steps']} steps in {s['wall_s']} s, device {s['device']}"
-                     f"{' (' + s['cpu'] + ')' if s.get('cpu') else ''}, {s['threads']} thread(s), "
+                     f"{' (' + hardware + ')' if hardware else ''}, {s['threads']} thread(s), "
                      f"world size {s['world_size']}")
     vals = [h for h in meta.get("history_tail", []) if h.get("kind") == "val"]
     trains = [h for h in meta.get("history_tail", []) if h.get("kind") == "train"]
@@ -89,5 +91,5 @@ def write_model_card(weights_dir: Path = WEIGHTS_DIR) -> Path:
                 parts.append(f"- {name}: {sec:.1f} s per completion (eval process, CPU){origin}")
             parts.append("")
     out = weights_dir / "MODEL_CARD.md"
-    out.write_text("\n".join(parts))
+    atomic_write(out, lambda f: f.write("\n".join(parts).encode()))
     return out

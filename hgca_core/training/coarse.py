@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -43,9 +42,9 @@ class CoarseLoss(nn.Module):
             loss = loss + cfg.beta * loss_bev
             stats["loss_bev"] = float(loss_bev.detach())
         with torch.no_grad():  # infusion kernel q^t: Ber((1 - a_t) lambda + a_t 1[c in gt])
-            a = torch.tensor([alpha(cfg, c.t) for c in chains])[nbhd[:, 0]]
+            a = torch.tensor([alpha(cfg, c.t) for c in chains], device=nbhd.device)[nbhd[:, 0]]
             p = (1 - a) * torch.sigmoid(logits) + a * target
-            keep = torch.rand(p.shape) < p
+            keep = torch.rand(p.shape, device=p.device) < p
             nxt = nbhd[keep]
             new_states = [nxt[nxt[:, 0] == i, 1:] for i in range(b)]
             stats["cells"] = float(len(nbhd)) / b
@@ -79,26 +78,15 @@ class CoarseTask:
         from hgca_core.metrics.iou import iou
 
         files = split_files(self.data_dir, "val")[: self.val_count]
+        dev = next(loss_module.parameters()).device
         scores = []
         for k, path in enumerate(files):
             rng = np.random.default_rng(1000 + k)  # fixed crops: the curve compares like with like
             s0, gt, full = coarse_pair(path)
             vis = load_arrays(str(path), ("visible20",))["visible20"].astype(np.int64)
             (s0_t, gt_t, vis_t), grid = crop_flip([s0, gt, vis], full, self.crop, rng)
-            gen = torch.Generator().manual_seed(seed + k)
-            out = sample(loss_module.model, cs.with_batch(s0_t), grid, self.cfg.steps, gen)
-            scores.append(iou(out[:, 1:].numpy(), gt_t.numpy(), vis_t.numpy()))
+            gen = torch.Generator(dev).manual_seed(seed + k)
+            out = sample(loss_module.model, cs.with_batch(s0_t.to(dev)), grid, self.cfg.steps, gen)
+            scores.append(iou(out[:, 1:].cpu().numpy(), gt_t.numpy(), vis_t.numpy()))
         loss_module.train()
         return {"val_iou": float(np.nanmean(scores)) if np.any(np.isfinite(scores)) else float("nan")}
-
-
-def default_config(use_planner: bool = True) -> GCAConfig:
-    return GCAConfig(use_planner=use_planner)
-
-
-def run_name(use_planner: bool) -> str:
-    return "coarse" if use_planner else "coarse_noplanner"
-
-
-def weights_path(use_planner: bool) -> Path:
-    return Path(__file__).resolve().parents[1] / "weights" / f"{run_name(use_planner)}.pt"

@@ -30,12 +30,12 @@ from torch import nn
 from hgca_core.geometry import coords as cs
 from hgca_core.geometry.voxel import FINE, unique_rows
 from hgca_core.meshing import udf_surface_points
-from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig, load_autoencoder
+from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel, _gather, _table, alpha, sample
-from hgca_core.models.checkpoint import WEIGHTS_DIR
+from hgca_core.models.weights import load_autoencoder, load_file, save_weights, shipped, trained_weights
 from hgca_core.training.buffer import Chain
 from hgca_core.training.data import draw_crop, grids, load_arrays, split_files
-from hgca_core.training.trainer import run_record, trained_weights
+from hgca_core.training.trainer import run_record
 
 KEYS = ("input_points", "gt_occ10", "gt_occ20", "gt_surface", "udf_points", "udf_dist")
 CD_PENALTY = 1.0  # metres: Chamfer reported when a decoded crop has no surface at all
@@ -83,7 +83,7 @@ def gt_latents(autoencoder: Autoencoder, cells: torch.Tensor, udf_p: torch.Tenso
     d = torch.cat([udf_d.float(), torch.zeros(len(surf))])
     perm = torch.randperm(len(p), generator=torch.Generator().manual_seed(seed))
     cells4, z = autoencoder.encode(p[perm], d[perm], cells=cells)
-    return z[cs.lookup(cs.with_batch(cells.long()), cs.pack(cells4))]  # back to the caller's cell order
+    return z[cs.lookup(cs.with_batch(cells.long().to(cells4.device)), cs.pack(cells4))]  # the caller's cell order
 
 
 # -- autoencoder ------------------------------------------------------------------------------------------------
@@ -105,17 +105,18 @@ class AutoencoderLoss(nn.Module):
         GT mode: a random share of the distance pairs and of the surface points, encoded into the GT cells that
         have a pair within the encoder's reach (what `gt_latents` does with all of them).
         """
-        v = self.cfg.voxel
+        v, dev = self.cfg.voxel, gt.device
         if float(torch.rand(())) < self.lidar_prob:
             src = ex["lidar"] if len(ex["lidar"]) and float(torch.rand(())) < 0.5 else ex["surf"]
             frac = 10 ** float(torch.empty(()).uniform_(-1.5, 0.0))
-            p = src[torch.rand(len(src)) < frac]
-            return p, torch.zeros(len(p)), torch.unique(torch.round(p / v).long(), dim=0)
+            p = src[torch.rand(len(src), device=dev) < frac]
+            return p, torch.zeros(len(p), device=dev), torch.unique(torch.round(p / v).long(), dim=0)
         f_pairs = 10 ** float(torch.empty(()).uniform_(-1.5, 0.0))
         f_surf = float(torch.rand(())) if float(torch.rand(())) < 0.7 else 0.0
-        mp, ms = torch.rand(len(ex["udf_p"])) < f_pairs, torch.rand(len(ex["surf"])) < f_surf
+        mp = torch.rand(len(ex["udf_p"]), device=dev) < f_pairs
+        ms = torch.rand(len(ex["surf"]), device=dev) < f_surf
         p = torch.cat([ex["udf_p"][mp], ex["surf"][ms]])
-        d = torch.cat([ex["udf_d"][mp], torch.zeros(int(ms.sum()))])
+        d = torch.cat([ex["udf_d"][mp], torch.zeros(int(ms.sum()), device=dev)])
         own = cs.unique(cs.with_batch(torch.round(p / v).long()))
         reach = cs.dilate(own, self.cfg.enc_radius) if self.cfg.enc_radius > 0 else own
         return p, d, gt[cs.isin(cs.with_batch(gt), reach)]
@@ -124,19 +125,19 @@ class AutoencoderLoss(nn.Module):
         cfg = self.cfg
         ps, ds, bs, cells, qs, qd, qb = [], [], [], [], [], [], []
         for b, ch in enumerate(chains):
-            ex = ch.extra
+            ex, dev = ch.extra, ch.gt.device
             p, d, c = self._encoder_input(ex, ch.gt)
             ps.append(p)
             ds.append(d)
-            bs.append(torch.full((len(p),), b))
+            bs.append(torch.full((len(p),), b, device=dev))
             cells.append(cs.with_batch(c, b))
             n_pairs = min(len(ex["udf_p"]), cfg.queries)
             n_surf = min(len(ex["surf"]), cfg.queries // 4)
-            ip = torch.randperm(len(ex["udf_p"]))[:n_pairs]
-            isf = torch.randperm(len(ex["surf"]))[:n_surf]
+            ip = torch.randperm(len(ex["udf_p"]), device=dev)[:n_pairs]
+            isf = torch.randperm(len(ex["surf"]), device=dev)[:n_surf]
             qs += [ex["udf_p"][ip], ex["surf"][isf]]
-            qd += [ex["udf_d"][ip], torch.zeros(n_surf)]
-            qb.append(torch.full((n_pairs + n_surf,), b))
+            qd += [ex["udf_d"][ip], torch.zeros(n_surf, device=dev)]
+            qb.append(torch.full((n_pairs + n_surf,), b, device=dev))
         cells4, z = self.model.encode(torch.cat(ps), torch.cat(ds), torch.cat(bs), cells=torch.cat(cells))
         keys, order = torch.sort(cs.pack(cells4))
         hp = self.model.cell_features(cells4[order], z[order])
@@ -235,10 +236,11 @@ class FineLoss(nn.Module):
         loss_lat = ((mu[on] - z_target[on]) ** 2).mean() if bool(on.any()) else mu.sum() * 0
         loss = loss_occ + cfg.latent_weight * loss_lat
         with torch.no_grad():
-            a = torch.tensor([alpha(cfg, c.t) for c in chains])[nbhd[:, 0]]
-            infuse = torch.rand(len(nbhd)) < a
-            occ = torch.where(infuse, on, torch.rand(len(nbhd)) < torch.sigmoid(logits))
-            z_next = mu + cfg.sigma * torch.randn(mu.shape)
+            dev = nbhd.device
+            a = torch.tensor([alpha(cfg, c.t) for c in chains], device=dev)[nbhd[:, 0]]
+            infuse = torch.rand(len(nbhd), device=dev) < a
+            occ = torch.where(infuse, on, torch.rand(len(nbhd), device=dev) < torch.sigmoid(logits))
+            z_next = mu + cfg.sigma * torch.randn(mu.shape, device=dev)
             z_next = torch.where((infuse & on)[:, None], z_target, z_next)
             nxt, zn = nbhd[occ], z_next[occ]
             new_states = []
@@ -312,36 +314,21 @@ class FineTask:
         return {"val_iou": float(np.mean(ious)), "val_cd": float(np.mean(cds))}
 
 
-# -- weights --------------------------------------------------------------------------------------------------------
-def autoencoder_weights_path() -> Path:
-    return WEIGHTS_DIR / "autoencoder.pt"
-
-
-def fine_weights_path() -> Path:
-    return WEIGHTS_DIR / "fine.pt"
-
-
+# -- export -------------------------------------------------------------------------------------------------------
 def export_autoencoder(ckpt_path: str | Path, dest: str | Path | None = None, meta: dict | None = None) -> Path:
-    """Write the autoencoder of a training checkpoint as shipped weights (default hgca_core/weights/)."""
-    from hgca_core.models.autoencoder import save_autoencoder
-
-    ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+    """Write the autoencoder of a training checkpoint as weights (default: the packaged autoencoder.pt)."""
+    ck = load_file(ckpt_path)
     module = AutoencoderLoss(AutoencoderConfig.from_dict(ck["config"]))
     module.load_state_dict(trained_weights(ck))
-    dest = Path(dest or autoencoder_weights_path())
-    save_autoencoder(module.model, str(dest), {"kind": "autoencoder", **run_record(ck), **(meta or {})})
-    return dest
+    return save_weights(dest or shipped("autoencoder"), module.model, {**run_record(ck), **(meta or {})})
 
 
 def export_fine(ckpt_path: str | Path, autoencoder: str | Path, dest: str | Path | None = None,
                 meta: dict | None = None) -> Path:
     """Write the cGCA kernel of a training checkpoint together with its autoencoder (one file, kind 'fine')."""
-    from hgca_core.models.cgca import save_fine
-
-    ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+    ck = load_file(ckpt_path)
     module = FineLoss(CGCAConfig.from_dict(ck["config"]))
     module.load_state_dict(trained_weights(ck))
-    dest = Path(dest or fine_weights_path())
-    save_fine(module.model, load_autoencoder(str(autoencoder)), str(dest),
-              {"kind": "fine", **run_record(ck), "autoencoder": str(autoencoder), **(meta or {})})
-    return dest
+    return save_weights(dest or shipped("fine"), module.model,
+                        {**run_record(ck), "autoencoder": str(autoencoder), **(meta or {})},
+                        autoencoder=load_autoencoder(autoencoder))

@@ -26,6 +26,9 @@ import torch.distributed as dist
 from torch import nn
 from tqdm import tqdm
 
+from hgca_core.hardware import cpu_name, device_name, resolve_device
+from hgca_core.io.atomic import atomic_write
+from hgca_core.models.weights import load_file, save_file
 from hgca_core.training.buffer import Chain, ChainBuffer
 
 
@@ -65,11 +68,6 @@ class EMA:
         self.module.load_state_dict(d["model"])
 
 
-def trained_weights(ck: dict) -> dict:
-    """The weights to ship or evaluate from a training checkpoint: the EMA when it has one."""
-    return ck["ema"]["model"] if ck.get("ema") else ck["model"]
-
-
 def run_record(ck: dict) -> dict:
     """What shipped weights record of the run that made them (the model card renders it): steps, summed step
     time, sessions, notes, the samples any session trained on, validation history and the last training logs."""
@@ -107,61 +105,103 @@ class _StopOnSignal:
         self.saved = {}
 
 
-def _atomic_save(obj: Any, path: Path) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
-def _dist() -> tuple[int, int]:
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
-        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+def _dist(device: str) -> tuple[int, int, torch.device]:
+    """(rank, world size, this rank's device). Under torchrun a CUDA run puts rank r on cuda:LOCAL_RANK and
+    uses NCCL; a CPU run uses gloo (whether or not the machine has a GPU)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    local = int(os.environ.get("LOCAL_RANK", "0")) if world > 1 else None
+    dev = resolve_device(device, local)
+    if dev.type == "cuda":
+        torch.cuda.set_device(dev)
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
     if dist.is_initialized():
-        return dist.get_rank(), dist.get_world_size()
-    return 0, 1
+        return dist.get_rank(), dist.get_world_size(), dev
+    return 0, 1, dev
+
+
+def _stream_seed(seed: int, rank: int, step: int) -> int:
+    """A seed for a rank that has no saved stream (a run resumed on more ranks than it was saved with)."""
+    return int(np.random.SeedSequence([seed, rank, step]).generate_state(1)[0])
+
+
+def _rng_state(device: torch.device) -> dict:
+    """This rank's torch generators as tensors (the CPU one, and the device's on a GPU)."""
+    return {"torch": torch.get_rng_state(),
+            "cuda": torch.cuda.get_rng_state(device) if device.type == "cuda" else None}
+
+
+def _set_rng_state(d: dict, device: torch.device) -> None:
+    torch.set_rng_state(d["torch"])
+    if device.type == "cuda" and d.get("cuda") is not None:
+        torch.cuda.set_rng_state(d["cuda"], device)
+
+
+def _gather(obj: dict, rank: int, world: int) -> list[dict] | None:
+    """Every rank's `obj` on rank 0 (None elsewhere); one process: [obj]."""
+    if world == 1:
+        return [obj]
+    out: list | None = [None] * world if rank == 0 else None
+    dist.gather_object(obj, out, dst=0)
+    return out
 
 
 def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False, batch: int = 2,
           buffer_size: int = 8, lr: float = 5e-4, clip: float = 0.5, seed: int = 0,
           val_every_min: float = 10.0, ckpt_every_min: float = 5.0, max_steps: int | None = None,
-          progress: bool = True, ema_decay: float = 0.999) -> dict:
-    """Train `task` for `minutes` of wall time (or `max_steps`), resuming from out_dir/ckpt.pt if asked."""
-    rank, world = _dist()
+          progress: bool = True, ema_decay: float = 0.999, device: str = "cpu") -> dict:
+    """Train `task` for `minutes` of wall time (or `max_steps`), resuming from out_dir/ckpt.pt if asked.
+
+    `device` 'cuda' trains on the GPU (each torchrun rank on its own, cuda:LOCAL_RANK): the model, its optimiser
+    state, the weight average and the chain buffer live there. Every rank draws from its own random streams
+    (torch and numpy, seeded with seed + rank) and the checkpoint keeps each rank's streams and chains, so a
+    resumed run continues every rank where it stopped: one process resumed gives bit for bit the run that never
+    stopped. Validation runs on rank 0 on the CPU (it meshes and measures with numpy / scipy)."""
+    rank, world, dev = _dist(device)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "ckpt.pt"
-    torch.manual_seed(seed + rank)
-    module = task.build()
+    torch.manual_seed(seed + rank)            # seeds the CPU generator and every GPU's
+    module = task.build().to(dev)
     optim = torch.optim.Adam(module.parameters(), lr=lr)
-    buffer = ChainBuffer(buffer_size, task.new_example, task.cfg.steps, np.random.default_rng(seed + 7919 * rank))
+    buffer = ChainBuffer(buffer_size, task.new_example, task.cfg.steps, np.random.default_rng(seed + 7919 * rank), dev)
     state = {"step": 0, "elapsed_s": 0.0, "history": [], "sessions": []}
     ema_state = None
     if resume and ckpt_path.exists():
-        ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        ck = load_file(ckpt_path)
         module.load_state_dict(ck["model"])
-        optim.load_state_dict(ck["optim"])
+        optim.load_state_dict(ck["optim"])     # moves its state to the parameters' device
         state = ck["state"]
-        if rank == 0 and ck.get("buffer") is not None:
-            buffer.load_state_dict(ck["buffer"])
-        torch.set_rng_state(ck["torch_rng"])
+        ranks = ck["ranks"] if "ranks" in ck else [{"rng": {"torch": ck["torch_rng"]}, "buffer": ck.get("buffer")}]
+        if rank < len(ranks):
+            if ranks[rank].get("buffer") is not None:
+                buffer.load_state_dict(ranks[rank]["buffer"])
+            _set_rng_state(ranks[rank]["rng"], dev)
+        else:                                  # more ranks than the run was saved with: new streams of their own
+            torch.manual_seed(_stream_seed(seed, rank, state["step"]))
+            buffer.rng = np.random.default_rng(_stream_seed(seed + 1, rank, state["step"]))
         ema_state = ck.get("ema")
     elif resume and rank == 0:
         print(f"no checkpoint at {ckpt_path}: starting from scratch")
     ema = EMA(module, ema_decay)  # a checkpoint from before the EMA existed starts it at its weights
     if ema_state:
         ema.load_state_dict(ema_state)
-    ddp = nn.parallel.DistributedDataParallel(module) if world > 1 else module
+    ddp = nn.parallel.DistributedDataParallel(module, device_ids=[dev.index] if dev.type == "cuda" else None) \
+        if world > 1 else module
     module.train()
 
     def checkpoint() -> None:
+        """Collective under DDP: every rank hands rank 0 its streams and chains."""
+        ranks = _gather({"rng": _rng_state(dev), "buffer": buffer.state_dict()}, rank, world)
         if rank == 0:
-            _atomic_save({"model": module.state_dict(), "optim": optim.state_dict(), "state": state,
-                          "buffer": buffer.state_dict(), "torch_rng": torch.get_rng_state(), "ema": ema.state_dict(),
-                          "config": task.cfg.to_dict(), "task": task.name}, ckpt_path)
+            save_file({"model": _cpu(module.state_dict()), "optim": _cpu(optim.state_dict()), "state": state,
+                       "ranks": ranks, "ema": _cpu(ema.state_dict()), "config": task.cfg.to_dict(),
+                       "task": task.name}, ckpt_path)
 
     def validate() -> None:
         if rank == 0:
-            metrics = task.validate(ema.module)
+            model = ema.module if dev.type == "cpu" else copy.deepcopy(ema.module).cpu()
+            metrics = task.validate(model)
             ema.module.eval()
             state["history"].append({"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1),
                                      "kind": "val", **metrics})
@@ -177,14 +217,23 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
     steps_this_session = 0
     with _StopOnSignal() as stop_asked:
         while True:
-            spent = time.time() - session_start
-            stop = spent >= budget or (max_steps is not None and steps_this_session >= max_steps) or stop_asked.flag
-            if world > 1:  # every rank stops at the same step
-                flag = torch.tensor([1.0 if stop else 0.0])
-                dist.all_reduce(flag, op=dist.ReduceOp.MAX)
-                stop = bool(flag.item())
+            # stop / validate / checkpoint are decided together on every rank (checkpoints are collective)
+            now = time.time()
+            flags = [now - session_start >= budget or (max_steps is not None and steps_this_session >= max_steps)
+                     or stop_asked.flag, now - last_val >= val_every_min * 60, now - last_ckpt >= ckpt_every_min * 60]
+            if world > 1:
+                t = torch.tensor([float(f) for f in flags], device=dev)
+                dist.all_reduce(t, op=dist.ReduceOp.MAX)
+                flags = [bool(v) for v in t.tolist()]
+            stop, val_due, ckpt_due = flags
             if stop:
                 break
+            if val_due and steps_this_session:
+                validate()
+                last_val = time.time()
+            if ckpt_due and steps_this_session:
+                checkpoint()
+                last_ckpt = time.time()
             t0 = time.time()
             idx = buffer.take(batch)
             chains = [buffer.chains[i] for i in idx]
@@ -196,6 +245,8 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
             ema.update(module)
             for i, s in zip(idx, new_states):
                 buffer.advance(i, s)
+            if dev.type == "cuda":
+                torch.cuda.synchronize(dev)    # step times measure the work, not its queueing
             dt = time.time() - t0
             state["step"] += 1
             state["elapsed_s"] += dt
@@ -210,28 +261,28 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
                 stats_acc = {}
                 if not progress:  # a log line for runs in the background
                     print(json.dumps(state["history"][-1]), flush=True)
-            if time.time() - last_val >= val_every_min * 60:
-                validate()
-                last_val = time.time()
-            if time.time() - last_ckpt >= ckpt_every_min * 60:
-                checkpoint()
-                last_ckpt = time.time()
     bar.close()
     validate()
     state["sessions"].append({"ended": time.strftime("%Y-%m-%d %H:%M:%S"), "steps": steps_this_session,
                               "wall_s": round(time.time() - session_start, 1), "world_size": world,
-                              "device": "cpu", "threads": torch.get_num_threads(), "cpu": _cpu_name(),
+                              "device": dev.type, "device_name": device_name(dev), "cpu": cpu_name(),
+                              "threads": torch.get_num_threads(),
                               "train_samples": [Path(f).name for f in getattr(task, "train_files", [])]})
     checkpoint()
     if rank == 0:
-        (out / "history.json").write_text(json.dumps(state["history"], indent=1))
+        atomic_write(out / "history.json", lambda f: f.write(json.dumps(state["history"], indent=1).encode()))
     return state
 
 
-def _cpu_name() -> str:
-    from hgca_core.bench import machine
-
-    return machine()["cpu"]
+def _cpu(x: Any) -> Any:
+    """A state dict (nested dicts / lists of tensors) with every tensor on the CPU, for the checkpoint."""
+    if isinstance(x, torch.Tensor):
+        return x.cpu()
+    if isinstance(x, dict):
+        return {k: _cpu(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_cpu(v) for v in x]
+    return x
 
 
 def plot_history(history: list[dict], path: Path, title: str) -> None:
@@ -252,7 +303,5 @@ def plot_history(history: list[dict], path: Path, title: str) -> None:
         ax[1].plot([h["step"] for h in va], [h[key] for h in va], "o-")
     ax[1].set(xlabel="step", ylabel=key or "validation", title=f"{title}: validation")
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=80)
+    atomic_write(path, lambda f: fig.savefig(f, dpi=80, format="png"))
     plt.close(fig)
-    os.replace(tmp, path)

@@ -1,7 +1,6 @@
 """Fixtures for tests on real bpy: the add-on loaded as an extension from a staged local repository."""
 from __future__ import annotations
 
-import importlib.util
 import sys
 
 from bl_helpers import ADDON, REPO, REPO_MODULE, addon_module, prefs  # sets BLENDER_USER_RESOURCES first
@@ -40,24 +39,7 @@ def empty_file(request: pytest.FixtureRequest):
 
 
 @pytest.fixture(scope="session")
-def coarse_weights(tmp_path_factory: pytest.TempPathFactory) -> str:
-    """Weights for real `hgca complete` runs: "" for the shipped ones, else an untrained checkpoint.
-
-    Before trained weights are shipped, a freshly initialised model (made with the core's own classes)
-    still exercises the whole pipeline: reading, sampling, meshing and the .npz contract.
-    """
-    if importlib.util.find_spec("hgca_core.commands.complete") is None:
-        pytest.skip("hgca_core.commands.complete cannot be imported: `hgca complete` does not exist yet")
-    shipped = REPO / "hgca_core" / "weights" / "coarse.pt"
-    if shipped.is_file():
-        return ""
-    import torch
-
-    from hgca_core.models.checkpoint import save_weights
-    from hgca_core.models.gca import GCAConfig, GCAKernel
-
-    torch.manual_seed(0)
-    cfg = GCAConfig(use_planner=True)
-    path = tmp_path_factory.mktemp("weights") / "coarse_untrained.pt"
-    save_weights(GCAKernel(cfg), cfg.to_dict(), path, {"kind": "coarse", "note": "untrained, tests only"})
-    return str(path)
+def coarse_weights() -> str:
+    """Weights for real `hgca complete` runs: "" selects the packaged ones, which the add-on uses by default."""
+    assert (REPO / "hgca_core" / "weights" / "coarse.pt").is_file(), "the package must ship its coarse weights"
+    return ""

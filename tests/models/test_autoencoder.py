@@ -6,9 +6,10 @@ import pytest
 import torch
 
 from hgca_core.geometry.voxel import downsample, voxelize_fine
-from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig, load_autoencoder
+from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
+from hgca_core.models.weights import load_autoencoder, load_file, trained_weights
 from hgca_core.training.fine import AutoencoderTask, chamfer, export_autoencoder
-from hgca_core.training.trainer import train, trained_weights
+from hgca_core.training.trainer import train
 
 SMALL = AutoencoderConfig(enc_hidden=16, mlp_hidden=16, dec_channels=16, latent=8)  # enc_radius 1
 
@@ -148,8 +149,8 @@ def test_training_reconstructs_held_out_surfaces(tmp_path):
     assert val["val_cd_lidar"] < 0.04, val   # latents from sparse zero-distance points (the LiDAR case)
     # shipped weights (fp16) decode the same field
     dest = export_autoencoder(tmp_path / "run" / "ckpt.pt", tmp_path / "ae.pt")
-    ae2 = load_autoencoder(str(dest))
-    ck = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=False)
+    ae2 = load_autoencoder(dest)
+    ck = load_file(tmp_path / "run" / "ckpt.pt")
     ae1 = Autoencoder(cfg)
     ae1.load_state_dict({k[len("model."):]: v for k, v in trained_weights(ck).items()})
     cells = torch.tensor([[x, y, 3] for x in range(4) for y in range(4)])

@@ -9,9 +9,9 @@ from scipy.spatial import cKDTree
 
 from hgca_core.geometry import coords as cs
 from hgca_core.geometry.voxel import downsample, voxelize_fine
-from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig, save_autoencoder
-from hgca_core.models.cgca import (CGCAConfig, CGCAKernel, decode_mesh, initial_state, load_fine,
-                                   sample, upsample)
+from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
+from hgca_core.models.cgca import CGCAConfig, CGCAKernel, decode_mesh, initial_state, sample, upsample
+from hgca_core.models.weights import load_file, load_fine, save_weights
 from hgca_core.training.buffer import Chain, ChainBuffer
 from hgca_core.training.fine import FineLoss, FineTask, export_fine
 from hgca_core.training.trainer import train
@@ -189,16 +189,16 @@ def test_fine_task_trains_exports_and_runs_the_pipeline_calls(tmp_path):
         for s in seeds:
             np.savez(root / split / f"sample_{s:07d}.npz", **_scene(s))
     ae = Autoencoder(AutoencoderConfig(latent=K, enc_hidden=8, mlp_hidden=8, dec_channels=8))
-    save_autoencoder(ae, str(tmp_path / "ae.pt"), {"note": "untrained"})
+    save_weights(tmp_path / "ae.pt", ae, {"note": "untrained"})
     cfg = CGCAConfig(**{**TINY.to_dict(), "crop": 16, "steps": 3})
     task = FineTask(str(root), cfg, str(tmp_path / "ae.pt"), val_count=1)
     state = train(task, tmp_path / "run", minutes=5, max_steps=3, batch=2, buffer_size=2, progress=False)
     val = state["history"][-1]
     assert val["kind"] == "val" and 0.0 <= val["val_iou"] <= 1.0 and val["val_cd"] > 0
-    ck = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=False)
-    assert all(len(c["extra"]["zt"]) == len(c["state"]) for c in ck["buffer"]["chains"])
+    ck = load_file(tmp_path / "run" / "ckpt.pt")
+    assert all(len(c["extra"]["zt"]) == len(c["state"]) for c in ck["ranks"][0]["buffer"]["chains"])
     dest = export_fine(tmp_path / "run" / "ckpt.pt", tmp_path / "ae.pt", tmp_path / "fine.pt")
-    model, ae2, meta = load_fine(str(dest))
+    model, ae2, meta = load_fine(dest)
     assert meta["kind"] == "fine" and meta["steps"] == 3 and model.cfg.steps == 3
     s = np.load(root / "val" / "sample_0000009.npz")
     grid10 = (32, 32, 20)

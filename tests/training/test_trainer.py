@@ -3,11 +3,13 @@ import os
 import subprocess
 import sys
 
+import pytest
 import torch
 
-from hgca_core.training.coarse import CoarseTask
 from hgca_core.models.gca import GCAConfig
-from hgca_core.training.trainer import EMA, train, trained_weights
+from hgca_core.models.weights import load_file, trained_weights
+from hgca_core.training.coarse import CoarseTask
+from hgca_core.training.trainer import EMA, train
 
 SMALL = dict(channels=(8, 8, 16, 16, 16))
 
@@ -16,22 +18,62 @@ def _task(data, planner=True):
     return CoarseTask(str(data), GCAConfig(use_planner=planner, steps=4, **SMALL), crop=24, val_count=1)
 
 
+def assert_identical(a, b, where="checkpoint"):
+    """Nested dicts / lists / tuples of tensors and plain values equal bit for bit."""
+    if isinstance(a, torch.Tensor):
+        assert isinstance(b, torch.Tensor) and a.dtype == b.dtype and torch.equal(a, b), where
+    elif isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), f"{where}: keys {sorted(a)} != {sorted(b)}"
+        for k in a:
+            assert_identical(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, (list, tuple)):
+        assert type(a) is type(b) and len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_identical(x, y, f"{where}[{i}]")
+    else:
+        assert a == b, f"{where}: {a!r} != {b!r}"
+
+
 def test_budgeted_training_checkpoints_and_resumes_exactly(tiny_dataset, tmp_path):
     out = tmp_path / "run"
     s1 = train(_task(tiny_dataset), out, minutes=5, max_steps=3, batch=2, buffer_size=3, progress=False)
     assert s1["step"] == 3 and (out / "ckpt.pt").exists() and (out / "curve.png").exists()
-    ck = torch.load(out / "ckpt.pt", weights_only=False)
-    assert ck["state"]["step"] == 3 and len(ck["buffer"]["chains"]) == 3
-    ts = [c["t"] for c in ck["buffer"]["chains"]]
+    ck = load_file(out / "ckpt.pt")   # weights_only: the checkpoint holds tensors and plain values only
+    assert ck["state"]["step"] == 3 and len(ck["ranks"]) == 1 and len(ck["ranks"][0]["buffer"]["chains"]) == 3
+    ts = [c["t"] for c in ck["ranks"][0]["buffer"]["chains"]]
     assert max(ts) >= 1  # chains advanced by infusion steps
     assert ck["ema"]["n"] == 3
     assert any(not torch.equal(ck["ema"]["model"][k], ck["model"][k]) for k in ck["model"])  # an average, not a copy
     assert trained_weights(ck) is ck["ema"]["model"]
     s2 = train(_task(tiny_dataset), out, minutes=5, max_steps=2, resume=True, batch=2, buffer_size=3, progress=False)
     assert s2["step"] == 5 and len(s2["sessions"]) == 2
-    assert torch.load(out / "ckpt.pt", weights_only=False)["ema"]["n"] == 5  # the average resumes too
     hist = json.loads((out / "history.json").read_text())
     assert [h for h in hist if h["kind"] == "val"] and all(0.0 <= h["val_iou"] <= 1.0 for h in hist if h["kind"] == "val")
+    # 3 steps + resume + 2 steps is the run of 5 straight steps: weights, optimiser, average, chains, streams
+    straight = train(_task(tiny_dataset), tmp_path / "straight", minutes=5, max_steps=5, batch=2, buffer_size=3,
+                     progress=False)
+    assert straight["step"] == 5
+    resumed, once = load_file(out / "ckpt.pt"), load_file(tmp_path / "straight" / "ckpt.pt")
+    assert resumed["ema"]["n"] == 5  # the average resumes too
+    for key in ("model", "optim", "ema", "ranks"):
+        assert_identical(resumed[key], once[key], key)
+    assert resumed["optim"]["state"][0]["step"] == 5
+
+
+def test_run_record_names_the_device_used(tiny_dataset, tmp_path):
+    from hgca_core.hardware import cpu_name
+
+    s = train(_task(tiny_dataset, planner=False), tmp_path / "d", minutes=5, max_steps=1, batch=1, buffer_size=1,
+              progress=False, device="cpu")
+    ses = s["sessions"][-1]
+    assert ses["device"] == "cpu" and ses["device_name"] == cpu_name() and ses["device_name"]
+    from hgca_core.errors import InputError
+
+    with pytest.raises(InputError, match="--device must be cpu, cuda or cuda:N"):
+        train(_task(tiny_dataset, planner=False), tmp_path / "e", minutes=5, max_steps=1, device="tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(InputError, match="sees no CUDA GPU"):
+            train(_task(tiny_dataset, planner=False), tmp_path / "e", minutes=5, max_steps=1, device="cuda")
 
 
 def test_loss_falls_when_overfitting_one_example(tiny_dataset, tmp_path):
@@ -41,16 +83,30 @@ def test_loss_falls_when_overfitting_one_example(tiny_dataset, tmp_path):
     assert losses[-1] < 0.7 * losses[0]
 
 
-def test_torchrun_two_cpu_ranks(tiny_dataset, tmp_path):
+def test_torchrun_two_cpu_ranks_with_their_own_streams(tiny_dataset, tmp_path):
+    """Two gloo ranks: each draws its own chains and keeps its own random streams, also across a resume."""
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29533",
            "-m", "hgca_core.cli", "train", "coarse", "--data", str(tiny_dataset), "--out", str(tmp_path / "ddp"),
            "--max-steps", "2", "--minutes", "5", "--crop", "24", "--batch", "1", "--buffer", "2",
-           "--channels", "8,8,16,16,16", "--no-progress"]
+           "--channels", "8,8,16,16,16", "--no-progress", "--device", "cpu"]
     res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
-    ck = torch.load(tmp_path / "ddp" / "ckpt.pt", weights_only=False)
+    ck = load_file(tmp_path / "ddp" / "ckpt.pt")
     assert ck["state"]["step"] == 2 and ck["state"]["sessions"][0]["world_size"] == 2
+    r0, r1 = ck["ranks"]
+    assert not torch.equal(r0["rng"]["torch"], r1["rng"]["torch"])
+    assert r0["buffer"]["rng"] != r1["buffer"]["rng"]
+    assert [c["t"] for c in r1["buffer"]["chains"]] == [1, 1]   # batch 1, 2 chains, 2 steps
+    res = subprocess.run([*cmd[:cmd.index("--max-steps") + 1], "1", *cmd[cmd.index("--max-steps") + 2:], "--resume"],
+                         capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    again = load_file(tmp_path / "ddp" / "ckpt.pt")
+    a0, a1 = again["ranks"]
+    assert again["state"]["step"] == 3 and not torch.equal(a0["rng"]["torch"], a1["rng"]["torch"])
+    for before, after in ((r0, a0), (r1, a1)):   # each rank went on with its own chains, not fresh ones
+        assert sorted(c["t"] for c in after["buffer"]["chains"]) == [1, 2]
+        assert torch.equal(after["buffer"]["chains"][1]["s0"], before["buffer"]["chains"][1]["s0"])
 
 
 def test_ema_warms_up_then_averages():
@@ -90,7 +146,7 @@ def test_sigterm_stops_after_the_step_with_a_checkpoint(tiny_dataset, tmp_path):
         proc.kill()
     assert proc.returncode == 0, err[-2000:]
     assert time.time() - t0 < 60 and "SIGTERM: stopping" in out
-    ck = torch.load(tmp_path / "sig" / "ckpt.pt", weights_only=False)
+    ck = load_file(tmp_path / "sig" / "ckpt.pt")
     assert ck["state"]["step"] >= 10 and len(ck["state"]["sessions"]) == 1
     assert [h for h in ck["state"]["history"] if h["kind"] == "val"]   # validated on the way out
 

@@ -1,0 +1,167 @@
+"""The one weights module: round trips for every kind, the packaged files, and refusals that name the file and
+say what it is (a pickle that would run code, the wrong kind of weights, a config that does not fit)."""
+import os
+import pickle
+
+import pytest
+import torch
+
+from hgca_core.errors import InputError
+from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
+from hgca_core.models.cgca import CGCAConfig, CGCAKernel
+from hgca_core.models.gca import GCAConfig, GCAKernel
+from hgca_core.models.weights import (KINDS, WEIGHTS_DIR, identify, load_autoencoder, load_coarse, load_file,
+                                      load_fine, save_file, save_weights, shipped)
+
+SMALL_AE = AutoencoderConfig(latent=4, enc_hidden=8, mlp_hidden=8, dec_channels=8)
+
+
+class Payload:
+    """Unpickling this runs `touch MARKER` (what a hostile weights file does)."""
+
+    def __init__(self, marker: str) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    torch.manual_seed(0)
+    d = tmp_path_factory.mktemp("weights")
+    coarse = GCAKernel(GCAConfig(channels=(8, 8, 16, 16, 16), steps=3))
+    ae = Autoencoder(SMALL_AE)
+    fine = CGCAKernel(CGCAConfig(latent=4, channels=(8, 8, 8, 8, 8), steps=2))
+    return {"coarse": save_weights(d / "coarse.pt", coarse, {"note": "test"}),
+            "autoencoder": save_weights(d / "ae.pt", ae),
+            "fine": save_weights(d / "fine.pt", fine, autoencoder=ae),
+            "models": {"coarse": coarse, "autoencoder": ae, "fine": fine}}
+
+
+def _same_as_fp16(model: torch.nn.Module, loaded: torch.nn.Module) -> None:
+    """Loaded float32 tensors are the saved fp16 values exactly; integer buffers are unchanged."""
+    got = loaded.state_dict()
+    for k, v in model.state_dict().items():
+        want = v.half().float() if v.is_floating_point() else v
+        assert got[k].dtype == want.dtype and torch.equal(got[k], want), k
+
+
+def test_every_kind_round_trips(files):
+    m = files["models"]
+    coarse, meta = load_coarse(files["coarse"])
+    _same_as_fp16(m["coarse"], coarse)
+    assert meta == {"note": "test", "kind": "coarse"} and not coarse.training
+    fine, ae, meta = load_fine(files["fine"])
+    _same_as_fp16(m["fine"], fine)
+    _same_as_fp16(m["autoencoder"], ae)
+    assert meta["kind"] == "fine" and ae.cfg == SMALL_AE
+    _same_as_fp16(m["autoencoder"], load_autoencoder(files["autoencoder"]))
+    assert load_coarse(files["coarse"])[0] is coarse          # cached per file and device
+    with pytest.raises(ValueError, match="autoencoder"):
+        save_weights(files["fine"].parent / "x.pt", m["fine"])
+
+
+def test_cache_sees_a_file_rewritten_in_place(tmp_path):
+    path = tmp_path / "w.pt"
+    save_weights(path, GCAKernel(GCAConfig(channels=(8, 8, 8, 8, 8), steps=3)))
+    assert load_coarse(path)[0].cfg.steps == 3
+    save_weights(path, GCAKernel(GCAConfig(channels=(8, 8, 8, 8, 8), steps=5)))
+    assert load_coarse(path)[0].cfg.steps == 5
+
+
+def test_packaged_files_are_plain_and_of_their_kind():
+    """Every shipped file loads with weights_only=True, holds fp16 / integer tensors and is the kind its name says."""
+    names = sorted(p.name for p in WEIGHTS_DIR.glob("*.pt"))
+    assert names == ["autoencoder.pt", "coarse.pt", "coarse_noplanner.pt", "fine.pt"]
+    for stage in ("coarse", "coarse-noplanner", "autoencoder", "fine"):
+        blob = load_file(shipped(stage))
+        assert identify(blob) == (stage.split("-")[0], False)
+        assert all(v.dtype in (torch.float16, torch.int64) for v in blob["state_dict"].values())
+    assert load_coarse(shipped("coarse-noplanner"))[0].planner is None
+    assert load_coarse(shipped("coarse"))[0].planner is not None
+
+
+@pytest.mark.parametrize("container", ["zip", "raw"])
+def test_a_pickle_that_runs_code_is_refused_without_running(tmp_path, container):
+    marker = tmp_path / "ran"
+    path = tmp_path / "evil.pt"
+    if container == "zip":   # a torch file whose config is a hostile object
+        torch.save({"kind": "coarse", "config": Payload(str(marker)), "state_dict": {}, "meta": {}}, path)
+    else:
+        path.write_bytes(pickle.dumps(Payload(str(marker))))
+    message = r"refused: it holds pickled Python objects \(posix\.system\)" if container == "zip" else "not a plain"
+    for load in (load_file, load_coarse, load_fine, load_autoencoder):
+        with pytest.raises(InputError, match=message + ".*; nothing from it was run") as err:
+            load(path)
+        assert str(err.value).startswith(str(path)) and "\n" not in str(err.value)
+    assert not marker.exists()
+
+
+def test_wrong_kind_says_what_the_file_is_and_which_option_takes_it(files, tmp_path):
+    with pytest.raises(InputError, match=r"fine-stage weights .*--fine-weights`? takes; `hgca complete --weights` "
+                                         r"takes coarse-stage weights"):
+        load_coarse(files["fine"])
+    with pytest.raises(InputError, match=r"autoencoder weights .*`hgca train fine --autoencoder` takes; "
+                                         r"`hgca complete --weights`"):
+        load_coarse(files["autoencoder"])
+    with pytest.raises(InputError, match=r"coarse-stage weights .*`hgca complete --weights` takes; "
+                                         r"`hgca complete --fine-weights` takes fine-stage"):
+        load_fine(files["coarse"])
+    with pytest.raises(InputError, match=r"fine-stage weights .* takes autoencoder weights"):
+        load_autoencoder(files["fine"])
+    ck = tmp_path / "ckpt.pt"
+    save_file({"task": "fine", "model": {}, "config": {}}, ck)
+    with pytest.raises(InputError, match=r"a fine training checkpoint \(`hgca train --export` turns it into"):
+        load_fine(ck)
+    save_file({"hello": torch.zeros(3)}, tmp_path / "other.pt")
+    with pytest.raises(InputError, match="not an hgca weights file or training checkpoint"):
+        load_coarse(tmp_path / "other.pt")
+    save_file([torch.zeros(3)], tmp_path / "list.pt")
+    with pytest.raises(InputError, match="holds a list"):
+        load_coarse(tmp_path / "list.pt")
+
+
+def test_configs_that_do_not_fit_the_tensors(files, tmp_path):
+    blob = load_file(files["coarse"])
+    cases = {"empty": ({**blob, "config": {}}, "config is empty"),
+             "garbled": ({**blob, "config": {**blob["config"], "channels": [8, 16, 16, 16, 16]}},
+                         r"tensors do not fit the coarse model the config describes: .*of another shape "
+                         r"\(e\.g\. unet\.[^:]+: file \("),
+             "nonsense": ({**blob, "config": {**blob["config"], "channels": "abc"}}, "does not describe a coarse model"),
+             "missing": ({**blob, "state_dict": {k: v for i, (k, v) in enumerate(blob["state_dict"].items()) if i}},
+                         r"1 missing \(e\.g\."),
+             "not tensors": ({**blob, "state_dict": {"a": 1}}, "not a non-empty table of named tensors")}
+    for name, (content, message) in cases.items():
+        path = save_file(content, tmp_path / f"{name}.pt")
+        with pytest.raises(InputError, match=message) as err:
+            load_coarse(path)
+        assert str(err.value).startswith(str(path)), name
+    fine = load_file(files["fine"])
+    path = save_file({**fine, "autoencoder": {**fine["autoencoder"], "config": {}}}, tmp_path / "fine_bad.pt")
+    with pytest.raises(InputError, match="the autoencoder config is empty"):
+        load_fine(path)
+    path = save_file({k: v for k, v in fine.items() if k != "autoencoder"}, tmp_path / "fine_alone.pt")
+    with pytest.raises(InputError, match="without their autoencoder"):
+        load_fine(path)
+
+
+def test_unreadable_files(tmp_path):
+    for name, data in (("empty.pt", b""), ("text.pt", b"not a torch file at all"),):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(InputError, match="not a readable hgca weights file"):
+            load_coarse(tmp_path / name)
+    with pytest.raises(InputError, match=r"no such weights file \(train them with `hgca train fine"):
+        load_fine(tmp_path / "nope.pt")
+    with pytest.raises(InputError, match="is a folder"):
+        load_coarse(tmp_path)
+    good = save_weights(tmp_path / "cut.pt", GCAKernel(GCAConfig(channels=(8, 8, 8, 8, 8))))
+    good.write_bytes(good.read_bytes()[:5000])
+    with pytest.raises(InputError, match="not a readable hgca weights file"):
+        load_coarse(good)
+
+
+def test_kinds_table_covers_the_models():
+    assert {k: (v.config, v.model) for k, v in KINDS.items()} == {
+        "coarse": (GCAConfig, GCAKernel), "fine": (CGCAConfig, CGCAKernel),
+        "autoencoder": (AutoencoderConfig, Autoencoder)}
