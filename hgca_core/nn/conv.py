@@ -1,4 +1,4 @@
-"""Gather-GEMM-scatter sparse convolution (pure PyTorch) and a one-function backend registry.
+"""Gather-GEMM-scatter sparse convolution (pure PyTorch).
 
 Two ways to run a `KernelMap`, both in a fixed order, so the result does not depend on the thread count
 (the CPU build of spconv gets exactly this wrong):
@@ -16,13 +16,11 @@ Inference may run the GEMMs in bfloat16 (`gemm_precision`): inputs and weights a
 accumulate in float32 inside the GEMM, outputs and everything between convolutions stay float32. On a CPU with
 AVX512-BF16 that makes the finest-level convs ~2.8x faster at ~0.3% relative error per conv. Training never
 takes this path: a conv whose inputs need gradients ignores the setting.
-
-A CUDA library can plug in with `register_backend`.
 """
 from __future__ import annotations
 
 from contextlib import contextmanager
-from typing import Callable, Iterator
+from typing import Iterator
 
 import torch
 from torch.autograd.function import once_differentiable
@@ -232,32 +230,8 @@ class SparseConvFunction(torch.autograd.Function):
         return gi, gw, None, None
 
 
-def _torch_conv_gemm(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap) -> torch.Tensor:
-    grads = torch.is_grad_enabled() and (feats.requires_grad or weight.requires_grad)
-    return SparseConvFunction.apply(feats, weight, kmap, None if grads else _gemm_dtype)  # training: full precision
-
-
-ConvGemm = Callable[[torch.Tensor, torch.Tensor, KernelMap], torch.Tensor]
-_BACKENDS: dict[str, ConvGemm] = {"torch": _torch_conv_gemm}
-_current = "torch"
-
-
-def register_backend(name: str, fn: ConvGemm) -> None:
-    """Add a backend: fn(feats (N_in, cin), weight (K, cin, cout), kmap) -> (N_out, cout), differentiable."""
-    _BACKENDS[name] = fn
-
-
-def set_backend(name: str) -> None:
-    global _current
-    if name not in _BACKENDS:
-        raise ValueError(f"unknown sparse conv backend {name!r}; known: {sorted(_BACKENDS)}")
-    _current = name
-
-
-def get_backend() -> str:
-    return _current
-
-
 def conv_gemm(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap) -> torch.Tensor:
-    """The one entry point every sparse conv layer calls; dispatches to the selected backend."""
-    return _BACKENDS[_current](feats, weight, kmap)
+    """The one entry point every sparse conv layer calls: differentiable, in full precision when gradients are
+    needed (training), else in the `gemm_precision` of the enclosing block."""
+    grads = torch.is_grad_enabled() and (feats.requires_grad or weight.requires_grad)
+    return SparseConvFunction.apply(feats, weight, kmap, None if grads else _gemm_dtype)

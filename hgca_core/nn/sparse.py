@@ -18,14 +18,13 @@ import torch
 from torch import nn
 
 from hgca_core.geometry.coords import pack, unpack
-from hgca_core.nn.conv import conv_gemm, get_backend, register_backend, set_backend
+from hgca_core.nn.conv import conv_gemm
 from hgca_core.nn.kernel_map import (COORD_LIMIT, KernelMap, downsample_map, identity_map, submanifold_map,
                                      upsample_map)
 
 __all__ = [
-    "SparseTensor", "sparse_cat", "cat", "KernelMap", "SubMConv3d", "SparseConv3d", "SparseConvTranspose3d",
-    "SparseLinear", "SparseBatchNorm", "SparseInstanceNorm", "SparseLayerNorm", "SparseReLU",
-    "make_norm", "conv_gemm", "set_backend", "get_backend", "register_backend",
+    "SparseTensor", "sparse_cat", "KernelMap", "SubMConv3d", "SparseConv3d", "SparseConvTranspose3d",
+    "SparseLinear", "SparseBatchNorm", "SparseReLU", "conv_gemm",
 ]
 
 
@@ -151,9 +150,6 @@ def sparse_cat(*tensors: SparseTensor) -> SparseTensor:
         if t.stride != first.stride or (t.coords is not first.coords and not torch.equal(t.coords, first.coords)):
             raise ValueError("sparse_cat: tensors must share coords and stride")
     return first.replace_feats(torch.cat([t.feats for t in tensors], dim=1))
-
-
-cat = sparse_cat
 
 
 # -- convolution layers ---------------------------------------------------------------------------
@@ -291,42 +287,6 @@ class SparseBatchNorm(nn.Module):
         return x.replace_feats(self.bn(x.feats))
 
 
-class SparseInstanceNorm(nn.Module):
-    """Per-sample, per-channel normalisation over that sample's cells (no running statistics, so
-    train and eval behave the same, whatever the batch size; affine=False makes it parameter-free)."""
-
-    def __init__(self, channels: int, eps: float = 1e-5, affine: bool = True) -> None:
-        super().__init__()
-        self.eps = eps
-        self.weight = nn.Parameter(torch.ones(channels)) if affine else None
-        self.bias = nn.Parameter(torch.zeros(channels)) if affine else None
-
-    def forward(self, x: SparseTensor) -> SparseTensor:
-        f = x.feats
-        if len(x) == 0:
-            return x
-        _, seg, counts = torch.unique_consecutive(x.coords[:, 0], return_inverse=True, return_counts=True)
-        n = counts.to(f.dtype)[:, None]
-        mean = f.new_zeros((len(counts), f.shape[1])).index_add(0, seg, f) / n
-        d = f - mean[seg]
-        var = f.new_zeros((len(counts), f.shape[1])).index_add(0, seg, d * d) / n
-        out = d * torch.rsqrt(var + self.eps)[seg]
-        if self.weight is not None:
-            out = out * self.weight + self.bias
-        return x.replace_feats(out)
-
-
-class SparseLayerNorm(nn.Module):
-    """LayerNorm over the channels of each cell."""
-
-    def __init__(self, channels: int, eps: float = 1e-5, affine: bool = True) -> None:
-        super().__init__()
-        self.ln = nn.LayerNorm(channels, eps=eps, elementwise_affine=affine)
-
-    def forward(self, x: SparseTensor) -> SparseTensor:
-        return x.replace_feats(self.ln(x.feats))
-
-
 class SparseReLU(nn.Module):
     def __init__(self, inplace: bool = False) -> None:
         super().__init__()
@@ -334,23 +294,3 @@ class SparseReLU(nn.Module):
 
     def forward(self, x: SparseTensor) -> SparseTensor:
         return x.replace_feats(torch.relu_(x.feats) if self.inplace else torch.relu(x.feats))
-
-
-class _Identity(nn.Module):
-    def forward(self, x: SparseTensor) -> SparseTensor:
-        return x
-
-
-def make_norm(kind: str, channels: int) -> nn.Module:
-    """'batch' | 'instance' | 'instance_noaffine' | 'layer' | 'none'."""
-    if kind == "batch":
-        return SparseBatchNorm(channels)
-    if kind == "instance":
-        return SparseInstanceNorm(channels)
-    if kind == "instance_noaffine":
-        return SparseInstanceNorm(channels, affine=False)
-    if kind == "layer":
-        return SparseLayerNorm(channels)
-    if kind == "none":
-        return _Identity()
-    raise ValueError(f"unknown norm {kind!r}")

@@ -12,23 +12,23 @@ from typing import Callable, Sequence
 
 from torch import nn
 
-from hgca_core.nn.sparse import (SparseConv3d, SparseConvTranspose3d, SparseLinear, SparseReLU,
-                                 SparseTensor, SubMConv3d, make_norm, sparse_cat)
+from hgca_core.nn.sparse import (SparseBatchNorm, SparseConv3d, SparseConvTranspose3d, SparseLinear, SparseReLU,
+                                 SparseTensor, SubMConv3d, sparse_cat)
 
 Modulate = Callable[[int, SparseTensor], SparseTensor]
 
 
 class ResBlock(nn.Module):
-    """SubMConv-norm-ReLU-SubMConv-norm + skip (linear projection when channels change), ReLU."""
+    """SubMConv-BN-ReLU-SubMConv-BN + skip (linear projection when channels change), ReLU."""
 
-    def __init__(self, cin: int, cout: int, norm: str = "batch") -> None:
+    def __init__(self, cin: int, cout: int) -> None:
         super().__init__()
         self.conv1 = SubMConv3d(cin, cout, 3)
-        self.norm1 = make_norm(norm, cout)
+        self.norm1 = SparseBatchNorm(cout)
         self.conv2 = SubMConv3d(cout, cout, 3)
-        self.norm2 = make_norm(norm, cout)
+        self.norm2 = SparseBatchNorm(cout)
         self.proj = None if cin == cout else nn.Sequential(SparseLinear(cin, cout, bias=False),
-                                                           make_norm(norm, cout))
+                                                           SparseBatchNorm(cout))
         self.relu = SparseReLU()
 
     def forward(self, x: SparseTensor) -> SparseTensor:
@@ -38,8 +38,8 @@ class ResBlock(nn.Module):
         return self.relu(h.replace_feats(h.feats + skip.feats))
 
 
-def _blocks(cin: int, cout: int, n: int, norm: str) -> nn.Sequential:
-    return nn.Sequential(*[ResBlock(cin if i == 0 else cout, cout, norm) for i in range(max(1, n))])
+def _blocks(cin: int, cout: int, n: int) -> nn.Sequential:
+    return nn.Sequential(*[ResBlock(cin if i == 0 else cout, cout) for i in range(max(1, n))])
 
 
 class SparseUNet(nn.Module):
@@ -52,7 +52,7 @@ class SparseUNet(nn.Module):
     """
 
     def __init__(self, in_channels: int, out_channels: int, channels: Sequence[int] = (32, 48, 64, 96, 128),
-                 blocks: int = 1, norm: str = "batch") -> None:
+                 blocks: int = 1) -> None:
         super().__init__()
         ch = list(channels)
         if len(ch) < 2:
@@ -60,17 +60,17 @@ class SparseUNet(nn.Module):
         self.channels = tuple(ch)
         self.num_levels = len(ch) - 1
         self.in_channels, self.out_channels = in_channels, out_channels
-        self.stem = nn.Sequential(SubMConv3d(in_channels, ch[0], 3), make_norm(norm, ch[0]), SparseReLU())
-        self.enc = nn.ModuleList([_blocks(ch[0], ch[0], blocks, norm)])
+        self.stem = nn.Sequential(SubMConv3d(in_channels, ch[0], 3), SparseBatchNorm(ch[0]), SparseReLU())
+        self.enc = nn.ModuleList([_blocks(ch[0], ch[0], blocks)])
         self.down = nn.ModuleList()
         for lvl in range(1, len(ch)):
-            self.down.append(nn.Sequential(SparseConv3d(ch[lvl - 1], ch[lvl], 2, 2), make_norm(norm, ch[lvl]),
+            self.down.append(nn.Sequential(SparseConv3d(ch[lvl - 1], ch[lvl], 2, 2), SparseBatchNorm(ch[lvl]),
                                            SparseReLU()))
-            self.enc.append(_blocks(ch[lvl], ch[lvl], blocks, norm))
+            self.enc.append(_blocks(ch[lvl], ch[lvl], blocks))
         # decoder modules indexed by level 0 .. num_levels - 1 (run from the coarsest)
         self.up = nn.ModuleList([SparseConvTranspose3d(ch[lvl + 1], ch[lvl], 2, 2) for lvl in range(self.num_levels)])
-        self.up_norm = nn.ModuleList([make_norm(norm, ch[lvl]) for lvl in range(self.num_levels)])
-        self.dec = nn.ModuleList([_blocks(2 * ch[lvl], ch[lvl], blocks, norm) for lvl in range(self.num_levels)])
+        self.up_norm = nn.ModuleList([SparseBatchNorm(ch[lvl]) for lvl in range(self.num_levels)])
+        self.dec = nn.ModuleList([_blocks(2 * ch[lvl], ch[lvl], blocks) for lvl in range(self.num_levels)])
         self.relu = SparseReLU()
         self.head = SparseLinear(ch[0], out_channels, bias=True)
 
