@@ -71,6 +71,9 @@ def run(args: argparse.Namespace) -> int:
 
     from hgca_core.training.trainer import train
 
+    from hgca_core.hardware import resolve_device
+
+    resolve_device(args.device)   # a bad --device fails before any data is read
     if args.threads:
         torch.set_num_threads(args.threads)
     out = Path(args.out or f"runs/{args.stage.replace('-', '_')}")

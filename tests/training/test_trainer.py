@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from hgca_core.models.gca import GCAConfig
-from hgca_core.models.weights import load_file, trained_weights
+from hgca_core.models.weights import load_coarse, load_file, trained_weights
 from hgca_core.training.coarse import CoarseTask
 from hgca_core.training.trainer import EMA, train
 
@@ -58,6 +58,9 @@ def test_budgeted_training_checkpoints_and_resumes_exactly(tiny_dataset, tmp_pat
     for key in ("model", "optim", "ema", "ranks"):
         assert_identical(resumed[key], once[key], key)
     assert resumed["optim"]["state"][0]["step"] == 5
+    model, meta = load_coarse(out / "ckpt.pt")     # a coarse checkpoint stands in for weights: its average
+    assert meta["steps"] == 5 and all(torch.equal(v, resumed["ema"]["model"][f"model.{k}"])
+                                      for k, v in model.state_dict().items())
 
 
 def test_run_record_names_the_device_used(tiny_dataset, tmp_path):
