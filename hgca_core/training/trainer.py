@@ -3,7 +3,8 @@
 A task (coarse or fine) supplies the loss module, fresh examples for the chain buffer and a validation
 metric. The loop trains until its time budget is spent, then checkpoints, so training can continue across
 sessions with `--resume`. Under `torchrun` every rank keeps its own chains; gradients are all-reduced by
-DistributedDataParallel (gloo on CPU, NCCL on GPUs) and rank 0 writes checkpoints and logs.
+DistributedDataParallel (gloo on CPU, NCCL on GPUs, one GPU per rank) and rank 0 writes checkpoints (with
+every rank's chains and random streams) and logs.
 
 Validation and the shipped weights use an exponential moving average of the weights: with Adam at a constant
 5e-4 (the paper's setting) consecutive checkpoints of the coarse model differed by up to 0.24 validation IoU;
@@ -154,9 +155,9 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
 
     `device` 'cuda' trains on the GPU (each torchrun rank on its own, cuda:LOCAL_RANK): the model, its optimiser
     state, the weight average and the chain buffer live there. Every rank draws from its own random streams
-    (torch and numpy, seeded with seed + rank) and the checkpoint keeps each rank's streams and chains, so a
-    resumed run continues every rank where it stopped: one process resumed gives bit for bit the run that never
-    stopped. Validation runs on rank 0 on the CPU (it meshes and measures with numpy / scipy)."""
+    (torch seeded with seed + rank, numpy with seed + 7919 rank) and the checkpoint keeps each rank's streams
+    and chains, so a resumed run continues every rank where it stopped: one process resumed gives bit for bit
+    the run that never stopped. Validation runs on rank 0 on the CPU (it meshes and measures with numpy / scipy)."""
     rank, world, dev = _dist(device)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
