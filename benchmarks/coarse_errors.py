@@ -26,11 +26,11 @@ def cell_labels(sample: dict, cells: np.ndarray) -> np.ndarray:
     """Class of each 20 cm cell: of the stored surface samples in it, else of the nearest sample."""
     from scipy.spatial import cKDTree
 
-    from hgca_core.geometry.voxel import FINE
+    from hgca_core.geometry.voxel import COARSE, point_cells
 
     pts = np.asarray(sample["gt_surface"], dtype=np.float64)
     lab = np.asarray(sample["gt_surface_label"])
-    centres = (np.round(pts / FINE).astype(np.int64) // 2 + 0.5)
+    centres = point_cells(pts, COARSE) + 0.5
     return lab[cKDTree(centres).query(cells + 0.5, workers=-1)[1]]
 
 

@@ -32,7 +32,7 @@ def main() -> None:
 
     from hgca_core.geometry import coords as cs
     from hgca_core.geometry.region import Region
-    from hgca_core.geometry.voxel import COARSE, FINE, voxelize_coarse
+    from hgca_core.geometry.voxel import COARSE, FINE, voxelize
     from hgca_core.io.read import read_scans
     from hgca_core.models.weights import load_coarse, load_fine
     from hgca_core.models.gca import sample as gca_sample
@@ -43,7 +43,7 @@ def main() -> None:
     region = Region.around(scans.points, sensor=scans.origins[0])
     local = region.to_local(scans.points)
     local = local[region.contains_local(local)]
-    s0 = cs.with_batch(torch.from_numpy(voxelize_coarse(local, region.grid_shape(FINE))))
+    s0 = cs.with_batch(torch.from_numpy(voxelize(local, COARSE, region.size)))
     grid = region.grid_shape(COARSE)
     model, _ = load_coarse()
     gen = torch.Generator().manual_seed(0)

@@ -1,8 +1,5 @@
-"""Meshes from the model's outputs.
-
-`voxel_mesh` turns occupied cells into the blocky surface of their union (the coarse stage's output and
-the voxel baselines); the fine stage's unsigned distance -> marching cubes path lives here too.
-"""
+"""Meshes from the fine stage's output: unsigned distance -> marching cubes (the coarse stage's blocky mesh
+is `hgca_core.geometry.voxel_mesh`)."""
 from __future__ import annotations
 
 from typing import Callable
@@ -11,48 +8,7 @@ import numpy as np
 import torch
 import trimesh
 
-# For each face direction: the neighbour offset and the 4 corners (unit cube, counter-clockwise seen from outside).
-_FACES = [
-    ((1, 0, 0), [(1, 0, 0), (1, 1, 0), (1, 1, 1), (1, 0, 1)]),
-    ((-1, 0, 0), [(0, 0, 0), (0, 0, 1), (0, 1, 1), (0, 1, 0)]),
-    ((0, 1, 0), [(0, 1, 0), (0, 1, 1), (1, 1, 1), (1, 1, 0)]),
-    ((0, -1, 0), [(0, 0, 0), (1, 0, 0), (1, 0, 1), (0, 0, 1)]),
-    ((0, 0, 1), [(0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)]),
-    ((0, 0, -1), [(0, 0, 0), (0, 1, 0), (1, 1, 0), (1, 0, 0)]),
-]
-
-
-def _keys(c: np.ndarray) -> np.ndarray:
-    c = c.astype(np.int64) + (1 << 20)
-    return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
-
-
-def voxel_mesh(coords: np.ndarray, voxel: float, lower_corner: np.ndarray | float = 0.0) -> trimesh.Trimesh:
-    """Watertight blocky surface of occupied cells: only faces between an occupied and an empty cell.
-
-    A cell c spans [lower_corner + c * voxel, lower_corner + (c + 1) * voxel); vertices are shared, so the
-    result is a proper 2-manifold wherever cells meet by faces.
-    """
-    c = np.asarray(coords, dtype=np.int64).reshape(-1, 3)
-    if len(c) == 0:
-        return trimesh.Trimesh(vertices=np.zeros((0, 3)), faces=np.zeros((0, 3), dtype=np.int64), process=False)
-    occupied = np.sort(_keys(c))
-    quads = []
-    for normal, corners in _FACES:
-        nb = _keys(c + np.array(normal))
-        pos = np.searchsorted(occupied, nb).clip(max=len(occupied) - 1)
-        exposed = c[occupied[pos] != nb]
-        quads.append(exposed[:, None, :] + np.array(corners)[None])  # (n, 4, 3) integer corner coordinates
-    corners = np.concatenate(quads)
-    flat = corners.reshape(-1, 3)
-    uniq, inv = np.unique(_keys(flat), return_inverse=True)
-    verts_int = np.empty((len(uniq), 3), dtype=np.int64)
-    verts_int[inv] = flat
-    q = inv.reshape(-1, 4)
-    faces = np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]])
-    vertices = verts_int * voxel + np.asarray(lower_corner, dtype=np.float64)
-    return trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
-
+from hgca_core.geometry.keys import pack, unpack
 
 # ---------------------------------------------------------------------------------------------------------------
 # Unsigned distance -> mesh (the fine stage, paper App. "Other Implementation Details")
@@ -110,12 +66,7 @@ def udf_grid_points(cells: np.ndarray | torch.Tensor, voxel: float = 0.1, res: f
     o = np.arange(-h, h + 1)
     offs = np.stack(np.meshgrid(o, o, o, indexing="ij"), -1).reshape(-1, 3)
     g = (c[:, None, :] * r + offs[None]).reshape(-1, 3)
-    keys = np.unique(_keys(g))
-    out = np.empty((len(keys), 3), dtype=np.int64)
-    out[:, 2] = (keys & ((1 << 21) - 1)) - (1 << 20)
-    out[:, 1] = ((keys >> 21) & ((1 << 21) - 1)) - (1 << 20)
-    out[:, 0] = (keys >> 42) - (1 << 20)
-    return out
+    return unpack(np.unique(pack(g)), batched=False)
 
 
 def udf_grid(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.Tensor | None = None,
@@ -156,7 +107,7 @@ def _tile_members(g: np.ndarray, tile: int) -> tuple[np.ndarray, np.ndarray]:
         idx.append(np.nonzero(ok)[0])
         tiles.append(home[ok] - o)
     idx_a, tiles_a = np.concatenate(idx), np.concatenate(tiles)
-    order = np.argsort(_keys(tiles_a), kind="stable")
+    order = np.argsort(pack(tiles_a), kind="stable")
     return idx_a[order], tiles_a[order]
 
 
@@ -174,7 +125,7 @@ def marching_tiles(g: np.ndarray, vals: np.ndarray, level: float, fill: float,
     if len(g) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
     idx, tiles = _tile_members(g, tile)
-    tk = _keys(tiles)
+    tk = pack(tiles)
     starts = np.r_[0, np.nonzero(tk[1:] != tk[:-1])[0] + 1, len(tk)]
     verts, faces, nv = [], [], 0
     for a, b in zip(starts[:-1], starts[1:]):
@@ -282,7 +233,7 @@ def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.T
     decoder: an autoencoder (anything with `.field(cells, latents)`) or a function of (Q, 3) cell-frame points
       (metres) -> (Q,) unsigned distances (metres), clamped at `voxel`.
     cells: (N, 3) int occupied cells; latents: (N, K) their codes (ignored by a plain function).
-    lower_corner: where cell c's box starts, lower_corner + c * voxel, as in `voxel_mesh`; the default
+    lower_corner: where cell c's box starts, lower_corner + c * voxel, as in `geometry.voxel_mesh`; the default
       -voxel / 2 is the region frame of 10 cm cells made by rounding, so vertices come back in that frame.
     level: iso-level in metres, default LEVEL_FRACTION * res (see there; a thin double-sided shell).
     chunk: decoder queries per call (memory bound); tile: marching-cubes block edge in grid steps (memory of one

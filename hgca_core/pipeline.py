@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from hgca_core.errors import InputError
 from hgca_core.geometry import coords as cs
 from hgca_core.geometry.region import Region
-from hgca_core.geometry.voxel import COARSE, FINE, voxelize_coarse
+from hgca_core.geometry.voxel import COARSE, FINE, voxelize
 
 ProgressFn = Callable[[str, int, int, str], None]
 # Peak memory of a full-stage completion, linear in the region's area: benchmarks/results/completion_full_cpu
@@ -103,7 +103,7 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
         raise InputError(f"no input points inside the region (centre {np.round(region.center, 2).tolist()}, "
                          f"size {region.size.tolist()} m); the points span {np.round(pts.min(0), 2).tolist()} "
                          f"to {np.round(pts.max(0), 2).tolist()}")
-    s0 = voxelize_coarse(local[inside], region.grid_shape(FINE))
+    s0 = voxelize(local[inside], COARSE, region.size)
     grid = region.grid_shape(COARSE)
     report("voxelise", 1, 1, f"{len(s0)} cells at 20 cm")
 
@@ -133,7 +133,7 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
             report("mesh", i, samples, f"sample {i + 1}/{samples}")
             mesh = decode_mesh(autoencoder, cells10, latents)
         else:
-            from hgca_core.meshing import voxel_mesh
+            from hgca_core.geometry.voxel_mesh import voxel_mesh
 
             report("mesh", i, samples, f"sample {i + 1}/{samples}")
             mesh = voxel_mesh(cells, COARSE, lower_corner=-FINE / 2)

@@ -16,10 +16,9 @@ def tiny_sample(seed: int, size: float = 6.0) -> dict[str, np.ndarray]:
     box = np.c_[rng.uniform(bx[0], bx[0] + 1.0, n // 2), rng.uniform(bx[1], bx[1] + 1.0, n // 2),
                 rng.uniform(1.0, 2.0, n // 2)]
     surface = np.concatenate([ground, wall, box])
-    from hgca_core.geometry.voxel import downsample, voxelize_fine
+    from hgca_core.geometry.voxel import downsample, voxelize
 
-    fine_grid = (int(round(size / 0.1)), int(round(size / 0.1)), 40)
-    occ10 = voxelize_fine(surface, fine_grid)
+    occ10 = voxelize(surface, 0.1, (size, size, 4.0))
     occ20 = downsample(occ10)
     visible = surface[(surface[:, 2] < 3.0)]
     inp = visible[rng.random(len(visible)) < 0.05] + rng.normal(0, 0.01, (1, 3))

@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.errors import InputError
     from hgca_core.geometry import coords as cs
     from hgca_core.geometry.voxel import COARSE, FINE
-    from hgca_core.meshing import voxel_mesh
+    from hgca_core.geometry.voxel_mesh import voxel_mesh
     from hgca_core.metrics.baselines import input_baseline, poisson_baseline
     from hgca_core.metrics.evaluate import aggregate, evaluate_sample, format_table
     from hgca_core.models.weights import WEIGHTS_DIR, load_coarse, load_fine, shipped

@@ -1,7 +1,8 @@
 """Sparse coordinate sets on int64 torch tensors, vectorised (no Python loops over cells).
 
 A coordinate set is an (N, 4) int64 tensor of [batch, x, y, z] rows. Sets are kept unique and sorted by
-their packed key, which makes membership a `searchsorted` and union a concatenate + unique.
+their packed key (`hgca_core.geometry.keys.pack`), which makes membership a `searchsorted` and union a
+concatenate + unique.
 """
 from __future__ import annotations
 
@@ -9,23 +10,16 @@ import itertools
 
 import torch
 
-_BITS = 18                      # per spatial axis: coordinates in [-2**17, 2**17)
-_OFF = 1 << (_BITS - 1)
-_MASK = (1 << _BITS) - 1
+from hgca_core.geometry import keys as _keys
+from hgca_core.geometry.keys import pack
 
-
-def pack(coords: torch.Tensor) -> torch.Tensor:
-    """[b, x, y, z] -> one int64 key; order of keys = lexicographic order of rows."""
-    c = coords.long()
-    return (((c[:, 0] << _BITS | (c[:, 1] + _OFF)) << _BITS | (c[:, 2] + _OFF)) << _BITS) | (c[:, 3] + _OFF)
+__all__ = ["pack", "unpack", "unique", "union", "lookup", "isin", "offsets", "dilate", "upsample2", "downsample2",
+           "with_batch"]
 
 
 def unpack(keys: torch.Tensor) -> torch.Tensor:
-    z = (keys & _MASK) - _OFF
-    y = ((keys >> _BITS) & _MASK) - _OFF
-    x = ((keys >> (2 * _BITS)) & _MASK) - _OFF
-    b = keys >> (3 * _BITS)
-    return torch.stack([b, x, y, z], dim=1)
+    """Keys -> (N, 4) [b, x, y, z] rows (`keys.unpack` of batched keys)."""
+    return _keys.unpack(keys, batched=True)
 
 
 def unique(coords: torch.Tensor) -> torch.Tensor:

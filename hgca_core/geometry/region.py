@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hgca_core.errors import InputError
+from hgca_core.geometry.voxel import grid_shape
 
 DEFAULT_SIZE = (38.4, 38.4, 8.0)
 BELOW_GROUND = 1.0  # the box starts this far below the ground under the sensor (paper: [-1, 7] m)
@@ -63,8 +64,7 @@ class Region:
         return np.all((local >= 0) & (local < self.size), axis=1)
 
     def grid_shape(self, voxel: float) -> tuple[int, int, int]:
-        n = np.round(self.size / voxel).astype(int)
-        return int(n[0]), int(n[1]), int(n[2])
+        return grid_shape(self.size, voxel)
 
     def as_tuple(self) -> tuple[float, ...]:
         """(cx, cy, cz, sx, sy, sz, yaw_degrees): the CLI's --region form."""

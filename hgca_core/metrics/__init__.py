@@ -4,10 +4,10 @@ Open3D (Poisson baseline) and the LiDAR simulator (ReSim) are imported only when
 """
 from hgca_core.metrics.chamfer import chamfer, chamfer_or_penalty, directed_chamfer
 from hgca_core.metrics.evaluate import aggregate, evaluate_sample, format_table
-from hgca_core.metrics.iou import iou, points_to_cells20
-from hgca_core.metrics.resim import resim_cd, resim_scans, voxels_to_mesh
+from hgca_core.metrics.iou import iou
+from hgca_core.metrics.resim import resim_cd, resim_scans
 from hgca_core.metrics.street import street_cd
 from hgca_core.metrics.tmd import tmd
 
 __all__ = ["chamfer", "chamfer_or_penalty", "directed_chamfer", "aggregate", "evaluate_sample", "format_table",
-           "iou", "points_to_cells20", "resim_cd", "resim_scans", "voxels_to_mesh", "street_cd", "tmd"]
+           "iou", "resim_cd", "resim_scans", "street_cd", "tmd"]

@@ -10,41 +10,25 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from hgca_core.errors import HgcaError, InputError
-from hgca_core.geometry.voxel import COARSE, FINE, downsample, voxelize_fine
+from hgca_core.geometry.voxel import COARSE, voxelize
+from hgca_core.geometry.voxel_mesh import voxel_mesh
 from hgca_core.metrics.chamfer import as_points
-from hgca_core.metrics.resim import voxels_to_mesh
 
 
 class MissingDependencyError(HgcaError, ImportError):
     """An optional dependency (here Open3D, from the "eval" extra) is not importable."""
 
 
-def voxelize_points(points: np.ndarray, voxel: float = COARSE,
-                    grid_shape: Sequence[int] | None = None) -> np.ndarray:
-    """Unique cells of region-frame points the paper's way: round to 10 cm; 20 cm cells floor those.
+def input_baseline(points: np.ndarray, region_size: Sequence[float] | np.ndarray | None = None,
+                   voxel: float = COARSE) -> tuple[np.ndarray, trimesh.Trimesh]:
+    """The "input" row: the accumulated scans voxelised (20 cm by default) as the pipeline voxelises its input
+    (s^0 when `region_size` is the region's), and those cells meshed as the pipeline meshes its output.
 
-    With `grid_shape` (cells of `voxel`), cells outside [0, grid_shape) are dropped, as for a region.
+    Returns (cells (N, 3) int64, `voxel_mesh` in the region frame) so the same ReSim and IoU code scores it as
+    any voxel completion.
     """
-    p = as_points(points, "points")
-    if np.isclose(voxel, FINE):
-        return voxelize_fine(p, None if grid_shape is None else tuple(grid_shape)).astype(np.int64)
-    if not np.isclose(voxel, COARSE):
-        raise InputError(f"voxel must be {FINE} or {COARSE} m (the model's two resolutions), got {voxel}")
-    c = downsample(voxelize_fine(p, None)).astype(np.int64)
-    if grid_shape is not None:
-        c = c[np.all((c >= 0) & (c < np.asarray(grid_shape, dtype=np.int64)), axis=1)]
-    return c
-
-
-def input_baseline(points: np.ndarray, voxel: float = COARSE,
-                   grid_shape: Sequence[int] | None = None) -> tuple[np.ndarray, trimesh.Trimesh]:
-    """The "input" row: the accumulated scans voxelised (20 cm by default) and that occupancy's mesh.
-
-    Returns (cells (N, 3) int64, marching-cubes mesh in the region frame) so the same ReSim and IoU code
-    scores it as any completion.
-    """
-    cells = voxelize_points(points, voxel, grid_shape)
-    return cells, voxels_to_mesh(cells, voxel)
+    cells = voxelize(as_points(points, "points"), voxel, region_size)
+    return cells, voxel_mesh(cells, voxel)
 
 
 def _open3d():

@@ -11,7 +11,8 @@ import numpy as np
 import trimesh
 
 from hgca_core.errors import InputError
-from hgca_core.metrics.iou import iou, points_to_cells20
+from hgca_core.geometry.voxel import COARSE, voxelize
+from hgca_core.metrics.iou import iou
 from hgca_core.metrics.resim import default_sensor, resim_cd_per_pose, resim_scans
 from hgca_core.metrics.street import GROUND_MARGIN, street_cd, street_penalty, street_points
 from hgca_core.metrics.surface import sample_surface
@@ -66,7 +67,7 @@ def evaluate_sample(sample: Mapping[str, Any], meshes: Sequence[trimesh.Trimesh]
 
     visible = sample.get("visible20")
     if occ20 is None:
-        occ20 = [points_to_cells20(sample_surface(m, spacing, seed + i), region_size) for i, m in enumerate(meshes)]
+        occ20 = [voxelize(sample_surface(m, spacing, seed + i), COARSE, region_size) for i, m in enumerate(meshes)]
     ious = np.array([iou(o, sample["gt_occ20"], visible) for o in occ20])
 
     street = np.full(k, np.nan)

@@ -8,15 +8,12 @@ from __future__ import annotations
 import numpy as np
 
 from hgca_core.errors import InputError
-from hgca_core.geometry.voxel import FINE, voxelize_coarse
-
-_BITS = 21
-_OFF = 1 << (_BITS - 1)
-_MASK = (1 << _BITS) - 1
+from hgca_core.geometry.keys import check_range, pack
 
 
 def pack_cells(cells: np.ndarray, name: str = "cells") -> np.ndarray:
-    """Unique sorted int64 keys of (N, 3) integer cells (each axis must lie in [-2**20, 2**20))."""
+    """Unique sorted keys (`hgca_core.geometry.keys.pack`) of (N, 3) integer cells, with a clear error for a
+    wrong shape, non-integer values or coordinates a key cannot hold."""
     c = np.asarray(cells)
     if c.ndim != 2 or c.shape[1] != 3:
         raise InputError(f"{name} must be an (N, 3) integer array, got shape {c.shape}")
@@ -24,16 +21,8 @@ def pack_cells(cells: np.ndarray, name: str = "cells") -> np.ndarray:
         if not np.all(c == np.round(c)):
             raise InputError(f"{name} must hold integer cell coordinates")
     c = c.astype(np.int64)
-    if c.size and (c.min() < -_OFF or c.max() >= _OFF):
-        raise InputError(f"{name} has coordinates outside [-{_OFF}, {_OFF})")
-    keys = ((c[:, 0] + _OFF) << (2 * _BITS)) | ((c[:, 1] + _OFF) << _BITS) | (c[:, 2] + _OFF)
-    return np.unique(keys)
-
-
-def unpack_cells(keys: np.ndarray) -> np.ndarray:
-    """Inverse of `pack_cells`: (N,) keys -> (N, 3) int64 cells."""
-    k = np.asarray(keys, dtype=np.int64)
-    return np.stack([((k >> (2 * _BITS)) & _MASK) - _OFF, ((k >> _BITS) & _MASK) - _OFF, (k & _MASK) - _OFF], 1)
+    check_range(c, name)
+    return np.unique(pack(c))
 
 
 def iou(pred: np.ndarray, gt: np.ndarray, visible: np.ndarray | None = None) -> float:
@@ -50,13 +39,3 @@ def iou(pred: np.ndarray, gt: np.ndarray, visible: np.ndarray | None = None) -> 
     inter = np.intersect1d(kp, kg, assume_unique=True).size
     union = kp.size + kg.size - inter
     return float("nan") if union == 0 else inter / union
-
-
-def points_to_cells20(points: np.ndarray, region_size: np.ndarray | None = None) -> np.ndarray:
-    """Unique 20 cm cells of region-frame points, the paper's way: round to 10 cm, then floor by 2.
-
-    Same cells as `hgca_core.geometry.voxel.voxelize_coarse` (cells outside the region dropped when
-    `region_size` is given) but through 1-D packed keys, which is much faster for millions of points.
-    """
-    fine = None if region_size is None else tuple(np.round(np.asarray(region_size, float) / FINE).astype(int))
-    return voxelize_coarse(np.asarray(points, dtype=np.float64), fine).astype(np.int64)

@@ -1,8 +1,9 @@
 """High LiDAR ReSim (paper, App. "Evaluation Metric"): re-scan the completion from the evaluation poses
 with the 128-beam, (-30, 30) degree LiDAR and compare with the same sensor's scan of the ground truth.
 
-Voxel outputs are turned into meshes by marching cubes first, as the paper does, so every representation
-is scored by the same ray caster.
+Every representation is scored as a mesh by the same ray caster; voxel outputs (the input row, GCA, hGCA's
+20 cm and 10 cm cells) are all meshed by `hgca_core.geometry.voxel_mesh.voxel_mesh`, the mesh the product
+ships (the paper does not say how it meshes voxels for ReSim).
 """
 from __future__ import annotations
 
@@ -12,52 +13,10 @@ import numpy as np
 import trimesh
 
 from hgca_core.errors import InputError
-from hgca_core.geometry.voxel import COARSE, FINE, cell_centers
 from hgca_core.metrics.chamfer import as_points, chamfer_or_penalty
 
 if TYPE_CHECKING:  # the LiDAR simulator is imported lazily: metrics must import without it
     from hgca_core.synth.lidar import Sensor
-
-
-def default_origin_offset(voxel_size: float) -> float:
-    """Region-frame centre of cell (0, 0, 0) under the project's convention (`voxel.cell_centers`):
-    0 for 10 cm cells (rounded points), 5 cm for 20 cm cells (floored 10 cm cells)."""
-    if np.isclose(voxel_size, FINE):
-        return float(cell_centers(np.zeros((1, 3)), FINE)[0, 0])
-    if np.isclose(voxel_size, COARSE):
-        return float(cell_centers(np.zeros((1, 3)), COARSE)[0, 0])
-    raise InputError(f"no default cell-centre convention for {voxel_size} m voxels; pass origin_offset")
-
-
-def voxels_to_mesh(coords: np.ndarray, voxel_size: float,
-                   origin_offset: float | Sequence[float] | None = None) -> trimesh.Trimesh:
-    """Closed surface around occupied cells, by marching cubes at 0.5 on a padded dense occupancy grid.
-
-    Cell c has its centre at c * voxel_size + origin_offset (default: `default_origin_offset`). The
-    0.5 level lies halfway between an occupied and an empty cell centre, i.e. on the cell faces, so the
-    mesh spans exactly the cells' extent (edges and corners are bevelled). No cells -> an empty mesh,
-    which ReSim scores with its empty-scan penalty.
-    """
-    c = np.asarray(coords)
-    if c.ndim != 2 or c.shape[1] != 3:
-        raise InputError(f"voxel coordinates must be (N, 3), got shape {c.shape}")
-    if voxel_size <= 0:
-        raise InputError(f"voxel size must be positive, got {voxel_size}")
-    off = np.broadcast_to(np.asarray(default_origin_offset(voxel_size) if origin_offset is None else origin_offset,
-                                     dtype=np.float64), (3,))
-    if len(c) == 0:
-        return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), process=False)
-    from skimage.measure import marching_cubes    # lazy: scikit-image's import is slow, most callers never mesh
-
-    c = c.astype(np.int64)
-    lo = c.min(0) - 1                               # one empty cell of padding on each side closes the surface
-    occ = np.zeros(tuple(c.max(0) - lo + 2), dtype=np.float32)
-    occ[tuple((c - lo).T)] = 1.0
-    verts, faces, _, _ = marching_cubes(occ, level=0.5, spacing=(voxel_size,) * 3, allow_degenerate=False)
-    verts = verts.astype(np.float64) + lo * voxel_size + off
-    # skimage winds these triangles clockwise seen from outside; reverse them for outward normals and a
-    # positive volume (ray casting does not care, but normals, volumes and renderers do)
-    return trimesh.Trimesh(verts, faces[:, ::-1].astype(np.int64), process=False)
 
 
 def crop_to_box(points: np.ndarray, size: Sequence[float] | np.ndarray | None) -> np.ndarray:

@@ -59,11 +59,6 @@ class CGCAConfig(Config):
     grid: tuple[int, int, int] = (384, 384, 80)
 
 
-def alpha(cfg: CGCAConfig, t: int) -> float:
-    """Infusion weight alpha_t = alpha0 + alpha1 * t, clipped to [0, 1]."""
-    return float(min(max(cfg.alpha0 + cfg.alpha1 * t, 0.0), 1.0))
-
-
 def _table(cells: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(sorted keys, latents in key order) of a batched cell set."""
     keys, order = torch.sort(cs.pack(cells))

@@ -82,11 +82,6 @@ class GCAKernel(nn.Module):
         return modulate
 
 
-def alpha(cfg: GCAConfig, t: int) -> float:
-    """Infusion weight alpha_t = alpha0 + alpha1 * t, clipped to [0, 1]."""
-    return float(min(max(cfg.alpha0 + cfg.alpha1 * t, 0.0), 1.0))
-
-
 @torch.no_grad()
 def sample(model: GCAKernel, s0: torch.Tensor, grid: tuple[int, int, int], steps: int,
            generator: torch.Generator, progress: Callable[[int, int], None] | None = None) -> torch.Tensor:

@@ -19,11 +19,12 @@ from functools import cached_property
 
 import torch
 
-from hgca_core.geometry.coords import _BITS, offsets, pack, unpack
+from hgca_core.geometry.coords import offsets, pack, unpack
+from hgca_core.geometry.keys import OFFSET, delta
 
-# Coordinates (finest units) must stay this far inside pack's (-2**17, 2**17) field so that neighbour
+# Coordinates (finest units) must stay this far inside pack's [-OFFSET, OFFSET) field so that neighbour
 # keys (c + d) never borrow from the next field and alias a different cell.
-COORD_LIMIT = (1 << (_BITS - 1)) - 4096
+COORD_LIMIT = OFFSET - 4096
 
 
 @dataclass(frozen=True)
@@ -101,12 +102,6 @@ class KernelMap:
         return out
 
 
-def key_delta(offs: torch.Tensor) -> torch.Tensor:
-    """(K, 3) spatial offsets -> (K,) int64 amounts to add to a packed key (pack is field-linear)."""
-    o = offs.long()
-    return (o[:, 0] << (2 * _BITS)) + (o[:, 1] << _BITS) + o[:, 2]
-
-
 def _splits(counts: torch.Tensor) -> tuple[int, ...]:
     c = [0]
     for n in counts.tolist():
@@ -125,7 +120,7 @@ def _neighbours_half(keys: torch.Tensor, r: int, stride: int) -> tuple[torch.Ten
     cols = [(dx, dy) for dx in range(-r, 1) for dy in range(-r, r + 1) if dx < 0 or dy < 0]
     m = len(cols)
     d = torch.tensor([[dx * stride, dy * stride, -r * stride] for dx, dy in cols], device=dev)
-    base = keys[None, :] + key_delta(d)[:, None]                              # (m, N): z - r s
+    base = keys[None, :] + delta(d)[:, None]                              # (m, N): z - r s
     p = torch.searchsorted(keys, base.reshape(-1)).view(m, n)
     steps = torch.arange(k, device=dev)
     cand_rows = (p[:, None, :] + steps[None, :, None]).clamp_(max=n - 1)      # (m, j, N)
@@ -189,7 +184,7 @@ def submanifold_map_reference(keys: torch.Tensor, kernel_size: int, stride: int)
     if kvol == 1 or n == 0:
         e = torch.empty(0, dtype=torch.long, device=dev)
         return KernelMap(e, e, (0,) * (kvol + 1), n, n, centre, True)
-    q = keys[None, :] + key_delta(offs[:centre])[:, None]
+    q = keys[None, :] + delta(offs[:centre])[:, None]
     idx = torch.searchsorted(keys, q.reshape(-1)).clamp_(max=n - 1)
     found = (keys[idx] == q.reshape(-1)).view(centre, n)
     pairs_in, pairs_out, counts = [], [], []

@@ -11,7 +11,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from hgca_core.geometry.region import BELOW_GROUND, Region
-from hgca_core.geometry.voxel import COARSE, FINE, cell_centers
+from hgca_core.geometry.voxel import COARSE, FINE, cell_centers, downsample, point_cells, voxelize
 from hgca_core.synth.lidar import Sensor
 from hgca_core.synth.primitives import Solids
 
@@ -48,19 +48,9 @@ class RegionSurface:
         self._tree_face: np.ndarray | None = None
 
     def occupancy(self) -> tuple[np.ndarray, np.ndarray]:
-        """(10 cm cells, 20 cm cells) of the surface, by the project's voxelisation (round, then floor).
-
-        Same cells as `voxelize_fine` then `downsample` (a test holds them equal), but marked in dense
-        boolean grids, so millions of samples need no sort; `argwhere` returns them unique and sorted."""
-        grid = self.region.grid_shape(FINE)
-        c = np.round(self.points[self.in_region].astype(np.float64) / FINE).astype(np.int64)
-        c = c[np.all((c >= 0) & (c < grid), axis=1)]
-        fine = np.zeros(grid, dtype=bool)
-        fine[c[:, 0], c[:, 1], c[:, 2]] = True
-        occ10 = np.argwhere(fine)
-        coarse = np.zeros(tuple((np.asarray(grid) + 1) // 2), dtype=bool)
-        coarse[occ10[:, 0] // 2, occ10[:, 1] // 2, occ10[:, 2] // 2] = True
-        return occ10.astype(np.int32), np.argwhere(coarse).astype(np.int32)
+        """(10 cm cells, 20 cm cells) of the surface inside the region, by the project's voxeliser."""
+        occ10 = voxelize(self.points[self.in_region], FINE, self.region.size)
+        return occ10.astype(np.int32), downsample(occ10).astype(np.int32)
 
     def distance(self, query: np.ndarray, k: int = 4, tree_points: int = 250_000) -> np.ndarray:
         """Unsigned distance from query points to the visible surface.
@@ -187,7 +177,7 @@ def visible_cells(region: Region, scans: list[tuple[np.ndarray, np.ndarray]], se
     dense = visible.reshape(grid)
     if extra:
         pts = np.concatenate(extra)
-        c = np.round(pts / FINE).astype(np.int64) // 2
+        c = point_cells(pts, COARSE)
         c = c[np.all((c >= 0) & (c < grid), axis=1)]
         dense[c[:, 0], c[:, 1], c[:, 2]] = True
     return np.argwhere(dense).astype(np.int16)

@@ -9,7 +9,8 @@ from torch import nn
 import torch.nn.functional as F
 
 from hgca_core.geometry import coords as cs
-from hgca_core.models.gca import GCAConfig, GCAKernel, alpha, sample
+from hgca_core.models.gca import GCAConfig, GCAKernel, sample
+from hgca_core.models.infusion import alpha
 from hgca_core.models.planner import rough_target
 from hgca_core.training.buffer import Chain
 from hgca_core.training.data import coarse_pair, crop_flip, load_arrays, split_files

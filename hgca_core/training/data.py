@@ -9,7 +9,8 @@ import numpy as np
 import torch
 
 from hgca_core.errors import InputError
-from hgca_core.geometry.voxel import COARSE, FINE, unique_rows, voxelize_coarse
+from hgca_core.geometry.keys import unique_rows
+from hgca_core.geometry.voxel import COARSE, FINE, grid_shape, voxelize
 
 
 def split_files(data_dir: str | Path, split: str) -> list[Path]:
@@ -30,16 +31,13 @@ def load_arrays(path: str, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
 def grids(path: str | Path) -> tuple[tuple[int, int, int], tuple[int, int, int]]:
     """(10 cm grid, 20 cm grid) of a sample's region, from its stored size."""
     size = load_arrays(str(path), ("region",))["region"][3:6]
-    fine = tuple(int(v) for v in np.round(size / FINE))
-    coarse = tuple(int(v) for v in np.round(size / COARSE))
-    return fine, coarse
+    return grid_shape(size, FINE), grid_shape(size, COARSE)
 
 
 def coarse_pair(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
     """(s0, gt, grid) at 20 cm for a sample: the input voxelised as the paper says, and the ground truth."""
-    a = load_arrays(str(path), ("input_points", "gt_occ20"))
-    fine, coarse = grids(path)
-    return voxelize_coarse(a["input_points"], fine).astype(np.int64), a["gt_occ20"].astype(np.int64), coarse
+    a = load_arrays(str(path), ("region", "input_points", "gt_occ20"))
+    return voxelize(a["input_points"], COARSE, a["region"][3:6]), a["gt_occ20"].astype(np.int64), grids(path)[1]
 
 
 @dataclass(frozen=True)

@@ -24,14 +24,16 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from scipy.spatial import cKDTree
 from torch import nn
 
 from hgca_core.geometry import coords as cs
-from hgca_core.geometry.voxel import FINE, unique_rows
+from hgca_core.geometry.keys import unique_rows
+from hgca_core.geometry.voxel import FINE
 from hgca_core.meshing import udf_surface_points
+from hgca_core.metrics.chamfer import chamfer_or_penalty
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
-from hgca_core.models.cgca import CGCAConfig, CGCAKernel, _gather, _table, alpha, sample
+from hgca_core.models.cgca import CGCAConfig, CGCAKernel, _gather, _table, sample
+from hgca_core.models.infusion import alpha
 from hgca_core.models.weights import load_autoencoder, load_file, save_weights, shipped, trained_weights
 from hgca_core.training.buffer import Chain
 from hgca_core.training.data import draw_crop, grids, load_arrays, split_files
@@ -63,13 +65,6 @@ def crop_sample(path: str | Path, crop: int | None, rng: np.random.Generator,
            "lidar": spec.points(a["input_points"])[0], "surf": spec.points(a["gt_surface"])[0],
            "udf_p": udf_p, "udf_d": udf_d}
     return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in out.items()}, spec.grid
-
-
-def chamfer(a: np.ndarray, b: np.ndarray) -> float:
-    """Symmetric Chamfer distance (mean of the two directed mean nearest-neighbour distances), metres."""
-    if len(a) == 0 or len(b) == 0:
-        return CD_PENALTY if len(a) + len(b) else 0.0
-    return 0.5 * float(cKDTree(b).query(a, workers=-1)[0].mean() + cKDTree(a).query(b, workers=-1)[0].mean())
 
 
 @torch.no_grad()
@@ -191,12 +186,12 @@ class AutoencoderTask:
             ex, _ = crop_sample(path, self.cfg.crop, np.random.default_rng(1000 + k), self.max_pairs)
             z = gt_latents(model, ex["gt10"], ex["udf_p"], ex["udf_d"], ex["surf"], seed=seed)
             pts = udf_surface_points(model, ex["gt10"], z, project=1)
-            cds.append(chamfer(pts, ex["surf"].numpy()))
+            cds.append(chamfer_or_penalty(pts, ex["surf"].numpy(), CD_PENALTY))
             if len(ex["lidar"]):
                 cells4, zl = model.encode(ex["lidar"], torch.zeros(len(ex["lidar"])))
                 pts = udf_surface_points(model, cells4[:, 1:], zl, project=1)
                 near = cs.isin(cs.with_batch(torch.round(ex["surf"] / FINE).long()), cells4)
-                cds_lidar.append(chamfer(pts, ex["surf"][near].numpy()))
+                cds_lidar.append(chamfer_or_penalty(pts, ex["surf"][near].numpy(), CD_PENALTY))
         loss_module.train()
         out = {"val_cd": float(np.mean(cds))}
         if cds_lidar:
@@ -309,7 +304,7 @@ class FineTask:
             union = len(pred) + len(gt) - inter
             ious.append(inter / union if union else 1.0)
             pts = udf_surface_points(self.ae, cells[:, 1:], z, project=1) if len(cells) else np.zeros((0, 3))
-            cds.append(chamfer(pts, ex["surf"].numpy()))
+            cds.append(chamfer_or_penalty(pts, ex["surf"].numpy(), CD_PENALTY))
         loss_module.train()
         return {"val_iou": float(np.mean(ious)), "val_cd": float(np.mean(cds))}
 

@@ -6,8 +6,8 @@ import pytest
 
 from hgca_core.errors import InputError
 from hgca_core.metrics.chamfer import chamfer, chamfer_or_penalty, directed_chamfer
-from hgca_core.metrics.iou import iou, pack_cells, points_to_cells20, unpack_cells
-from hgca_core.geometry.voxel import voxelize_coarse
+from hgca_core.geometry.keys import unpack
+from hgca_core.metrics.iou import iou, pack_cells
 from hgca_core.metrics.tmd import tmd
 
 
@@ -89,19 +89,21 @@ def test_iou_visibility_mask_excludes_cells() -> None:
     assert np.isnan(iou(pred, gt, np.array([[7, 7, 7]])))           # nothing visible: undefined
 
 
-def test_pack_roundtrip_and_negative_cells() -> None:
-    c = np.array([[-5, 3, 0], [100000, -100000, 7], [0, 0, 0]])
-    assert np.array_equal(unpack_cells(pack_cells(c)), c[np.lexsort(c[:, ::-1].T)])
-    with pytest.raises(InputError):
-        pack_cells(np.array([[1 << 21, 0, 0]]))
+def test_pack_cells_is_unique_sorted_keys_and_checks_its_input() -> None:
+    c = np.array([[-5, 3, 0], [100000, -100000, 7], [0, 0, 0], [-5, 3, 0]])
+    assert np.array_equal(unpack(pack_cells(c), batched=False), np.unique(c, axis=0))
+    with pytest.raises(InputError, match="pred has cell coordinates outside"):
+        pack_cells(np.array([[1 << 17, 0, 0]]), "pred")
+    with pytest.raises(InputError, match="integer"):
+        pack_cells(np.array([[0.5, 0, 0]]))
 
 
-def test_points_to_cells20_matches_project_voxeliser() -> None:
-    rng = np.random.default_rng(3)
-    pts = rng.uniform(-1.0, 10.0, (20_000, 3))
-    size = np.array([8.0, 8.0, 4.0])
-    ref = voxelize_coarse(pts, (80, 80, 40))
-    assert np.array_equal(points_to_cells20(pts, size), ref.astype(np.int64))
+def test_chamfer_or_penalty_matches_brute_force() -> None:
+    """The one Chamfer (the fine stage's validation uses it too): mean of the two directed mean NN distances."""
+    rng = np.random.default_rng(4)
+    a, b = rng.normal(size=(300, 3)), rng.normal(size=(200, 3)) + 0.3
+    d = np.linalg.norm(a[:, None] - b[None], axis=2)
+    assert chamfer_or_penalty(a, b, 1.0) == pytest.approx(0.5 * (d.min(1).mean() + d.min(0).mean()), rel=1e-12)
 
 
 def test_tmd_identical_and_shifted_samples() -> None:

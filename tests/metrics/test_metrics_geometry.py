@@ -5,37 +5,9 @@ import numpy as np
 import pytest
 
 from hgca_core.errors import InputError
-from hgca_core.geometry.voxel import cell_centers
-from hgca_core.metrics.baselines import input_baseline, poisson_baseline, voxelize_points
+from hgca_core.metrics.baselines import input_baseline, poisson_baseline
 from hgca_core.metrics.evaluate import aggregate, format_table
-from hgca_core.metrics.resim import voxels_to_mesh
 from hgca_core.metrics.street import street_cd, street_points
-
-
-def test_single_cell_mesh_bounds_follow_cell_centre_convention() -> None:
-    c = np.array([[3, 4, 5]])
-    for voxel in (0.1, 0.2):
-        m = voxels_to_mesh(c, voxel)
-        centre = cell_centers(c, voxel)[0]
-        assert np.allclose(m.bounds, [centre - voxel / 2, centre + voxel / 2], atol=1e-9)
-        assert m.is_watertight
-    assert np.allclose(voxels_to_mesh(c, 0.2).bounds.mean(0), [0.65, 0.85, 1.05])  # (c + 0.25) * 0.2
-
-
-def test_box_of_cells_mesh_bounds_and_offset() -> None:
-    g = np.stack(np.meshgrid(np.arange(2), np.arange(3), np.arange(4), indexing="ij"), -1).reshape(-1, 3)
-    m = voxels_to_mesh(g + [10, 0, -2], 0.5, origin_offset=0.25)     # cell c spans [c*0.5, (c+1)*0.5)
-    assert np.allclose(m.bounds, [[5.0, 0.0, -1.0], [6.0, 1.5, 1.0]], atol=1e-9)
-    assert m.is_watertight
-    # a 1 x 1.5 x 2 box whose 18 m of edges are bevelled by prisms of cross-section h^2 / 2, h = 0.25
-    assert 3.0 - 18 * 0.25 ** 2 / 2 < m.volume < 3.0
-
-
-def test_voxels_to_mesh_edge_cases() -> None:
-    assert len(voxels_to_mesh(np.zeros((0, 3), int), 0.2).faces) == 0
-    with pytest.raises(InputError, match="origin_offset"):
-        voxels_to_mesh(np.zeros((1, 3), int), 0.3)
-    assert len(voxels_to_mesh(np.zeros((1, 3), int), 0.3, origin_offset=0.0).faces) > 0
 
 
 def test_street_cd_ignores_ground_and_outside_points() -> None:
@@ -59,11 +31,13 @@ def test_street_cd_ignores_ground_and_outside_points() -> None:
 def test_input_baseline_voxelises_like_the_paper() -> None:
     pts = np.array([[0.04, 0.0, 0.0], [0.06, 0.0, 0.0], [0.16, 0.0, 0.0], [0.26, 0.0, 0.0]])
     # round to 10 cm: x cells 0, 1, 2, 3 -> floor by 2: 0, 0, 1, 1
-    assert np.array_equal(voxelize_points(pts, 0.1)[:, 0], [0, 1, 2, 3])
     cells, mesh = input_baseline(pts)
     assert np.array_equal(cells, [[0, 0, 0], [1, 0, 0]])
+    # meshed like the pipeline's coarse output: two cube cells, faces on the cell boundaries
     assert np.allclose(mesh.bounds, [[-0.05, -0.05, -0.05], [0.35, 0.15, 0.15]], atol=1e-9)
-    assert len(input_baseline(pts, grid_shape=(1, 1, 1))[0]) == 1
+    assert mesh.is_watertight and len(mesh.faces) == 20 and np.isclose(mesh.volume, 2 * 0.2 ** 3)
+    # cropped to the region's 10 cm grid like the pipeline's s^0: a 0.2 m region keeps 10 cm cells 0 and 1
+    assert np.array_equal(input_baseline(pts, region_size=(0.2, 0.2, 0.2))[0], [[0, 0, 0]])
 
 
 def test_poisson_baseline_reconstructs_a_sphere() -> None:

@@ -8,8 +8,10 @@ import trimesh
 lidar = pytest.importorskip("hgca_core.synth.lidar")
 
 from hgca_core.metrics.evaluate import evaluate_sample  # noqa: E402
-from hgca_core.metrics.iou import iou, points_to_cells20  # noqa: E402
-from hgca_core.metrics.resim import resim_cd, resim_scans, voxels_to_mesh  # noqa: E402
+from hgca_core.geometry.voxel import voxelize  # noqa: E402
+from hgca_core.geometry.voxel_mesh import voxel_mesh  # noqa: E402
+from hgca_core.metrics.iou import iou  # noqa: E402
+from hgca_core.metrics.resim import resim_cd, resim_scans  # noqa: E402
 from hgca_core.metrics.surface import sample_surface  # noqa: E402
 
 SIZE = np.array([20.0, 20.0, 8.0])                  # region box [0, SIZE) in the region frame
@@ -82,8 +84,8 @@ def test_empty_resimulation_gets_the_documented_penalty() -> None:
 
 def test_voxelised_ground_truth_resimulates_within_a_voxel() -> None:
     gt = _scene()
-    cells = points_to_cells20(sample_surface(gt, 0.05, seed=1), SIZE)
-    cd = resim_cd(voxels_to_mesh(cells, 0.2), _gt_scans(gt), POSES, SENSOR, SIZE)
+    cells = voxelize(sample_surface(gt, 0.05, seed=1), 0.2, SIZE)
+    cd = resim_cd(voxel_mesh(cells, 0.2), _gt_scans(gt), POSES, SENSOR, SIZE)
     # a cell's faces lie within one 20 cm cell of the surface inside it (the ground at z = 1 m sits in the
     # cell spanning [0.95, 1.15), whose top face is what the LiDAR sees), so 0 < CD < 0.2
     assert 0.0 < cd < 0.2
@@ -93,7 +95,7 @@ def test_evaluate_sample_known_answers() -> None:
     gt = _scene()
     shifted = _scene(wall_x=12.5, car=False)
     gt_surface = sample_surface(gt, 0.05, seed=7)
-    gt_occ20 = points_to_cells20(gt_surface, SIZE)
+    gt_occ20 = voxelize(gt_surface, 0.2, SIZE)
     scans = _gt_scans(gt)
     sample = {
         "region": np.array([10.0, 10.0, 4.0, *SIZE, 0.0]), "eval_poses": POSES.astype(np.float32),

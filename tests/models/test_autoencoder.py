@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 import torch
 
-from hgca_core.geometry.voxel import downsample, voxelize_fine
+from hgca_core.geometry.voxel import downsample, voxelize
+from hgca_core.metrics.chamfer import chamfer
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.weights import load_autoencoder, load_file, trained_weights
-from hgca_core.training.fine import AutoencoderTask, chamfer, export_autoencoder
+from hgca_core.training.fine import AutoencoderTask, export_autoencoder
 from hgca_core.training.trainer import train
 
 SMALL = AutoencoderConfig(enc_hidden=16, mlp_hidden=16, dec_channels=16, latent=8)  # enc_radius 1
@@ -45,7 +46,7 @@ def plane_box_sample(seed: int, size: float = 2.4, height: float = 2.0, density:
     pairs = np.concatenate([surf + rng.normal(0, 0.03, surf.shape), surf[::2] + rng.normal(0, 0.1, surf[::2].shape)])
     pairs = pairs[np.all(pairs >= 0, axis=1) & np.all(pairs[:, :2] < size - 0.05, axis=1) & (pairs[:, 2] < height)]
     dist = np.minimum(np.abs(pairs[:, 2] - g), _box_udf(pairs, c, h))
-    occ10 = voxelize_fine(surf, (round(size / 0.1), round(size / 0.1), round(height / 0.1)))
+    occ10 = voxelize(surf, 0.1, (size, size, height))
     lidar = surf[rng.random(len(surf)) < 0.08] + rng.normal(0, 0.01, (1, 3))
     return {"region": np.array([size / 2, size / 2, height / 2, size, size, height, 0.0]),
             "input_points": lidar.astype(np.float32), "gt_occ10": occ10.astype(np.int16),

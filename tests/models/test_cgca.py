@@ -8,7 +8,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from hgca_core.geometry import coords as cs
-from hgca_core.geometry.voxel import downsample, voxelize_fine
+from hgca_core.geometry.voxel import downsample, voxelize
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel, decode_mesh, initial_state, sample, upsample
 from hgca_core.models.weights import load_file, load_fine, save_weights
@@ -172,7 +172,7 @@ def _scene(seed: int, size: float = 3.2, height: float = 2.0) -> dict:
     surf = dense[::4]
     pairs = surf + rng.normal(0, 0.05, surf.shape)
     pairs = pairs[np.all((pairs >= 0) & (pairs < [size, size, height]), axis=1)]
-    occ10 = voxelize_fine(dense, (round(size / 0.1), round(size / 0.1), round(height / 0.1)))
+    occ10 = voxelize(dense, 0.1, (size, size, height))
     inp = surf[(surf[:, 2] < 1.2) & (rng.random(len(surf)) < 0.2)]
     return {"region": np.array([size / 2, size / 2, height / 2, size, size, height, 0.0]),
             "input_points": inp.astype(np.float32), "gt_occ10": occ10.astype(np.int16),

@@ -1,7 +1,9 @@
 import torch
 
 from hgca_core.geometry import coords as cs
-from hgca_core.models.gca import GCAConfig, GCAKernel, alpha, sample
+from hgca_core.models.cgca import CGCAConfig
+from hgca_core.models.gca import GCAConfig, GCAKernel, sample
+from hgca_core.models.infusion import alpha
 from hgca_core.models.planner import Planner, rough_target
 
 GRID = (24, 24, 20)
@@ -38,16 +40,29 @@ def test_rough_target_marks_height_bins():
     assert t[0, 0, 0, 0] == 1 and t[0, 3, 1, 1] == 1 and t[0, 2, 7, 7] == 1 and t.sum() == 3
 
 
-def test_alpha_schedule_is_clipped():
-    cfg = GCAConfig()
-    assert alpha(cfg, 0) == 0.15 and abs(alpha(cfg, 10) - 0.2) < 1e-12 and alpha(cfg, 1000) == 1.0
+def test_alpha_schedule_is_shared_and_clipped():
+    for cfg in (GCAConfig(), CGCAConfig()):         # both stages train with the paper's 0.15 + 0.005 t
+        assert alpha(cfg, 0) == 0.15 and abs(alpha(cfg, 10) - 0.2) < 1e-12 and alpha(cfg, 1000) == 1.0
+    assert alpha(GCAConfig(alpha0=-0.5, alpha1=0.1), 2) == 0.0 and alpha(GCAConfig(alpha0=-0.5, alpha1=0.1), 6) > 0
 
 
-def test_sampling_is_seeded():
+def test_sampling_is_seeded_and_grows_within_reach():
     m = _model(planner=False)
     s0 = _plane()
     a = sample(m, s0, GRID, 3, torch.Generator().manual_seed(1))
     b = sample(m, s0, GRID, 3, torch.Generator().manual_seed(1))
     assert torch.equal(a, b)
     c = sample(m, s0, GRID, 3, torch.Generator().manual_seed(2))
-    assert not torch.equal(a, c) or len(a) == 0
+    # the chain is alive (a dead chain returns an empty set and fails here) and the seed matters
+    assert len(a) > len(s0) and len(c) > len(s0) and not torch.equal(a, c)
+    reach = cs.dilate(s0, 3, bounds=GRID)           # one Chebyshev cell per step, never outside the grid
+    for x in (a, c):
+        assert torch.equal(x, cs.unique(x)) and bool(cs.isin(x, reach).all()) and bool((x[:, 0] == 0).all())
+
+
+def test_a_dead_chain_stops():
+    m = _model(planner=False)
+    m.forward = lambda nbhd, *args: torch.full((len(nbhd),), -50.0)     # every cell empties
+    steps = []
+    out = sample(m, _plane(), GRID, 5, torch.Generator().manual_seed(0), lambda t, n: steps.append(t))
+    assert len(out) == 0 and steps == [0, 1]        # the planner event, one step, then no more work
