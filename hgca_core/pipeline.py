@@ -1,14 +1,19 @@
 """One completion, end to end: points in the world frame -> k meshes in the world frame.
 
-This is the Python API behind `hgca complete` (and `hgca_core.complete`). Data flow as in DESIGN.md:
-region -> crop -> voxelise -> coarse GCA (+ planner) -> [fine cGCA -> unsigned distance -> marching cubes]
--> mesh back in the input's frame with each vertex's distance to the nearest input point.
+Two layers, so that `hgca eval` scores exactly what `hgca complete` ships:
+- `complete_local`, the region-frame core: points in a region's frame -> k meshes in that frame (crop to the box,
+  voxelise, coarse GCA (+ planner), [fine cGCA -> unsigned distance -> marching cubes] or the coarse cells'
+  blocky mesh). No file I/O, no world coordinates; `hgca eval` calls it on the synthetic samples, which are
+  stored in their region frame.
+- `complete`, the world-frame wrapper behind `hgca complete` and `hgca_core.complete`: checks the input, picks the
+  region, moves points into its frame, loads the weights, runs the core and moves each mesh back, with each
+  vertex's distance to the nearest input point. World-frame concerns (frames, offsets) live here only.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import torch
@@ -19,6 +24,12 @@ from hgca_core.errors import InputError
 from hgca_core.geometry import coords as cs
 from hgca_core.geometry.region import Region
 from hgca_core.geometry.voxel import COARSE, FINE, voxelize
+from hgca_core.geometry.voxel_mesh import voxel_mesh
+
+if TYPE_CHECKING:
+    from hgca_core.models.autoencoder import Autoencoder
+    from hgca_core.models.cgca import CGCAKernel
+    from hgca_core.models.gca import GCAKernel
 
 ProgressFn = Callable[[str, int, int, str], None]
 # Peak memory of a full-stage completion, linear in the region's area: benchmarks/results/completion_full_cpu
@@ -49,6 +60,26 @@ class Completion:
         return np.asarray(self.mesh.faces)
 
 
+@dataclass
+class LocalCompletion:
+    """One sample in the region frame, as the core computes it."""
+
+    mesh: trimesh.Trimesh              # region frame
+    coarse_cells: np.ndarray           # (M, 3) int64, 20 cm cells (s^T1)
+    fine_cells: np.ndarray | None      # (N, 3) int64, 10 cm cells (x^T2) of the full stage, else None
+    seed: int
+
+
+@dataclass
+class Models:
+    """The networks a completion runs: the coarse kernel, and for the full stage the fine kernel with the
+    autoencoder it was trained with."""
+
+    coarse: "GCAKernel"
+    fine: "CGCAKernel | None" = None
+    autoencoder: "Autoencoder | None" = None
+
+
 def check_points(points: np.ndarray, what: str = "input") -> np.ndarray:
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
@@ -71,22 +102,90 @@ def check_memory(region: Region) -> None:
                          f"only {avail / 2**30:.1f} GiB available: use a smaller --region or split it into tiles")
 
 
+def load_models(stage: str, weights: str | Path | None = None, fine_weights: str | Path | None = None,
+                device: str = "cpu") -> Models:
+    """The networks `stage` needs ('coarse' or 'full'), from the given files or the shipped ones (None), through
+    `hgca_core.models.weights` (checked and cached per file and device)."""
+    from hgca_core.models.weights import load_coarse, load_fine
+
+    if stage not in ("coarse", "full"):
+        raise InputError(f"stage must be 'coarse' or 'full', not {stage!r}")
+    models = Models(load_coarse(weights, device)[0])
+    if stage == "full":
+        models.fine, models.autoencoder, _ = load_fine(fine_weights, device)
+    return models
+
+
+def complete_local(local: np.ndarray, region: Region, models: Models, stage: str = "coarse", samples: int = 1,
+                   seed: int = 0, t1: int | None = None, t2: int | None = None, progress: ProgressFn | None = None,
+                   precision: str = "auto", max_faces: int | None = None) -> list[LocalCompletion]:
+    """The region-frame core: `local` (N, 3) points in `region`'s frame (metres; only the region's size is used
+    here) -> `samples` completions, meshes in the same frame. Sample i uses seed + i.
+
+    Points outside the box [0, size) are dropped first, so every caller crops the same way. The coarse stage's
+    mesh is the 20 cm cells' `voxel_mesh`; the full stage's is the decoded unsigned distance's marching cubes.
+    Runs on the models' device. See `complete` for `precision` and `max_faces`.
+    """
+    from hgca_core.models.gca import sample as gca_sample
+    from hgca_core.nn.conv import gemm_precision, resolve_precision
+
+    if stage == "full" and (models.fine is None or models.autoencoder is None):
+        raise InputError("the full stage needs the fine kernel and its autoencoder (load_models('full', ...))")
+    device = next(models.coarse.parameters()).device
+    try:
+        gemm_dtype = resolve_precision(precision, str(device))
+    except ValueError as exc:
+        raise InputError(str(exc)) from exc
+    report = progress or (lambda *a: None)
+    local = np.asarray(local, dtype=np.float64).reshape(-1, 3)
+    local = local[region.contains_local(local)]
+    if len(local) == 0:
+        raise InputError(f"no input points inside the {region.size.tolist()} m region")
+    s0 = voxelize(local, COARSE, region.size)
+    grid = region.grid_shape(COARSE)
+    report("voxelise", 1, 1, f"{len(s0)} cells at 20 cm")
+    steps = t1 or models.coarse.cfg.steps
+    results = []
+    for i in range(samples):
+        tag = f"sample {i + 1}/{samples}"
+        gen = torch.Generator(device=device).manual_seed(seed + i)
+        with gemm_precision(gemm_dtype):
+            occ = gca_sample(models.coarse, cs.with_batch(torch.from_numpy(s0).to(device)), grid, steps, gen,
+                             lambda t, n: report("planner" if t == 0 else "coarse", t, n, tag))
+        cells, cells10 = occ[:, 1:].cpu().numpy(), None
+        if stage == "full":
+            from hgca_core.models.cgca import decode_mesh, upsample
+
+            with gemm_precision(gemm_dtype):
+                c10, latents = upsample(models.fine, models.autoencoder, local, cells, region.grid_shape(FINE), t2,
+                                        gen, lambda t, n: report("fine", t, n, tag))
+            report("mesh", i, samples, tag)
+            mesh, cells10 = decode_mesh(models.autoencoder, c10, latents), c10.cpu().numpy()
+        else:
+            report("mesh", i, samples, tag)
+            mesh = voxel_mesh(cells, COARSE)
+        if max_faces is not None and len(mesh.faces) > max_faces:
+            from hgca_core.meshing import decimate
+
+            report("mesh", i, samples, f"{tag}: simplifying {len(mesh.faces)} faces")
+            mesh = decimate(mesh, max_faces)
+        results.append(LocalCompletion(mesh=mesh, coarse_cells=cells, fine_cells=cells10, seed=seed + i))
+        report("mesh", i + 1, samples, tag)
+    return results
+
+
 def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarray | None = None,
              samples: int = 1, seed: int = 0, stage: str = "coarse", device: str = "cpu",
              t1: int | None = None, t2: int | None = None, weights: str | Path | None = None,
              fine_weights: str | Path | None = None, progress: ProgressFn | None = None,
              precision: str = "auto", max_faces: int | None = None) -> list[Completion]:
-    """Complete accumulated LiDAR points. Sample i uses seed + i, so a (seed, i) pair names one mesh.
+    """Complete accumulated LiDAR points (world frame). Sample i uses seed + i, so a (seed, i) pair names one mesh.
 
     `precision` is the GEMM precision of the sparse convs while sampling ('auto': bf16 where the hardware has
     it, see `hgca_core.nn.conv.resolve_precision`); a (seed, precision) pair names one result. `max_faces`
-    simplifies each mesh to at most that many triangles (`hgca_core.meshing.decimate`)."""
-    if stage not in ("coarse", "full"):
-        raise InputError(f"stage must be 'coarse' or 'full', not {stage!r}")
-    from hgca_core.models.weights import load_coarse, load_fine
-
-    model, _ = load_coarse(weights, device)       # both files are checked before any work (cached per file)
-    fine_model, autoencoder, _ = load_fine(fine_weights, device) if stage == "full" else (None, None, None)
+    simplifies each mesh to at most that many triangles (`hgca_core.meshing.decimate`). The work itself is
+    `complete_local`'s, in the region frame; this wrapper moves points in and meshes out."""
+    models = load_models(stage, weights, fine_weights, device)   # both files are checked before any work
     if samples < 1:
         raise InputError(f"samples must be at least 1, got {samples}")
     if max_faces is not None and max_faces < 1000:
@@ -96,55 +195,20 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
         sensor = None if origins is None or len(origins) == 0 else np.asarray(origins)[0]
         region = Region.around(pts, sensor=sensor)
     check_memory(region)
-    report = progress or (lambda *a: None)
     local = region.to_local(pts)
     inside = region.contains_local(local)
     if not inside.any():
         raise InputError(f"no input points inside the region (centre {np.round(region.center, 2).tolist()}, "
                          f"size {region.size.tolist()} m); the points span {np.round(pts.min(0), 2).tolist()} "
                          f"to {np.round(pts.max(0), 2).tolist()}")
-    s0 = voxelize(local[inside], COARSE, region.size)
-    grid = region.grid_shape(COARSE)
-    report("voxelise", 1, 1, f"{len(s0)} cells at 20 cm")
-
-    from hgca_core.models.gca import sample as gca_sample
-    from hgca_core.nn.conv import gemm_precision, resolve_precision
-
-    try:
-        gemm_dtype = resolve_precision(precision, device)
-    except ValueError as exc:
-        raise InputError(str(exc)) from exc
-    steps = t1 or model.cfg.steps
     tree = cKDTree(pts[inside])
     results = []
-    for i in range(samples):
-        gen = torch.Generator(device=device).manual_seed(seed + i)
-        s0_t = cs.with_batch(torch.from_numpy(s0).to(device))
-        with gemm_precision(gemm_dtype):
-            occ = gca_sample(model, s0_t, grid, steps, gen,
-                             lambda t, n: report("planner" if t == 0 else "coarse", t, n, f"sample {i + 1}/{samples}"))
-        cells = occ[:, 1:].cpu().numpy()
-        if stage == "full":
-            from hgca_core.models.cgca import decode_mesh, upsample
-
-            with gemm_precision(gemm_dtype):
-                cells10, latents = upsample(fine_model, autoencoder, local[inside], cells, region.grid_shape(FINE), t2,
-                                            gen, lambda t, n: report("fine", t, n, f"sample {i + 1}/{samples}"))
-            report("mesh", i, samples, f"sample {i + 1}/{samples}")
-            mesh = decode_mesh(autoencoder, cells10, latents)
-        else:
-            from hgca_core.geometry.voxel_mesh import voxel_mesh
-
-            report("mesh", i, samples, f"sample {i + 1}/{samples}")
-            mesh = voxel_mesh(cells, COARSE, lower_corner=-FINE / 2)
-        if max_faces is not None and len(mesh.faces) > max_faces:
-            from hgca_core.meshing import decimate
-
-            report("mesh", i, samples, f"sample {i + 1}/{samples}: simplifying {len(mesh.faces)} faces")
-            mesh = decimate(mesh, max_faces)
+    for r in complete_local(local[inside], region, models, stage, samples, seed, t1, t2, progress, precision,
+                            max_faces):
+        mesh = r.mesh
         mesh.vertices = region.to_world(mesh.vertices)
         dist = tree.query(mesh.vertices, workers=-1)[0].astype(np.float32) if len(mesh.vertices) else np.zeros(0, np.float32)
         mesh.vertex_attributes["observed_distance"] = dist
-        results.append(Completion(mesh=mesh, observed_distance=dist, coarse_cells=cells, region=region, seed=seed + i))
-        report("mesh", i + 1, samples, f"sample {i + 1}/{samples}")
+        results.append(Completion(mesh=mesh, observed_distance=dist, coarse_cells=r.coarse_cells, region=region,
+                                  seed=r.seed))
     return results

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from typing import TextIO
 
 from tqdm import tqdm
@@ -56,3 +57,22 @@ class Progress:
     def _emit(self, obj: dict) -> None:
         self.stream.write(json.dumps(obj) + "\n")
         self.stream.flush()
+
+
+class StageClock:
+    """A progress callback that times the stages: the seconds since the previous event (or since the clock was
+    made) are charged to the stage of the event that ends them. `hgca bench` and `hgca eval` read stage times
+    from the pipeline's own events this way."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._last = time.perf_counter()
+
+    def __call__(self, stage: str, step: int, total: int, message: str = "") -> None:
+        now = time.perf_counter()
+        self.seconds[stage] = self.seconds.get(stage, 0.0) + (now - self._last)
+        self._last = now
+
+    def total(self, *stages: str) -> float:
+        """Seconds charged to the named stages (all of them when none is named)."""
+        return sum(v for k, v in self.seconds.items() if not stages or k in stages)

@@ -1,4 +1,4 @@
-"""Shared fixtures: a tiny dataset on disk (see hgca_testdata) and the real fixture folder."""
+"""Shared fixtures: a tiny dataset on disk and the real fixture folder (see hgca_testdata for both)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,10 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from hgca_testdata import tiny_sample
-
-REPO = Path(__file__).resolve().parents[1]
-REAL_FIXTURES = REPO.parent / "shared" / "fixtures" / "real"
+from hgca_testdata import require_real, tiny_sample
 
 
 @pytest.fixture(scope="session")
@@ -21,6 +18,12 @@ def tiny_dataset(tmp_path_factory) -> Path:
         for s in seeds:
             np.savez(root / split / f"sample_{s:07d}.npz", **tiny_sample(s))
     return root
+
+
+@pytest.fixture(scope="session")
+def real_dir() -> Path:
+    """The real-files folder ../shared/fixtures/real: a skip where it is missing, a failure under CI."""
+    return require_real()
 
 
 @pytest.fixture

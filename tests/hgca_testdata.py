@@ -1,8 +1,33 @@
 """Tiny synthetic samples in the CONTRACTS.md format, made without the simulator so model and trainer
-tests stay fast and independent of the scene generator (importable from any test as `hgca_testdata`)."""
+tests stay fast and independent of the scene generator, and the one way to reach the real LiDAR fixtures
+(importable from any test as `hgca_testdata`)."""
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
+import pytest
+
+REAL_FIXTURES = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "real"
+
+
+def in_ci() -> bool:
+    """True when the environment variable CI is set (to anything but '', 0, false or no)."""
+    return os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no")
+
+
+def require_real(path: Path | None = None) -> Path:
+    """A real LiDAR fixture (default: the folder ../shared/fixtures/real). When it is missing the test is skipped
+    on a developer's machine, but FAILS under CI: CI runs on a clean clone with ../shared beside it, so a missing
+    fixture there means the real-file tests silently stopped running."""
+    p = REAL_FIXTURES if path is None else Path(path)
+    if not p.exists():
+        msg = f"real LiDAR fixture missing: {p} (expected ../shared/fixtures/real next to the repo)"
+        if in_ci():
+            pytest.fail(f"{msg}; CI is set, so this is a failure, not a skip", pytrace=False)
+        pytest.skip(msg)
+    return p
 
 
 def tiny_sample(seed: int, size: float = 6.0) -> dict[str, np.ndarray]:

@@ -218,3 +218,24 @@ def test_weights_for_another_flag_say_what_they_are_before_any_work(small_weight
         err = capsys.readouterr().err.strip()
         assert code == 2 and len(err.splitlines()) == 1 and message in err, err
         assert "missing_scan" not in err and "Traceback" not in err
+
+
+def test_world_wrapper_is_the_region_core_moved_to_the_world(small_weights, scan):
+    """`complete` = crop + `complete_local` in the region frame + the mesh moved back; points outside the box are
+    dropped by the core itself, so a caller that passes uncropped region-frame points gets the same result."""
+    import hgca_core
+    from hgca_core.pipeline import complete_local, load_models
+
+    pts = np.load(scan)["points"]
+    region = hgca_core.Region.parse(REGION + ",30")               # a turned box: the frames really differ
+    world = hgca_core.complete(pts, region=region, samples=2, seed=7, weights=small_weights, precision="fp32")
+    local = complete_local(region.to_local(pts), region, load_models("coarse", small_weights), samples=2, seed=7,
+                           precision="fp32")
+    assert len(world) == len(local) == 2
+    for w, c in zip(world, local):
+        assert w.seed == c.seed and np.array_equal(w.coarse_cells, c.coarse_cells) and len(c.coarse_cells) > 0
+        assert np.array_equal(w.faces, c.mesh.faces)
+        np.testing.assert_allclose(w.vertices, region.to_world(c.mesh.vertices), rtol=0, atol=1e-9)
+    assert not np.array_equal(local[0].coarse_cells, local[1].coarse_cells)
+    with pytest.raises(hgca_core.InputError, match="inside"):
+        complete_local(region.to_local(pts) + 1000.0, region, load_models("coarse", small_weights))

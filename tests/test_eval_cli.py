@@ -23,14 +23,20 @@ def small_split(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def small_fine(tmp_path_factory):
+    """Small untrained fine weights, biased so that the fine chain keeps cells (occupancy logit + 1) and the decoded
+    distance dips below the meshing level (distance logit - 1). Unbiased, an untrained chain dies at once and every
+    fine row scores the empty-completion penalty, so comparisons between runs would hold whatever the code did."""
     from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
     from hgca_core.models.cgca import CGCAConfig, CGCAKernel
     from hgca_core.models.weights import save_weights
 
     torch.manual_seed(0)
+    kernel, autoencoder = CGCAKernel(CGCAConfig(channels=(8, 8, 8, 8, 8), steps=2)), Autoencoder(AutoencoderConfig())
+    with torch.no_grad():
+        kernel.head[2].bias[0] = 1.0
+        autoencoder.fc_out.bias.fill_(-1.0)
     path = tmp_path_factory.mktemp("fw") / "fine_small.pt"
-    save_weights(path, CGCAKernel(CGCAConfig(channels=(8, 8, 8, 8, 8), steps=2)), {"stage": "test"},
-                 autoencoder=Autoencoder(AutoencoderConfig()))
+    save_weights(path, kernel, {"stage": "test"}, autoencoder=autoencoder)
     return path
 
 
@@ -46,6 +52,8 @@ def test_eval_full_stage_table(small_split, small_fine, tmp_path):
     for name, r in rows.items():
         assert 0.0 <= r["iou"] <= 1.0 and np.isfinite(r["resim_min"]) and r["seconds_per_completion"] > 0, name
     assert rows["hGCA (10 cm voxels)"]["k"] == 2 and np.isfinite(rows["hGCA (10 cm voxels)"]["tmd"])
+    for name in ("hGCA (10 cm voxels)", "hGCA (implicit)"):   # the fine chain is alive: no empty-scan penalty
+        assert rows[name]["resim_avg"] < 2.0 and rows[name]["iou"] > 0.02
     # the implicit row's time includes the meshing the voxel row leaves out
     assert rows["hGCA (implicit)"]["seconds_per_completion"] > rows["hGCA (10 cm voxels)"]["seconds_per_completion"]
     table = out.with_suffix(".md").read_text()
@@ -61,16 +69,50 @@ def test_eval_full_stage_table(small_split, small_fine, tmp_path):
     bad = subprocess.run(cmd[:8] + ["--methods", "input", "--samples", "3", "--reuse", str(out)],
                          capture_output=True, text=True, timeout=600)
     assert bad.returncode == 2 and "other samples" in bad.stderr
-    # hgca and hgca-full share their coarse chains in one process; alone, hgca-full runs them itself, same result
+    # with hgca-full, the hgca row borrows that run's coarse cells; alone, it runs the coarse stage itself: same row
     alone = tmp_path / "alone.json"
-    res = subprocess.run([*cmd[:cmd.index("--methods")], "--methods", "hgca-full",
+    res = subprocess.run([*cmd[:cmd.index("--methods")], "--methods", "hgca",
                           *cmd[cmd.index("--methods") + 2:cmd.index("--out")], "--out", str(alone)],
                          capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
-    rows3 = json.loads(alone.read_text())["rows"]
-    for name in ("hGCA (10 cm voxels)", "hGCA (implicit)"):
-        for key in ("iou", "resim_min", "resim_avg", "tmd"):
-            assert rows3[name][key] == rows[name][key], (name, key)
+    row, shared = json.loads(alone.read_text())["rows"]["hGCA coarse (planner)"], rows["hGCA coarse (planner)"]
+    assert shared["tmd"] > 0                                    # two different completions, not one repeated
+    for key in ("iou", "resim_min", "resim_avg", "tmd", "street_cd_min"):
+        assert row[key] == shared[key], key
+
+
+def test_eval_scores_what_complete_ships(small_split):
+    """The hgca row is the score of `hgca_core.complete`'s own mesh (world frame, moved back into the sample's
+    region frame), and the input row meshes its cells as the coarse stage does (cube faces)."""
+    import argparse
+
+    import hgca_core
+    from hgca_core.commands.eval import evaluate_methods, load_method_models
+    from hgca_core.geometry.region import Region
+    from hgca_core.geometry.voxel import voxelize
+    from hgca_core.geometry.voxel_mesh import voxel_mesh
+    from hgca_core.metrics.evaluate import evaluate_sample
+    from hgca_core.models.weights import shipped
+    from hgca_core.synth.dataset import load_sample
+
+    path = small_split / "val" / "sample_1000123.npz"
+    args = argparse.Namespace(samples=1, seed=3, t1=2, t2=None, precision="fp32")
+    got = evaluate_methods(path, ["input", "hgca"], load_method_models(["hgca"], None), args)
+    sample = load_sample(path)
+    region = Region.from_tuple(sample["region"])
+    world = region.to_world(np.asarray(sample["input_points"], dtype=np.float64))
+    shipped = hgca_core.complete(world, region=region, seed=3, t1=2, weights=shipped("coarse"), precision="fp32")[0]
+    mesh = shipped.mesh.copy()
+    mesh.vertices = region.to_local(mesh.vertices)
+    want = evaluate_sample(sample, [mesh], [shipped.coarse_cells])
+    assert want["resim_min"] < 2.0 and want["iou"] > 0.5                 # a real completion, not the penalty
+    for key in ("iou", "resim_min", "street_cd_min"):
+        assert got["hgca"][0][key] == pytest.approx(want[key], rel=1e-9, abs=1e-12), key
+    # the input row: the region's s^0 cells, meshed like the coarse output
+    s0 = voxelize(sample["input_points"], 0.2, region.size)
+    want_input = evaluate_sample(sample, [voxel_mesh(s0, 0.2)], [s0])
+    for key in ("iou", "resim_min", "street_cd_min"):
+        assert got["input"][0][key] == want_input[key], key
 
 
 def test_eval_full_stage_without_fine_weights_is_a_clear_error(small_split, tmp_path):

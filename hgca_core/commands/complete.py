@@ -74,11 +74,10 @@ def _run(args: argparse.Namespace, progress) -> list[Path]:
         if not torch.cuda.is_available():
             raise InputError("--device cuda asked for, but this torch build sees no CUDA GPU")
     paths = output_paths(args.out, args.samples)
-    from hgca_core.models.weights import load_coarse, load_fine
+    from hgca_core.pipeline import load_models
 
-    load_coarse(args.weights, args.device)   # bad weights fail before any work; complete() reuses them (cached)
-    if args.stage == "full":
-        load_fine(args.fine_weights, args.device)
+    load_models(args.stage, args.weights, args.fine_weights, args.device)   # bad weights fail before any work;
+    # complete() gets the same models again from the cache
     progress("read", 0, 1, f"{len(args.scans)} scan(s)")
     scan = read_scans(args.scans, poses=args.poses, fmt=args.fmt)
     progress("read", 1, 1, f"{len(scan.points)} points")

@@ -34,96 +34,30 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import numpy as np
-    import torch
     from tqdm import tqdm
 
     from hgca_core.errors import InputError
-    from hgca_core.geometry import coords as cs
-    from hgca_core.geometry.voxel import COARSE, FINE
-    from hgca_core.geometry.voxel_mesh import voxel_mesh
-    from hgca_core.metrics.baselines import input_baseline, poisson_baseline
-    from hgca_core.metrics.evaluate import aggregate, evaluate_sample, format_table
-    from hgca_core.models.weights import WEIGHTS_DIR, load_coarse, load_fine, shipped
-    from hgca_core.models.gca import sample as gca_sample
-    from hgca_core.synth.dataset import load_sample
-    from hgca_core.training.data import coarse_pair, split_files
+    from hgca_core.metrics.evaluate import aggregate, format_table
+    from hgca_core.models.weights import WEIGHTS_DIR
+    from hgca_core.nn.conv import precision_name, resolve_precision
+    from hgca_core.training.data import split_files
 
     default = DEFAULT_METHODS + (("hgca-full",) if args.stage == "full" else ())
     methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else list(default)
     unknown = set(methods) - set(METHODS)
     if unknown:
         raise InputError(f"unknown methods {sorted(unknown)}; choose from {', '.join(METHODS)}")
-    from hgca_core.nn.conv import gemm_precision, precision_name, resolve_precision
-
     files = split_files(args.data, args.split)[: args.count]
     gemm_dtype = resolve_precision(args.precision)
-    coarse_models = {planner: load_coarse(shipped("coarse" if planner else "coarse-noplanner"))[0]
-                     for planner in {m != "gca" for m in methods if m in ("gca", "hgca", "hgca-full")}}
-    if "hgca-full" in methods:
-        fine_model, autoencoder, _ = load_fine(args.fine_weights)
+    models = load_method_models(methods, args.fine_weights)
     rows_of = {m: [m] for m in methods}
     rows_of["hgca-full"] = ["hgca-10cm", "hgca-implicit"]
     results: dict[str, list[dict]] = {r: [] for m in methods for r in rows_of[m]}
     timings: dict[str, list[float]] = {r: [] for m in methods for r in rows_of[m]}
     for path in tqdm(files, desc=f"eval {args.split}", unit="scene"):
-        sample = load_sample(path)
-        pts = np.asarray(sample["input_points"], dtype=np.float64)
-        s0, _, grid = coarse_pair(path)
-        chains: dict[tuple[bool, int], tuple[np.ndarray, torch.Tensor, float]] = {}
-
-        def chain(planner: bool, i: int) -> tuple[np.ndarray, torch.Generator, float]:
-            """Coarse completion i and its generator as the chain left it, plus the seconds it took when
-            an earlier method ran it: hgca and hgca-full share their chains (same weights, same seeds)."""
-            borrowed = (planner, i) in chains
-            if not borrowed:
-                t = time.time()
-                gen = torch.Generator().manual_seed(args.seed + i)
-                model = coarse_models[planner]
-                with gemm_precision(gemm_dtype):
-                    occ = gca_sample(model, cs.with_batch(torch.from_numpy(s0)), grid, args.t1 or model.cfg.steps, gen)
-                chains[planner, i] = (occ[:, 1:].numpy(), gen.get_state(), time.time() - t)
-            occ, state, secs = chains[planner, i]
-            gen = torch.Generator()
-            gen.set_state(state)
-            return occ, gen, secs if borrowed else 0.0
-
-        for m in methods:
-            t0 = time.time()
-            if m == "input":
-                cells, mesh = input_baseline(pts)
-                res = evaluate_sample(sample, [mesh], [cells])
-            elif m == "poisson":
-                res = evaluate_sample(sample, [poisson_baseline(pts, np.asarray(sample["input_origins"]))])
-            elif m == "hgca-full":  # one fine run per sample, scored as 10 cm voxels and as the implicit mesh
-                from hgca_core.geometry.voxel import downsample
-                from hgca_core.models.cgca import decode_mesh, upsample
-
-                grid10 = tuple(int(v) for v in np.round(np.asarray(sample["region"])[3:6] / FINE))
-                fine, meshes, t_mesh, t_borrowed = [], [], 0.0, 0.0
-                for i in range(args.samples):
-                    occ, gen, secs = chain(True, i)
-                    t_borrowed += secs
-                    with gemm_precision(gemm_dtype):
-                        cells10, z = upsample(fine_model, autoencoder, pts, occ, grid10, args.t2, gen)
-                    fine.append(cells10.numpy())
-                    t1 = time.time()
-                    meshes.append(decode_mesh(autoencoder, cells10, z))
-                    t_mesh += time.time() - t1
-                t_gen = time.time() - t0 - t_mesh + t_borrowed
-                vox = [voxel_mesh(c, FINE, lower_corner=-FINE / 2) for c in fine]
-                results["hgca-10cm"].append(evaluate_sample(sample, vox, [downsample(c) for c in fine]))
-                results["hgca-implicit"].append(evaluate_sample(sample, meshes))
-                timings["hgca-10cm"].append(t_gen / args.samples)
-                timings["hgca-implicit"].append((t_gen + t_mesh) / args.samples)
-                continue
-            else:
-                runs = [chain(m == "hgca", i) for i in range(args.samples)]
-                occ = [r[0] for r in runs]
-                t0 -= sum(r[2] for r in runs)
-                meshes = [voxel_mesh(o, COARSE, lower_corner=-FINE / 2) for o in occ]
-                res = evaluate_sample(sample, meshes, occ)
-            timings[m].append((time.time() - t0) / (args.samples if m in ("gca", "hgca") else 1))
-            results[m].append(res)
+        for row, (res, secs) in evaluate_methods(path, methods, models, args).items():
+            results[row].append(res)
+            timings[row].append(secs)
     names = {"input": ("input", "20cm^3 points"), "poisson": ("Poisson (Open3D)", "mesh"),
              "gca": ("GCA (no planner)", "20cm^3"), "hgca": ("hGCA coarse (planner)", "20cm^3"),
              "hgca-10cm": ("hGCA (10 cm voxels)", "10cm^3"), "hgca-implicit": ("hGCA (implicit)", "implicit")}
@@ -149,6 +83,85 @@ def run(args: argparse.Namespace) -> int:
 
             write_model_card()
     return 0
+
+
+def load_method_models(methods: list[str], fine_weights: str | None) -> dict:
+    """`pipeline.Models` per model-based method: gca = the no-planner weights, hgca / hgca-full = the shipped
+    planner weights (with the fine stage when hgca-full is asked for), loaded once for the whole split."""
+    from hgca_core.models.weights import shipped
+    from hgca_core.pipeline import load_models
+
+    models = {}
+    if "gca" in methods:
+        models["gca"] = load_models("coarse", shipped("coarse-noplanner"))
+    if "hgca" in methods or "hgca-full" in methods:
+        models["hgca"] = load_models("full" if "hgca-full" in methods else "coarse", shipped("coarse"), fine_weights)
+    return models
+
+
+def evaluate_methods(path: Path, methods: list[str], models: dict, args: argparse.Namespace) -> dict:
+    """{row: (metrics of the k completions of one sample, seconds per completion)} for each method's rows; the
+    seconds are the method's own (making the completion and its mesh), not the scoring's.
+
+    Model rows run the product's region-frame core (`pipeline.complete_local`) on the sample's input, which the
+    dataset stores in its region frame, and score the meshes it returns: the coarse stage's cube-face mesh for
+    gca / hgca, the implicit mesh for hgca-implicit; hgca-10cm scores the fine cells, meshed by the same
+    `voxel_mesh`, as is the input row. hgca borrows the coarse cells of hgca-full's run when both are asked for
+    (the same weights and seeds give the same chains); its time is then that run's coarse share plus meshing.
+    """
+    import numpy as np
+
+    from hgca_core.geometry.region import Region
+    from hgca_core.geometry.voxel import COARSE, FINE, downsample
+    from hgca_core.geometry.voxel_mesh import voxel_mesh
+    from hgca_core.metrics.baselines import input_baseline, poisson_baseline
+    from hgca_core.metrics.evaluate import evaluate_sample
+    from hgca_core.pipeline import complete_local
+    from hgca_core.progress import StageClock
+    from hgca_core.synth.dataset import load_sample
+
+    sample = load_sample(path)
+    pts = np.asarray(sample["input_points"], dtype=np.float64)
+    region = Region.from_tuple(sample["region"])
+    k = args.samples
+    runs: dict[tuple[str, str], tuple[list, StageClock]] = {}
+    coarse_stages = ("voxelise", "planner", "coarse")
+
+    def core(name: str, stage: str) -> tuple[list, StageClock]:
+        if (name, stage) not in runs:
+            clock = StageClock()
+            runs[name, stage] = (complete_local(pts, region, models[name], stage, k, args.seed, args.t1, args.t2,
+                                                clock, args.precision), clock)
+        return runs[name, stage]
+
+    out = {}
+    for m in methods:
+        t0 = time.perf_counter()
+        if m == "input":
+            cells, mesh = input_baseline(pts, region.size)
+            secs = time.perf_counter() - t0
+            out[m] = (evaluate_sample(sample, [mesh], [cells]), secs)
+        elif m == "poisson":
+            mesh = poisson_baseline(pts, np.asarray(sample["input_origins"]))
+            secs = time.perf_counter() - t0
+            out[m] = (evaluate_sample(sample, [mesh]), secs)
+        elif m == "hgca-full":  # one fine run per completion, scored as 10 cm voxels and as the implicit mesh
+            done, clock = core("hgca", "full")
+            gen = clock.total(*coarse_stages, "fine")
+            vox = [voxel_mesh(r.fine_cells, FINE) for r in done]
+            out["hgca-10cm"] = (evaluate_sample(sample, vox, [downsample(r.fine_cells) for r in done]), gen / k)
+            out["hgca-implicit"] = (evaluate_sample(sample, [r.mesh for r in done]), (gen + clock.total("mesh")) / k)
+        elif m == "hgca" and "hgca-full" in methods:
+            done, clock = core("hgca", "full")
+            t1 = time.perf_counter()
+            meshes = [voxel_mesh(r.coarse_cells, COARSE) for r in done]   # what complete_local's coarse stage ships
+            secs = clock.total(*coarse_stages) + time.perf_counter() - t1
+            out[m] = (evaluate_sample(sample, meshes, [r.coarse_cells for r in done]), secs / k)
+        else:  # gca, hgca: the coarse stage as `hgca complete --stage coarse` runs it
+            done, clock = core(m, "coarse")
+            out[m] = (evaluate_sample(sample, [r.mesh for r in done], [r.coarse_cells for r in done]),
+                      clock.total() / k)
+    return out
 
 
 def reused_rows(path: str, files: list[str], split: str, samples: int, skip: set[str]) -> dict:

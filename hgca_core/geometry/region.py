@@ -7,6 +7,7 @@ this frame, which makes them non-negative and bounded by the grid shape.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 
@@ -79,8 +80,13 @@ class Region:
             raise InputError(f"--region must be numbers 'cx,cy,cz,sx,sy,sz[,yaw]', got {text!r}") from exc
         if len(vals) not in (6, 7):
             raise InputError(f"--region needs 6 or 7 numbers 'cx,cy,cz,sx,sy,sz[,yaw]', got {len(vals)}")
-        yaw = np.radians(vals[6]) if len(vals) == 7 else 0.0
-        return cls(center=np.array(vals[:3]), size=np.array(vals[3:6]), yaw=float(yaw))
+        return cls.from_tuple(vals)
+
+    @classmethod
+    def from_tuple(cls, values: Sequence[float] | np.ndarray) -> "Region":
+        """Inverse of `as_tuple`: (cx, cy, cz, sx, sy, sz[, yaw_degrees]), e.g. a synthetic sample's `region`."""
+        v = [float(x) for x in values]
+        return cls(center=np.array(v[:3]), size=np.array(v[3:6]), yaw=float(np.radians(v[6]) if len(v) == 7 else 0.0))
 
     @classmethod
     def around(cls, points: np.ndarray, sensor: np.ndarray | None = None, ground_z: float | None = None,

@@ -16,24 +16,24 @@ os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="hgca_bl
 
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
-import pytest  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
-FIXTURES = Path(__file__).resolve().parents[3] / "shared" / "fixtures" / "real"
+for _p in (REPO, REPO / "tests"):
+    if str(_p) not in sys.path:
+        sys.path.insert(0, str(_p))
+
+from hgca_testdata import REAL_FIXTURES as FIXTURES, require_real  # noqa: E402
+
 NUSCENES = FIXTURES / "nuscenes_lidar_top_1532402927647951.pcd.bin"
 REPO_MODULE = "hgca_test"
 ADDON = f"bl_ext.{REPO_MODULE}.hgca"
 # A small region around the nuScenes sensor keeps a real completion to a few seconds on 2 cores.
 SMALL_REGION = (0.0, 0.0, -0.5, 9.6, 9.6, 4.0, 0.0)
 
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
 
 def require_fixture(path: Path) -> Path:
-    if not path.is_file():
-        pytest.skip(f"real LiDAR fixture missing: {path} (expected ../shared/fixtures/real next to the repo)")
-    return path
+    """A real fixture file: skipped where missing, a failure under CI (`hgca_testdata.require_real`)."""
+    return require_real(path)
 
 
 def addon_module(name: str):
