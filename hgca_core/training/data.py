@@ -10,7 +10,7 @@ import torch
 
 from hgca_core.errors import InputError
 from hgca_core.geometry.keys import unique_rows
-from hgca_core.geometry.voxel import COARSE, FINE, grid_shape, voxelize
+from hgca_core.geometry.voxel import COARSE, FINE, grid_shape, point_cells, voxelize
 
 
 def split_files(data_dir: str | Path, split: str) -> list[Path]:
@@ -65,7 +65,7 @@ class CropSpec:
         """(points in the crop frame, mask of the kept input rows): a point is kept when its 10 cm cell is,
         and a flip maps cell c to size - 1 - c, i.e. x to (size - 1) * 0.1 - x."""
         p = np.asarray(p, dtype=np.float64).reshape(-1, 3) - np.array([self.ox, self.oy, 0]) * FINE
-        c = np.round(p[:, :2] / FINE)
+        c = point_cells(p, FINE)
         keep = (c[:, 0] >= 0) & (c[:, 0] < self.grid[0]) & (c[:, 1] >= 0) & (c[:, 1] < self.grid[1])
         p = p[keep]
         if self.fx:

@@ -1,10 +1,9 @@
-"""Known answers for voxel meshing, Street CD, the baselines and the results table."""
+"""Known answers for Street CD, the baselines and the results table."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from hgca_core.errors import InputError
 from hgca_core.metrics.baselines import input_baseline, poisson_baseline
 from hgca_core.metrics.evaluate import aggregate, format_table
 from hgca_core.metrics.street import street_cd, street_points

@@ -1,6 +1,5 @@
 """cGCA upsampler: neighbourhoods, kernel shapes and gradients, infusion, seeded sampling, x^0, overfitting, and
 the functions the pipeline calls (upsample, decode_mesh, shipped weights)."""
-from pathlib import Path
 
 import numpy as np
 import pytest

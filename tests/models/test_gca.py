@@ -4,7 +4,7 @@ from hgca_core.geometry import coords as cs
 from hgca_core.models.cgca import CGCAConfig
 from hgca_core.models.gca import GCAConfig, GCAKernel, sample
 from hgca_core.models.infusion import alpha
-from hgca_core.models.planner import Planner, rough_target
+from hgca_core.models.planner import rough_target
 
 GRID = (24, 24, 20)
 
