@@ -1,5 +1,6 @@
 """Dependency directions and the one weights module, read from the source (every import, also those inside
-functions): models never import training, commands or the benchmark; training never imports the benchmark
+functions): geometry (keys, voxels, regions, the voxel mesher) imports no other hgca_core layer; models never
+import training, commands or the benchmark; training never imports the benchmark
 or the commands; only hgca_core/models/weights.py calls torch.load / torch.save, and only with weights_only=True."""
 import ast
 from pathlib import Path
@@ -9,6 +10,8 @@ import pytest
 CORE = Path(__file__).resolve().parents[1] / "hgca_core"
 
 FORBIDDEN = {
+    "geometry": ("hgca_core.nn", "hgca_core.models", "hgca_core.training", "hgca_core.commands", "hgca_core.pipeline",
+                 "hgca_core.bench", "hgca_core.metrics", "hgca_core.synth", "hgca_core.meshing"),
     "nn": ("hgca_core.models", "hgca_core.training", "hgca_core.commands", "hgca_core.pipeline", "hgca_core.bench"),
     "models": ("hgca_core.training", "hgca_core.commands", "hgca_core.pipeline", "hgca_core.bench"),
     "training": ("hgca_core.bench", "hgca_core.commands", "hgca_core.pipeline"),
