@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test venv extension clean
+.PHONY: demo test test-blender venv extension clean
 
 $(STAMP): pyproject.toml
 	@# Open3D (the Poisson baseline) links libusb; install it from Debian when we may and it is missing
@@ -20,11 +20,29 @@ $(STAMP): pyproject.toml
 
 venv: $(STAMP)
 
+# The add-on on each Blender line it supports (manifest: 4.2+): bpy 5.0.1 is in .venv (the test extra), the LTS
+# lines get a venv each with only what tests/blender imports; the add-on's core runs from .venv (HGCA_PYTHON).
+BPY42 := 4.2.23
+BPY45 := 4.5.15
+BPY_TEST_DEPS := "numpy<2" "pytest>=8" "pytest-timeout>=2.3" "laspy>=2.5" "lazrs>=0.6"
+BLENDER_TESTS = HGCA_PYTHON=$(abspath $(BIN)/python) $(1)/bin/python -m pytest -q --confcutdir=tests/blender tests/blender
+
+.venv-bpy%/.installed: Makefile
+	test -x .venv-bpy$*/bin/python || $(PY) -m venv .venv-bpy$*
+	.venv-bpy$*/bin/python -m pip install -q "bpy==$(BPY$*)" $(BPY_TEST_DEPS)
+	touch $@
+
 demo: $(STAMP)
 	$(BIN)/hgca demo
 
-test: $(STAMP)
+test: $(STAMP) .venv-bpy42/.installed
 	$(BIN)/python -m pytest -q tests
+	$(call BLENDER_TESTS,.venv-bpy42)
+
+test-blender: $(STAMP) .venv-bpy42/.installed .venv-bpy45/.installed
+	$(BIN)/python -m pytest -q tests/blender
+	$(call BLENDER_TESTS,.venv-bpy45)
+	$(call BLENDER_TESTS,.venv-bpy42)
 
 extension: $(STAMP)
 	$(BIN)/python -m hgca_blender.build_extension --out build/extension

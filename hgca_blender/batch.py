@@ -24,7 +24,7 @@ import time
 
 import bpy
 
-from . import jobs, operators_import, preferences, preview, region, sources
+from . import core, jobs, operators_import, preferences, preview, region, sources
 
 
 def script_args(argv: list[str]) -> list[str]:
@@ -37,14 +37,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scans", nargs="+", help="scan files (any format `hgca read` accepts)")
     p.add_argument("--poses", default=None, help="poses JSON for the scans")
     p.add_argument("--out", required=True, help="output .blend")
-    p.add_argument("--region", default=None, help="cx,cy,cz,sx,sy,sz[,yaw_deg] (default: 38.4 x 38.4 x 8 m "
-                                                  "around the scan, 1 m below the ground)")
+    p.add_argument("--region", default=None, help="cx,cy,cz,sx,sy,sz[,yaw_deg] (default: `hgca region`'s box, "
+                                                  "38.4 x 38.4 x 8 m around the sensor, 1 m below the ground)")
     p.add_argument("--samples", type=int, default=1)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--stage", choices=("coarse", "full"), default="full")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
-    p.add_argument("--t1", type=int, default=30)
-    p.add_argument("--t2", type=int, default=15)
+    p.add_argument("--t1", type=int, default=0, help="coarse steps T1 (0: from the weights)")
+    p.add_argument("--t2", type=int, default=0, help="fine steps T2 (0: from the weights)")
     p.add_argument("--max-faces", type=int, default=1_000_000, help="simplify each mesh to this many triangles (0: keep all)")
     p.add_argument("--weights", default=None, help="coarse weights passed to `hgca complete --weights`")
     p.add_argument("--python", default=None, help="interpreter with hgca_core (default: auto-detect)")
@@ -69,15 +69,16 @@ def run(args: argparse.Namespace) -> int:
     try:
         obj, skipped = operators_import.import_scans(python, [Path(s) for s in args.scans], scene.collection,
                                                      Path(args.poses) if args.poses else None)
-    except (jobs.CoreError, ValueError, OSError) as exc:
+    except (core.CoreError, ValueError, OSError) as exc:
         _log(f"error: {exc}")
         return 2
     _log(f"imported {len(obj.data.vertices):,} points as '{obj.name}' in {time.perf_counter() - t0:.1f} s"
          + (f" (skipped attributes: {', '.join(skipped)})" if skipped else ""))
     points = sources.world_points([obj])
     try:
-        box = region.parse_region(args.region) if args.region else region.default_region(points)
-    except region.RegionError as exc:
+        box = (region.parse_region(args.region) if args.region
+               else region.default_region(python, points, sources.world_origins([obj])))
+    except (region.RegionError, core.CoreError) as exc:
         _log(f"error: {exc}")
         return 2
     region.create_region_box(scene.collection, box)
@@ -88,12 +89,12 @@ def run(args: argparse.Namespace) -> int:
                                    extra_args=["--weights", args.weights] if args.weights else [])
     try:
         job = jobs.start_job(params)
-    except jobs.CoreError as exc:
+    except core.CoreError as exc:
         _log(f"error: {exc}")
         return 2
     last = [""]
 
-    def show(j: jobs.Job) -> None:
+    def show(j: core.Job) -> None:
         if j.status != last[0]:
             last[0] = j.status
             _log(f"{j.progress * 100:5.1f}% {j.status}")

@@ -5,9 +5,11 @@ main thread by `poll_once()` (driven by a timer in the UI).
 """
 from __future__ import annotations
 
+import math
+
 import bpy
 
-from . import jobs, preferences, region, sources
+from . import core, jobs, preferences, region, sources
 
 
 def _scene_props(context: bpy.types.Context):
@@ -46,7 +48,8 @@ def gather_params(context: bpy.types.Context) -> jobs.CompletionParams:
 
 
 class HGCA_OT_add_region_box(bpy.types.Operator):
-    """Add a 38.4 x 38.4 x 8 m box around the source points, 1 m below the estimated ground"""
+    """Add the default region around the source points: the box `hgca region` gives (centred on the first scan's
+sensor, bottom 1 m below the ground), of the panel's size"""
 
     bl_idname = "hgca.add_region_box"
     bl_label = "Add Region Box"
@@ -56,15 +59,16 @@ class HGCA_OT_add_region_box(bpy.types.Operator):
         props = _scene_props(context)
         try:
             objs = source_objects(context)
-            box_region = region.default_region(sources.world_points(objs), tuple(props.region_size))
-        except (sources.SourceError, region.RegionError) as exc:
+            box_region = region.default_region(preferences.core_python(context), sources.world_points(objs),
+                                               sources.world_origins(objs), tuple(props.region_size))
+        except (core.CoreError, sources.SourceError, region.RegionError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         box = region.create_region_box(context.collection or context.scene.collection, box_region)
         props.region_object = box
         props.region_mode = "BOX"
         props.region_center = box_region[:3]
-        props.region_yaw = 0.0
+        props.region_yaw = math.radians(box_region[6])
         self.report({"INFO"}, f"Added '{box.name}' around {len(objs)} object(s)")
         return {"FINISHED"}
 
@@ -84,7 +88,7 @@ class HGCA_OT_complete(bpy.types.Operator):
         try:
             params = gather_params(context)
             job = jobs.start_job(params)
-        except (jobs.CoreError, sources.SourceError, region.RegionError) as exc:
+        except (core.CoreError, sources.SourceError, region.RegionError) as exc:
             props.status = f"Error: {exc}"
             props.status_is_error = True
             self.report({"ERROR"}, str(exc))

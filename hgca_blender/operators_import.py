@@ -13,7 +13,7 @@ import numpy as np
 from bpy.props import BoolProperty, CollectionProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from . import jobs, mesh_build, preferences
+from . import core, mesh_build, preferences, sources
 
 EXTENSIONS = (".ply", ".las", ".laz", ".pcd", ".xyz", ".csv", ".txt", ".npy", ".npz", ".bin")
 READ_TIMEOUT_S = 3600
@@ -29,27 +29,29 @@ def object_name(paths: list[Path]) -> str:
     return stem if len(paths) == 1 else f"{stem} +{len(paths) - 1}"
 
 
-def read_scans(python: str, paths: list[Path], poses: Path | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Run `hgca read` into a temporary .npz; returns (points (N,3), per-point attributes)."""
+def read_scans(python: str, paths: list[Path], poses: Path | None = None
+               ) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray | None]:
+    """Run `hgca read` into a temporary .npz; returns (points (N,3), per-point attributes, sensor origins or None)."""
     tmpdir = Path(tempfile.mkdtemp(prefix="hgca_read_"))
     try:
         out = tmpdir / "scan.npz"
         args = ["read", *[str(p) for p in paths]]
         if poses is not None:
             args += ["--poses", str(poses)]
-        jobs.run_core(python, [*args, "-o", str(out)], timeout=READ_TIMEOUT_S, cwd=tmpdir)
+        core.run_core(python, [*args, "-o", str(out)], timeout=READ_TIMEOUT_S, cwd=tmpdir)
         if not out.is_file():
-            raise jobs.CoreError("hgca read finished but wrote no output")
+            raise core.CoreError("hgca read finished but wrote no output")
         with np.load(out, allow_pickle=False) as data:
             if "points" not in data.files:
-                raise jobs.CoreError("hgca read wrote no 'points' array")
+                raise core.CoreError("hgca read wrote no 'points' array")
             points = np.asarray(data["points"])
             attributes = {k: np.asarray(data[k]) for k in data.files if k not in ("points", "origins")}
+            origins = np.asarray(data["origins"], dtype=np.float64) if "origins" in data.files else None
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
-        raise jobs.CoreError(f"no points read from {', '.join(p.name for p in paths)}")
-    return points, attributes
+        raise core.CoreError(f"no points read from {', '.join(p.name for p in paths)}")
+    return points, attributes, origins
 
 
 def import_scans(python: str, paths: list[Path], collection: bpy.types.Collection, poses: Path | None = None,
@@ -60,11 +62,14 @@ def import_scans(python: str, paths: list[Path], collection: bpy.types.Collectio
     poses = Path(poses).absolute() if poses is not None else None
     missing = [str(p) for p in paths if not p.is_file()]
     if missing:
-        raise jobs.CoreError(f"file not found: {', '.join(missing)}")
+        raise core.CoreError(f"file not found: {', '.join(missing)}")
     if poses is not None and not poses.is_file():
-        raise jobs.CoreError(f"poses file not found: {poses}")
-    points, attributes = read_scans(python, paths, poses)
-    return mesh_build.build_point_object(name or object_name(paths), points, attributes, collection, show_points)
+        raise core.CoreError(f"poses file not found: {poses}")
+    points, attributes, origins = read_scans(python, paths, poses)
+    obj, skipped = mesh_build.build_point_object(name or object_name(paths), points, attributes, collection,
+                                                 show_points)
+    sources.set_sensor_origins(obj, origins)  # the default region is centred on the first one
+    return obj, skipped
 
 
 class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
@@ -104,7 +109,7 @@ class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
         collection = context.collection or context.scene.collection
         try:
             obj, skipped = import_scans(python, paths, collection, poses, show_points=self.show_points)
-        except (jobs.CoreError, ValueError, OSError) as exc:
+        except (core.CoreError, ValueError, OSError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         if skipped:

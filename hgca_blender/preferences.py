@@ -16,7 +16,7 @@ from pathlib import Path
 import bpy
 from bpy.props import StringProperty
 
-from . import jobs
+from . import core
 
 ENV_VAR = "HGCA_PYTHON"
 
@@ -101,8 +101,8 @@ class HGCA_OT_check_python(bpy.types.Operator):
         python = core_python(context)
         prefs = addon_preferences(context)
         try:
-            proc = jobs.run_core(python, ["--version"], timeout=120)
-        except jobs.CoreError as exc:
+            proc = core.run_core(python, ["--version"], timeout=120)
+        except core.CoreError as exc:
             if prefs is not None:
                 prefs.check_result = f"Error: {exc}"
             self.report({"ERROR"}, str(exc))

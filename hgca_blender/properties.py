@@ -7,10 +7,6 @@ from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorPro
 from .region import DEFAULT_SIZE
 
 
-def _is_region_candidate(_self: bpy.types.PropertyGroup, obj: bpy.types.Object) -> bool:
-    return obj.type in {"MESH", "EMPTY"}
-
-
 class HGCA_PG_scene(bpy.types.PropertyGroup):
     """Settings of one completion; stored with the scene so they survive saving the file."""
 
@@ -29,8 +25,10 @@ class HGCA_PG_scene(bpy.types.PropertyGroup):
                ("NUMBERS", "Numbers", "Type the centre, size and yaw")],
         default="BOX",
     )
-    region_object: PointerProperty(name="Box", type=bpy.types.Object, poll=_is_region_candidate,
-                                   description="Object whose bounding box is the completion region")
+    # No `poll` filter here: on Blender 4.2 a PointerProperty poll callback makes Blender crash on quit once the
+    # extension was uninstalled (fixed by 4.5). `region.region_from_object` refuses objects without a box.
+    region_object: PointerProperty(name="Box", type=bpy.types.Object,
+                                   description="Object whose bounding box is the completion region (a mesh or an empty)")
     region_center: FloatVectorProperty(name="Centre", size=3, subtype="TRANSLATION", unit="LENGTH",
                                        description="Centre of the region (world)")
     region_size: FloatVectorProperty(name="Size", size=3, default=DEFAULT_SIZE, min=0.1, subtype="XYZ",
@@ -52,8 +50,10 @@ class HGCA_PG_scene(bpy.types.PropertyGroup):
         default="cpu",
     )
     show_advanced: BoolProperty(name="Advanced", default=False)
-    t1: IntProperty(name="T1", default=30, min=1, max=200, description="Coarse GCA steps")
-    t2: IntProperty(name="T2", default=15, min=1, max=200, description="Fine cGCA steps")
+    t1: IntProperty(name="T1", default=0, min=0, max=200,
+                    description="Coarse GCA steps (0: the weights' own count, 30 for the shipped ones)")
+    t2: IntProperty(name="T2", default=0, min=0, max=200,
+                    description="Fine cGCA steps (0: the weights' own count, 15 for the shipped ones)")
     max_faces: IntProperty(name="Max Faces", default=1_000_000, min=0, soft_max=10_000_000,
                            description="Simplify each completed mesh to at most this many triangles "
                                        "(0: keep all; a full-stage region gives 5-7 million)")

@@ -1,25 +1,29 @@
-"""Completion regions in the add-on: the default box around a scan, and boxes read from objects.
+"""Completion regions in the add-on: the default box from the core, boxes read from objects, drawn and parsed.
 
-A region is the CLI's 7-tuple (cx, cy, cz, sx, sy, sz, yaw_deg) in world metres (CONTRACTS.md). The
-region box the add-on creates is an ordinary wireframe mesh cube of unit size whose object scale is the
-box size, so users move, rotate (about z) and scale it with the usual tools; any object's bounding box
-(or an empty's cube) works as a region too.
+A region is the CLI's 7-tuple (cx, cy, cz, sx, sy, sz, yaw_deg) in world metres (CONTRACTS.md). The add-on
+does not estimate regions itself: "Add Region Box" asks `hgca region --json` (the estimator `hgca complete`
+uses), so the CLI and the add-on put the same box around the same scans. The region box the add-on creates is
+an ordinary wireframe mesh cube of unit size whose object scale is the box size, so users move, rotate (about z)
+and scale it with the usual tools; any object's bounding box (or an empty's cube) works as a region too.
 """
 from __future__ import annotations
 
 import math
+import shutil
+import tempfile
+from pathlib import Path
 
 import bpy
 import numpy as np
 
+from .core import CoreError, run_core_json
 from .mesh_build import ROLE_KEY
 from .sources import update_transforms
 
-DEFAULT_SIZE = (38.4, 38.4, 8.0)
-BELOW_GROUND = 1.0  # the box's bottom sits this far below the estimated ground (paper: [-1, 7] m)
-GROUND_RADIUS = 10.0  # ground is estimated from points this close to the centre in x/y
-GROUND_PERCENTILE = 5.0
+DEFAULT_SIZE = (38.4, 38.4, 8.0)  # the panel's default box size (the core's default region size)
 MAX_TILT_DEG = 1.0
+REGION_TYPES = ("MESH", "EMPTY")  # objects whose box can be a region
+REGION_TIMEOUT_S = 600
 
 
 class RegionError(ValueError):
@@ -29,25 +33,32 @@ class RegionError(ValueError):
 Region = tuple[float, float, float, float, float, float, float]
 
 
-def estimate_ground(points: np.ndarray, centre_xy: np.ndarray) -> float:
-    """A low percentile of z near the centre: robust enough to place a box, cheap on millions of points."""
-    pts = np.asarray(points, dtype=np.float64)
-    d2 = np.sum((pts[:, :2] - centre_xy) ** 2, axis=1)
-    near = pts[d2 < GROUND_RADIUS ** 2]
-    if len(near) < 50:
-        near = pts[np.argsort(d2)[:1000]]
-    return float(np.percentile(near[:, 2], GROUND_PERCENTILE))
+def default_region(python: str, points: np.ndarray, origins: np.ndarray | None = None,
+                   size: tuple[float, float, float] = DEFAULT_SIZE) -> Region:
+    """The core's default region around world points (and the sensor origins when known): `hgca region --json`.
 
-
-def default_region(points: np.ndarray, size: tuple[float, float, float] = DEFAULT_SIZE) -> Region:
-    """The paper's box: centred on the points in x/y, bottom 1 m below the ground near the centre."""
+    Raises CoreError when the core cannot be run or refuses the points."""
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
         raise RegionError("cannot place a region: the source objects have no points")
-    centre_xy = np.median(pts[:, :2], axis=0)
-    ground = estimate_ground(pts, centre_xy)
-    cz = ground - BELOW_GROUND + size[2] / 2
-    return (float(centre_xy[0]), float(centre_xy[1]), float(cz), *map(float, size), 0.0)
+    if min(size) <= 0:
+        raise RegionError(f"region size must be positive, got {tuple(size)}")
+    tmpdir = Path(tempfile.mkdtemp(prefix="hgca_region_"))
+    try:
+        path = tmpdir / "points.npz"
+        arrays = {"points": pts}
+        if origins is not None and len(origins):
+            arrays["origins"] = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+        np.savez(path, **arrays)
+        size_arg = ",".join(repr(float(v)) for v in size)
+        answer = run_core_json(python, ["region", str(path), f"--size={size_arg}", "--json"],
+                               timeout=REGION_TIMEOUT_S, cwd=tmpdir)
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)
+    values = answer.get("region")
+    if not isinstance(values, list) or len(values) != 7:
+        raise CoreError(f"hgca region answered without a 7-number region: {answer!r}")
+    return tuple(float(v) for v in values)  # type: ignore[return-value]
 
 
 def _local_bounds(obj: bpy.types.Object) -> tuple[np.ndarray, np.ndarray]:
@@ -63,6 +74,8 @@ def region_from_object(obj: bpy.types.Object) -> Region:
 
     Only rotation about z is allowed: the core's regions are upright boxes.
     """
+    if obj.type not in REGION_TYPES:
+        raise RegionError(f"region object {obj.name!r} is a {obj.type.lower()}: use a mesh box or an empty")
     update_transforms()
     lo, hi = _local_bounds(obj)
     m = np.array(obj.matrix_world, dtype=np.float64)

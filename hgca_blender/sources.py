@@ -10,6 +10,7 @@ import numpy as np
 from .mesh_build import ROLE_KEY
 
 POINT_TYPES = {"MESH", "POINTCLOUD"}
+ORIGINS_KEY = "hgca_sensor_origins"  # custom property: sensor positions (x, y, z, x, y, z, ...) in the object's frame
 
 
 class SourceError(ValueError):
@@ -70,3 +71,26 @@ def world_points(objects: list[bpy.types.Object]) -> np.ndarray:
     if len(pts) == 0:
         raise SourceError("the source objects have no points")
     return pts
+
+
+def set_sensor_origins(obj: bpy.types.Object, origins: np.ndarray | None) -> None:
+    """Remember where the sensor stood for an imported scan (world (S, 3), stored in the object's frame, float64)
+    so the default region around it is the one `hgca region` gives for the scan files."""
+    if origins is None or len(origins) == 0:
+        return
+    inv = np.array(obj.matrix_basis.inverted(), dtype=np.float64)
+    local = np.asarray(origins, dtype=np.float64).reshape(-1, 3) @ inv[:3, :3].T + inv[:3, 3]
+    obj[ORIGINS_KEY] = local.reshape(-1).tolist()
+
+
+def world_origins(objects: list[bpy.types.Object]) -> np.ndarray | None:
+    """Sensor origins of the source objects in world space, in object order; None when none has any."""
+    update_transforms()
+    found = []
+    for obj in objects:
+        flat = obj.get(ORIGINS_KEY)
+        if flat is None or len(flat) == 0 or len(flat) % 3:
+            continue
+        m = np.array(obj.matrix_world, dtype=np.float64)
+        found.append(np.asarray(list(flat), dtype=np.float64).reshape(-1, 3) @ m[:3, :3].T + m[:3, 3])
+    return np.concatenate(found) if found else None

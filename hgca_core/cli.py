@@ -15,6 +15,7 @@ COMMANDS = {
     "read": "read scans (any supported format, optional poses) and write them accumulated to one .npz",
     "synth": "make synthetic street scenes with simulated LiDAR (one scene, or a dataset split)",
     "train": "train a model stage with a time budget, resuming from its checkpoint",
+    "region": "print the default region `complete` would use for these scans (--region form, or --json)",
     "complete": "complete LiDAR scans into meshes",
     "eval": "evaluate completion on the synthetic test split against baselines",
     "bench": "measure time and memory of completion per stage",

@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 
 from hgca_core.errors import InputError
 from hgca_core.geometry import coords as cs
-from hgca_core.geometry.region import Region
+from hgca_core.geometry.region import Region, default_region
 from hgca_core.geometry.voxel import COARSE, FINE, voxelize
 from hgca_core.geometry.voxel_mesh import voxel_mesh
 
@@ -31,7 +31,7 @@ if TYPE_CHECKING:
     from hgca_core.models.cgca import CGCAKernel
     from hgca_core.models.gca import GCAKernel
 
-ProgressFn = Callable[[str, int, int, str], None]
+ProgressFn = Callable[[str, int, int, str, int], None]  # (stage, step, total, message, sample index)
 # Peak memory of a full-stage completion, linear in the region's area: benchmarks/results/completion_full_cpu
 # measured 2.90 GiB at 40 x 40 m and 5.31 GiB at 40 x 120 m (0.81 MB per m^2 on top of ~1.7 GiB). With margin,
 # used to refuse regions that cannot fit before spending minutes on them.
@@ -143,7 +143,7 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
         raise InputError(f"no input points inside the {region.size.tolist()} m region")
     s0 = voxelize(local, COARSE, region.size)
     grid = region.grid_shape(COARSE)
-    report("voxelise", 1, 1, f"{len(s0)} cells at 20 cm")
+    report("voxelise", 1, 1, f"{len(s0)} cells at 20 cm", 0)
     steps = t1 or models.coarse.cfg.steps
     results = []
     for i in range(samples):
@@ -151,26 +151,26 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
         gen = torch.Generator(device=device).manual_seed(seed + i)
         with gemm_precision(gemm_dtype):
             occ = gca_sample(models.coarse, cs.with_batch(torch.from_numpy(s0).to(device)), grid, steps, gen,
-                             lambda t, n: report("planner" if t == 0 else "coarse", t, n, tag))
+                             lambda t, n: report("planner" if t == 0 else "coarse", t, n, tag, i))
         cells, cells10 = occ[:, 1:].cpu().numpy(), None
         if stage == "full":
             from hgca_core.models.cgca import decode_mesh, upsample
 
             with gemm_precision(gemm_dtype):
                 c10, latents = upsample(models.fine, models.autoencoder, local, cells, region.grid_shape(FINE), t2,
-                                        gen, lambda t, n: report("fine", t, n, tag))
-            report("mesh", i, samples, tag)
+                                        gen, lambda t, n: report("fine", t, n, tag, i))
+            report("mesh", 0, 1, tag, i)
             mesh, cells10 = decode_mesh(models.autoencoder, c10, latents), c10.cpu().numpy()
         else:
-            report("mesh", i, samples, tag)
+            report("mesh", 0, 1, tag, i)
             mesh = voxel_mesh(cells, COARSE)
         if max_faces is not None and len(mesh.faces) > max_faces:
             from hgca_core.meshing import decimate
 
-            report("mesh", i, samples, f"{tag}: simplifying {len(mesh.faces)} faces")
+            report("mesh", 0, 1, f"{tag}: simplifying {len(mesh.faces)} faces", i)
             mesh = decimate(mesh, max_faces)
         results.append(LocalCompletion(mesh=mesh, coarse_cells=cells, fine_cells=cells10, seed=seed + i))
-        report("mesh", i + 1, samples, tag)
+        report("mesh", 1, 1, tag, i)
     return results
 
 
@@ -192,8 +192,7 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
         raise InputError(f"max_faces must be at least 1000 (or None for no limit), got {max_faces}")
     pts = check_points(points)
     if region is None:
-        sensor = None if origins is None or len(origins) == 0 else np.asarray(origins)[0]
-        region = Region.around(pts, sensor=sensor)
+        region = default_region(pts, origins)
     check_memory(region)
     local = region.to_local(pts)
     inside = region.contains_local(local)

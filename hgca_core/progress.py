@@ -1,4 +1,9 @@
-"""Progress reporting for long work: a tqdm bar for people, JSON lines for the Blender add-on."""
+"""Progress reporting for long work: a tqdm bar for people, JSON lines for the Blender add-on.
+
+The JSON-lines records are a protocol between two programs that may come from different versions (the
+add-on and the core's Python), so every record carries `protocol`; docs/CONTRACTS.md ("Progress records")
+describes the fields. Bump PROTOCOL whenever a field changes meaning or disappears.
+"""
 from __future__ import annotations
 
 import json
@@ -8,29 +13,40 @@ from typing import TextIO
 
 from tqdm import tqdm
 
+PROTOCOL = 1
+
 
 class Progress:
-    """`update(stage, step, total, message)` from the pipeline; the mode decides how it is shown."""
+    """`update(stage, step, total, message, sample)` from the pipeline; the mode decides how it is shown.
 
-    def __init__(self, mode: str = "bar", stream: TextIO | None = None) -> None:
+    `samples` is the number of completions the run makes; `sample` (0-based) names the one a record is about.
+    """
+
+    def __init__(self, mode: str = "bar", stream: TextIO | None = None, samples: int = 1) -> None:
         if mode not in ("bar", "jsonl", "none"):
             raise ValueError(f"progress mode must be bar, jsonl or none, not {mode!r}")
         self.mode = mode
         self.stream = stream or sys.stdout
+        self.samples = max(1, int(samples))
+        self.sample = 0  # the last sample reported: closing records ('done', 'error') carry it
         self._bar: tqdm | None = None
-        self._stage: str | None = None
+        self._bar_key: tuple[str, int] | None = None
 
-    def __call__(self, stage: str, step: int, total: int, message: str = "") -> None:
-        self.update(stage, step, total, message)
+    def __call__(self, stage: str, step: int, total: int, message: str = "", sample: int | None = None) -> None:
+        self.update(stage, step, total, message, sample)
 
-    def update(self, stage: str, step: int, total: int, message: str = "") -> None:
+    def update(self, stage: str, step: int, total: int, message: str = "", sample: int | None = None) -> None:
+        if sample is not None:
+            self.sample = min(max(int(sample), 0), self.samples - 1)
         if self.mode == "jsonl":
             self._emit({"stage": stage, "step": step, "total": total, "message": message})
         elif self.mode == "bar":
-            if stage != self._stage:
+            key = (stage, self.sample)
+            if key != self._bar_key:
                 self.close()
-                self._bar = tqdm(total=total, desc=stage, unit="step", file=sys.stderr, leave=True)
-                self._stage = stage
+                desc = stage if self.samples == 1 else f"{stage} [{self.sample + 1}/{self.samples}]"
+                self._bar = tqdm(total=total, desc=desc, unit="step", file=sys.stderr, leave=True)
+                self._bar_key = key
             assert self._bar is not None
             self._bar.total = total
             self._bar.n = step
@@ -52,10 +68,11 @@ class Progress:
         if self._bar is not None:
             self._bar.close()
             self._bar = None
-            self._stage = None
+            self._bar_key = None
 
     def _emit(self, obj: dict) -> None:
-        self.stream.write(json.dumps(obj) + "\n")
+        record = {"protocol": PROTOCOL, **obj, "sample": self.sample, "samples": self.samples}
+        self.stream.write(json.dumps(record) + "\n")
         self.stream.flush()
 
 
@@ -68,7 +85,7 @@ class StageClock:
         self.seconds: dict[str, float] = {}
         self._last = time.perf_counter()
 
-    def __call__(self, stage: str, step: int, total: int, message: str = "") -> None:
+    def __call__(self, stage: str, step: int, total: int, message: str = "", sample: int = 0) -> None:
         now = time.perf_counter()
         self.seconds[stage] = self.seconds.get(stage, 0.0) + (now - self._last)
         self._last = now

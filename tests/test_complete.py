@@ -11,6 +11,7 @@ import torch
 from hgca_testdata import tiny_sample
 from hgca_core.models.weights import save_weights
 from hgca_core.models.gca import GCAConfig, GCAKernel
+from hgca_core.progress import PROTOCOL
 
 
 @pytest.fixture(scope="module")
@@ -42,12 +43,21 @@ REGION = "103,203,1,6,6,4"
 def test_jsonl_progress_outputs_and_determinism(small_weights, scan, tmp_path):
     out = tmp_path / "out.npz"
     res = _run(scan, "-o", out, "--weights", small_weights, "--samples", 2, "--seed", 5, "--region", REGION,
-               "--progress", "jsonl")
+               "--stage", "coarse", "--progress", "jsonl")
     assert res.returncode == 0, res.stderr
     lines = [json.loads(line) for line in res.stdout.splitlines()]
     stages = [x["stage"] for x in lines]
     assert stages[0] == "read" and stages[-1] == "done" and "coarse" in stages and "write" in stages
     assert all({"step", "total", "message"} <= set(x) for x in lines[:-1])
+    # every record names the protocol and the sample it is about (docs/CONTRACTS.md, "Progress records")
+    assert all(x["protocol"] == PROTOCOL and x["samples"] == 2 for x in lines)
+    per_sample = [(x["sample"], x["stage"], x["step"]) for x in lines if x["stage"] in ("coarse", "mesh")]
+    assert [s for s, _, _ in per_sample] == sorted(s for s, _, _ in per_sample), "samples come in order"
+    for i in (0, 1):
+        coarse = [step for s, stage, step in per_sample if s == i and stage == "coarse"]
+        assert coarse == list(range(1, 4)), f"sample {i} runs its own T1 = 3 coarse steps"
+        assert [step for s, stage, step in per_sample if s == i and stage == "mesh"] == [0, 1]
+    assert [x["sample"] for x in lines if x["stage"] == "write"] == [0, 1, 1]
     outputs = lines[-1]["outputs"]
     assert [p.rsplit("/", 1)[-1] for p in outputs] == ["out_s0.npz", "out_s1.npz"]
     a = np.load(tmp_path / "out_s0.npz")
@@ -56,7 +66,7 @@ def test_jsonl_progress_outputs_and_determinism(small_weights, scan, tmp_path):
     assert np.all(a["vertices"][:, 0] > 99.9) and np.all(a["vertices"][:, 0] < 106.1)
     again = tmp_path / "again.npz"
     assert _run(scan, "-o", again, "--weights", small_weights, "--samples", 1, "--seed", 5, "--region", REGION,
-                "--progress", "none").returncode == 0
+                "--stage", "coarse", "--progress", "none").returncode == 0
     b = np.load(tmp_path / "again_s0.npz")
     assert np.array_equal(a["vertices"], b["vertices"]) and np.array_equal(a["faces"], b["faces"])
 
@@ -64,7 +74,8 @@ def test_jsonl_progress_outputs_and_determinism(small_weights, scan, tmp_path):
 def test_ply_output_has_observed_distance(small_weights, scan, tmp_path):
     from plyfile import PlyData
 
-    res = _run(scan, "-o", tmp_path / "m.ply", "--weights", small_weights, "--region", REGION, "--progress", "none")
+    res = _run(scan, "-o", tmp_path / "m.ply", "--weights", small_weights, "--region", REGION, "--stage", "coarse",
+               "--progress", "none")
     assert res.returncode == 0, res.stderr
     v = PlyData.read(str(tmp_path / "m_s0.ply"))["vertex"]
     d = np.asarray(v["observed_distance"])
@@ -144,16 +155,18 @@ def test_python_api_returns_arrays_and_is_seeded(small_weights, scan):
 
 
 def test_max_faces_simplifies_each_mesh(small_weights, scan, tmp_path):
-    full = _run(scan, "-o", tmp_path / "a.npz", "--weights", small_weights, "--region", REGION, "--progress", "none")
+    full = _run(scan, "-o", tmp_path / "a.npz", "--weights", small_weights, "--region", REGION, "--stage", "coarse",
+                "--progress", "none")
     assert full.returncode == 0, full.stderr[-2000:]
     n = len(np.load(tmp_path / "a_s0.npz")["faces"])
     assert n > 2000
     res = _run(scan, "-o", tmp_path / "b.npz", "--weights", small_weights, "--region", REGION, "--progress", "none",
-               "--max-faces", "1000")
+               "--stage", "coarse", "--max-faces", "1000")
     assert res.returncode == 0, res.stderr[-2000:]
     b = np.load(tmp_path / "b_s0.npz")
     assert 500 < len(b["faces"]) <= 1000 and len(b["observed_distance"]) == len(b["vertices"])
-    bad = _run(scan, "-o", tmp_path / "c.npz", "--weights", small_weights, "--region", REGION, "--max-faces", "10")
+    bad = _run(scan, "-o", tmp_path / "c.npz", "--weights", small_weights, "--region", REGION, "--stage", "coarse",
+               "--max-faces", "10")
     assert bad.returncode == 2 and "max_faces" in bad.stderr
 
 
@@ -239,3 +252,56 @@ def test_world_wrapper_is_the_region_core_moved_to_the_world(small_weights, scan
     assert not np.array_equal(local[0].coarse_cells, local[1].coarse_cells)
     with pytest.raises(hgca_core.InputError, match="inside"):
         complete_local(region.to_local(pts) + 1000.0, region, load_models("coarse", small_weights))
+
+
+def test_stage_defaults_to_full(small_weights, scan, tmp_path):
+    """Without --stage the CLI runs the fine stage too (like `make demo` and the Blender panel): so it asks for
+    fine weights, and a missing fine file is the error, before any sampling."""
+    res = _run(scan, "-o", tmp_path / "x.npz", "--weights", small_weights, "--fine-weights", tmp_path / "nope.pt",
+               "--region", REGION, "--progress", "jsonl")
+    assert res.returncode == 2 and "nope.pt" in res.stderr and "Traceback" not in res.stderr
+    assert "coarse" not in {json.loads(line)["stage"] for line in res.stdout.splitlines()}
+
+
+def _region_json(*args):
+    res = subprocess.run([sys.executable, "-m", "hgca_core.cli", "region", *map(str, args), "--json"],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    return json.loads(res.stdout)
+
+
+def test_region_command_prints_the_region_complete_uses(small_weights, scan, tmp_path):
+    """`hgca region` (what the add-on's Add Region Box asks) and `hgca complete` without --region pick one box."""
+    import hgca_core
+
+    got = _region_json(scan)
+    data = np.load(scan)
+    (res,) = hgca_core.complete(data["points"], origins=data["origins"], stage="coarse", t1=1, weights=small_weights)
+    np.testing.assert_allclose(got["region"], res.region.as_tuple(), rtol=0, atol=1e-9)
+    assert got["region_arg"] == ",".join(repr(v) for v in got["region"])
+    assert hgca_core.Region.parse(got["region_arg"]).as_tuple() == tuple(got["region"])
+    # centred on the sensor, not on the points; the bottom 1 m under the ground the box was placed on
+    assert got["centred_on"] == "sensor" and got["center"][:2] == [103.0, 203.0]
+    assert got["size"] == [38.4, 38.4, 8.0] and got["yaw_deg"] == 0.0
+    assert got["ground_z"] == pytest.approx(got["center"][2] - 4.0 + 1.0)
+    assert got["ground_z"] == pytest.approx(0.0, abs=0.05)  # tiny_sample's ground is z = 1, the scan moved 1 m down
+
+    # no sensor known: the points' x/y median, the same in both
+    bare = tmp_path / "bare.npz"
+    np.savez(bare, points=data["points"])
+    got = _region_json(bare, "--size", "20,10,6")
+    expect = hgca_core.Region.around(data["points"], size=(20.0, 10.0, 6.0))
+    assert got["centred_on"] == "median" and got["size"] == [20.0, 10.0, 6.0]
+    np.testing.assert_allclose(got["region"], expect.as_tuple(), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got["center"][:2], np.median(data["points"][:, :2], axis=0), atol=1e-9)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--size", "1,2"], "three positive numbers"),
+    (["--size", "1,-2,3"], "three positive numbers"),
+    (["--poses", "/nonexistent/poses.json"], "poses.json"),
+])
+def test_region_command_bad_input(scan, args, message):
+    res = subprocess.run([sys.executable, "-m", "hgca_core.cli", "region", str(scan), *args, "--json"],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and message in res.stderr and "Traceback" not in res.stderr and res.stdout == ""

@@ -18,8 +18,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                     "around the first scan's sensor, from 1 m below the ground)")
     p.add_argument("--samples", type=int, default=1, help="number of completions k (each its own mesh)")
     p.add_argument("--seed", type=int, default=0, help="sample i uses seed + i: same seed, same mesh")
-    p.add_argument("--stage", choices=("coarse", "full"), default="coarse",
-                   help="coarse: 20 cm voxels only; full: + 10 cm cGCA upsampling and an implicit mesh")
+    p.add_argument("--stage", choices=("coarse", "full"), default="full",
+                   help="full (default): 20 cm coarse GCA, 10 cm cGCA upsampling and an implicit mesh; "
+                        "coarse: the 20 cm voxels only (faster)")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--max-faces", type=int, default=None,
                    help="simplify each mesh to at most this many triangles (a default region gives 5-7 M at 5 cm)")
@@ -50,7 +51,7 @@ def output_paths(out: str, samples: int) -> list[Path]:
 def run(args: argparse.Namespace) -> int:
     from hgca_core.progress import Progress
 
-    progress = Progress(args.progress)
+    progress = Progress(args.progress, samples=args.samples)
     try:
         outputs = _run(args, progress)
     except InputError as exc:
@@ -78,19 +79,19 @@ def _run(args: argparse.Namespace, progress) -> list[Path]:
 
     load_models(args.stage, args.weights, args.fine_weights, args.device)   # bad weights fail before any work;
     # complete() gets the same models again from the cache
-    progress("read", 0, 1, f"{len(args.scans)} scan(s)")
+    progress("read", 0, 1, f"{len(args.scans)} scan(s)", 0)
     scan = read_scans(args.scans, poses=args.poses, fmt=args.fmt)
-    progress("read", 1, 1, f"{len(scan.points)} points")
+    progress("read", 1, 1, f"{len(scan.points)} points", 0)
     region = Region.parse(args.region) if args.region else None
     results = complete(scan.points, region=region, origins=scan.origins, samples=args.samples, seed=args.seed,
                        stage=args.stage, device=args.device, t1=args.t1, t2=args.t2, weights=args.weights,
                        fine_weights=args.fine_weights, progress=progress, precision=args.precision,
                        max_faces=args.max_faces)
     for i, (res, path) in enumerate(zip(results, paths)):
-        progress("write", i, len(paths), path.name)
+        progress("write", i, len(paths), path.name, i)
         if path.suffix.lower() == ".npz":
             write_mesh_npz(path, res.mesh.vertices, res.mesh.faces, res.observed_distance)
         else:
             write_mesh(path, res.mesh)
-    progress("write", len(paths), len(paths), "")
+    progress("write", len(paths), len(paths), "", len(paths) - 1)
     return paths

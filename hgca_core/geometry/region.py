@@ -107,6 +107,22 @@ class Region:
         return cls(center=centre, size=sz, yaw=yaw)
 
 
+def default_region(points: np.ndarray, origins: np.ndarray | None = None,
+                   size: tuple[float, float, float] = DEFAULT_SIZE) -> Region:
+    """The box used wherever none is given: `hgca complete` without --region, `hgca region`, and the add-on's
+    "Add Region Box" (which asks `hgca region`). Centred on the first scan's sensor, or on the points' x/y median
+    when no sensor origin is known; the bottom 1 m below the ground estimated around that centre."""
+    sensor = None
+    if origins is not None and len(origins):
+        sensor = np.asarray(origins, dtype=np.float64).reshape(-1, 3)[0]
+    return Region.around(points, sensor=sensor, size=size)
+
+
+def ground_height(region: Region) -> float:
+    """The ground height a default region was placed on (its bottom is BELOW_GROUND under it)."""
+    return float(region.center[2] - region.size[2] / 2 + BELOW_GROUND)
+
+
 def estimate_ground(points: np.ndarray, centre_xy: np.ndarray, radius: float = 15.0, cell: float = 2.0) -> float:
     """Robust ground height near centre_xy: the median of per-cell low percentiles.
 

@@ -27,6 +27,9 @@ from hgca_testdata import REAL_FIXTURES as FIXTURES, require_real  # noqa: E402
 NUSCENES = FIXTURES / "nuscenes_lidar_top_1532402927647951.pcd.bin"
 REPO_MODULE = "hgca_test"
 ADDON = f"bl_ext.{REPO_MODULE}.hgca"
+# The interpreter that runs hgca_core for the add-on: this one, or the one HGCA_PYTHON names (`make test-blender`
+# runs these tests on bpy 4.2/4.5 from venvs that hold only bpy, numpy and pytest; the core runs from .venv).
+CORE_PYTHON = os.environ.get("HGCA_PYTHON") or sys.executable
 # A small region around the nuScenes sensor keeps a real completion to a few seconds on 2 cores.
 SMALL_REGION = (0.0, 0.0, -0.5, 9.6, 9.6, 4.0, 0.0)
 

@@ -1,9 +1,7 @@
 """Fixtures for tests on real bpy: the add-on loaded as an extension from a staged local repository."""
 from __future__ import annotations
 
-import sys
-
-from bl_helpers import ADDON, REPO, REPO_MODULE, addon_module, prefs  # sets BLENDER_USER_RESOURCES first
+from bl_helpers import ADDON, CORE_PYTHON, REPO_MODULE, addon_module, prefs  # sets BLENDER_USER_RESOURCES first
 
 import addon_utils  # noqa: E402  (bpy's own module, importable once bpy is)
 import bpy  # noqa: E402
@@ -14,7 +12,7 @@ from hgca_blender import build_extension  # noqa: E402
 
 @pytest.fixture(scope="session")
 def addon(tmp_path_factory: pytest.TempPathFactory):
-    """The staged add-on enabled as `bl_ext.hgca_test.hgca`, its core interpreter set to this Python."""
+    """The staged add-on enabled as `bl_ext.hgca_test.hgca`."""
     repo_dir = tmp_path_factory.mktemp("ext_repo")
     build_extension.stage(repo_dir / "hgca")
     repos = bpy.context.preferences.extensions.repos
@@ -28,18 +26,12 @@ def addon(tmp_path_factory: pytest.TempPathFactory):
 
 @pytest.fixture(autouse=True)
 def empty_file(request: pytest.FixtureRequest):
-    """Every test starts from an empty file and the core interpreter set to this Python."""
+    """Every test starts from an empty file, the shipped weights and the core interpreter set to CORE_PYTHON."""
     if "addon" in request.fixturenames:
-        prefs().python_path = sys.executable
+        prefs().python_path = CORE_PYTHON
         prefs().weights_path = ""
     bpy.ops.wm.read_homefile(use_empty=True)
     yield
     if "addon" in request.fixturenames:
         addon_module("jobs").cancel_all()
 
-
-@pytest.fixture(scope="session")
-def coarse_weights() -> str:
-    """Weights for real `hgca complete` runs: "" selects the packaged ones, which the add-on uses by default."""
-    assert (REPO / "hgca_core" / "weights" / "coarse.pt").is_file(), "the package must ship its coarse weights"
-    return ""

@@ -1,6 +1,7 @@
 """Batch mode: `python -m hgca_blender.batch` (bpy module) writes a .blend that bpy opens, and a PNG."""
 from __future__ import annotations
 
+import os
 import struct
 import subprocess
 import sys
@@ -9,12 +10,14 @@ from pathlib import Path
 import bpy
 import pytest
 
-from bl_helpers import NUSCENES, REPO, SMALL_REGION, require_fixture
+from bl_helpers import CORE_PYTHON, NUSCENES, REPO, SMALL_REGION, require_fixture
 
 
 def run_batch(args: list[str], tmp_path: Path, module: bool = True) -> subprocess.CompletedProcess:
     entry = ["-m", "hgca_blender.batch"] if module else [str(REPO / "hgca_blender" / "batch.py"), "--"]
     env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path), "BLENDER_USER_RESOURCES": str(tmp_path / "bl_user")}
+    if os.environ.get("PYTHONPATH"):  # a worktree's PYTHONPATH must reach the core the batch starts
+        env["PYTHONPATH"] = os.environ["PYTHONPATH"]
     return subprocess.run([sys.executable, *entry, *args], cwd=REPO, env=env, capture_output=True, text=True,
                           timeout=400)
 
@@ -25,14 +28,12 @@ def png_size(path: Path) -> tuple[int, int]:
     return struct.unpack(">II", head[16:24])
 
 
-def test_batch_completes_saves_and_renders(tmp_path: Path, coarse_weights: str) -> None:
+def test_batch_completes_saves_and_renders(tmp_path: Path) -> None:
     scan = require_fixture(NUSCENES)
     blend, png = tmp_path / "scene.blend", tmp_path / "preview.png"
-    args = [str(scan), "--samples", "2", "--stage", "coarse", "--t1", "2", "--python", sys.executable,
+    args = [str(scan), "--samples", "2", "--stage", "coarse", "--t1", "2", "--python", CORE_PYTHON,
             "--region", ",".join(map(str, SMALL_REGION)), "--out", str(blend), "--render", str(png),
             "--render-samples", "2"]
-    if coarse_weights:
-        args += ["--weights", coarse_weights]
     proc = run_batch(args, tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "Done: 2 samples" in proc.stdout
@@ -49,7 +50,7 @@ def test_batch_completes_saves_and_renders(tmp_path: Path, coarse_weights: str) 
 
 def test_batch_as_blender_script_reports_bad_input(tmp_path: Path) -> None:
     """The `blender --python hgca_blender/batch.py -- ...` entry (script, no package) runs and fails cleanly."""
-    proc = run_batch([str(tmp_path / "missing.pcd"), "--python", sys.executable, "--out", str(tmp_path / "x.blend")],
+    proc = run_batch([str(tmp_path / "missing.pcd"), "--python", CORE_PYTHON, "--out", str(tmp_path / "x.blend")],
                      tmp_path, module=False)
     assert proc.returncode == 2, proc.stdout + proc.stderr
     assert "file not found" in proc.stdout and "missing.pcd" in proc.stdout
@@ -58,7 +59,7 @@ def test_batch_as_blender_script_reports_bad_input(tmp_path: Path) -> None:
 
 def test_batch_rejects_bad_region(tmp_path: Path) -> None:
     scan = require_fixture(NUSCENES)
-    proc = run_batch([str(scan), "--python", sys.executable, "--region", "1,2,3", "--out", str(tmp_path / "x.blend")],
+    proc = run_batch([str(scan), "--python", CORE_PYTHON, "--region", "1,2,3", "--out", str(tmp_path / "x.blend")],
                      tmp_path)
     assert proc.returncode == 2 and "region needs 6 or 7 numbers" in proc.stdout
     assert not (tmp_path / "x.blend").exists()

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
 import tomllib
 import zipfile
@@ -29,7 +30,7 @@ def test_zip_builds_installs_and_enables(addon, tmp_path: Path) -> None:
     zip_path = build_extension.build(tmp_path / "dist")
     assert zip_path.name == "hgca-0.1.0.zip"
     names = set(zipfile.ZipFile(zip_path).namelist())
-    assert {"blender_manifest.toml", "__init__.py", "jobs.py", "batch.py", "panels.py"} <= names
+    assert {"blender_manifest.toml", "__init__.py", "core.py", "jobs.py", "batch.py", "panels.py"} <= names
     assert "build_extension.py" not in names and not any("__pycache__" in n for n in names)
 
     # The session's copy registers the same classes: step it aside while the installed one is tested.
@@ -106,3 +107,32 @@ def test_python_detection_order(addon, tmp_path: Path, monkeypatch: pytest.Monke
     assert preferences.detect_python() == sys.executable
     prefs().python_path = ""
     assert preferences.core_python() == sys.executable
+
+
+UNINSTALL_AND_QUIT = """
+import sys, tempfile
+from pathlib import Path
+sys.path.insert(0, sys.argv[1])
+import bpy
+import addon_utils  # importable once bpy is
+from hgca_blender import build_extension
+repo_dir = Path(tempfile.mkdtemp())
+build_extension.stage(repo_dir / "hgca")
+repos = bpy.context.preferences.extensions.repos
+repo = repos.new(name="hgca_quit", module="hgca_quit", custom_directory=str(repo_dir), source="USER")
+assert addon_utils.enable("bl_ext.hgca_quit.hgca", default_set=True, handle_error=None) is not None
+bpy.context.scene.hgca.region_object = None
+addon_utils.disable("bl_ext.hgca_quit.hgca", default_set=True)
+assert bpy.ops.extensions.package_uninstall(repo_index=list(repos).index(repo), pkg_id="hgca") == {"FINISHED"}
+print("uninstalled", flush=True)
+"""
+
+
+def test_uninstall_then_quit_exits_cleanly(tmp_path: Path) -> None:
+    """Blender 4.2 crashed on quit (SIGSEGV) after the extension was uninstalled, because the panel's region box
+    property had a `poll` callback; enabling, uninstalling and quitting must end with status 0 on every version."""
+    env = {**os.environ, "BLENDER_USER_RESOURCES": str(tmp_path / "user")}
+    proc = subprocess.run([sys.executable, "-c", UNINSTALL_AND_QUIT, str(REPO)], env=env, cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300)
+    assert "uninstalled" in proc.stdout, proc.stdout + proc.stderr
+    assert proc.returncode == 0, f"exit status {proc.returncode}: {proc.stderr[-2000:]}"

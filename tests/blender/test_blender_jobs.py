@@ -1,7 +1,10 @@
 """Completion jobs on real bpy and the real `hgca complete`, driven by poll_once() as in batch mode."""
 from __future__ import annotations
 
+import json
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -9,7 +12,7 @@ import bpy
 import numpy as np
 import pytest
 
-from bl_helpers import NUSCENES, SMALL_REGION, addon_module, prefs, require_fixture, snapshot
+from bl_helpers import CORE_PYTHON, NUSCENES, SMALL_REGION, addon_module, prefs, require_fixture, snapshot
 
 JOB_TIMEOUT_S = 240
 
@@ -45,9 +48,8 @@ def drive(job, timeout: float = JOB_TIMEOUT_S) -> list[float]:
     return seen
 
 
-def test_completion_adds_one_mesh_per_sample_and_leaves_inputs_alone(addon, coarse_weights: str) -> None:
+def test_completion_adds_one_mesh_per_sample_and_leaves_inputs_alone(addon) -> None:
     jobs = addon_module("jobs")
-    prefs().weights_path = coarse_weights
     scan = import_nuscenes()
     use_numbers(SMALL_REGION, samples=2)
     before = snapshot()
@@ -56,7 +58,7 @@ def test_completion_adds_one_mesh_per_sample_and_leaves_inputs_alone(addon, coar
     job = jobs.active_job(bpy.context.scene.name)
     assert job is not None and job.workdir.is_dir()
     assert "--samples" in job.cmd and job.cmd[job.cmd.index("--samples") + 1] == "2"
-    assert any(a.startswith("--region=") for a in job.cmd)
+    assert any(a.startswith("--region=") for a in job.cmd) and "--t1=2" in job.cmd
     progress = drive(job)
 
     assert job.state == "done", job.error
@@ -98,9 +100,8 @@ def test_completion_adds_one_mesh_per_sample_and_leaves_inputs_alone(addon, coar
     assert scan.name in after["objects"]
 
 
-def test_cancel_leaves_the_scene_unchanged(addon, coarse_weights: str) -> None:
+def test_cancel_leaves_the_scene_unchanged(addon) -> None:
     jobs = addon_module("jobs")
-    prefs().weights_path = coarse_weights
     import_nuscenes()
     use_numbers(SMALL_REGION, samples=1, t1=30)
     before = snapshot()
@@ -119,9 +120,8 @@ def test_cancel_leaves_the_scene_unchanged(addon, coarse_weights: str) -> None:
     assert bpy.context.scene.hgca.status == "Cancelled"
 
 
-def test_core_error_is_reported_and_nothing_is_added(addon, coarse_weights: str) -> None:
+def test_core_error_is_reported_and_nothing_is_added(addon) -> None:
     jobs = addon_module("jobs")
-    prefs().weights_path = coarse_weights
     import_nuscenes()
     use_numbers((5000.0, 5000.0, 0.0, 9.6, 9.6, 4.0, 0.0), samples=1)  # no scan points inside
     before = snapshot()
@@ -154,25 +154,74 @@ def test_no_source_selected_reports_error(addon) -> None:
         bpy.ops.hgca.complete()
 
 
-def test_add_region_box_places_the_default_box(addon) -> None:
+def core_region(*args: str) -> list[float]:
+    """What `hgca region ... --json` says, run with the core's interpreter as the add-on runs it."""
+    proc = subprocess.run([CORE_PYTHON, "-m", "hgca_core.cli", "region", *args, "--json"], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout)["region"]
+
+
+def test_add_region_box_places_the_box_hgca_region_gives(addon, tmp_path: Path) -> None:
+    """One default region: the box the add-on adds around imported scans is the one `hgca region` (and so
+    `hgca complete` without --region) gives for the same files, centred on the sensor, not on the points."""
     region = addon_module("region")
-    scan = import_nuscenes()
+    path = require_fixture(NUSCENES)
+    pose = np.eye(4)
+    pose[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    pose[:3, 3] = (100.0, -20.0, 3.0)
+    poses = tmp_path / "poses.json"
+    poses.write_text(json.dumps({"scans": [{"file": str(path), "pose": pose.tolist()}]}))
     before = snapshot()
+    assert bpy.ops.import_scene.hgca_lidar(filepath=str(path), poses_path=str(poses)) == {"FINISHED"}
+    (scan,) = [o for o in bpy.data.objects if o.name not in before["objects"]]
+    scan.select_set(True)
+    bpy.context.view_layer.objects.active = scan
+    before = snapshot()
+
     assert bpy.ops.hgca.add_region_box() == {"FINISHED"}
     props = bpy.context.scene.hgca
     box = props.region_object
     assert box is not None and props.region_mode == "BOX" and box.get("hgca_role") == "region"
-    cx, cy, cz, sx, sy, sz, yaw = region.region_from_object(box)
-    np.testing.assert_allclose((sx, sy, sz, yaw), (38.4, 38.4, 8.0, 0.0), atol=1e-5)
-    pts = np.fromfile(NUSCENES, dtype=np.float32).reshape(-1, 5)[:, :3]
-    np.testing.assert_allclose((cx, cy), np.median(pts[:, :2], axis=0), atol=1e-3)
-    bottom = cz - sz / 2
-    # nuScenes: sensor ~1.8 m above the road, so the road is near z = -1.8 and the bottom 1 m below it
-    assert -3.6 < bottom < -2.2
+    got = region.region_from_object(box)
+    expected = core_region(str(path), "--poses", str(poses))
+    np.testing.assert_allclose(got, expected, atol=1e-4)
+    np.testing.assert_allclose(got[:2], (100.0, -20.0), atol=1e-4)  # the sensor, where the pose put it
+    # nuScenes: sensor ~1.8 m above the road, so the road is near z = 3 - 1.8 and the bottom 1 m below it
+    assert 0.2 < got[2] - got[5] / 2 < 0.6
     after = snapshot()
     assert {k: after["objects"][k] for k in before["objects"]} == before["objects"]
     # the box is not a source: the scan alone is
     assert addon_module("operators_complete").source_objects(bpy.context) == [scan]
+
+    # the panel's size goes to `hgca region --size`; moving the scan object moves its sensor with it
+    scan.location = (5.0, 0.0, 0.0)
+    props.region_size = (20.0, 10.0, 6.0)
+    assert bpy.ops.hgca.add_region_box() == {"FINISHED"}
+    got = region.region_from_object(props.region_object)
+    np.testing.assert_allclose(got[:2], (105.0, -20.0), atol=1e-4)
+    np.testing.assert_allclose(got[3:], (20.0, 10.0, 6.0, 0.0), atol=1e-4)
+
+
+def test_add_region_box_without_the_core_adds_nothing(addon) -> None:
+    import_nuscenes()
+    prefs().python_path = "/nonexistent/bin/python"
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="Python interpreter not found"):
+        bpy.ops.hgca.add_region_box()
+    assert snapshot() == before and bpy.context.scene.hgca.region_object is None
+
+
+def test_panel_steps_default_to_the_weights(addon) -> None:
+    """T1 = T2 = 0 in the panel means "the weights' own step counts": no --t1/--t2 goes to `hgca complete`."""
+    jobs = addon_module("jobs")
+    props = bpy.context.scene.hgca
+    assert (props.t1, props.t2) == (0, 0)
+    params = jobs.CompletionParams(python=CORE_PYTHON, points=np.zeros((1, 3)), region=SMALL_REGION)
+    args = jobs.completion_args(params, Path("in.npz"), Path("out.npz"))
+    assert not [a for a in args if a.startswith(("--t1", "--t2"))], args
+    params.t1 = 4
+    assert [a for a in jobs.completion_args(params, Path("in.npz"), Path("out.npz")) if a.startswith("--t")] == ["--t1=4"]
 
 
 def test_region_from_a_rotated_scaled_box(addon) -> None:
@@ -183,6 +232,9 @@ def test_region_from_a_rotated_scaled_box(addon) -> None:
     box.rotation_euler[0] = 0.3
     with pytest.raises(region.RegionError, match="tilted"):
         region.region_from_object(box)
+    camera = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
+    with pytest.raises(region.RegionError, match="'Cam' is a camera: use a mesh box or an empty"):
+        region.region_from_object(camera)
 
 
 def test_failed_result_build_rolls_back(addon, tmp_path: Path) -> None:
@@ -201,20 +253,50 @@ def test_failed_result_build_rolls_back(addon, tmp_path: Path) -> None:
     assert len(coll.objects) == 1 and len(coll.objects[0].data.polygons) == 1
 
 
-def test_progress_parsing_tracks_samples(addon, tmp_path: Path) -> None:
-    jobs = addon_module("jobs")
-    job = jobs.Job.__new__(jobs.Job)  # exercise the event handling without a process
-    job.samples, job._sample, job._last_sample_key, job.progress, job.status = 2, 0, None, 0.0, ""
-    job._stage_names = ("read", "coarse", "mesh", "write")
-    values = []
-    for stage, step, total in [("read", 1, 1), ("coarse", 1, 2), ("coarse", 2, 2), ("mesh", 1, 2),
-                               ("coarse", 1, 2), ("coarse", 2, 2), ("mesh", 2, 2), ("write", 2, 2)]:
-        job._on_stage(stage, {"stage": stage, "step": step, "total": total, "message": "m"})
-        values.append(job.progress)
+def test_progress_follows_the_records_sample_index(addon) -> None:
+    """The whole-job fraction comes from each record's own `sample`/`samples`, not from guessing."""
+    jobs, core = addon_module("jobs"), addon_module("core")
+
+    def fresh():
+        job = jobs.CompletionJob.__new__(jobs.CompletionJob)  # the record handling, without a process
+        job.samples, job.progress, job.status = 1, 0.0, ""
+        job.stage_names = ("read", "coarse", "mesh", "write")
+        return job
+
+    def feed(job, stage, step, total, sample, samples=3):
+        job.on_progress(stage, {"protocol": core.PROGRESS_PROTOCOL, "stage": stage, "step": step, "total": total,
+                                "message": "m", "sample": sample, "samples": samples})
+        return job.progress
+
+    # weights of a coarse run: read 0.05, per sample coarse 0.45 + mesh 0.2, write 0.05 (of 0.75)
+    assert feed(fresh(), "coarse", 1, 2, 2) == pytest.approx((0.05 + 0.65 * (2 + 0.225 / 0.65) / 3) / 0.75)
+    job = fresh()
+    records = [("read", 1, 1, 0), ("coarse", 1, 2, 0), ("coarse", 2, 2, 0), ("mesh", 1, 1, 0),
+               ("coarse", 1, 2, 1), ("coarse", 2, 2, 1), ("mesh", 0, 1, 1), ("mesh", 1, 1, 1),
+               ("coarse", 2, 2, 2), ("mesh", 1, 1, 2), ("write", 3, 3, 2)]
+    values = [feed(job, *r) for r in records]
     assert values == sorted(values) and values[-1] == pytest.approx(1.0)
-    assert values[3] < 0.6 < values[4], "the second sample starts past the middle"
-    assert jobs.parse_progress_line("not json")["stage"] == "log"
-    assert jobs.parse_progress_line('{"stage": "done", "outputs": []}')["stage"] == "done"
+    assert values[3] == pytest.approx((0.05 + 0.65 / 3) / 0.75), "the first of three samples is a third"
+    assert core.parse_progress_line("not json")["stage"] == "log"
+    assert core.parse_progress_line('{"stage": "done", "outputs": []}')["stage"] == "done"
+
+
+@pytest.mark.parametrize("record, message", [
+    ({"protocol": 99, "stage": "read", "step": 0, "total": 1}, "writes progress protocol 99, this add-on reads"),
+    ({"stage": "read", "step": 0, "total": 1}, "older than this add-on"),
+])
+def test_core_with_another_protocol_stops_with_a_clear_message(addon, tmp_path: Path, record: dict,
+                                                              message: str) -> None:
+    core = addon_module("core")
+    workdir = tmp_path / "job"
+    workdir.mkdir()
+    script = f"import json, time; print(json.dumps({record!r}), flush=True); time.sleep(60)"
+    t0 = time.monotonic()
+    job = core.Job([sys.executable, "-c", script], workdir)
+    assert job.wait(timeout=30) == "error"
+    assert time.monotonic() - t0 < 10, "the core is stopped at its first record"
+    assert message in job.error and "install" in job.error
+    assert job._proc.poll() is not None and not workdir.exists()
 
 
 def test_full_stage_with_shipped_weights_inserts_the_implicit_mesh(addon) -> None:

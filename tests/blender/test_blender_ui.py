@@ -111,12 +111,11 @@ def _op_registered(idname: str) -> bool:
     return True
 
 
-def test_timer_is_registered_by_complete(addon, coarse_weights: str) -> None:
+def test_timer_is_registered_by_complete(addon) -> None:
     jobs = addon_module("jobs")
     from bl_helpers import NUSCENES, SMALL_REGION, prefs, require_fixture
 
     require_fixture(NUSCENES)
-    prefs().weights_path = coarse_weights
     bpy.ops.import_scene.hgca_lidar(filepath=str(NUSCENES))
     obj = bpy.data.objects[0]
     obj.select_set(True)
