@@ -48,8 +48,7 @@ def gather_params(context: bpy.types.Context) -> jobs.CompletionParams:
 
 
 class HGCA_OT_add_region_box(bpy.types.Operator):
-    """Add the default region around the source points: the box `hgca region` gives (centred on the first scan's
-sensor, bottom 1 m below the ground), of the panel's size"""
+    """Add the box `hgca region` gives around the source points: centred on the sensor, 1 m below the ground"""
 
     bl_idname = "hgca.add_region_box"
     bl_label = "Add Region Box"

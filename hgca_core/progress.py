@@ -14,6 +14,7 @@ from typing import TextIO
 from tqdm import tqdm
 
 PROTOCOL = 1
+PER_SAMPLE_STAGES = ("planner", "coarse", "fine", "mesh")  # run once per sample; the others once per run
 
 
 class Progress:
@@ -41,10 +42,11 @@ class Progress:
         if self.mode == "jsonl":
             self._emit({"stage": stage, "step": step, "total": total, "message": message})
         elif self.mode == "bar":
-            key = (stage, self.sample)
+            per_sample = stage in PER_SAMPLE_STAGES and self.samples > 1
+            key = (stage, self.sample if per_sample else -1)
             if key != self._bar_key:
                 self.close()
-                desc = stage if self.samples == 1 else f"{stage} [{self.sample + 1}/{self.samples}]"
+                desc = f"{stage} [{self.sample + 1}/{self.samples}]" if per_sample else stage
                 self._bar = tqdm(total=total, desc=desc, unit="step", file=sys.stderr, leave=True)
                 self._bar_key = key
             assert self._bar is not None

@@ -305,3 +305,10 @@ def test_region_command_bad_input(scan, args, message):
     res = subprocess.run([sys.executable, "-m", "hgca_core.cli", "region", str(scan), *args, "--json"],
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 2 and message in res.stderr and "Traceback" not in res.stderr and res.stdout == ""
+
+
+def test_addon_reads_the_protocol_the_core_writes():
+    """hgca_blender.core (bpy-free) stops a job whose records carry another protocol: the two numbers must move together."""
+    from hgca_blender.core import PROGRESS_PROTOCOL
+
+    assert PROGRESS_PROTOCOL == PROTOCOL

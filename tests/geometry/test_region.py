@@ -47,3 +47,19 @@ def test_around_puts_ground_one_metre_above_bottom():
     assert local[0, 0] == pytest.approx(19.2)
     with pytest.raises(InputError):
         Region.around(np.zeros((0, 3)))
+
+
+def test_default_region_centres_on_the_first_sensor_else_the_median():
+    """The one default region (`hgca complete` without --region, `hgca region`, the add-on's Add Region Box)."""
+    from hgca_core.geometry.region import default_region, ground_height
+
+    rng = np.random.default_rng(2)
+    pts = np.c_[rng.uniform(0, 30, (4000, 2)), np.full(4000, 2.5) + rng.normal(0, 0.01, 4000)]
+    r = default_region(pts, np.array([[5.0, 6.0, 4.3], [20.0, 20.0, 4.3]]))
+    np.testing.assert_allclose(r.center[:2], (5.0, 6.0))
+    assert ground_height(r) == pytest.approx(2.5, abs=0.05) and r.center[2] - r.size[2] / 2 == pytest.approx(1.5, abs=0.05)
+    for none in (None, np.zeros((0, 3))):
+        m = default_region(pts, none, size=(10.0, 10.0, 6.0))
+        np.testing.assert_allclose(m.center[:2], np.median(pts[:, :2], axis=0))
+        np.testing.assert_allclose(m.size, (10.0, 10.0, 6.0))
+        assert ground_height(m) == pytest.approx(2.5, abs=0.05)
