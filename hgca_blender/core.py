@@ -70,7 +70,7 @@ def error_message(stderr: str, returncode: int | None, python: str = "") -> str:
     if missing:  # hgca_core is there but its dependencies are not (a PYTHONPATH pointing at a checkout)
         return (f"{python or 'this interpreter'} cannot run hgca_core ({missing[-1]}): "
                 "set the core's Python in the hGCA add-on preferences")
-    if any("invalid choice" in ln for ln in lines):
+    if any("argument command: invalid choice" in ln for ln in lines):
         return (f"the hgca_core at {python or 'this interpreter'} lacks a command this add-on needs: "
                 f"install the hgca version that matches the add-on ({lines[-1]})")
     for ln in reversed(lines):

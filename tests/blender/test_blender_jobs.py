@@ -203,11 +203,20 @@ def test_add_region_box_places_the_box_hgca_region_gives(addon, tmp_path: Path) 
     np.testing.assert_allclose(got[3:], (20.0, 10.0, 6.0, 0.0), atol=1e-4)
 
 
-def test_add_region_box_without_the_core_adds_nothing(addon) -> None:
+def test_add_region_box_without_the_core_adds_nothing(addon, tmp_path: Path) -> None:
     import_nuscenes()
     prefs().python_path = "/nonexistent/bin/python"
     before = snapshot()
     with pytest.raises(RuntimeError, match="Python interpreter not found"):
+        bpy.ops.hgca.add_region_box()
+    assert snapshot() == before and bpy.context.scene.hgca.region_object is None
+    # a core from before `hgca region` existed: argparse refuses the command; the add-on says what to do
+    old = tmp_path / "python"
+    old.write_text("#!/bin/sh\necho \"hgca: error: argument command: invalid choice: 'region' "
+                   "(choose from 'info', 'complete')\" >&2\nexit 2\n")
+    old.chmod(0o755)
+    prefs().python_path = str(old)
+    with pytest.raises(RuntimeError, match="lacks a command this add-on needs: install the hgca version"):
         bpy.ops.hgca.add_region_box()
     assert snapshot() == before and bpy.context.scene.hgca.region_object is None
 
