@@ -39,7 +39,7 @@ class CompletionParams:
     region: tuple[float, ...]  # cx, cy, cz, sx, sy, sz, yaw_deg (world)
     samples: int = 1
     seed: int = 0
-    stage: str = "coarse"
+    stage: str = "full"           # as `hgca complete` and the panel
     device: str = "cpu"
     t1: int = 0                  # 0: the core's default, from the weights
     t2: int = 0                  # 0: the core's default, from the weights
