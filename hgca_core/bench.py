@@ -26,22 +26,26 @@ def scene_inputs(width: float, seed: int = 4_000_000, depth: float = 40.0) -> tu
     """Input points (world) of scans every ~8 m along a synthetic drive, and a width x depth x 8 m region
     centred on the drive, aligned with it (the paper's 40 x w m strips; depth 38.4 for the default)."""
     from hgca_core.geometry.region import Region
+    from hgca_core.geometry.raycast import make_intersector
     from hgca_core.synth.dataset import Drive
-    from hgca_core.synth.lidar import WAYMO64, cast, make_intersector
+    from hgca_core.synth.lidar import PAPER_EFFECTS, PROFILES, Unit, scan
     from hgca_core.synth.scene import make_scene
 
     scene = make_scene(seed, "city")
-    drive = Drive(scene.drive)
+    drive = Drive(scene.drive, scene.drive_up)
     mid = drive.length / 2
     n = max(5, int(round(width / 8)))
     half = min(width / 2 - 2.0, mid - 1.0)
     inter = make_intersector(scene.mesh)
     rng = np.random.default_rng(seed)
-    poses = [drive.pose(s) for s in mid + np.linspace(-half, half, n)]
-    pts = np.concatenate([cast(inter, p, WAYMO64, rng, 0.01, 0.02) for p in poses])
-    ego = drive.pose(mid)
-    region = Region.around(ego[None, :3, 3], sensor=ego[:3, 3], ground_z=0.0, size=(width, depth, 8.0),
-                           yaw=float(np.arctan2(ego[1, 0], ego[0, 0])))
+    unit = Unit.draw(PROFILES["waymo"], rng, PAPER_EFFECTS)
+    scans = [scan(inter, scene.face_materials, drive.pose(s), unit, rng, PAPER_EFFECTS)
+             for s in mid + np.linspace(-half, half, n)]
+    pts = np.concatenate([sc.points for sc in scans])
+    poses = [sc.pose for sc in scans]
+    ego = drive.pose(mid) @ unit.mount
+    region = Region.around(ego[None, :3, 3], sensor=ego[:3, 3], ground_z=float(scene.terrain.height(ego[:2, 3])[0]),
+                           size=(width, depth, 8.0), yaw=float(np.arctan2(ego[1, 0], ego[0, 0])))
     return pts, np.array([p[:3, 3] for p in poses]), region
 
 

@@ -1,14 +1,19 @@
 """`hgca synth`: one synthetic street scene with its files, or a whole dataset split.
 
-    hgca synth --seed S [--scans 5] [--style city|suburb] --out DIR
-    hgca synth --split train|val|test --count N --out DIR [--scans 5] [--workers 2]
+    hgca synth --seed S [--scans N] [--profile P] [--style city|suburb|town] --out DIR
+    hgca synth --split train|val|test --count N --out DIR [--scans N] [--workers 2]
+
+Each sample draws its sensor profile and number of scans (1-10) from its seed unless given.
 """
 from __future__ import annotations
 
 import argparse
+import json
 import time
 
 from hgca_core.errors import InputError
+from hgca_core.synth.lidar import PROFILES
+from hgca_core.synth.scene import STYLES
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -17,8 +22,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     what.add_argument("--split", choices=("train", "val", "test"),
                       help="build a dataset split (seeds: train i, val 1,000,000 + i, test 2,000,000 + i)")
     p.add_argument("--count", type=int, help="samples in the split (with --split)")
-    p.add_argument("--scans", type=int, default=5, help="input scans per sample: the ego scan + others (default 5)")
-    p.add_argument("--style", choices=("city", "suburb"), help="scene style (default: the seed picks)")
+    p.add_argument("--scans", type=int, help="input scans per sample: the ego scan + others (default: the seed "
+                   "draws 1 to 10)")
+    p.add_argument("--profile", choices=sorted(PROFILES),
+                   help="sensor profile with --seed (default: the seed picks): " + ", ".join(
+                       f"{k} ({v.dataset})" for k, v in sorted(PROFILES.items())))
+    p.add_argument("--style", choices=STYLES, help="scene style (default: the seed picks)")
     p.add_argument("--workers", type=int, default=2, help="processes for --split (default 2)")
     p.add_argument("--no-preview", action="store_true", help="skip the preview PNG (with --seed)")
     p.add_argument("--quick", action="store_true",
@@ -27,9 +36,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if not 1 <= args.scans <= 255:
+    if args.scans is not None and not 1 <= args.scans <= 255:
         raise InputError(f"--scans must be between 1 and 255, got {args.scans}")
     if args.split is not None:
+        if args.profile is not None:
+            raise InputError("--profile applies to --seed only; a split draws each sample's profile from its seed")
         return _split(args)
     if args.count is not None:
         raise InputError("--count goes with --split, not --seed")
@@ -39,12 +50,15 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.synth.export import write_scene
 
     t0 = time.perf_counter()
-    sim = simulate(args.seed, args.scans, args.style, quality=QUICK_QUALITY if args.quick else DEFAULT_QUALITY)
+    sim = simulate(args.seed, args.scans, args.style, quality=QUICK_QUALITY if args.quick else DEFAULT_QUALITY,
+                   profile=args.profile)
     t1 = time.perf_counter()
     paths = write_scene(sim, args.out, preview=not args.no_preview)
     t2 = time.perf_counter()
     s = sim.sample
-    print(f"scene {args.seed} ({sim.scene.style}): {len(sim.scene.mesh.faces):,} faces, {args.scans} scans, "
+    meta = json.loads(str(s["meta"]))
+    print(f"scene {args.seed} ({sim.scene.style}): {len(sim.scene.mesh.faces):,} faces, {meta['n_scans']} scans "
+          f"by {meta['profile']} ({meta['dataset']}), "
           f"{len(s['input_points']):,} input points in the region, {len(s['gt_occ20']):,} occupied 20 cm cells")
     print(f"simulated in {t1 - t0:.1f} s, files written in {t2 - t1:.1f} s:")
     for p in paths:

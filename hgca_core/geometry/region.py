@@ -123,24 +123,50 @@ def ground_height(region: Region) -> float:
     return float(region.center[2] - region.size[2] / 2 + BELOW_GROUND)
 
 
-def estimate_ground(points: np.ndarray, centre_xy: np.ndarray, radius: float = 15.0, cell: float = 2.0) -> float:
-    """Robust ground height near centre_xy: the median of per-cell low percentiles.
+def estimate_ground(points: np.ndarray, centre_xy: np.ndarray, radius: float = 15.0, cell: float = 2.0,
+                    fit_radius: float = 8.0, above: float = 0.1) -> float:
+    """Robust ground height at centre_xy, on flat and on sloped streets.
 
-    Taking a low percentile per 2 m cell ignores cars, walls and trees in that cell (they only add points
-    above the ground) and the median over cells ignores cells that hold no ground at all (a wall's foot
-    under an overhang, a pit of noise).
+    Per 2 m cell within `radius`, a low percentile of z ignores cars, walls and trees (they only add points
+    above the ground). A plane through the cell lows within `fit_radius` is then fitted to the lower
+    envelope: cells more than `above` over the plane (sidewalks, car roofs where the road is hidden) or far
+    under it are dropped and the fit repeated. The plane's height at the centre, lifted by the median
+    offset of the points lying on it, is the answer: a slope no longer shifts the box by the slope times
+    the offset of the seen cells from the sensor. With too few cells, or an implausible slope (> 0.3),
+    the median of the cell lows is used.
     """
     pts = np.asarray(points, dtype=np.float64)
+    centre_xy = np.asarray(centre_xy, dtype=np.float64)
     d = np.linalg.norm(pts[:, :2] - centre_xy, axis=1)
     near = pts[d < radius]
     if len(near) < 20:
         near = pts
     keys = np.floor(near[:, :2] / cell).astype(np.int64)
-    _, inv = np.unique(keys, axis=0, return_inverse=True)
+    cells, inv = np.unique(keys, axis=0, return_inverse=True)
     inv = inv.reshape(-1)
     order = np.lexsort((near[:, 2], inv))
     z_sorted, g_sorted = near[order, 2], inv[order]
     starts = np.searchsorted(g_sorted, np.arange(g_sorted.max() + 1))
     counts = np.bincount(g_sorted)
     lows = z_sorted[starts + (counts * 0.05).astype(np.int64)]
-    return float(np.median(lows[counts >= 3])) if np.any(counts >= 3) else float(np.median(lows))
+    full = counts >= 3
+    median = float(np.median(lows[full])) if np.any(full) else float(np.median(lows))
+    xy, z = (cells[full] + 0.5) * cell - centre_xy, lows[full]
+    close = np.linalg.norm(xy, axis=1) < fit_radius
+    keep = close & (np.abs(z - median) < 0.5)
+    if keep.sum() < 8:
+        return median
+    design = np.c_[np.ones(len(z)), xy]
+    for _ in range(5):
+        coef = np.linalg.lstsq(design[keep], z[keep], rcond=None)[0]
+        res = z - design @ coef
+        new = close & (res < above) & (res > -0.5)
+        if new.sum() < 8 or np.array_equal(new, keep):
+            break
+        keep = new
+    if np.hypot(*coef[1:]) > 0.3:
+        return median
+    rel = near[:, :2] - centre_xy
+    off = near[:, 2] - (coef[0] + rel @ coef[1:])
+    on = (np.linalg.norm(rel, axis=1) < fit_radius) & (np.abs(off) < above)
+    return float(coef[0] + (np.median(off[on]) if on.sum() > 20 else 0.0))

@@ -19,7 +19,7 @@ from hgca_core.metrics.surface import sample_surface
 from hgca_core.metrics.tmd import tmd
 
 if TYPE_CHECKING:
-    from hgca_core.synth.lidar import Sensor
+    from hgca_core.geometry.raycast import Sensor
 
 SCALAR_KEYS = ("resim_min", "resim_avg", "tmd", "iou", "street_cd_min", "street_cd_avg", "street_tmd")
 

@@ -7,16 +7,14 @@ ships (the paper does not say how it meshes voxels for ReSim).
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Sequence
+from typing import Sequence
 
 import numpy as np
 import trimesh
 
 from hgca_core.errors import InputError
+from hgca_core.geometry.raycast import EVAL128, Sensor, cast, make_intersector
 from hgca_core.metrics.chamfer import as_points, chamfer_or_penalty
-
-if TYPE_CHECKING:  # the LiDAR simulator is imported lazily: metrics must import without it
-    from hgca_core.synth.lidar import Sensor
 
 
 def crop_to_box(points: np.ndarray, size: Sequence[float] | np.ndarray | None) -> np.ndarray:
@@ -39,22 +37,19 @@ def _check_poses(poses: np.ndarray) -> np.ndarray:
     return P
 
 
-def default_sensor(sensor: "Sensor | None" = None) -> "Sensor":
-    """`sensor`, or the paper's evaluation LiDAR (`hgca_core.synth.lidar.EVAL128`) when None."""
+def default_sensor(sensor: Sensor | None = None) -> Sensor:
+    """`sensor`, or the paper's evaluation LiDAR (`hgca_core.geometry.raycast.EVAL128`) when None."""
     if sensor is not None:
         return sensor
-    from hgca_core.synth.lidar import EVAL128
     return EVAL128
 
 
-def resim_scans(mesh: trimesh.Trimesh, poses: np.ndarray, sensor: "Sensor | None" = None,
+def resim_scans(mesh: trimesh.Trimesh, poses: np.ndarray, sensor: Sensor | None = None,
                 region_size: Sequence[float] | np.ndarray | None = None) -> list[np.ndarray]:
     """Noise-free scans of `mesh` from each pose (region frame), cropped to [0, region_size) when given.
 
     A mesh without faces yields empty scans rather than an error: an empty completion is a result to score.
     """
-    from hgca_core.synth.lidar import cast, make_intersector
-
     P, sen = _check_poses(poses), default_sensor(sensor)
     if mesh is None or len(mesh.faces) == 0:
         return [np.zeros((0, 3)) for _ in P]
@@ -73,10 +68,10 @@ def resim_cd_per_pose(pred_scans: Sequence[np.ndarray], gt_scans: Sequence[np.nd
 
 
 def resim_cd(mesh: trimesh.Trimesh, gt_scans: Sequence[np.ndarray], poses: np.ndarray,
-             sensor: "Sensor | None" = None, region_size: Sequence[float] | np.ndarray | None = None) -> float:
+             sensor: Sensor | None = None, region_size: Sequence[float] | np.ndarray | None = None) -> float:
     """High LiDAR ReSim CD in metres: mean over poses of CD(GT scan, scan of the completion), paper's CD_ReSim.
 
-    `sensor` defaults to `hgca_core.synth.lidar.EVAL128`. With `region_size`, both scans are cropped to the
+    `sensor` defaults to `hgca_core.geometry.raycast.EVAL128`. With `region_size`, both scans are cropped to the
     region box [0, size), so geometry outside the region of interest never counts.
 
     Empty re-simulation penalty: when the completion returns no point inside the region from a pose (no

@@ -1,11 +1,14 @@
 """Synthetic samples in the CONTRACTS.md format, their files, and dataset splits built in parallel.
 
 A sample is one region of one scene: the ego (center) pose on the drive fixes the region (its x axis
-along the heading); the input is that scan plus n-1 scans from poses within +-15 m along the drive, with
-the paper's noise; the ground truth is the scene's visible surface inside the region.
+along the heading, its floor 1 m below the ground under the ego sensor); the input is that scan plus n-1
+scans from poses within +-15 m along the drive, by a sensor profile of a real dataset with its effects
+(`synth.lidar`); each sample draws its profile and its number of scans (1 to 10) from its seed. The
+ground truth is the scene's visible surface inside the region.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -14,46 +17,60 @@ from pathlib import Path
 
 import numpy as np
 
+from hgca_core.geometry.raycast import EVAL128, Sensor, make_intersector, range_image
 from hgca_core.geometry.region import BELOW_GROUND, DEFAULT_SIZE, Region
 from hgca_core.synth.groundtruth import RegionSurface, visible_cells
-from hgca_core.synth.lidar import EVAL128, WAYMO64, Sensor, cast, make_intersector, range_image
+from hgca_core.synth.lidar import PROFILES, Effects, Unit, scan
+from hgca_core.synth.assets import LABEL_NAMES
 from hgca_core.synth.scene import StreetScene, make_scene
 
 SPLITS = {"train": 0, "val": 1_000_000, "test": 2_000_000}
-FORMAT_VERSION = 1      # layout of the sample file (CONTRACTS.md)
-GENERATOR_VERSION = 5   # bumped whenever the same seed would produce different content
+FORMAT_VERSION = 2      # layout of the sample file (CONTRACTS.md); 2 added ground_height
+GENERATOR_VERSION = 6   # bumped whenever the same seed would produce different content
+SCANS = (1, 10)         # a sample draws its number of input scans from this range (inclusive)
+EVAL_HEIGHT = 2.0       # the evaluation LiDAR rides this high above the road
 KEYS = ("region", "input_points", "input_scan_index", "input_origins", "input_poses", "gt_occ20", "gt_occ10",
         "gt_surface", "gt_surface_label", "udf_points", "udf_dist", "eval_poses", "eval_scan_0", "eval_scan_1",
-        "visible20", "street_box", "ground_z", "meta")
+        "visible20", "street_box", "ground_z", "ground_height", "meta")
+GROUND_STEP = 1.0       # metres between the ground_height samples (region frame x, y = i, j * GROUND_STEP)
 
 
 @dataclass(frozen=True)
 class Quality:
     """How dense a sample is. The defaults are the dataset's; tests may pass a lighter one (same code path)."""
 
-    input_sensor: Sensor = WAYMO64
+    azimuth_fraction: float = 1.0         # of the input profiles' azimuth steps
+    effects: Effects = Effects()          # real-sensor effects of the input scans
     eval_sensor: Sensor = EVAL128
     visibility_azimuth: int = 1325        # azimuth steps of the EVAL128 casts from input poses (visibility only)
     surface_density: float = 2000.0       # samples per m^2 for occupancy (all but ~1% sliver 10 cm cells hit)
     gt_surface_points: int = 200_000
     udf_points: int = 300_000
-    point_noise: float = 0.01             # metres (paper)
-    pitch_noise_deg: float = 0.02         # degrees (paper)
     scan_radius: float = 15.0             # other input poses lie within this arc length of the ego pose
     quantum: float = 1.0 / 1024           # stored float coordinates are rounded to this (smaller files)
 
 
 DEFAULT_QUALITY = Quality()
 # smoke tests and `hgca synth --quick`: the same pipeline at a fraction of the rays and samples
-QUICK_QUALITY = Quality(input_sensor=WAYMO64.with_azimuth(660), eval_sensor=EVAL128.with_azimuth(660),
-                        visibility_azimuth=400, surface_density=300.0, gt_surface_points=30_000, udf_points=30_000)
+QUICK_QUALITY = Quality(azimuth_fraction=0.25, eval_sensor=EVAL128.with_azimuth(660), visibility_azimuth=400,
+                        surface_density=300.0, gt_surface_points=30_000, udf_points=30_000)
+
+
+def draw_recipe(seed: int) -> tuple[str, int]:
+    """(sensor profile, number of input scans) of the sample named by `seed`: uniform over the profiles
+    and over SCANS, from a stream of their own (so they do not move when the generator's other draws do)."""
+    rng = np.random.default_rng([int(seed), 31337])
+    names = sorted(PROFILES)
+    return names[int(rng.integers(0, len(names)))], int(rng.integers(SCANS[0], SCANS[1] + 1))
 
 
 class Drive:
-    """The ego path as a function of arc length: positions and heading-aligned poses."""
+    """The ego vehicle's path as a function of arc length: positions on the road and vehicle poses that
+    pitch and roll with it."""
 
-    def __init__(self, points: np.ndarray) -> None:
+    def __init__(self, points: np.ndarray, up: np.ndarray | None = None) -> None:
         self.points = np.asarray(points, dtype=np.float64)
+        self.up = np.tile([0.0, 0.0, 1.0], (len(self.points), 1)) if up is None else np.asarray(up, dtype=np.float64)
         seg = np.linalg.norm(np.diff(self.points[:, :2], axis=0), axis=1)
         self.s = np.concatenate([[0.0], np.cumsum(seg)])
         self.length = float(self.s[-1])
@@ -61,14 +78,18 @@ class Drive:
     def position(self, s: float) -> np.ndarray:
         return np.array([np.interp(s, self.s, self.points[:, i]) for i in range(3)])
 
-    def pose(self, s: float) -> np.ndarray:
-        """4x4 sensor->world: x forward along the drive, z up (the road is flat)."""
+    def pose(self, s: float, height: float = 0.0) -> np.ndarray:
+        """4x4 vehicle->world at arc length s: x forward along the drive, z the ground's up vector, origin on
+        the road (or `height` above it along z)."""
         p = self.position(s)
-        d = self.position(min(s + 0.25, self.length)) - self.position(max(s - 0.25, 0.0))
-        yaw = np.arctan2(d[1], d[0])
+        fwd = self.position(min(s + 0.25, self.length)) - self.position(max(s - 0.25, 0.0))
+        z = np.array([np.interp(s, self.s, self.up[:, i]) for i in range(3)])
+        z /= np.linalg.norm(z)
+        x = fwd - (fwd @ z) * z
+        x /= np.linalg.norm(x)
         m = np.eye(4)
-        m[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
-        m[:3, 3] = p
+        m[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+        m[:3, 3] = p + height * z
         return m
 
 
@@ -84,47 +105,59 @@ class Simulation:
     poses_world: list[np.ndarray]
 
 
-def make_sample(seed: int, n_scans: int = 5, style: str | None = None, size: tuple[float, float, float] = DEFAULT_SIZE,
-                quality: Quality = DEFAULT_QUALITY, scene: StreetScene | None = None) -> dict:
-    """The sample named by `seed`: arrays in the region frame, exactly the CONTRACTS.md keys and dtypes."""
-    return simulate(seed, n_scans, style, size, quality, scene).sample
+def make_sample(seed: int, n_scans: int | None = None, style: str | None = None,
+                size: tuple[float, float, float] = DEFAULT_SIZE, quality: Quality = DEFAULT_QUALITY,
+                scene: StreetScene | None = None, profile: str | None = None) -> dict:
+    """The sample named by `seed`: arrays in the region frame, exactly the CONTRACTS.md keys and dtypes.
+    `n_scans` and `profile` default to the seed's own draw (`draw_recipe`)."""
+    return simulate(seed, n_scans, style, size, quality, scene, profile).sample
 
 
-def simulate(seed: int, n_scans: int = 5, style: str | None = None, size: tuple[float, float, float] = DEFAULT_SIZE,
-             quality: Quality = DEFAULT_QUALITY, scene: StreetScene | None = None) -> Simulation:
+def simulate(seed: int, n_scans: int | None = None, style: str | None = None,
+             size: tuple[float, float, float] = DEFAULT_SIZE, quality: Quality = DEFAULT_QUALITY,
+             scene: StreetScene | None = None, profile: str | None = None) -> Simulation:
     """`make_sample`, keeping the scene and the raw scans (for `hgca synth --seed`, which writes them)."""
+    drawn_profile, drawn_scans = draw_recipe(seed)
+    n_scans = drawn_scans if n_scans is None else int(n_scans)
+    profile = drawn_profile if profile is None else profile
     if n_scans < 1:
         raise ValueError("n_scans must be at least 1")
+    if profile not in PROFILES:
+        raise ValueError(f"unknown sensor profile {profile!r}; use one of {', '.join(sorted(PROFILES))}")
     scene = make_scene(seed, style) if scene is None else scene
-    rng = np.random.default_rng([int(seed), 104729, n_scans])
-    drive = Drive(scene.drive)
+    rng = np.random.default_rng([int(seed), 104729])
+    drive = Drive(scene.drive, scene.drive_up)
     half = size[0] / 2
     s0 = rng.uniform(half + 3.0, drive.length - half - 3.0)
-    ego = drive.pose(s0)
-    region = Region.around(ego[None, :3, 3], sensor=ego[:3, 3], ground_z=0.0, size=size,
-                           yaw=float(np.arctan2(ego[1, 0], ego[0, 0])))
+    unit = Unit.draw(PROFILES[profile].with_azimuth_fraction(quality.azimuth_fraction), rng, quality.effects)
+    ego_vehicle = drive.pose(s0)
+    ego_sensor = (ego_vehicle @ unit.mount)[:3, 3]
+    yaw = float(np.arctan2(ego_vehicle[1, 0], ego_vehicle[0, 0]))
+    region = Region.around(ego_sensor[None], sensor=ego_sensor, ground_z=float(scene.terrain.height(ego_sensor[:2])[0]),
+                           size=size, yaw=yaw)
     to_region = region.local_matrix()
     inter = make_intersector(scene.mesh)
 
     # input: the ego scan first, then the others (rolling shutter over one revolution at the drive speed)
     arcs = _input_arcs(rng, s0, n_scans, quality.scan_radius, drive.length)
     speed = rng.uniform(3.0, 10.0)
+    turn = speed / unit.profile.rate_hz
     pts, idx, poses, raw, raw_poses = [], [], [], [], []
     for i, s in enumerate(arcs):
-        pose = drive.pose(s)
-        hits = cast(inter, pose, quality.input_sensor, rng, quality.point_noise, quality.pitch_noise_deg,
-                    pose_end=drive.pose(min(s + 0.1 * speed, drive.length)))
-        raw.append(hits)
-        raw_poses.append(pose)
-        local = region.to_local(hits)
+        sc = scan(inter, scene.face_materials, drive.pose(s), unit, rng, quality.effects,
+                  vehicle_pose_end=drive.pose(min(s + turn, drive.length)), travelled=abs(s - s0))
+        raw.append(sc.points)
+        raw_poses.append(sc.pose)
+        local = region.to_local(sc.points)
         local = local[region.contains_local(local)]
         pts.append(local)
         idx.append(np.full(len(local), i, dtype=np.uint8))
-        poses.append(to_region @ pose)
+        poses.append(to_region @ sc.pose)
     input_poses = np.stack(poses)
 
     # ground truth surface, occupancy, distance pairs
-    surf = RegionSurface(scene.mesh, scene.face_labels, scene.solids, region, rng, quality.surface_density)
+    surf = RegionSurface(scene.mesh, scene.face_labels, scene.solids, region, rng, quality.surface_density,
+                         terrain=scene.terrain, ground_faces=scene.ground_faces)
     occ10, occ20 = surf.occupancy()
     in_reg = np.flatnonzero(surf.in_region)
     pick = rng.choice(in_reg, size=min(quality.gt_surface_points, len(in_reg)), replace=False)
@@ -134,7 +167,7 @@ def simulate(seed: int, n_scans: int = 5, style: str | None = None, size: tuple[
     udf_dist = surf.distance(udf_pts)
 
     # evaluation poses where the drive enters and leaves the region, their 128-beam scans, visibility
-    eval_world = [drive.pose(s) for s in _eval_arcs(rng, drive, s0, region)]
+    eval_world = [drive.pose(s, EVAL_HEIGHT) for s in _eval_arcs(rng, drive, s0, region)]
     eval_poses = np.stack([to_region @ p for p in eval_world])
     eval_scans, vis_scans = [], []
     for pw, pr in zip(eval_world, eval_poses):
@@ -144,18 +177,20 @@ def simulate(seed: int, n_scans: int = 5, style: str | None = None, size: tuple[
         eval_scans.append(local[region.contains_local(local)])
         vis_scans.append((pr, depth))
     vis_sensor = quality.eval_sensor.with_azimuth(quality.visibility_azimuth)
-    for pw, pr in zip((drive.pose(s) for s in arcs), input_poses):
-        vis_scans.append((pr, range_image(inter, pw, vis_sensor)[0]))
+    for s in arcs:
+        pw = drive.pose(s) @ unit.mount
+        vis_scans.append((to_region @ pw, range_image(inter, pw, vis_sensor)[0]))
     eval_scans = [_quantize(e, quality.quantum, region.size) for e in eval_scans]
     visible20 = visible_cells(region, vis_scans, quality.eval_sensor, extra_points=eval_scans)
 
-    street = _street_box_local(scene.street_box, region)
+    street = _street_box_local(scene, region)
+    pitch = float(np.degrees(np.arcsin(np.clip(-unit.mount[2, 0], -1, 1))))
     meta = {"seed": int(seed), "style": scene.style, "n_scans": int(n_scans), "format_version": FORMAT_VERSION,
-            "generator_version": GENERATOR_VERSION,
+            "generator_version": GENERATOR_VERSION, "profile": unit.profile.name, "dataset": unit.profile.dataset,
+            "sensor_height": round(float(unit.mount[2, 3]), 3), "sensor_pitch_deg": round(pitch, 3),
             "ego_arc": round(float(s0), 3), "input_arcs": [round(float(a), 3) for a in arcs],
             "speed_mps": round(float(speed), 3), "scene_faces": int(len(scene.mesh.faces)),
-            "labels": ["road", "sidewalk", "building", "car", "tree", "pole", "fence", "shelter"],
-            "layout": scene.layout}
+            "labels": list(LABEL_NAMES), "layout": scene.layout}
     size_arr = region.size
     f32 = lambda a: _quantize(a, quality.quantum, size_arr)  # noqa: E731
     # point sets sorted by x (with their per-point arrays): the files compress a third better
@@ -180,6 +215,7 @@ def simulate(seed: int, n_scans: int = 5, style: str | None = None, size: tuple[
         "visible20": visible20.astype(np.int16),
         "street_box": street.astype(np.float32),
         "ground_z": np.float32(BELOW_GROUND),
+        "ground_height": _ground_height(scene, region),
         "meta": np.array(json.dumps(meta)),
     }
     return Simulation(sample, scene, region, raw, raw_poses)
@@ -234,11 +270,22 @@ def _udf_queries(rng: np.random.Generator, surface: np.ndarray, n: int, region: 
     return q[region.contains_local(q)]
 
 
-def _street_box_local(box: np.ndarray, region: Region) -> np.ndarray:
-    """The main street corridor (world xmin, ymin, xmax, ymax) in the region frame, clipped to the region."""
-    x0, y0, x1, y1 = box
-    corners = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
-    local = region.to_local(corners)[:, :2]
+def _ground_height(scene: StreetScene, region: Region) -> np.ndarray:
+    """(nx, ny) float32 height of the ground (terrain, region frame z) at region x, y = i, j * GROUND_STEP,
+    covering the region: ground_z is the ground under the ego sensor only, and streets slope."""
+    n = np.ceil(region.size[:2] / GROUND_STEP).astype(int) + 1
+    g = np.stack(np.meshgrid(np.arange(n[0]) * GROUND_STEP, np.arange(n[1]) * GROUND_STEP, indexing="ij"), -1)
+    world = region.to_world(np.c_[g.reshape(-1, 2), np.zeros(g.size // 2)])
+    z = scene.terrain.height(world[:, :2]) - (region.center[2] - region.size[2] / 2)
+    return np.round(z.reshape(n[0], n[1]) * 1024).astype(np.float32) / 1024
+
+
+def _street_box_local(scene: StreetScene, region: Region) -> np.ndarray:
+    """The main street corridor in the region frame, as the box around the part of it inside the region's
+    x range (a bent street makes the box a little wider than the street), clipped to the region."""
+    edges = region.to_local(np.c_[scene.corridor().reshape(-1, 2), np.zeros(scene.corridor().size // 2)])[:, :2]
+    inside = (edges[:, 0] >= 0.0) & (edges[:, 0] <= region.size[0])
+    local = edges[inside] if inside.any() else edges
     lo = np.clip(local.min(axis=0), 0.0, region.size[:2])
     hi = np.clip(local.max(axis=0), 0.0, region.size[:2])
     return np.array([lo[0], lo[1], hi[0], hi[1]])
@@ -267,7 +314,7 @@ def sample_path(out_dir: str | os.PathLike, split: str, seed: int) -> Path:
     return Path(out_dir, split, f"sample_{seed:07d}.npz")
 
 
-def _build_one(job: tuple[str, str, int, int, Quality]) -> tuple[int, float]:
+def _build_one(job: tuple[str, str, int, int | None, Quality]) -> tuple[int, float]:
     out_dir, split, seed, n_scans, quality = job
     t = time.perf_counter()
     save_sample(sample_path(out_dir, split, seed), make_sample(seed, n_scans, quality=quality))
@@ -275,6 +322,7 @@ def _build_one(job: tuple[str, str, int, int, Quality]) -> tuple[int, float]:
 
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+RECIPE = "recipe.json"
 
 
 def _single_thread() -> None:
@@ -282,43 +330,127 @@ def _single_thread() -> None:
         os.environ[var] = "1"
 
 
-def build_split(out_dir: str | os.PathLike, split: str, count: int, n_scans: int = 5, workers: int = 2,
+def quality_record(quality: Quality) -> dict:
+    """The numbers that decide a sample's content (so a resumed build can check it makes the same kind)."""
+    return {"azimuth_fraction": quality.azimuth_fraction, "effects": dataclasses.asdict(quality.effects),
+            "eval_beams": len(quality.eval_sensor.elevations_deg), "eval_azimuth": quality.eval_sensor.n_azimuth,
+            "visibility_azimuth": quality.visibility_azimuth, "surface_density": quality.surface_density,
+            "gt_surface_points": quality.gt_surface_points, "udf_points": quality.udf_points,
+            "scan_radius": quality.scan_radius, "quantum": quality.quantum}
+
+
+def update_recipe(out_dir: str | os.PathLike, split: str, seeds: list[int], n_scans: int | None,
+                  quality: Quality) -> dict:
+    """Read, check and extend out_dir/recipe.json: generator and format versions, the quality, and per split
+    each seed's sensor profile and scan count. A folder made by another generator version or quality is
+    refused (mixing them would make a split whose samples differ in kind)."""
+    from hgca_core.errors import InputError
+    from hgca_core.io.atomic import atomic_write
+
+    path = Path(out_dir, RECIPE)
+    want = {"generator_version": GENERATOR_VERSION, "format_version": FORMAT_VERSION,
+            "quality": quality_record(quality)}
+    if path.exists():
+        try:
+            recipe = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise InputError(f"cannot read the dataset recipe ({exc})", str(path)) from None
+        for key, val in want.items():
+            if json.loads(json.dumps(val)) != recipe.get(key):
+                raise InputError(f"this folder was built with another {key.replace('_', ' ')} ({recipe.get(key)!r}, "
+                                 f"now {val!r}); build into a new folder", str(path))
+    else:
+        old = sorted(Path(out_dir).glob("*/sample_*.npz"))
+        if old:
+            meta = json.loads(str(load_sample(old[0])["meta"]))
+            raise InputError(f"this folder holds samples without a recipe (generator version "
+                             f"{meta.get('generator_version')}); build into a new folder", str(out_dir))
+        recipe = {**want, "profiles": sorted(PROFILES), "scans": list(SCANS), "split_seed_start": SPLITS, "splits": {}}
+    table = recipe["splits"].setdefault(split, {})
+    for seed in seeds:
+        if str(seed) in table and sample_path(out_dir, split, seed).exists():
+            continue                                   # made already: keep what it was made with
+        prof, drawn = draw_recipe(seed)
+        table[str(seed)] = {"profile": prof, "n_scans": drawn if n_scans is None else int(n_scans)}
+    recipe["splits"][split] = dict(sorted(table.items(), key=lambda kv: int(kv[0])))
+    payload = (json.dumps(recipe, indent=1) + "\n").encode()
+    atomic_write(path, lambda f: f.write(payload))
+    return recipe
+
+
+class _SplitLock:
+    """out_dir/<split>/.lock holding the builder's pid: two builders never write one split; a lock left by
+    a killed builder is taken over (with the temp files it left)."""
+
+    def __init__(self, folder: Path) -> None:
+        self.path = folder / ".lock"
+
+    def __enter__(self) -> "_SplitLock":
+        from hgca_core.errors import InputError
+
+        for _ in range(2):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            except FileExistsError:
+                try:
+                    pid = int(self.path.read_text().strip() or 0)
+                    os.kill(pid, 0)
+                except (ValueError, ProcessLookupError, OSError):
+                    self.path.unlink(missing_ok=True)           # stale: its builder is gone
+                    for tmp in self.path.parent.glob(".sample_*.tmp"):
+                        tmp.unlink(missing_ok=True)
+                    continue
+                raise InputError(f"another build (pid {pid}) is writing this split", str(self.path.parent)) from None
+            with os.fdopen(fd, "w") as f:
+                f.write(str(os.getpid()))
+            return self
+        raise InputError("cannot take the split's lock", str(self.path))
+
+    def __exit__(self, *exc) -> None:
+        self.path.unlink(missing_ok=True)
+
+
+def build_split(out_dir: str | os.PathLike, split: str, count: int, n_scans: int | None = None, workers: int = 2,
                 progress: bool = True, quality: Quality = DEFAULT_QUALITY) -> list[Path]:
     """Write out_dir/<split>/sample_<seed>.npz for the split's first `count` seeds, in `workers` processes.
 
-    Resumable: finished files are skipped (writes are atomic, so a file that exists is complete).
+    Incremental and resumable: finished files are skipped (writes are atomic, so a file that exists is
+    complete), and out_dir/recipe.json records the generator version, the quality and each seed's sensor
+    profile and scan count (drawn from the seed unless `n_scans` fixes it).
     """
     if split not in SPLITS:
         raise ValueError(f"unknown split {split!r}; use one of {', '.join(SPLITS)}")
     seeds = [SPLITS[split] + i for i in range(count)]
-    todo = [s for s in seeds if not sample_path(out_dir, split, s).exists()]
     Path(out_dir, split).mkdir(parents=True, exist_ok=True)
-    jobs = [(os.fspath(out_dir), split, s, n_scans, quality) for s in todo]
     from tqdm import tqdm
 
-    bar = tqdm(total=len(seeds), initial=len(seeds) - len(todo), desc=f"synth {split}", unit="sample",
-               disable=not progress)
-    try:
-        if workers <= 1 or len(jobs) <= 1:
-            for job in jobs:
-                _build_one(job)
-                bar.update(1)
-        else:
-            import multiprocessing as mp
-
-            saved = {v: os.environ.get(v) for v in _THREAD_VARS}
-            _single_thread()  # spawned children inherit this before they import numpy: one thread each
-            try:
-                pool = mp.get_context("spawn").Pool(min(workers, len(jobs)), initializer=_single_thread)
-            finally:
-                for var, val in saved.items():
-                    if val is None:
-                        os.environ.pop(var, None)
-                    else:
-                        os.environ[var] = val
-            with pool:
-                for _ in pool.imap_unordered(_build_one, jobs):
+    with _SplitLock(Path(out_dir, split)):
+        update_recipe(out_dir, split, seeds, n_scans, quality)
+        todo = [s for s in seeds if not sample_path(out_dir, split, s).exists()]
+        jobs = [(os.fspath(out_dir), split, s, n_scans, quality) for s in todo]
+        bar = tqdm(total=len(seeds), initial=len(seeds) - len(todo), desc=f"synth {split}", unit="sample",
+                   disable=not progress)
+        try:
+            if workers <= 1 or len(jobs) <= 1:
+                for job in jobs:
+                    _build_one(job)
                     bar.update(1)
-    finally:
-        bar.close()
+            else:
+                import multiprocessing as mp
+
+                saved = {v: os.environ.get(v) for v in _THREAD_VARS}
+                _single_thread()  # spawned children inherit this before they import numpy: one thread each
+                try:
+                    pool = mp.get_context("spawn").Pool(min(workers, len(jobs)), initializer=_single_thread)
+                finally:
+                    for var, val in saved.items():
+                        if val is None:
+                            os.environ.pop(var, None)
+                        else:
+                            os.environ[var] = val
+                with pool:
+                    for _ in pool.imap_unordered(_build_one, jobs):
+                        bar.update(1)
+        finally:
+            bar.close()
     return [sample_path(out_dir, split, s) for s in seeds]

@@ -2,7 +2,8 @@
 
 Everything here works in the region frame. Surface is sampled only from faces near the region (large
 faces are first split so cropping wastes little), and samples hidden inside solids (the ground under a
-house, a wheel inside a car body) are dropped: the ground truth is what a complete scan could see.
+house, a wheel inside a car body) or below the ground (a wall's foot on a slope) are dropped: the ground
+truth is what a complete scan could see.
 """
 from __future__ import annotations
 
@@ -10,10 +11,11 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from hgca_core.geometry.raycast import Sensor
 from hgca_core.geometry.region import BELOW_GROUND, Region
 from hgca_core.geometry.voxel import COARSE, FINE, cell_centers, downsample, point_cells, voxelize
-from hgca_core.synth.lidar import Sensor
 from hgca_core.synth.primitives import Solids
+from hgca_core.synth.terrain import Terrain
 
 MAX_EDGE = 1.5  # metres: faces near the region are split to this size before sampling
 
@@ -22,7 +24,8 @@ class RegionSurface:
     """The scene's surface near a region: split triangles (region frame) with labels, and dense samples."""
 
     def __init__(self, mesh: trimesh.Trimesh, labels: np.ndarray, solids: Solids, region: Region,
-                 rng: np.random.Generator, density: float, pad: float = 0.4) -> None:
+                 rng: np.random.Generator, density: float, pad: float = 0.4, terrain: Terrain | None = None,
+                 ground_faces: int = 0) -> None:
         self.region = region
         lo, hi = -pad, region.size + pad
         local = region.to_local(mesh.vertices)
@@ -32,20 +35,36 @@ class RegionSurface:
         tri = v[f]
         near = _tri_box_overlap(tri, lo, hi)
         tri, lab = tri[near], labels[keep][idx[near]]
+        on_ground = np.flatnonzero(keep)[idx[near]] < ground_faces   # the first `ground_faces` faces are the terrain
         self.solids = solids.transformed(region.local_matrix())
         # a triangle whose corners lie inside one convex solid is hidden whole: skip it before sampling
         inside = self.solids.which(tri.reshape(-1, 3)).reshape(-1, 3)
         buried = (inside[:, 0] >= 0) & (inside[:, 0] == inside[:, 1]) & (inside[:, 0] == inside[:, 2])
-        self.triangles, self.labels = tri[~buried], lab[~buried]
+        self.triangles, self.labels, on_ground = tri[~buried], lab[~buried], on_ground[~buried]
         # dense samples; keep those not hidden inside a solid and not under the ground
         pts, face = sample_triangles(self.triangles, density, rng)
         inside = np.all((pts >= lo) & (pts < hi), axis=1)
         pts, face = pts[inside], face[inside]
-        hidden = self.solids.contains(pts) | (pts[:, 2] < BELOW_GROUND - 0.02)
+        hidden = self.solids.contains(pts)
+        hidden[~on_ground[face]] |= self._below_ground(pts[~on_ground[face]], terrain)
         self.points, self.face = pts[~hidden], face[~hidden]
         self.in_region = region.contains_local(self.points)
         self._tree: cKDTree | None = None
         self._tree_face: np.ndarray | None = None
+
+    def _below_ground(self, pts: np.ndarray, terrain: Terrain | None, eps: float = 0.02) -> np.ndarray:
+        """Samples more than `eps` under the ground (the terrain, or a flat ground at the region's ground_z)."""
+        if terrain is None:
+            return pts[:, 2] < BELOW_GROUND - eps
+        # only samples lower than the highest ground in the region can be under it
+        g = np.stack(np.meshgrid(*(np.arange(-1.0, s + 1.5, 1.0) for s in self.region.size[:2]), indexing="ij"), -1)
+        world_xy = self.region.to_world(np.c_[g.reshape(-1, 2), np.zeros(g.size // 2)])[:, :2]
+        z_top = float(terrain.height(world_xy).max()) - (self.region.center[2] - self.region.size[2] / 2) + 0.3
+        out = np.zeros(len(pts), dtype=bool)
+        low = np.flatnonzero(pts[:, 2] < z_top)
+        world = self.region.to_world(pts[low])
+        out[low] = world[:, 2] < terrain.height(world[:, :2]) - eps
+        return out
 
     def occupancy(self) -> tuple[np.ndarray, np.ndarray]:
         """(10 cm cells, 20 cm cells) of the surface inside the region, by the project's voxeliser."""

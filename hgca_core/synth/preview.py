@@ -6,9 +6,11 @@ import os
 
 import numpy as np
 
+from hgca_core.synth.assets import LABEL_NAMES
+
 LABEL_COLORS = np.array([[0.62, 0.62, 0.62], [0.80, 0.72, 0.55], [0.85, 0.35, 0.25], [0.15, 0.45, 0.85],
-                         [0.20, 0.65, 0.25], [0.55, 0.25, 0.70], [0.90, 0.65, 0.10], [0.10, 0.75, 0.75]])
-LABEL_NAMES = ("road", "sidewalk", "building", "car", "tree", "pole", "fence", "shelter")
+                         [0.20, 0.65, 0.25], [0.55, 0.25, 0.70], [0.90, 0.65, 0.10], [0.10, 0.75, 0.75],
+                         [0.95, 0.30, 0.65]])
 
 
 def _subsample(n: int, k: int, seed: int = 0) -> np.ndarray:
@@ -37,7 +39,8 @@ def render_preview(sample: dict, path: str | os.PathLike, max_points: int = 40_0
     ax = fig.add_subplot(grid[0, 0])
     g = _subsample(len(gt), 3 * max_points)
     order = g[np.argsort(gt[g, 2])]
-    ax.scatter(gt[order, 0], gt[order, 1], s=0.4, c=LABEL_COLORS[np.minimum(lab[order], 7)], linewidths=0)
+    ax.scatter(gt[order, 0], gt[order, 1], s=0.4, c=LABEL_COLORS[np.minimum(lab[order], len(LABEL_COLORS) - 1)],
+               linewidths=0)
     ax.legend(handles=[Patch(color=LABEL_COLORS[i], label=n) for i, n in enumerate(LABEL_NAMES)],
               loc="upper right", fontsize=7, ncol=2, framealpha=0.8)
     ax.set_title(f"ground truth by class (seed {meta.get('seed')}, {meta.get('style')})")
@@ -67,7 +70,7 @@ def render_preview(sample: dict, path: str | os.PathLike, max_points: int = 40_0
     k3 = _subsample(len(inp), 2 * max_points, 3)
     eye = np.array([-12.0, size[1] * 0.5 - 4.0, ground + 15.0])                # above the street, behind it
     target = np.array([size[0] * 0.6, size[1] * 0.5, ground + 1.0])
-    pale = 0.55 * LABEL_COLORS[np.minimum(lab[g3], 7)] + 0.45
+    pale = 0.55 * LABEL_COLORS[np.minimum(lab[g3], len(LABEL_COLORS) - 1)] + 0.45
     pts = np.concatenate([gt[g3], inp[k3]])
     cols = np.concatenate([pale, plt.get_cmap("plasma")(np.clip((inp[k3, 2] - ground) / 4.0, 0, 1))[:, :3] * 0.85])
     uv, depth = _project(pts, eye, target)

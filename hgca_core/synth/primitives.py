@@ -28,6 +28,7 @@ _BOX_SIDES = {
 MAX_PLANES = 16
 SUPPORT_DEPTH = 0.1  # a solid without a bottom face extends this far into what it stands on
 _PAD_PLANE = np.array([0.0, 0.0, 0.0, -1.0])  # n.p + d = -1 < 0 everywhere: a no-op half-space
+DEFAULT_MATERIAL = 255  # "the default of the face's label" (resolved by synth.materials)
 
 
 def _rot_z(yaw: float) -> np.ndarray:
@@ -37,17 +38,21 @@ def _rot_z(yaw: float) -> np.ndarray:
 
 @dataclass
 class Frame:
-    """A placement in the scene: rotation about z, then translation."""
+    """A placement in the scene: a rotation (about z, optionally tilted onto sloped ground), then a translation."""
 
-    yaw: float = 0.0
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
     offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
+    @property
+    def yaw(self) -> float:
+        return float(np.arctan2(self.rotation[1, 0], self.rotation[0, 0]))
+
     def apply(self, p: np.ndarray) -> np.ndarray:
-        return np.asarray(p, dtype=np.float64) @ _rot_z(self.yaw).T + self.offset
+        return np.asarray(p, dtype=np.float64) @ self.rotation.T + self.offset
 
     def then(self, inner: "Frame") -> "Frame":
         """The frame `inner` expressed in this frame's parent (self o inner)."""
-        return Frame(self.yaw + inner.yaw, self.apply(inner.offset))
+        return Frame(self.rotation @ inner.rotation, self.apply(inner.offset))
 
 
 class MeshBuilder:
@@ -57,21 +62,35 @@ class MeshBuilder:
         self._verts: list[np.ndarray] = []
         self._faces: list[np.ndarray] = []
         self._labels: list[np.ndarray] = []
+        self._materials: list[np.ndarray] = []
         self._count = 0
         self._planes: list[np.ndarray] = []      # (MAX_PLANES, 4) per convex solid, world n.p + d <= 0 inside
         self._bounds: list[np.ndarray] = []      # (2, 3) lo/hi corner per convex solid
         self._ellipsoids: list[np.ndarray] = []  # (cx, cy, cz, r_xy, r_z, yaw, subdivisions) icosphere blobs
         self.frame = Frame()
+        self._material: int | None = None
 
     @contextlib.contextmanager
-    def placed(self, yaw: float, offset) -> Iterator[None]:
-        """Build an object in its own frame (rotated by yaw, then moved to offset in the current frame)."""
+    def placed(self, yaw: float, offset, tilt: np.ndarray | None = None) -> Iterator[None]:
+        """Build an object in its own frame (rotated by yaw, then by the 3x3 `tilt` that sets it on sloped
+        ground, then moved to offset in the current frame)."""
         outer = self.frame
-        self.frame = outer.then(Frame(yaw, np.asarray(offset, dtype=np.float64).reshape(3)))
+        rot = _rot_z(yaw) if tilt is None else np.asarray(tilt, dtype=np.float64) @ _rot_z(yaw)
+        self.frame = outer.then(Frame(rot, np.asarray(offset, dtype=np.float64).reshape(3)))
         try:
             yield
         finally:
             self.frame = outer
+
+    @contextlib.contextmanager
+    def material(self, material: int) -> Iterator[None]:
+        """Faces added inside get this LiDAR material (see `synth.materials`); outside, their label's default."""
+        outer = self._material
+        self._material = int(material)
+        try:
+            yield
+        finally:
+            self._material = outer
 
     # ------------------------------------------------------------------ raw
     def add(self, vertices: np.ndarray, faces: np.ndarray, label: int) -> None:
@@ -81,6 +100,8 @@ class MeshBuilder:
         self._verts.append(v)
         self._faces.append(f)
         self._labels.append(np.full(len(f), label, dtype=np.uint8))
+        self._materials.append(np.full(len(f), DEFAULT_MATERIAL if self._material is None else self._material,
+                                       dtype=np.uint8))
         self._count += len(v)
 
     def add_solid_planes(self, local_vertices: np.ndarray, faces: np.ndarray) -> None:
@@ -189,12 +210,17 @@ class MeshBuilder:
         self.add(v, np.vstack([np.c_[a, b, c], np.c_[a, c, d]]), label)
 
     # ---------------------------------------------------------------- output
+    def quad(self, corners, label: int) -> None:
+        """A double-sided rectangle (a glass pane) from 4 corners in order; bounds no solid."""
+        self.add(np.asarray(corners, dtype=np.float64), np.array([[0, 1, 2], [0, 2, 3]]), label)
+
     def build(self) -> tuple[trimesh.Trimesh, np.ndarray, "Solids"]:
-        """(mesh, face labels, solids)."""
+        """(mesh, face labels, solids); `materials` holds the per-face LiDAR materials."""
         mesh = trimesh.Trimesh(np.vstack(self._verts), np.vstack(self._faces), process=False)
         solids = Solids(np.array(self._planes).reshape(-1, MAX_PLANES, 4),
                         np.array(self._bounds).reshape(-1, 2, 3),
                         np.array(self._ellipsoids).reshape(-1, 7))
+        self.materials = np.concatenate(self._materials)
         return mesh, np.concatenate(self._labels), solids
 
 

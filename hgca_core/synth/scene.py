@@ -1,8 +1,12 @@
-"""Street scene layout: a main street along x through a 120 x 120 m block, seeded.
+"""Street scene layout: a main street through a 120 x 120 m block, seeded.
 
-World frame = scene frame: z up, the road surface at z = 0, the main street centred on y = 0. Styles:
-"city" (dense rows of 6-25 m blocks, shops, narrow gaps, street furniture) and "suburb" (gabled houses
-set back behind yards, fences and hedges, garages and driveways, many trees).
+The layout is written in street coordinates (u along the main street, v across it, +v on the north
+side) and bent onto the world by the street's centre line (straight or a gentle arc); the ground is a
+height field (flat, a grade, or rolling hills, with a cambered road), and every object stands on the
+ground under its footprint. A cross street may meet the main street at an angle. Styles: "city" (dense
+rows of 6-45 m blocks, shops with glass fronts and awnings, apartments behind front yards), "suburb"
+(gabled houses set back behind yards, fences and hedges, garages and driveways, many trees) and "town"
+(terraced houses behind small front gardens, small shops, warehouses).
 """
 from __future__ import annotations
 
@@ -11,157 +15,262 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-from hgca_core.synth import assets as A
+from hgca_core.synth import furniture as F
+from hgca_core.synth import vehicles as V
+from hgca_core.synth.assets import ROAD, SIDEWALK
+from hgca_core.synth.materials import resolve
 from hgca_core.synth.primitives import MeshBuilder, Solids
+from hgca_core.synth.terrain import StreetCurve, Terrain, make_terrain, tilt_to
 
-STYLES = ("city", "suburb")
-EXTENT = 60.0       # half size of the scene square (metres)
+STYLES = ("city", "suburb", "town")
+STYLE_P = (0.45, 0.35, 0.2)
+EXTENT = 60.0       # half size of the layout square in street coordinates (metres)
+GROUND_HALF = 78.0  # the ground reaches further, so a bent layout still stands on it
 DRIVE_STEP = 0.5    # spacing of drive samples (metres)
 BLOCK = 40.0        # street stretch over which parked cars are counted (metres)
+PIECE = 3.0         # sidewalks follow the ground in pieces this long
 
 
 @dataclass
 class StreetScene:
-    """A generated scene. `drive` is the ego sensor path (M, 3), about 2 m above the road along the main
-    street; `street_box` the main street corridor (road + sidewalks) as xmin, ymin, xmax, ymax (world);
-    `solids` the volumes whose interior holds no visible surface (used to clean the ground truth)."""
+    """A generated scene. `drive` is the ego vehicle path on the road surface (M, 3) with the ground's up
+    vector there (`drive_up`); `street_half_width` the main street corridor (road + sidewalks) either side
+    of the centre line; `solids` the volumes whose interior holds no visible surface; `terrain` the ground
+    and `curve` the centre line (street coordinates <-> world)."""
 
     mesh: trimesh.Trimesh
     face_labels: np.ndarray
+    face_materials: np.ndarray
     drive: np.ndarray
-    street_box: np.ndarray
+    drive_up: np.ndarray
+    street_half_width: float
     style: str
     seed: int
     solids: Solids
+    terrain: Terrain
+    curve: StreetCurve
     layout: dict = field(default_factory=dict)
+    ground_faces: int = 0     # the mesh's first faces are the terrain's
+
+    def corridor(self, step: float = 0.5) -> np.ndarray:
+        """(2, M, 2) world x, y of the corridor's two edges (v = -/+ half width), every `step` metres of u."""
+        u = np.arange(-EXTENT, EXTENT + 1e-9, step)
+        return np.stack([self.curve.to_world(u, s * self.street_half_width) for s in (-1.0, 1.0)])
 
 
 def make_scene(seed: int, style: str | None = None) -> StreetScene:
     """The scene named by `seed` (and `style`; by default the seed picks it)."""
+    from hgca_core.synth.blocks import city_rows, suburb_rows, town_rows
+
     rng = np.random.default_rng([int(seed), 7919])
-    picked = STYLES[int(rng.integers(0, 2))]
+    picked = STYLES[int(rng.choice(len(STYLES), p=STYLE_P))]
     style = picked if style is None else style
     if style not in STYLES:
         raise ValueError(f"unknown style {style!r}; use one of {', '.join(STYLES)}")
-    city = style == "city"
-    L = _Layout(
-        hw=rng.uniform(5.5, 8.0) if city else rng.uniform(4.5, 6.0),
-        sw=rng.uniform(2.5, 5.0) if city else rng.uniform(1.8, 3.0),
-        hs=rng.uniform(0.11, 0.14),
-        cross=rng.random() < (0.5 if city else 0.35),
-        xc=rng.uniform(-25.0, 25.0),
-        hw2=rng.uniform(4.0, 6.5) if city else rng.uniform(3.5, 5.0),
-    )
+    city, suburb = style == "city", style == "suburb"
+    hw = rng.uniform(5.5, 8.0) if city else rng.uniform(4.5, 6.0)
+    curve = StreetCurve(0.0 if rng.random() < 0.45 else rng.uniform(1 / 700, 1 / 220) * rng.choice([-1, 1]))
+    terrain, ground = make_terrain(rng, GROUND_HALF, curve, hw)
+    S = Street(hw=hw, sw=rng.uniform(2.5, 5.0) if city else rng.uniform(1.8, 3.0), hs=rng.uniform(0.11, 0.14),
+               cross=rng.random() < (0.6 if city else 0.45), xc=rng.uniform(-25.0, 25.0),
+               hw2=rng.uniform(4.0, 6.5) if city else rng.uniform(3.5, 5.0),
+               theta=np.radians(90.0 if rng.random() < 0.4 else rng.uniform(55.0, 125.0)), curve=curve, terrain=terrain)
     b = MeshBuilder()
-    b.ground_tiles(-EXTENT, -EXTENT, EXTENT, EXTENT, 0.0, 8.0, A.ROAD)
-    _sidewalks(b, L)
-    furniture_blocked = _street_furniture(b, rng, L, city)
-    parked = _parked_cars(b, rng, L, furniture_blocked, city)
-    driveway = 0 if city else _suburb_rows(b, rng, L)
-    if city:
-        _city_rows(b, rng, L)
+    b.add(*terrain.mesh_arrays(), ROAD)
+    _sidewalks(b, S)
+    blocked = _street_furniture(b, rng, S, style)
+    parked = _parked_vehicles(b, rng, S, blocked, city)
+    extra = {"city": city_rows, "suburb": suburb_rows, "town": town_rows}[style](b, rng, S)
+    _people_and_bikes(b, rng, S, style)
     mesh, labels, solids = b.build()
-    drive, direction = _drive(rng, L)
-    y_out = L.hw + L.sw
-    layout = {"road_half_width": L.hw, "sidewalk_width": L.sw, "sidewalk_height": L.hs,
-              "crossroad_x": L.xc if L.cross else None, "crossroad_half_width": L.hw2 if L.cross else None,
-              "parked_cars": parked, "driveway_cars": driveway, "drive_direction": direction, "faces": int(len(mesh.faces))}
-    return StreetScene(mesh, labels, drive, np.array([-EXTENT, -y_out, EXTENT, y_out]), style, int(seed),
-                       solids, layout)
+    materials = resolve(b.materials, labels)
+    drive, up, direction = _drive(rng, S)
+    layout = {"road_half_width": S.hw, "sidewalk_width": S.sw, "sidewalk_height": S.hs,
+              "crossroad_x": S.xc if S.cross else None, "crossroad_half_width": S.hw2 if S.cross else None,
+              "crossroad_angle_deg": round(float(np.degrees(S.theta)), 1) if S.cross else None,
+              "curvature": round(float(curve.k), 5), "ground": ground, "parked_cars": parked,
+              "drive_direction": direction, "faces": int(len(mesh.faces)), **extra}
+    return StreetScene(mesh, labels, materials, drive, up, S.hw + S.sw, style, int(seed), solids, terrain, curve,
+                       layout, int(len(terrain.mesh_arrays()[1])))
 
 
 @dataclass
-class _Layout:
-    hw: float      # road half width (curb to centre line)
-    sw: float      # sidewalk width
-    hs: float      # sidewalk (curb) height
-    cross: bool    # has a crossroad
-    xc: float      # crossroad centre x
-    hw2: float     # crossroad half width
+class Street:
+    """The layout's numbers and how a place in street coordinates lands in the world."""
 
-    def x_free(self, x: float, margin: float) -> bool:
-        """Whether x is clear of the cross street (road and sidewalks) by `margin`."""
-        return not self.cross or abs(x - self.xc) > self.hw2 + self.sw + margin
+    hw: float              # road half width (curb to centre line)
+    sw: float              # sidewalk width
+    hs: float              # sidewalk (curb) height
+    cross: bool            # has a cross street
+    xc: float              # where the cross street's centre line meets the main one (u)
+    hw2: float             # cross street half width
+    theta: float           # angle between the streets (radians, in street coordinates)
+    curve: StreetCurve
+    terrain: Terrain
+
+    def cross_u(self, v: float) -> float:
+        """u of the cross street's centre line at lateral position v."""
+        return self.xc + v / np.tan(self.theta)
+
+    def cross_span(self, v0: float, v1: float, margin: float, width: float | None = None) -> tuple[float, float]:
+        """u interval the cross street (carriageway + sidewalks, or `width` either side) covers for v in [v0, v1]."""
+        half = ((self.hw2 + self.sw) if width is None else width) / np.sin(self.theta) + margin
+        us = [self.cross_u(v0), self.cross_u(v1)]
+        return min(us) - half, max(us) + half
+
+    def x_free(self, u: float, margin: float, v0: float | None = None, v1: float | None = None) -> bool:
+        """Whether u is clear of the cross street by `margin` between lateral positions v0 and v1 (default:
+        across the main street's sidewalks)."""
+        if not self.cross:
+            return True
+        v0 = -(self.hw + self.sw) if v0 is None else v0
+        v1 = self.hw + self.sw if v1 is None else v1
+        lo, hi = self.cross_span(v0, v1, margin)
+        return not lo < u < hi
+
+    def place(self, u: float, v: float, yaw: float = 0.0, foot=(-0.3, -0.3, 0.3, 0.3), lift: float = 0.0,
+              tilt: bool = False) -> tuple[float, np.ndarray, np.ndarray | None]:
+        """Arguments for `MeshBuilder.placed`: an object at street coordinates (u, v), turned by `yaw` from
+        the street direction, standing on the lowest ground under its footprint (x0, y0, x1, y1 in its own
+        frame) plus `lift`. With `tilt` (vehicles) it is set onto the plane through the ground under the
+        footprint's corners, raised until no corner is below the ground."""
+        xy = self.curve.to_world(u, v)
+        yaw_w = float(self.curve.heading(u)) + yaw
+        x0, y0, x1, y1 = foot
+        c, s = np.cos(yaw_w), np.sin(yaw_w)
+        local = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [(x0 + x1) / 2, (y0 + y1) / 2]])
+        corners = xy + local @ np.array([[c, s], [-s, c]])
+        z = self.terrain.height(corners)
+        if not tilt:
+            return yaw_w, np.r_[xy, z.min() + lift], None
+        a = np.c_[corners - xy, np.ones(5)]
+        gx, gy, z0 = np.linalg.lstsq(a, z, rcond=None)[0]
+        z0 += max(0.0, float(np.max(z - a @ [gx, gy, z0])))
+        return yaw_w, np.r_[xy, z0 + lift], tilt_to([-gx, -gy, 1.0])
+
+    def side(self, s: int, u: float, v: float, yaw: float = 0.0, foot=(-0.3, -0.3, 0.3, 0.3), lift: float = 0.0,
+             tilt: bool = False):
+        """`place` for an object whose local -y faces the main street, on side s (+1 north, -1 south); its local
+        x runs along +u on the north side and along -u on the south side."""
+        return self.place(u, s * v, yaw + (0.0 if s > 0 else np.pi), foot, lift, tilt)
 
 
-def _sidewalks(b: MeshBuilder, L: _Layout) -> None:
-    """Raised sidewalks with curbs along the main street (and the cross street)."""
-    spans = [(-EXTENT, L.xc - L.hw2), (L.xc + L.hw2, EXTENT)] if L.cross else [(-EXTENT, EXTENT)]
-    for x0, x1 in spans:
+def slab(b: MeshBuilder, S: Street, quad_uv, label: int, lift: float, piece: float = PIECE) -> None:
+    """A raised slab on the ground (sidewalk) over the street-coordinate quad (p00, p10, p01, p11), cut into
+    pieces along p00 -> p10 that each follow the ground: tops `lift` above it, bottoms below it."""
+    p00, p10, p01, p11 = (np.asarray(p, dtype=np.float64) for p in quad_uv)
+    n = max(1, int(np.ceil(max(np.linalg.norm(p10 - p00), np.linalg.norm(p11 - p01)) / piece)))
+    t = np.linspace(0.0, 1.0, n + 1)
+    near, far = p00 + t[:, None] * (p10 - p00), p01 + t[:, None] * (p11 - p01)
+    xy_near, xy_far = S.curve.to_world(near[:, 0], near[:, 1]), S.curve.to_world(far[:, 0], far[:, 1])
+    e1, e2 = xy_near[-1] - xy_near[0], xy_far[0] - xy_near[0]
+    if e1[0] * e2[1] - e1[1] * e2[0] < 0:                            # keep the box right-handed (outward faces)
+        xy_near, xy_far = xy_far, xy_near
+    zn, zf = S.terrain.height(xy_near), S.terrain.height(xy_far)
+    for k in range(n):
+        c = []
+        for top in (False, True):
+            for xy, z in ((xy_near, zn), (xy_far, zf)):
+                for i in (k, k + 1):
+                    c.append([xy[i, 0], xy[i, 1], z[i] + lift if top else z[i] - 0.1])
+        skip = ("-z",) + (() if k == 0 else ("-x",)) + (() if k == n - 1 else ("+x",))
+        b.hexahedron(np.array(c), label, skip=skip)
+
+
+def _sidewalks(b: MeshBuilder, S: Street) -> None:
+    """Raised sidewalks with curbs along the main street (cut by the cross street at its angle) and along
+    the cross street."""
+    for s in (1, -1):
+        v_in, v_out = s * S.hw, s * (S.hw + S.sw)
+        if S.cross:
+            off = S.hw2 / np.sin(S.theta)
+            spans = [((-EXTENT, -EXTENT), (S.cross_u(v_in) - off, S.cross_u(v_out) - off)),
+                     ((S.cross_u(v_in) + off, S.cross_u(v_out) + off), (EXTENT, EXTENT))]
+        else:
+            spans = [((-EXTENT, -EXTENT), (EXTENT, EXTENT))]
+        for (a_in, a_out), (z_in, z_out) in spans:
+            slab(b, S, [(a_in, v_in), (z_in, v_in), (a_out, v_out), (z_out, v_out)], SIDEWALK, S.hs)
+    if S.cross:
+        sn = np.sin(S.theta)
         for s in (1, -1):
-            y0, y1 = sorted((s * L.hw, s * (L.hw + L.sw)))
-            b.box([x0, y0, 0.0], [x1, y1, L.hs], A.SIDEWALK)
-    if L.cross:
-        for x0, x1 in ((L.xc - L.hw2 - L.sw, L.xc - L.hw2), (L.xc + L.hw2, L.xc + L.hw2 + L.sw)):
-            for y0, y1 in ((L.hw + L.sw - A.OVERLAP, EXTENT), (-EXTENT, -L.hw - L.sw + A.OVERLAP)):
-                b.box([x0, y0, 0.0], [x1, y1, L.hs], A.SIDEWALK)
+            va, vb = s * (S.hw + S.sw - 0.05), s * EXTENT
+            for d0, d1 in ((S.hw2, S.hw2 + S.sw), (-S.hw2 - S.sw, -S.hw2)):
+                quad = [(S.cross_u(v) + d / sn, v) for v in (va, vb) for d in (d0, d1)]
+                slab(b, S, [quad[0], quad[2], quad[1], quad[3]], SIDEWALK, S.hs)
 
 
-def _side_frame(s: int, x: float, y: float, z: float = 0.0) -> tuple[float, list[float]]:
-    """(yaw, offset) placing an object whose local -y faces the main street, on side s (+1 north, -1 south)."""
-    return (0.0, [x, y, z]) if s > 0 else (np.pi, [x, -y, z])
-
-
-def _street_furniture(b: MeshBuilder, rng: np.random.Generator, L: _Layout, city: bool) -> list[tuple[int, float, float]]:
-    """Lamps, street trees, signs, a bus shelter, benches, bins, traffic lights. Returns (side, x0, x1) spans
-    at the curb that parked cars must leave free (bus stops)."""
+def _street_furniture(b: MeshBuilder, rng: np.random.Generator, S: Street, style: str) -> list[tuple[int, float, float]]:
+    """Lamps, street trees, signs, a bus shelter, benches, bins, bollards, utility poles, traffic lights.
+    Returns (side, u0, u1) spans at the curb that parked cars must leave free (bus stops)."""
+    city, suburb = style == "city", style == "suburb"
     blocked: list[tuple[int, float, float]] = []
-    z = L.hs
+    z = S.hs
     if rng.random() < (0.6 if city else 0.3):  # bus shelter, against the back of the sidewalk
         s = int(rng.choice([-1, 1]))
         for _ in range(10):
             x = rng.uniform(-45, 40)
-            if L.x_free(x, 2.0) and L.x_free(x + 5, 2.0):
+            if S.x_free(x, 2.0) and S.x_free(x + 5, 2.0):
                 break
-        with b.placed(*_side_frame(s, x, L.hw + max(0.6, L.sw - 1.9), z)):
-            length = A.bus_shelter(b, rng)
-        blocked.append((s, (x if s > 0 else x - length) - 6.0, (x + length if s > 0 else x) + 6.0))
+        with b.placed(*S.side(s, x, S.hw + max(0.6, S.sw - 1.9), foot=(0, 0, 5, 1.8), lift=z)):
+            length = F.bus_shelter(b, rng)
+        blocked.append((s, x - 6.0, x + length + 6.0) if s > 0 else (s, x - length - 6.0, x + 6.0))
     for s in (1, -1):
         occupied: list[float] = []
+
+        def put(u: float, v: float, make, *args, foot=(-0.3, -0.3, 0.3, 0.3)) -> None:
+            with b.placed(*S.side(s, u, v, foot=foot, lift=z)):
+                make(b, rng, *args)
+            occupied.append(u)
+
         if rng.random() < 0.85:  # street lamps near the curb
             step = rng.uniform(18.0, 30.0)
             for x in np.arange(-EXTENT + rng.uniform(2, step), EXTENT - 2, step):
-                if L.x_free(x, 0.5):
-                    with b.placed(*_side_frame(s, x, L.hw + 0.45, z)):
-                        A.street_lamp(b, rng)
-                    occupied.append(x)
+                if S.x_free(x, 0.5):
+                    put(x, S.hw + 0.45, F.street_lamp)
         if rng.random() < (0.55 if city else 0.7):  # a row of street trees
             step = rng.uniform(7.0, 13.0)
             scale = rng.uniform(0.8, 1.2)
             for x in np.arange(-EXTENT + rng.uniform(2, step), EXTENT - 2, step):
-                if L.x_free(x, 1.5) and all(abs(x - o) > 2.0 for o in occupied) and rng.random() < 0.9:
-                    with b.placed(*_side_frame(s, x, L.hw + min(1.2, L.sw / 2), z)):
-                        A.tree(b, rng, scale)
-                    occupied.append(x)
-        for _ in range(int(rng.integers(1, 4))):  # sign poles
+                if S.x_free(x, 1.5) and all(abs(x - o) > 2.0 for o in occupied) and rng.random() < 0.9:
+                    put(x, S.hw + min(1.2, S.sw / 2), F.tree, scale)
+        if not city and rng.random() < 0.5:  # wooden utility poles
+            step = rng.uniform(30.0, 45.0)
+            for x in np.arange(-EXTENT + rng.uniform(2, step), EXTENT - 2, step):
+                if S.x_free(x, 0.5) and all(abs(x - o) > 1.5 for o in occupied):
+                    put(x, S.hw + S.sw - 0.4, F.utility_pole)
+        for _ in range(int(rng.integers(1, 5))):  # sign poles
             x = rng.uniform(-EXTENT + 2, EXTENT - 2)
-            if L.x_free(x, 0.5) and all(abs(x - o) > 1.5 for o in occupied):
-                with b.placed(*_side_frame(s, x, L.hw + 0.35, z)):
-                    A.sign_pole(b, rng)
-                occupied.append(x)
-        if city:
-            for _ in range(int(rng.integers(0, 4))):
+            if S.x_free(x, 0.5) and all(abs(x - o) > 1.5 for o in occupied):
+                put(x, S.hw + 0.35, F.sign_pole)
+        if not suburb:
+            for _ in range(int(rng.integers(0, 5))):
                 x = rng.uniform(-EXTENT + 2, EXTENT - 2)
-                if not L.x_free(x, 0.5) or any(abs(x - o) < 2.5 for o in occupied):
+                if not S.x_free(x, 0.5) or any(abs(x - o) < 2.5 for o in occupied):
                     continue
-                kind = rng.integers(0, 3)
-                with b.placed(*_side_frame(s, x, L.hw + (0.5 if kind == 2 else L.sw * 0.6), z)):
-                    (A.bench, A.trash_bin, A.bollard)[kind](b, rng)
-                occupied.append(x)
-    if L.cross and city and rng.random() < 0.7:  # traffic lights on the corners, arms over the main road
+                kind = int(rng.integers(0, 3))
+                if kind == 2:  # a row of bollards along the curb
+                    for k in range(int(rng.integers(2, 6))):
+                        put(x + 1.5 * k, S.hw + 0.4, F.bollard)
+                else:
+                    put(x, S.hw + S.sw * 0.6, (F.bench, F.trash_bin)[kind], foot=(-1.1, 0, 1.1, 0.45))
+    if S.cross and not suburb and rng.random() < 0.7:  # traffic lights on the corners, arms over the main road
         for sx in (-1, 1):
             for s in (-1, 1):
                 if rng.random() < 0.75:
-                    with b.placed(*_side_frame(s, L.xc + sx * (L.hw2 + 0.5), L.hw + 0.5, z)):
-                        A.traffic_light(b, rng)
+                    v = S.hw + 0.5
+                    u = S.cross_u(s * v) + sx * (S.hw2 + 0.5) / np.sin(S.theta)
+                    with b.placed(*S.side(s, u, v, lift=z)):
+                        F.traffic_light(b, rng)
     return blocked
 
 
-def _free_position(rng: np.random.Generator, lo: float, hi: float, length: float, taken: list[tuple[float, float]],
-                   gap: float) -> float | None:
+def free_position(rng: np.random.Generator, lo: float, hi: float, length: float, taken: list[tuple[float, float]],
+                  gap: float) -> float | None:
     """A uniform centre for an interval of `length` in [lo, hi]; if it collides, moved to the nearest free
     spot (the paper moves colliding cars). None when nothing is free."""
     half = length / 2 + gap
+    if hi - lo < 2 * half:
+        return None
     x = rng.uniform(lo + half, hi - half)
     bad = sorted((a - half, z + half) for a, z in taken)
     free, cur = [], lo + half
@@ -177,143 +286,76 @@ def _free_position(rng: np.random.Generator, lo: float, hi: float, length: float
     return float(min((np.clip(x, a, z) for a, z in free), key=lambda c: abs(c - x)))
 
 
-def _parked_cars(b: MeshBuilder, rng: np.random.Generator, L: _Layout, blocked: list[tuple[int, float, float]],
-                 city: bool) -> list[dict]:
-    """Cars parked at both curbs of the main street, never overlapping. As in Karton City, the count per
-    side of a street stretch is Poisson(2), at most 7; our stretch is one 40 m block (a region's length),
-    so a sample sees about as many cars as a Karton City one."""
+def _parked_vehicles(b: MeshBuilder, rng: np.random.Generator, S: Street, blocked: list[tuple[int, float, float]],
+                     city: bool) -> list[dict]:
+    """Vehicles parked at both curbs of the main street, never overlapping: cars, vans, trucks, buses and
+    motorbikes. As in Karton City, the count per side of a street stretch is Poisson(2), at most 7; our
+    stretch is one 40 m block (a region's length), so a sample sees about as many cars as a Karton City one."""
     out = []
     for s in (1, -1):
         taken: list[tuple[float, float]] = [(x0, x1) for side, x0, x1 in blocked if side == s]
-        if L.cross:
-            taken.append((L.xc - L.hw2 - 5.0, L.xc + L.hw2 + 5.0))
+        if S.cross:
+            taken.append(S.cross_span(s * (S.hw - 2.5), s * S.hw, 4.0, width=S.hw2))
         for x_lo in np.arange(-EXTENT, EXTENT - 1.0, BLOCK):
             for _ in range(min(int(rng.poisson(2.0)), 7)):
-                shape = A.pick_car_shape(rng)
-                length = A.CAR_LENGTH_MAX[shape]
-                x = _free_position(rng, max(x_lo, -EXTENT + 1), min(x_lo + BLOCK, EXTENT - 1), length, taken, 0.6)
+                moto = rng.random() < 0.08
+                shape = "motorbike" if moto else V.pick_shape(rng)
+                length = 2.2 if moto else V.LENGTH_MAX[shape]
+                x = free_position(rng, max(x_lo, -EXTENT + 1), min(x_lo + BLOCK, EXTENT - 1), length, taken, 0.6)
                 if x is None:
                     continue
                 taken.append((x - length / 2, x + length / 2))
-                y = s * (L.hw - 1.0 - rng.uniform(0.15, 0.4))
+                y = s * (S.hw - (0.6 if moto else 1.0) - rng.uniform(0.15, 0.4)
+                         - (0.25 if shape in ("truck", "bus") else 0.0))
                 yaw = (0.0 if rng.random() < 0.5 else np.pi) + np.radians(rng.normal(0.0, 1.5))
-                with b.placed(yaw, [x, y, 0.0]):
-                    A.car(b, rng, shape)
+                with b.placed(*S.place(x, y, yaw, (-length / 2, -1.25, length / 2, 1.25), tilt=True)):
+                    if moto:
+                        V.motorbike(b, rng)
+                    else:
+                        V.vehicle(b, rng, shape)
                 out.append({"shape": shape, "x": round(float(x), 2), "y": round(float(y), 2),
                             "yaw_deg": round(float(np.degrees(yaw)), 1)})
-    if L.cross and city:  # a few on the cross street too
+    if S.cross and city:  # a few on the cross street too
+        sn = np.sin(S.theta)
         for sx in (-1, 1):
             for _ in range(min(int(rng.poisson(1.0)), 3)):
-                y = rng.uniform(L.hw + L.sw + 4, EXTENT - 4) * rng.choice([-1, 1])
-                shape = A.pick_car_shape(rng)
-                with b.placed(np.pi / 2 + (0.0 if rng.random() < 0.5 else np.pi), [L.xc + sx * (L.hw2 - 1.2), y, 0.0]):
-                    A.car(b, rng, shape)
+                v = rng.uniform(S.hw + S.sw + 4, EXTENT - 4) * rng.choice([-1, 1])
+                u = S.cross_u(v) + sx * (S.hw2 - 1.2) / sn
+                with b.placed(*S.place(u, v, S.theta + (0.0 if rng.random() < 0.5 else np.pi), (-2.5, -1.0, 2.5, 1.0),
+                                       tilt=True)):
+                    V.vehicle(b, rng, V.pick_shape(rng, big=False))
     return out
 
 
-def _lots(rng: np.random.Generator, L: _Layout, wmin: float, wmax: float, gap_p: float, gap_range: tuple[float, float],
-          margin: float = 0.0) -> list[tuple[float, float]]:
-    """Lots (x0, x1) along a building row, skipping the cross street; gaps with probability gap_p."""
-    lots, x = [], -EXTENT
-    while x < EXTENT - wmin * 0.6:
-        w = min(rng.uniform(wmin, wmax), EXTENT - x)
-        if L.cross and x + w > L.xc - L.hw2 - L.sw - margin and x < L.xc + L.hw2 + L.sw + margin:
-            x = L.xc + L.hw2 + L.sw + margin + rng.uniform(0.0, 1.0)
+def _people_and_bikes(b: MeshBuilder, rng: np.random.Generator, S: Street, style: str) -> None:
+    """People standing on the sidewalks (alone or in small groups) and bicycle racks."""
+    n = {"city": (3, 12), "town": (2, 8), "suburb": (0, 4)}[style]
+    for _ in range(int(rng.integers(*n))):
+        s = int(rng.choice([-1, 1]))
+        u = rng.uniform(-EXTENT + 3, EXTENT - 3)
+        if not S.x_free(u, 1.0):
             continue
-        lots.append((x, x + w))
-        # attached neighbours overlap a little, so the party wall lies inside a solid and leaves the truth
-        x += w + (rng.uniform(*gap_range) if rng.random() < gap_p else -A.OVERLAP)
-    return lots
+        v = S.hw + rng.uniform(0.6, S.sw - 0.4)
+        for k in range(1 if rng.random() < 0.6 else int(rng.integers(2, 4))):
+            with b.placed(*S.side(s, u + 0.7 * k, v + rng.normal(0, 0.2), rng.uniform(0, 2 * np.pi),
+                                  lift=S.hs)):
+                F.person(b, rng)
+    if style != "suburb":
+        for s in (1, -1):
+            if rng.random() < 0.4 and S.sw > 2.2:
+                u = rng.uniform(-EXTENT + 5, EXTENT - 10)
+                if S.x_free(u - 5.0, 1.0) and S.x_free(u, 1.0) and S.x_free(u + 5.0, 1.0):
+                    with b.placed(*S.side(s, u, S.hw + S.sw - 1.0, foot=(0, -0.9, 5, 0.9), lift=S.hs)):
+                        F.bike_rack(b, rng, V.bicycle)
 
 
-def _city_rows(b: MeshBuilder, rng: np.random.Generator, L: _Layout) -> None:
-    """Rows of city blocks along both sides, walls in some gaps, and plain blocks behind."""
-    y_front = L.hw + L.sw
-    for s in (1, -1):
-        lots = _lots(rng, L, 6.0, 20.0, 0.35, (1.0, 4.0))
-        for (x0, x1), nxt in zip(lots, lots[1:] + [None]):
-            w = x1 - x0
-            setback = 0.0 if rng.random() < 0.7 else rng.uniform(0.3, 2.0)
-            depth = rng.uniform(10.0, 18.0)
-            height = rng.uniform(6.0, 25.0)
-            with b.placed(*_side_frame(s, x0 if s > 0 else x1, y_front + setback)):
-                A.city_building(b, rng, w, depth, height)
-            if nxt is not None and 1.2 < nxt[0] - x1 < 5.0 and rng.random() < 0.4:  # wall or gate across a gap
-                kind = "wall" if rng.random() < 0.6 else "panel"
-                with b.placed(*_side_frame(s, x1 if s > 0 else nxt[0], y_front + 0.3)):
-                    A.fence(b, rng, nxt[0] - x1, kind)
-        y_back = y_front + 24.0
-        for x0, x1 in _lots(rng, L, 10.0, 30.0, 0.5, (2.0, 8.0), margin=2.0):
-            with b.placed(*_side_frame(s, x0 if s > 0 else x1, y_back)):
-                A.simple_block(b, rng, x1 - x0, EXTENT - y_back - 1.0, rng.uniform(8.0, 25.0))
-
-
-def _suburb_rows(b: MeshBuilder, rng: np.random.Generator, L: _Layout) -> int:
-    """Houses behind front yards with fences or hedges, garages with cars on driveways, yard trees."""
-    y_front = L.hw + L.sw
-    cars = 0
-    for s in (1, -1):
-        lots = _lots(rng, L, 14.0, 24.0, 0.0, (0.0, 0.0), margin=0.5)
-        for x0, x1 in lots:
-            lot_w = x1 - x0
-            hw_ = min(lot_w - 5.0, rng.uniform(8.0, 13.0))
-            hd = rng.uniform(7.0, 11.0)
-            yard = rng.uniform(3.0, 8.0)
-            hx = rng.uniform(1.0, lot_w - hw_ - 4.0)
-            with b.placed(*_side_frame(s, x0 if s > 0 else x1, y_front)):
-                # the lot, in its own frame: x along the street from the lot's start, y away from it
-                with b.placed(0.0, [hx, yard, 0.0]):
-                    A.house(b, rng, hw_, hd)
-                gx = hx + hw_ + 0.5
-                has_garage = gx + 3.5 < lot_w - 0.3 and rng.random() < 0.5
-                if has_garage:
-                    with b.placed(0.0, [gx, yard + rng.uniform(0.0, 2.0), 0.0]):
-                        A.garage(b, rng, 3.5, 6.0)
-                drive_x = gx + 1.75 if has_garage else min(hx + hw_ + 2.0, lot_w - 1.5)
-                if rng.random() < 0.5 and drive_x + 1.2 < lot_w:
-                    shape = A.CAR_SHAPES[int(rng.choice(4, p=[0.3, 0.25, 0.2, 0.25]))]   # no trucks on driveways
-                    with b.placed(np.pi / 2 + (0.0 if rng.random() < 0.5 else np.pi), [drive_x, yard * 0.5 + 0.3, 0.0]):
-                        A.car(b, rng, shape)
-                    cars += 1
-                kind = rng.choice(["picket", "hedge", "panel", "wall", "none", "none"], p=[0.3, 0.25, 0.1, 0.05, 0.15, 0.15])
-                if kind != "none":  # front fence with a gap for the driveway and one for the path
-                    gaps = sorted([(drive_x - 1.6, drive_x + 1.6), (hx + hw_ / 2 - 0.6, hx + hw_ / 2 + 0.6)])
-                    cur = 0.2
-                    for a, z in gaps + [(lot_w - 0.2, lot_w)]:
-                        if a - cur > 0.8:
-                            with b.placed(0.0, [cur, 0.2, 0.0]):
-                                A.fence(b, rng, a - cur, kind)
-                        cur = max(cur, z)
-                if rng.random() < 0.6:  # side fence along the lot boundary
-                    side_kind = "hedge" if rng.random() < 0.4 else "panel"
-                    with b.placed(np.pi / 2, [lot_w - 0.1, yard + 1.0, 0.0]):
-                        A.fence(b, rng, rng.uniform(8.0, 20.0), side_kind)
-                for _ in range(int(rng.integers(0, 3))):  # yard trees and bushes
-                    tx = rng.uniform(1.0, lot_w - 1.0)
-                    ty = rng.uniform(yard + hd + 2.0, 28.0) if rng.random() < 0.5 else rng.uniform(1.5, max(1.6, yard - 1.5))
-                    if ty < yard and hx - 2.0 < tx < hx + hw_ + 2.0:
-                        continue
-                    with b.placed(0.0, [tx, ty, 0.0]):
-                        A.tree(b, rng, rng.uniform(0.8, 1.3), conifer=rng.random() < 0.3)
-                for _ in range(int(rng.integers(0, 4))):
-                    tx, ty = rng.uniform(0.8, lot_w - 0.8), rng.uniform(1.2, max(1.3, yard - 0.6))
-                    if abs(tx - drive_x) > 2.0:
-                        with b.placed(0.0, [tx, ty, 0.0]):
-                            A.bush(b, rng)
-        y_back = y_front + 32.0
-        for x0, x1 in _lots(rng, L, 14.0, 24.0, 0.0, (0.0, 0.0), margin=0.5):
-            with b.placed(*_side_frame(s, x0 if s > 0 else x1, y_back)):
-                with b.placed(0.0, [rng.uniform(1.0, 3.0), 1.0, 0.0]):
-                    A.house(b, rng, min(x1 - x0 - 4.0, rng.uniform(8.0, 12.0)), rng.uniform(7.0, 10.0))
-    return cars
-
-
-def _drive(rng: np.random.Generator, L: _Layout) -> tuple[np.ndarray, int]:
-    """Ego sensor path along the right-hand lane with a gentle weave (so headings vary by a degree or two)."""
+def _drive(rng: np.random.Generator, S: Street) -> tuple[np.ndarray, np.ndarray, int]:
+    """Ego vehicle path on the road along the right-hand lane with a gentle weave (headings vary by a degree
+    or two), and the ground's up vector under it (the vehicle pitches and rolls with the road)."""
     direction = 1 if rng.random() < 0.5 else -1
     lane = rng.uniform(1.4, 2.0)
-    height = rng.uniform(1.9, 2.1)
     amp, period, phase = rng.uniform(0.0, 0.3), rng.uniform(50.0, 100.0), rng.uniform(0, 2 * np.pi)
-    x = np.arange(-EXTENT + 2.0, EXTENT - 2.0 + 1e-9, DRIVE_STEP) * direction
-    y = -direction * lane + amp * np.sin(2 * np.pi * x / period + phase)
-    return np.c_[x, y, np.full_like(x, height)], direction
+    u = np.arange(-EXTENT + 2.0, EXTENT - 2.0 + 1e-9, DRIVE_STEP) * direction
+    v = -direction * lane + amp * np.sin(2 * np.pi * u / period + phase)
+    xy = S.curve.to_world(u, v)
+    return np.c_[xy, S.terrain.height(xy)], S.terrain.up(xy), direction

@@ -5,14 +5,13 @@ import numpy as np
 import pytest
 import trimesh
 
-lidar = pytest.importorskip("hgca_core.synth.lidar")
-
-from hgca_core.metrics.evaluate import evaluate_sample  # noqa: E402
-from hgca_core.geometry.voxel import voxelize  # noqa: E402
-from hgca_core.geometry.voxel_mesh import voxel_mesh  # noqa: E402
-from hgca_core.metrics.iou import iou  # noqa: E402
-from hgca_core.metrics.resim import resim_cd, resim_scans  # noqa: E402
-from hgca_core.metrics.surface import sample_surface  # noqa: E402
+from hgca_core.geometry import raycast as lidar
+from hgca_core.geometry.voxel import voxelize
+from hgca_core.geometry.voxel_mesh import voxel_mesh
+from hgca_core.metrics.evaluate import evaluate_sample
+from hgca_core.metrics.iou import iou
+from hgca_core.metrics.resim import resim_cd, resim_scans
+from hgca_core.metrics.surface import sample_surface
 
 SIZE = np.array([20.0, 20.0, 8.0])                  # region box [0, SIZE) in the region frame
 SENSOR = lidar.Sensor(np.linspace(-30.0, 30.0, 64), 1400, 75.0)   # EVAL128's field of view, fewer rays

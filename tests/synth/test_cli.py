@@ -18,7 +18,8 @@ def out_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("synth_cli")
     saved = sys.argv
     try:
-        assert main(["synth", "--seed", "7", "--scans", "3", "--quick", "--no-preview", "--out", str(out)]) == 0
+        assert main(["synth", "--seed", "7", "--scans", "3", "--profile", "av2", "--quick", "--no-preview",
+                     "--out", str(out)]) == 0
     finally:
         sys.argv = saved
     return out
@@ -29,7 +30,8 @@ def test_writes_every_file(out_dir):
     expected = {"scene_7.npz", "scene_7_poses.json", "scene_7_gt.ply"} | {f"scene_7_scan{i}.ply" for i in range(3)}
     assert expected <= names
     s = load_sample(out_dir / "scene_7.npz")
-    assert set(s) == set(KEYS) and json.loads(str(s["meta"]))["seed"] == 7
+    meta = json.loads(str(s["meta"]))
+    assert set(s) == set(KEYS) and meta["seed"] == 7 and meta["profile"] == "av2" and meta["n_scans"] == 3
 
 
 def test_poses_json_reproduces_world_coordinates(out_dir):
@@ -78,7 +80,8 @@ def test_preview_png(tmp_path, out_dir):
 
 @pytest.mark.parametrize("argv", [["synth", "--split", "train", "--out", "x"],
                                   ["synth", "--seed", "1", "--count", "3", "--out", "x"],
-                                  ["synth", "--seed", "1", "--scans", "0", "--out", "x"]])
+                                  ["synth", "--seed", "1", "--scans", "0", "--out", "x"],
+                                  ["synth", "--split", "val", "--count", "1", "--profile", "av2", "--out", "x"]])
 def test_bad_arguments_exit_2(argv, capsys):
     saved = sys.argv
     try:
