@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests" / "synth"))
+sys.path[:0] = [str(ROOT / "tests" / "synth"), str(ROOT / "tests")]   # the test builders (real_sweeps)
 
 
 def ring_stats(local: np.ndarray, ring: np.ndarray, elev: np.ndarray, n_azimuth: int, ground_z: float) -> dict:

@@ -54,10 +54,9 @@ def smaller(sample: dict, quantum: float = 1.0 / 1024) -> dict:
 def coarse_only(sample: dict) -> dict:
     """What the coarse stage's training reads, as cells: the input voxelised to 20 cm the way training does
     it, the 20 cm ground truth and the visible cells, each as delta-coded sorted int32 keys."""
-    from hgca_core.geometry.voxel import FINE, voxelize_coarse
+    from hgca_core.geometry.voxel import COARSE, voxelize
 
-    grid = tuple(int(v) for v in np.round(np.asarray(sample["region"])[3:6] / FINE))
-    cells = {"s0": voxelize_coarse(sample["input_points"], grid), "gt_occ20": sample["gt_occ20"],
+    cells = {"s0": voxelize(sample["input_points"], COARSE, np.asarray(sample["region"])[3:6]), "gt_occ20": sample["gt_occ20"],
              "visible20": sample["visible20"]}
     return {"region": sample["region"], **{k: smaller({"gt_occ20": v})["gt_occ20"] for k, v in cells.items()}}
 
