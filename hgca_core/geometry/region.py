@@ -16,6 +16,7 @@ from hgca_core.geometry.voxel import grid_shape
 
 DEFAULT_SIZE = (38.4, 38.4, 8.0)
 BELOW_GROUND = 1.0  # the box starts this far below the ground under the sensor (paper: [-1, 7] m)
+GROUND_STEP = 1.0   # metres between the samples of a region's ground-height grid (x, y = i, j * GROUND_STEP)
 
 
 @dataclass(frozen=True)
@@ -170,3 +171,16 @@ def estimate_ground(points: np.ndarray, centre_xy: np.ndarray, radius: float = 1
     off = near[:, 2] - (coef[0] + rel @ coef[1:])
     on = (np.linalg.norm(rel, axis=1) < fit_radius) & (np.abs(off) < above)
     return float(coef[0] + (np.median(off[on]) if on.sum() > 20 else 0.0))
+
+
+def ground_at(grid: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Ground height (region-frame z) under region-frame x, y, from a ground-height grid sampled every
+    GROUND_STEP metres from the region's origin (a synthetic sample's `ground_height`): bilinear, clamped at
+    the grid's edges. On sloped streets the ground under the sensor (`ground_z`) is not the ground elsewhere."""
+    g = np.asarray(grid, dtype=np.float64)
+    p = np.asarray(xy, dtype=np.float64).reshape(-1, 2) / GROUND_STEP
+    f = np.clip(p, 0.0, np.array(g.shape, dtype=np.float64) - 1 - 1e-9)
+    i, j = np.floor(f).astype(np.int64).T
+    tx, ty = (f - np.floor(f)).T
+    return ((1 - tx) * (1 - ty) * g[i, j] + tx * (1 - ty) * g[i + 1, j] + (1 - tx) * ty * g[i, j + 1]
+            + tx * ty * g[i + 1, j + 1])

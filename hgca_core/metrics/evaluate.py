@@ -75,9 +75,12 @@ def evaluate_sample(sample: Mapping[str, Any], meshes: Sequence[trimesh.Trimesh]
     if "street_box" in sample and "gt_surface" in sample:
         box = np.asarray(sample["street_box"], dtype=np.float64).reshape(4)
         gz = float(np.asarray(sample["ground_z"]))
-        pts = [street_points(sample_surface(m, spacing, seed + i, _street_face_mask(m, box, gz))
-                             if len(m.faces) else np.zeros((0, 3)), box, gz) for i, m in enumerate(meshes)]
-        street = np.array([street_cd(p, sample["gt_surface"], box, gz) for p in pts])
+        grid = sample.get("ground_height")                       # format 2: the ground of sloped streets
+        lowest = gz if grid is None else float(np.min(grid))
+        pts = [street_points(sample_surface(m, spacing, seed + i, _street_face_mask(m, box, lowest))
+                             if len(m.faces) else np.zeros((0, 3)), box, gz, ground_grid=grid)
+               for i, m in enumerate(meshes)]
+        street = np.array([street_cd(p, sample["gt_surface"], box, gz, ground_grid=grid) for p in pts])
         if k > 1:
             street_tmd = tmd(pts, empty_penalty=street_penalty(box))
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from hgca_core.geometry.raycast import EVAL128, Sensor, make_intersector, range_image
-from hgca_core.geometry.region import BELOW_GROUND, DEFAULT_SIZE, Region
+from hgca_core.geometry.region import BELOW_GROUND, DEFAULT_SIZE, GROUND_STEP, Region
 from hgca_core.synth.groundtruth import RegionSurface, visible_cells
 from hgca_core.synth.lidar import PROFILES, Effects, Unit, scan
 from hgca_core.synth.assets import LABEL_NAMES
@@ -32,7 +32,6 @@ EVAL_HEIGHT = 2.0       # the evaluation LiDAR rides this high above the road
 KEYS = ("region", "input_points", "input_scan_index", "input_origins", "input_poses", "gt_occ20", "gt_occ10",
         "gt_surface", "gt_surface_label", "udf_points", "udf_dist", "eval_poses", "eval_scan_0", "eval_scan_1",
         "visible20", "street_box", "ground_z", "ground_height", "meta")
-GROUND_STEP = 1.0       # metres between the ground_height samples (region frame x, y = i, j * GROUND_STEP)
 
 
 @dataclass(frozen=True)

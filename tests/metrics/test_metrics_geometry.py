@@ -27,6 +27,28 @@ def test_street_cd_ignores_ground_and_outside_points() -> None:
     assert len(street_points(gt, box, gz)) == len(car)
 
 
+def test_street_cd_on_a_sloped_street_uses_the_ground_grid() -> None:
+    """An 8 % grade: with the ground under the sensor only (ground_z), the road uphill counts as street
+    objects; with the sample's ground-height grid only the car does."""
+    from hgca_core.geometry.region import GROUND_STEP, ground_at
+
+    rng = np.random.default_rng(1)
+    box, gz = (0.0, 0.0, 20.0, 6.0), 1.0
+    ground = lambda xy: gz + 0.08 * (xy[:, 0] - 10.0)  # noqa: E731  (the sensor stands at x = 10)
+    xs = np.arange(0.0, 21.0, GROUND_STEP)
+    grid = np.repeat(ground(np.c_[xs, xs])[:, None], 7, axis=1)
+    assert np.allclose(ground_at(grid, np.array([[3.3, 2.7], [25.0, 1.0]])), ground(np.array([[3.3, 0], [20.0, 0]])))
+    road_xy = rng.uniform([0, 0], [20, 6], (3000, 2))
+    road = np.c_[road_xy, ground(road_xy)]
+    g = np.arange(0.0, 3.0)
+    car = np.stack(np.meshgrid(12 + g, 1 + g[:2], g[:2], indexing="ij"), -1).reshape(-1, 3)
+    car[:, 2] += ground(car[:, :2]) + 0.5
+    gt = np.concatenate([car, road])
+    assert len(street_points(gt, box, gz, ground_grid=grid)) == len(car)
+    assert len(street_points(gt, box, gz)) > len(car) + 500                 # the flat cut keeps the uphill road
+    assert street_cd(np.concatenate([car, road[:300]]), gt, box, gz, ground_grid=grid) == 0.0
+
+
 def test_input_baseline_voxelises_like_the_paper() -> None:
     pts = np.array([[0.04, 0.0, 0.0], [0.06, 0.0, 0.0], [0.16, 0.0, 0.0], [0.26, 0.0, 0.0]])
     # round to 10 cm: x cells 0, 1, 2, 3 -> floor by 2: 0, 0, 1, 1
