@@ -3,11 +3,16 @@
 so `hgca info` does not pay for importing torch."""
 from __future__ import annotations
 
+if __name__ == "__main__":  # `python -m hgca_core.cli`: take over Ctrl-C before the imports below
+    from hgca_core import interrupt as _interrupt
+
+    _interrupt.install()
+
 import argparse
 import importlib
 import sys
 
-from hgca_core import __version__
+from hgca_core import __version__, interrupt
 from hgca_core.errors import HgcaError
 
 COMMANDS = {
@@ -43,6 +48,14 @@ def _load(name: str, argv: list[str]):
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    previous = interrupt.install(argv[0] if argv[:1] and argv[0] in COMMANDS else "")
+    try:
+        return _main(argv)
+    finally:
+        interrupt.restore(previous)
+
+
+def _main(argv: list[str]) -> int:
     args = build_parser(argv).parse_args(argv)
     module = importlib.import_module(args._module)
     try:
@@ -53,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     except HgcaError as exc:
         print(f"hgca {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # raised by code that handles SIGINT itself (the trainer's second Ctrl-C)
         print(f"hgca {args.command}: interrupted", file=sys.stderr)
         return 130
 

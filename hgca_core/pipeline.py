@@ -37,6 +37,9 @@ ProgressFn = Callable[[str, int, int, str, int], None]  # (stage, step, total, m
 # used to refuse regions that cannot fit before spending minutes on them.
 BASE_BYTES = 2.0 * 2**30
 BYTES_PER_M2 = 1.5e6
+# Fewer occupied 20 cm cells than this inside the region is no scan (one point, one spot measured 50k times):
+# the chain has nothing to grow from, and an empty mesh with exit 0 would look like success.
+MIN_INPUT_CELLS = 10
 
 
 @dataclass
@@ -91,6 +94,15 @@ def check_points(points: np.ndarray, what: str = "input") -> np.ndarray:
     return p
 
 
+def check_input_cells(cells: int, points: np.ndarray) -> None:
+    """Refuse inputs too small or degenerate to complete, before any sampling."""
+    if cells >= MIN_INPUT_CELLS:
+        return
+    same = ", all at the same spot," if len(points) > 1 and len(np.unique(points, axis=0)) == 1 else ""
+    raise InputError(f"too few input points to complete: {len(points)} point(s) inside the region{same} occupy "
+                     f"{cells} cell(s) of 20 cm; at least {MIN_INPUT_CELLS} are needed")
+
+
 def check_memory(region: Region) -> None:
     """Refuse a region whose estimated peak memory exceeds what this machine has available."""
     import psutil
@@ -131,6 +143,9 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
 
     if stage == "full" and (models.fine is None or models.autoencoder is None):
         raise InputError("the full stage needs the fine kernel and its autoencoder (load_models('full', ...))")
+    for name, steps in (("t1", t1), ("t2", t2)):
+        if steps is not None and (int(steps) != steps or steps < 0):
+            raise InputError(f"{name} must be a whole number >= 0 (0: the weights' own), got {steps}")
     device = next(models.coarse.parameters()).device
     try:
         gemm_dtype = resolve_precision(precision, str(device))
@@ -143,6 +158,7 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
         raise InputError(f"no input points inside the {region.size.tolist()} m region")
     s0 = voxelize(local, COARSE, region.size)
     grid = region.grid_shape(COARSE)
+    check_input_cells(len(s0), local)
     report("voxelise", 1, 1, f"{len(s0)} cells at 20 cm", 0)
     steps = t1 or models.coarse.cfg.steps
     results = []

@@ -6,13 +6,13 @@ from pathlib import Path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from hgca_core.commands.complete import add_precision_argument
+    from hgca_core.commands.complete import add_precision_argument, device_arg, steps_arg
 
     p.add_argument("--widths", default="40,60,80,100,120", help="strip widths w (m) of 40 x w regions; '' for none")
     p.add_argument("--no-default", action="store_true", help="skip the default 38.4 x 38.4 m region")
     p.add_argument("--stage", choices=("coarse", "full"), default="coarse")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--t1", type=int, default=None)
+    p.add_argument("--device", type=device_arg, default="cpu")
+    p.add_argument("--t1", type=steps_arg, default=None)
     add_precision_argument(p)
     p.add_argument("--out", default="benchmarks/results")
     p.add_argument("--name", default=None, help="result file stem (default completion_<stage>_<device>)")

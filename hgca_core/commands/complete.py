@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
 
 from hgca_core.errors import InputError
@@ -21,12 +22,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stage", choices=("coarse", "full"), default="full",
                    help="full (default): 20 cm coarse GCA, 10 cm cGCA upsampling and an implicit mesh; "
                         "coarse: the 20 cm voxels only (faster)")
-    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--device", type=device_arg, default="cpu", help="cpu, cuda or cuda:N")
     p.add_argument("--max-faces", type=int, default=None,
                    help="simplify each mesh to at most this many triangles (a default region gives 5-7 M at 5 cm)")
     add_precision_argument(p)
-    p.add_argument("--t1", type=int, default=None, help="coarse steps T1 (default from the weights: 30)")
-    p.add_argument("--t2", type=int, default=None, help="fine steps T2 (default 15)")
+    add_steps_arguments(p)
     p.add_argument("--weights", default=None, help="coarse weights file (default: the shipped ones)")
     p.add_argument("--fine-weights", default=None, help="fine weights file (default: the shipped ones)")
     p.add_argument("--progress", choices=("bar", "jsonl", "none"), default="bar")
@@ -39,12 +39,36 @@ def add_precision_argument(p: argparse.ArgumentParser) -> None:
                    help="GEMM precision of the sparse convs while sampling (auto: bf16 where the hardware has it)")
 
 
+def device_arg(text: str) -> str:
+    """`--device` type: cpu, cuda or cuda:N, checked while parsing so a typo fails before any work."""
+    if re.fullmatch(r"cpu|cuda(:\d+)?", text.strip()):
+        return text.strip()
+    raise argparse.ArgumentTypeError(f"unknown device {text!r}: use cpu, cuda or cuda:N")
+
+
+def steps_arg(text: str) -> int:
+    """`--t1` / `--t2` type: a step count >= 0, where 0 (like leaving the option out) means the weights' own."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 (the weights' own step count) or more, got {value}")
+    return value
+
+
+def add_steps_arguments(p: argparse.ArgumentParser) -> None:
+    """`--t1` and `--t2`, shared by complete, eval and bench."""
+    p.add_argument("--t1", type=steps_arg, default=None,
+                   help="coarse steps T1 (0 or left out: the weights' own, 30 for the shipped ones)")
+    p.add_argument("--t2", type=steps_arg, default=None,
+                   help="fine steps T2 (0 or left out: the weights' own, 15 for the shipped ones)")
+
+
 def output_paths(out: str, samples: int) -> list[Path]:
     path = Path(out)
     if path.suffix.lower() not in MESH_EXTS:
         raise InputError(f"output must end in one of {', '.join(MESH_EXTS)}", out)
-    if not path.parent.exists():
-        raise InputError("output folder does not exist", str(path.parent))
     return [path.with_name(f"{path.stem}_s{i}{path.suffix}") for i in range(samples)]
 
 
@@ -65,8 +89,14 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, progress) -> list[Path]:
+    from hgca_core.io.outputs import check_outputs
+
+    paths = output_paths(args.out, args.samples)
+    check_outputs(paths, [*args.scans, args.poses, args.weights, args.fine_weights])
+
     from hgca_core.geometry.region import Region
     from hgca_core.io import read_scans, write_mesh, write_mesh_npz
+    from hgca_core.io.atomic import AtomicBatch
     from hgca_core.pipeline import complete
 
     if args.device.startswith("cuda"):
@@ -74,7 +104,6 @@ def _run(args: argparse.Namespace, progress) -> list[Path]:
 
         if not torch.cuda.is_available():
             raise InputError("--device cuda asked for, but this torch build sees no CUDA GPU")
-    paths = output_paths(args.out, args.samples)
     from hgca_core.pipeline import load_models
 
     load_models(args.stage, args.weights, args.fine_weights, args.device)   # bad weights fail before any work;
@@ -87,11 +116,13 @@ def _run(args: argparse.Namespace, progress) -> list[Path]:
                        stage=args.stage, device=args.device, t1=args.t1, t2=args.t2, weights=args.weights,
                        fine_weights=args.fine_weights, progress=progress, precision=args.precision,
                        max_faces=args.max_faces)
-    for i, (res, path) in enumerate(zip(results, paths)):
-        progress("write", i, len(paths), path.name, i)
-        if path.suffix.lower() == ".npz":
-            write_mesh_npz(path, res.mesh.vertices, res.mesh.faces, res.observed_distance)
-        else:
-            write_mesh(path, res.mesh)
+    with AtomicBatch() as batch:  # every sample or none: an interrupted write leaves nothing behind
+        for i, (res, path) in enumerate(zip(results, paths)):
+            progress("write", i, len(paths), path.name, i)
+            if path.suffix.lower() == ".npz":
+                write_mesh_npz(path, res.mesh.vertices, res.mesh.faces, res.observed_distance, batch=batch)
+            else:
+                write_mesh(path, res.mesh, batch=batch)
+        batch.commit()
     progress("write", len(paths), len(paths), "", len(paths) - 1)
     return paths

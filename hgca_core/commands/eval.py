@@ -11,20 +11,20 @@ DEFAULT_METHODS = ("input", "poisson", "gca", "hgca")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from hgca_core.commands.complete import add_precision_argument
+    from hgca_core.commands.complete import add_precision_argument, steps_arg
 
     p.add_argument("--data", default="data/synth", help="dataset folder (hgca synth --split test)")
     p.add_argument("--split", default="test", choices=("val", "test"))
     p.add_argument("--stage", default="coarse", choices=("coarse", "full"),
                    help="full adds the fine stage's rows (hGCA 10 cm voxels and implicit mesh; needs fine weights)")
     p.add_argument("--fine-weights", default=None, help="fine-stage weights (default: the shipped fine.pt)")
-    p.add_argument("--t2", type=int, default=None, help="fine steps (default from the weights)")
+    p.add_argument("--t2", type=steps_arg, default=None, help="fine steps (default from the weights)")
     add_precision_argument(p)
     p.add_argument("--count", type=int, default=None, help="evaluate only the first N samples")
     p.add_argument("--samples", type=int, default=3, help="completions k per input (min/avg/TMD)")
     p.add_argument("--methods", default=None,
                    help=f"comma list of {', '.join(METHODS)} (default: the coarse ones, plus hgca-full with --stage full)")
-    p.add_argument("--t1", type=int, default=None, help="coarse steps (default from the weights)")
+    p.add_argument("--t1", type=steps_arg, default=None, help="coarse steps (default from the weights)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="write the rows as JSON and the table as .md next to it")
     p.add_argument("--reuse", nargs="+", default=None, metavar="JSON",

@@ -19,15 +19,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--format", dest="fmt", metavar="F",
                    help="force the format (ply, las, pcd, xyz, npy, npz, kitti, nuscenes) instead of the extension's")
     p.add_argument("-o", "--out", required=True, metavar="OUT.npz",
-                   help="output .npz: points (N,3) f32, attributes, origins")
+                   help="output .npz: points (N,3) f32 relative to offset (3,) f64, attributes, origins")
 
 
 def run(args: argparse.Namespace) -> int:
-    from hgca_core.io import read_scans, write_points
-    from hgca_core.io.writers import NPZ_RESERVED
+    from hgca_core.io.outputs import check_outputs
 
     if os.path.splitext(args.out)[1].lower() != ".npz":
         raise InputError("output must end in .npz", args.out)
+    check_outputs([args.out], [*args.scans, args.poses])
+
+    from hgca_core.io import read_scans, write_points
+    from hgca_core.io.writers import NPZ_RESERVED
+
     scan = read_scans(args.scans, poses=args.poses, fmt=args.fmt)
     attributes = {k: v for k, v in scan.attributes.items() if k not in NPZ_RESERVED}
     write_points(args.out, scan.points, attributes, origins=scan.origins)

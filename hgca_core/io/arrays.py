@@ -1,10 +1,12 @@
 """NumPy files: `.npy` holding an (N, >=3) table (or a structured array with x, y, z fields) and `.npz`
-archives as written by `hgca read` (`points`, per-point attributes, optional `origins`)."""
+archives as written by `hgca read` (`points`, per-point attributes, optional `origins`, optional float64
+`offset` added to `points`: see `hgca_core.io.georef`)."""
 from __future__ import annotations
 
 import numpy as np
 
 from hgca_core.errors import InputError
+from hgca_core.io.georef import read_offset
 from hgca_core.io.scan import Scan
 
 
@@ -52,8 +54,9 @@ def read_npz(path: str) -> Scan:
             raise InputError(f"'points' must be (N, >=3), got shape {points.shape}", path)
         n = len(points)
         attributes = {}
+        offset = read_offset(z["offset"], path) if "offset" in keys else np.zeros(3)
         for key in keys:
-            if key in ("points", "origins"):
+            if key in ("points", "origins", "offset"):
                 continue
             value = z[key]
             if value.shape == (n,) and value.dtype.kind in "biuf":
@@ -63,4 +66,4 @@ def read_npz(path: str) -> Scan:
             origins = _numeric(z["origins"], "'origins'", path)
             if origins.ndim not in (1, 2) or origins.shape[-1] != 3:
                 raise InputError(f"'origins' must be (S, 3), got shape {origins.shape}", path)
-    return Scan(points[:, :3].astype(np.float64), attributes, origins, path)
+    return Scan(points[:, :3].astype(np.float64) + offset, attributes, origins, path)

@@ -1,16 +1,26 @@
 """Atomic file writes: a temp file in the target's folder, fsync, then `os.replace`.
 
 A crash or Ctrl-C mid-write never leaves a half-written mesh where the Blender add-on (or a later run)
-would pick it up as finished output.
+would pick it up as finished output. `AtomicBatch` extends this to several files that belong together (the
+k samples of one completion): all are written to temp files first and moved into place in one short commit,
+so an interrupted run leaves either every output or none of them.
+
+Temp files being written are registered in `_PENDING`, so the CLI's signal handler (`hgca_core.interrupt`),
+which ends the process with `os._exit`, can remove them first; a signal that arrives during a commit is held
+back until the commit is over (`defer_signal`).
 """
 from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import tempfile
 from typing import BinaryIO, Callable
 
 from hgca_core.errors import InputError
+
+_PENDING: set[str] = set()  # temp files written but not yet moved into place
+_COMMIT = {"depth": 0, "deferred": 0}  # commits in progress; a signal number held back until they end
 
 
 def _default_mode() -> int:
@@ -20,26 +30,102 @@ def _default_mode() -> int:
     return 0o666 & ~mask
 
 
-def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> str:
-    """Call `write(f)` on a temp file next to `path`, then move it into place; returns the path."""
-    path = os.fspath(path)
+def discard_pending() -> None:
+    """Remove every temp file not yet moved into place (the signal handler calls this before exiting)."""
+    for tmp in list(_PENDING):
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        _PENDING.discard(tmp)
+
+
+def defer_signal(signum: int) -> bool:
+    """True (and the signal is kept for later) when a commit is moving files into place right now."""
+    if _COMMIT["depth"] > 0:
+        _COMMIT["deferred"] = _COMMIT["deferred"] or signum
+        return True
+    return False
+
+
+def _stage(path: str, write: Callable[[BinaryIO], None]) -> str:
+    """Write `path`'s content to a registered temp file next to it; returns the temp file's path."""
     directory = os.path.dirname(os.path.abspath(path))
     try:
         os.makedirs(directory, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{os.path.basename(path)}.", suffix=".tmp")
     except OSError as exc:
         raise InputError(f"cannot write output ({exc.strerror})", path) from None
+    _PENDING.add(tmp)
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, _default_mode())
-        os.replace(tmp, path)
     except BaseException as exc:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
+        _drop(tmp)
         if isinstance(exc, OSError):
             raise InputError(f"cannot write output ({exc.strerror or exc})", path) from None
         raise
+    return tmp
+
+
+def _drop(tmp: str) -> None:
+    with contextlib.suppress(OSError):
+        os.unlink(tmp)
+    _PENDING.discard(tmp)
+
+
+def _commit(staged: list[tuple[str, str]]) -> None:
+    """Move every staged temp file into place; SIGINT/SIGTERM wait until all are moved."""
+    _COMMIT["depth"] += 1
+    try:
+        for i, (tmp, path) in enumerate(staged):
+            try:
+                os.replace(tmp, path)
+            except OSError as exc:
+                for rest, _ in staged[i:]:
+                    _drop(rest)
+                raise InputError(f"cannot write output ({exc.strerror or exc})", path) from None
+            _PENDING.discard(tmp)
+    finally:
+        _COMMIT["depth"] -= 1
+        deferred = _COMMIT["deferred"]
+        if _COMMIT["depth"] == 0 and deferred:
+            _COMMIT["deferred"] = 0
+            signal.raise_signal(deferred)
+
+
+def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> str:
+    """Call `write(f)` on a temp file next to `path`, then move it into place; returns the path."""
+    path = os.fspath(path)
+    _commit([(_stage(path, write), path)])
     return path
+
+
+class AtomicBatch:
+    """Files that appear together or not at all: `add()` writes each to a temp file, `commit()` moves them
+    all into place; leaving the `with` block by an exception removes the temp files and writes nothing."""
+
+    def __init__(self) -> None:
+        self._staged: list[tuple[str, str]] = []
+
+    def add(self, path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> str:
+        path = os.fspath(path)
+        self._staged.append((_stage(path, write), path))
+        return path
+
+    def commit(self) -> list[str]:
+        staged, self._staged = self._staged, []
+        _commit(staged)
+        return [path for _, path in staged]
+
+    def discard(self) -> None:
+        for tmp, _ in self._staged:
+            _drop(tmp)
+        self._staged = []
+
+    def __enter__(self) -> "AtomicBatch":
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.discard()

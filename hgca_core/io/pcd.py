@@ -3,6 +3,10 @@
 Fields x, y, z become the points; every other field becomes an attribute (fields with COUNT > 1 are split
 into `name_0 ... name_k`, packed `rgb`/`rgba` floats into uint8 channels, `_` padding fields are skipped).
 A non-default VIEWPOINT gives the sensor origin.
+
+The header must agree with the data: POINTS with WIDTH x HEIGHT, and the data with POINTS (no rows or bytes
+beyond them, none missing). A disagreement means the file was cut, padded or written wrongly, and reading
+"what fits" would silently drop or invent points, so it is refused with the header field named.
 """
 from __future__ import annotations
 
@@ -74,6 +78,11 @@ def parse_header(raw: bytes, path: str) -> PCDHeader:
         dtypes.append(np.dtype(code))
     if min(counts) < 1 or points < 0 or len(viewpoint) != 7:
         raise InputError("PCD header has invalid COUNT, POINTS or VIEWPOINT", path)
+    if width < 0 or height < 0:
+        raise InputError(f"PCD header WIDTH {width} / HEIGHT {height} must not be negative", path)
+    if width * height != points:
+        raise InputError(f"PCD header POINTS {points} disagrees with WIDTH x HEIGHT = {width} x {height} "
+                         f"= {width * height}", path)
     mode = entries["DATA"][0].lower() if entries["DATA"] else ""
     if mode not in ("ascii", "binary", "binary_compressed"):
         raise InputError(f"PCD DATA {mode!r} is not ascii, binary or binary_compressed", path)
@@ -87,18 +96,19 @@ def parse_header(raw: bytes, path: str) -> PCDHeader:
 
 def _columns_ascii(body: bytes, h: PCDHeader, path: str) -> list[np.ndarray]:
     width = sum(h.counts)
-    if h.points == 0:
-        table = np.zeros((0, width))
-    else:
-        text = body.decode("ascii", errors="replace")
+    text = body.decode("ascii", errors="replace")
+    table = np.zeros((0, width))
+    if text.strip():
         try:
-            table = np.loadtxt(io.StringIO(text), dtype=np.float64, ndmin=2, max_rows=h.points, comments="#")
+            table = np.loadtxt(io.StringIO(text), dtype=np.float64, ndmin=2, comments="#")
         except ValueError as exc:
             raise InputError(f"PCD ascii data is malformed ({exc})", path) from None
         if table.shape[1] != width:
             raise InputError(f"PCD ascii rows have {table.shape[1]} values, header says {width}", path)
-        if len(table) < h.points:
-            raise InputError(f"truncated: header says {h.points} points, ascii data holds {len(table)}", path)
+    if len(table) < h.points:
+        raise InputError(f"truncated: header POINTS says {h.points} points, ascii data holds {len(table)}", path)
+    if len(table) > h.points:
+        raise InputError(f"PCD header POINTS says {h.points} points, the ascii data has {len(table)} rows", path)
     cols, start = [], 0
     for dt, count in zip(h.dtypes, h.counts):
         block = table[:, start : start + count]
@@ -107,12 +117,20 @@ def _columns_ascii(body: bytes, h: PCDHeader, path: str) -> list[np.ndarray]:
     return cols
 
 
+def _check_tail(tail: bytes, record: int, points: int, path: str) -> None:
+    """Bytes after the data POINTS announces: a final newline is harmless, anything else is refused."""
+    if tail and not (len(tail) < record and not tail.strip(b" \t\r\n")):
+        raise InputError(f"PCD data has {len(tail)} bytes after the {points} points of the header's POINTS "
+                         "(trailing garbage, or POINTS is wrong)", path)
+
+
 def _columns_binary(body: bytes, h: PCDHeader, path: str) -> list[np.ndarray]:
     record = np.dtype([(f"f{i}", dt, (c,)) if c > 1 else (f"f{i}", dt)
                        for i, (dt, c) in enumerate(zip(h.dtypes, h.counts))])
     need = record.itemsize * h.points
     if len(body) < need:
         raise InputError(f"truncated: binary data holds {len(body)} bytes, {h.points} points need {need}", path)
+    _check_tail(body[need:], record.itemsize, h.points, path)
     table = np.frombuffer(body, dtype=record, count=h.points)
     return [np.array(table[f"f{i}"]) for i in range(len(h.fields))]
 
@@ -128,6 +146,7 @@ def _columns_compressed(body: bytes, h: PCDHeader, path: str) -> list[np.ndarray
                          path)
     if len(body) - 8 < compressed:
         raise InputError(f"truncated: binary_compressed holds {len(body) - 8} of {compressed} compressed bytes", path)
+    _check_tail(body[8 + compressed:], sum(sizes), h.points, path)
     if need == 0:
         return [np.zeros((0, c) if c > 1 else 0, dtype=dt) for dt, c in zip(h.dtypes, h.counts)]
     try:

@@ -55,7 +55,7 @@ def test_write_mesh_npz_layout(tmp_path):
     mesh = box_mesh()
     path = write_mesh_npz(tmp_path / "m.npz", mesh.vertices, mesh.faces, mesh.vertex_attributes["observed_distance"])
     with np.load(path) as z:
-        assert set(z.keys()) == {"vertices", "faces", "observed_distance"}
+        assert set(z.keys()) == {"vertices", "offset", "faces", "observed_distance"}
         assert z["vertices"].dtype == np.float32 and z["vertices"].shape == (8, 3)
         assert z["faces"].dtype == np.int32 and z["faces"].shape == (12, 3)
         assert z["observed_distance"].dtype == np.float32 and z["observed_distance"].shape == (8,)

@@ -1,0 +1,64 @@
+"""Output paths checked before any work starts: never an input, always a writable file in an existing folder.
+
+`hgca complete a_s0.ply -o a.ply` names its first sample `a_s0.ply`, and `hgca read g.npz -o g.npz` names
+its input: both silently replaced the input once the run finished. An output is the same file as an input
+when their resolved paths agree (symlinks, `..`) or, for files that exist, when they share device and inode
+(hard links). Folders are probed by creating a temp file in them, the one test that also holds for root,
+read-only mounts and ACLs; finding this out after minutes of inference loses the run.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from typing import Iterable
+
+from hgca_core.errors import InputError
+
+
+def _identity(path: str) -> tuple[int, int] | None:
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return st.st_dev, st.st_ino
+
+
+def check_outputs(outputs: Iterable[str | os.PathLike], inputs: Iterable[str | os.PathLike | None]) -> None:
+    """Raise `InputError` naming the output when it is an input, a folder, or cannot be written."""
+    by_path: dict[str, str] = {}
+    by_inode: dict[tuple[int, int], str] = {}
+    for item in inputs:
+        if item is None:
+            continue
+        path = os.fspath(item)
+        by_path[os.path.realpath(path)] = path
+        ident = _identity(path)
+        if ident is not None:
+            by_inode[ident] = path
+    probed: set[str] = set()
+    for item in outputs:
+        out = os.fspath(item)
+        hit = by_path.get(os.path.realpath(out))
+        ident = _identity(out)
+        if hit is None and ident is not None:
+            hit = by_inode.get(ident)
+        if hit is not None:
+            same = "" if hit == out else f" (the input {hit})"
+            raise InputError(f"output would overwrite an input file{same}; choose another output name", out)
+        if os.path.isdir(out):
+            raise InputError("output is an existing folder; give a file name", out)
+        folder = os.path.dirname(out) or "."  # not normalised: the OS resolves `missing/..` and fails
+        if folder in probed:
+            continue
+        if not os.path.isdir(folder):
+            what = "is not a folder" if os.path.exists(folder) else "does not exist"
+            raise InputError(f"output folder {what}", folder)
+        try:
+            fd, probe = tempfile.mkstemp(dir=folder, prefix=".hgca-write-test-")
+        except OSError as exc:
+            raise InputError(f"cannot write in the output folder ({exc.strerror})", folder) from None
+        os.close(fd)
+        with contextlib.suppress(OSError):
+            os.unlink(probe)
+        probed.add(folder)
