@@ -11,9 +11,10 @@ if __name__ == "__main__":  # `python -m hgca_core.cli`: take over Ctrl-C before
 import argparse
 import importlib
 import sys
+import warnings
 
 from hgca_core import __version__, interrupt
-from hgca_core.errors import HgcaError
+from hgca_core.errors import HgcaError, HgcaWarning
 
 COMMANDS = {
     "info": "print point count, bounds and attributes of scan files",
@@ -59,7 +60,10 @@ def _main(argv: list[str]) -> int:
     args = build_parser(argv).parse_args(argv)
     module = importlib.import_module(args._module)
     try:
-        return int(module.run(args) or 0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", HgcaWarning)
+            warnings.showwarning = _one_line_warning(args.command, warnings.showwarning)
+            return int(module.run(args) or 0)
     except BrokenPipeError:  # `hgca info ... | head` closed the pipe: not an error
         sys.stderr.close()
         return 0
@@ -69,6 +73,16 @@ def _main(argv: list[str]) -> int:
     except KeyboardInterrupt:  # raised by code that handles SIGINT itself (the trainer's second Ctrl-C)
         print(f"hgca {args.command}: interrupted", file=sys.stderr)
         return 130
+
+
+def _one_line_warning(command: str, default):
+    """`hgca CMD: warning: ...` for our own warnings; library warnings keep Python's format."""
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, HgcaWarning):
+            print(f"hgca {command}: warning: {message}", file=sys.stderr)
+        else:
+            default(message, category, filename, lineno, file, line)
+    return show
 
 
 if __name__ == "__main__":

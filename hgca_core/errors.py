@@ -15,3 +15,7 @@ class InputError(HgcaError, ValueError):
     def __init__(self, message: str, path: str | None = None) -> None:
         self.path = path
         super().__init__(f"{path}: {message}" if path else message)
+
+
+class HgcaWarning(UserWarning):
+    """Something worth knowing that does not stop the run (the CLI prints it as one `warning:` line)."""

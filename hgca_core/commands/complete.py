@@ -89,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, progress) -> list[Path]:
-    from hgca_core.io.outputs import check_outputs
+    from hgca_core.io.paths import check_outputs
 
     paths = output_paths(args.out, args.samples)
     check_outputs(paths, [*args.scans, args.poses, args.weights, args.fine_weights])

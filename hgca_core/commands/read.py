@@ -23,7 +23,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hgca_core.io.outputs import check_outputs
+    from hgca_core.io.paths import check_outputs
 
     if os.path.splitext(args.out)[1].lower() != ".npz":
         raise InputError("output must end in .npz", args.out)

@@ -1,18 +1,22 @@
 """Per-scan sensor->world poses from the JSON sidecar in CONTRACTS.md, validated before any point moves.
 
 A pose that is not a rigid transform (scaled, sheared, reflected, NaN) would silently distort the
-accumulated scene, so it is rejected with the entry and the problem named.
+accumulated scene, so it is rejected with the entry and the problem named. Scans find their entry by resolved
+path (symlinks and `..` followed); only an entry that gives a bare file name may match a scan of that name in
+another folder, with a warning, since sequences reuse names like `000003.bin` in every drive.
 """
 from __future__ import annotations
 
 import json
 import os
+import warnings
 from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
 
-from hgca_core.errors import InputError
+from hgca_core.errors import HgcaWarning, InputError
+from hgca_core.io.paths import check_readable
 
 ORTHONORMAL_TOL = 1e-3  # max |R^T R - I| entry; loose enough for float32-rounded or SLAM-drifted rotations
 
@@ -51,13 +55,14 @@ def validate_pose(matrix: Any, what: str, path: str | None = None) -> np.ndarray
 def load_poses(path: str | os.PathLike) -> list[PoseEntry]:
     """Parse `{"scans": [{"file", "pose", "origin"?}, ...]}`; every entry is validated."""
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise InputError("poses file not found", path)
+    check_readable(path, "poses file")
     try:
         with open(path, "r", encoding="utf-8") as f:
             doc = json.load(f)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"poses file is not valid JSON ({exc})", path) from None
+    except RecursionError:
+        raise InputError("poses file nests arrays or objects too deeply to be a poses file", path) from None
     scans = doc.get("scans") if isinstance(doc, dict) else None
     if not isinstance(scans, list) or not scans:
         raise InputError('poses JSON must be an object with a non-empty "scans" list', path)
@@ -65,8 +70,10 @@ def load_poses(path: str | os.PathLike) -> list[PoseEntry]:
     entries: list[PoseEntry] = []
     for i, item in enumerate(scans):
         what = f"scans[{i}]"
-        if not isinstance(item, dict) or not isinstance(item.get("file"), str) or not item["file"]:
+        if not isinstance(item, dict) or not isinstance(item.get("file"), str) or not item["file"].strip("\x00"):
             raise InputError(f'{what} must be an object with a "file" string', path)
+        if "\x00" in item["file"]:
+            raise InputError(f'{what}: "file" contains a NUL character', path)
         what = f"{what} ({item['file']})"
         if "pose" not in item:
             raise InputError(f'{what} has no "pose"', path)
@@ -89,26 +96,36 @@ def load_poses(path: str | os.PathLike) -> list[PoseEntry]:
     return entries
 
 
+def _key(path: str) -> str:
+    return os.path.normcase(os.path.realpath(path))
+
+
 def match_poses(entries: Sequence[PoseEntry], scan_paths: Sequence[str], poses_path: str) -> list[PoseEntry]:
-    """The entry for each scan: same resolved path first, else same file name (which must be unambiguous).
+    """The entry for each scan: the one whose `file` resolves to the same file (symlinks and `..` followed),
+    else, with a warning, the one whose `file` is that bare file name (no folder part).
 
     Entries for scans not being read are allowed (importing a subset of a drive); a scan without an entry
     is an error, since guessing its pose would misplace it.
     """
-    by_path = {os.path.normcase(e.path): e for e in entries}
+    by_path = {_key(e.path): e for e in entries}
     result = []
     for scan in scan_paths:
-        entry = by_path.get(os.path.normcase(os.path.normpath(os.path.abspath(scan))))
+        entry = by_path.get(_key(scan))
         if entry is None:
             name = os.path.basename(scan)
-            same = [e for e in entries if os.path.basename(e.path) == name]
-            if len(same) > 1:
-                raise InputError(f"{len(same)} entries have file name {name!r}; give the scan's path instead",
+            bare = [e for e in entries if e.file == name]
+            if len(bare) > 1:
+                raise InputError(f"{len(bare)} entries have file name {name!r}; give the scan's path instead",
                                  poses_path)
-            if not same:
-                raise InputError(f"no pose for scan {scan!r} ({len(entries)} entries, "
-                                 f"{len(scan_paths)} scans)", poses_path)
-            entry = same[0]
+            if not bare:
+                elsewhere = [e.file for e in entries if os.path.basename(e.path) == name]
+                hint = (f"; the entry {elsewhere[0]!r} names a file of that name in another folder"
+                        if elsewhere else "")
+                raise InputError(f"no pose for scan {scan!r} ({len(entries)} entries, {len(scan_paths)} scans{hint})",
+                                 poses_path)
+            entry = bare[0]
+            warnings.warn(HgcaWarning(f"{poses_path}: no entry for the path of {scan}; using the entry {name!r} "
+                                      f"by its file name alone (it resolves to {entry.path})"), stacklevel=2)
         if any(entry is r for r in result):
             raise InputError(f"two scans match the same entry {entry.file!r}", poses_path)
         result.append(entry)

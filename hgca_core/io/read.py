@@ -14,6 +14,7 @@ from hgca_core.errors import InputError
 from hgca_core.io.arrays import read_npy, read_npz
 from hgca_core.io.formats import label, resolve_format
 from hgca_core.io.las import read_las
+from hgca_core.io.paths import check_readable
 from hgca_core.io.pcd import read_pcd
 from hgca_core.io.ply import read_ply
 from hgca_core.io.poses import PoseEntry, load_poses, match_poses, validate_pose
@@ -25,16 +26,6 @@ READERS: dict[str, Callable[[str], Scan]] = {
     "ply": read_ply, "las": read_las, "pcd": read_pcd, "xyz": read_xyz, "npy": read_npy, "npz": read_npz,
     "kitti": read_kitti, "nuscenes": read_nuscenes,
 }
-
-
-def check_readable(path: str) -> None:
-    """Missing, non-regular and empty files get their own plain message before any parser sees them."""
-    if not os.path.exists(path):
-        raise InputError("file not found", path)
-    if not os.path.isfile(path):
-        raise InputError("not a regular file", path)
-    if os.path.getsize(path) == 0:
-        raise InputError("file is empty (0 bytes)", path)
 
 
 def read_scan(path: str | os.PathLike, fmt: str | None = None) -> Scan:

@@ -61,12 +61,43 @@ def test_without_poses_points_stay_put(two_scans):
     np.testing.assert_array_equal(scan.origins, np.zeros((2, 3)))
 
 
-def test_match_by_file_name_and_extra_entries(tmp_path, two_scans):
+def test_entry_for_another_folders_file_is_not_used(tmp_path, two_scans):
+    """Another drive's `a.bin` (an entry with a folder part) must not place this `a.bin` (issue 11, item 6)."""
     a, _ = two_scans
     poses = write_json(tmp_path / "elsewhere.json", {"scans": [
         {"file": "/some/other/dir/a.bin", "pose": YAW90}, {"file": "unused.bin", "pose": SHIFT}]})
-    scan = read_scans([a], poses=poses)
+    with pytest.raises(InputError, match="no pose for scan") as exc:
+        read_scans([a], poses=poses)
+    assert "'/some/other/dir/a.bin' names a file of that name in another folder" in str(exc.value)
+
+
+def test_bare_file_name_entry_matches_with_a_warning(tmp_path, two_scans):
+    from hgca_core.errors import HgcaWarning
+
+    a, _ = two_scans
+    other = tmp_path / "poses_dir"
+    other.mkdir()
+    poses = write_json(other / "p.json", {"scans": [{"file": "a.bin", "pose": YAW90},
+                                                    {"file": "unused.bin", "pose": SHIFT}]})
+    with pytest.warns(HgcaWarning, match="by its file name alone"):
+        scan = read_scans([a], poses=poses)
     np.testing.assert_allclose(scan.points[0], [10, 1, 0], atol=1e-6)
+
+
+def test_entries_match_by_resolved_path(tmp_path, two_scans):
+    """A scan given through a symlink or `..` finds the entry of the file it points to, without a warning."""
+    import warnings
+
+    a, b = two_scans
+    link = tmp_path / "link_to_b.bin"
+    link.symlink_to(b)
+    poses = write_json(tmp_path / "p.json", {"scans": [{"file": "sweeps/b.bin", "pose": SHIFT},
+                                                       {"file": "a.bin", "pose": YAW90}]})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scan = read_scans([link, tmp_path / "sweeps" / ".." / "a.bin"], poses=poses)
+    np.testing.assert_allclose(scan.points[0], [0, 5, 2], atol=1e-6)
+    np.testing.assert_allclose(scan.points[3], [10, 1, 0], atol=1e-6)
 
 
 def test_load_poses_resolves_relative_paths(tmp_path):
@@ -140,6 +171,25 @@ def test_missing_poses_file(tmp_path, two_scans):
     with pytest.raises(InputError, match="poses file not found") as exc:
         read_scans(two_scans, poses=tmp_path / "nope.json")
     assert "nope.json" in str(exc.value)
+
+
+@pytest.mark.parametrize("kind, problem", [("folder", "is a folder"), ("loop", "symbolic link loop"),
+                                           ("dangling", "symbolic link to a missing target"),
+                                           ("deep", "nests arrays or objects too deeply")])
+def test_poses_that_are_not_a_poses_file_say_what_they_are(tmp_path, two_scans, kind, problem):
+    """A folder, a symlink loop or a dangling link is not "not found"; deep nesting is no RecursionError."""
+    path = tmp_path / "poses.json"
+    if kind == "folder":
+        path.mkdir()
+    elif kind == "loop":
+        path.symlink_to(path)
+    elif kind == "dangling":
+        path.symlink_to(tmp_path / "gone.json")
+    else:
+        path.write_text('{"scans": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    with pytest.raises(InputError, match=problem) as exc:
+        read_scans(two_scans, poses=path)
+    assert "poses.json" in str(exc.value)
 
 
 def test_no_scans():

@@ -1,4 +1,5 @@
-"""Output paths checked before any work starts: never an input, always a writable file in an existing folder.
+"""Paths checked before any work starts: inputs are readable regular files (or say what they are instead),
+outputs are never an input and always a writable file in an existing folder.
 
 `hgca complete a_s0.ply -o a.ply` names its first sample `a_s0.ply`, and `hgca read g.npz -o g.npz` names
 its input: both silently replaced the input once the run finished. An output is the same file as an input
@@ -9,11 +10,38 @@ read-only mounts and ACLs; finding this out after minutes of inference loses the
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import stat
 import tempfile
 from typing import Iterable
 
 from hgca_core.errors import InputError
+
+
+def check_readable(path: str, what: str = "file") -> None:
+    """Raise `InputError` saying what `path` is when it is not a non-empty regular file: missing, a folder,
+    a symbolic link loop or a dangling link, a device or pipe, empty, or not readable."""
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise InputError(f"{what} is a symbolic link loop", path) from None
+        if os.path.islink(path):
+            raise InputError(f"{what} is a symbolic link to a missing target ({os.readlink(path)})", path) from None
+        if exc.errno == errno.ENOENT:
+            raise InputError(f"{what} not found", path) from None
+        raise InputError(f"cannot open {what} ({exc.strerror})", path) from None
+    except ValueError as exc:  # NUL bytes in the name
+        raise InputError(f"{what} name is not a valid path ({exc})", path) from None
+    if stat.S_ISDIR(st.st_mode):
+        raise InputError(f"{what} is a folder, not a regular file", path)
+    if not stat.S_ISREG(st.st_mode):
+        raise InputError(f"{what} is not a regular file (a device, pipe or socket)", path)
+    if st.st_size == 0:
+        raise InputError(f"{what} is empty (0 bytes)", path)
+    if not os.access(path, os.R_OK):
+        raise InputError(f"{what} is not readable (permission denied)", path)
 
 
 def _identity(path: str) -> tuple[int, int] | None:
