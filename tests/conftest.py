@@ -26,6 +26,19 @@ def real_dir() -> Path:
     return require_real()
 
 
+@pytest.fixture(scope="session")
+def small_weights(tmp_path_factory) -> Path:
+    """Small untrained coarse weights (3 steps): the whole `hgca complete` path in a few seconds."""
+    from hgca_core.models.gca import GCAConfig, GCAKernel
+    from hgca_core.models.weights import save_weights
+
+    torch.manual_seed(0)
+    cfg = GCAConfig(channels=(8, 8, 16, 16, 16), steps=3)
+    path = tmp_path_factory.mktemp("w") / "coarse_small.pt"
+    save_weights(path, GCAKernel(cfg), {"stage": "test"})
+    return path
+
+
 @pytest.fixture
 def one_thread():
     """Small tensors: one torch thread beats two that wait for each other on a busy 2-core machine."""

@@ -58,3 +58,25 @@ def tiny_sample(seed: int, size: float = 6.0) -> dict[str, np.ndarray]:
         "gt_surface": surface.astype(np.float32),
         "visible20": occ20.astype(np.int16),
     }
+
+
+# Realistic georeferenced places: a UTM easting/northing in the northern hemisphere, and a northing near
+# 1e7 m (southern hemisphere false northing) where float32 has a 1 m spacing.
+UTM_OFFSETS = {"utm": (500_000.0, 5_000_000.0, 100.0), "utm_1e7": (500_000.0, 9_999_000.0, 100.0)}
+
+
+def write_las(path, points: np.ndarray, scale: float = 0.001, offset=None) -> np.ndarray:
+    """A LAS 1.2 file (point format 3, mm scale) of `points`; returns the float64 coordinates the file holds
+    (`X * scale + offset`, as laspy reads them)."""
+    import laspy
+
+    pts = np.asarray(points, dtype=np.float64)
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales = np.array([scale] * 3)
+    header.offsets = np.floor(pts.min(axis=0)) if offset is None else np.asarray(offset, dtype=np.float64)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
+    las.intensity = np.arange(len(pts), dtype=np.uint16)
+    las.write(str(path))
+    back = laspy.read(str(path))
+    return np.column_stack([np.asarray(back.x), np.asarray(back.y), np.asarray(back.z)])

@@ -9,18 +9,7 @@ import pytest
 import torch
 
 from hgca_testdata import tiny_sample
-from hgca_core.models.weights import save_weights
-from hgca_core.models.gca import GCAConfig, GCAKernel
 from hgca_core.progress import PROTOCOL
-
-
-@pytest.fixture(scope="module")
-def small_weights(tmp_path_factory):
-    torch.manual_seed(0)
-    cfg = GCAConfig(channels=(8, 8, 16, 16, 16), steps=3)
-    path = tmp_path_factory.mktemp("w") / "coarse_small.pt"
-    save_weights(path, GCAKernel(cfg), {"stage": "test"})
-    return path
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,130 @@
+"""`hgca complete` on georeferenced, degenerate and mis-flagged input (issue 11, items 3, 4 and 7).
+
+Runs the real CLI in a subprocess with the small untrained weights of conftest (`small_weights`, 3 steps),
+so each completion takes a few seconds; the coarse stage is enough to check where the mesh lands.
+"""
+from __future__ import annotations
+
+import json
+import struct
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from hgca_testdata import UTM_OFFSETS, tiny_sample, write_las
+
+MM = 1e-3
+
+
+def hgca(*args, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "hgca_core.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def clear_error(res: subprocess.CompletedProcess, *needles: str) -> None:
+    assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
+    assert "Traceback" not in res.stderr, res.stderr
+    for needle in needles:
+        assert needle in res.stderr, res.stderr
+
+
+@pytest.mark.parametrize("place", sorted(UTM_OFFSETS))
+def test_completion_of_a_utm_las_lands_on_its_grid_to_the_mm(small_weights, tmp_path, place):
+    """A LAS at x ~ 500 km, y ~ 5,000 km or ~ 10,000 km: the coarse mesh's vertices are cell corners of the
+    region's 20 cm grid, in world coordinates, within 1 mm (float32 world coordinates put them on a 0.5 m or
+    1 m grid), for the .npz the add-on reads and for .ply."""
+    s = tiny_sample(3)
+    origin = np.array(UTM_OFFSETS[place])
+    held = write_las(tmp_path / "scan.las", s["input_points"].astype(np.float64) + origin)
+    lo = origin + np.array([0.0, 0.0, 0.0])  # the tiny sample's region is [0, 6] x [0, 6] x [-1, 3] around it
+    region = f"--region={lo[0] + 3!r},{lo[1] + 3!r},{lo[2] + 1!r},6,6,4"
+    for ext in (".npz", ".ply"):
+        res = hgca("complete", tmp_path / "scan.las", "-o", tmp_path / f"out{ext}", "--weights", small_weights,
+                   "--t1", 2, region, "--progress", "none")
+        assert res.returncode == 0, res.stderr[-2000:]
+    with np.load(tmp_path / "out_s0.npz") as z:
+        assert z["offset"].dtype == np.float64
+        world = z["vertices"].astype(np.float64) + z["offset"]
+    assert len(world) > 100
+    from plyfile import PlyData
+
+    v = PlyData.read(str(tmp_path / "out_s0.ply"))["vertex"].data
+    from_ply = np.column_stack([v["x"], v["y"], v["z"]]).astype(np.float64)
+    np.testing.assert_allclose(np.sort(from_ply, axis=0), np.sort(world, axis=0), rtol=0, atol=MM)
+    corner = lo - np.array([0.0, 0.0, 1.0])  # the region's minimum corner (centre - size / 2)
+    cells = (world - corner + 0.05) / 0.2  # coarse vertices sit at k * 0.2 - 0.05 in the region frame
+    assert np.abs(cells - np.round(cells)).max() * 0.2 < MM
+    inside = (world > corner - 0.3) & (world < corner + np.array([6, 6, 4]) + 0.3)
+    assert inside.all()
+    assert np.abs(held - origin).max() < 10  # the scan really is at that place
+
+
+@pytest.mark.parametrize("case, needles", [
+    ("one point", ["too few input points", "1 point(s)"]),
+    ("identical", ["too few input points", "50000 point(s)", "all at the same spot"]),
+    ("las scale 0", ["corrupt LAS header", "x scale is 0"]),
+    ("las huge count", ["truncated or corrupt", "4294967295 points"]),
+])
+def test_degenerate_input_is_refused_with_its_reason(small_weights, tmp_path, case, needles):
+    """Never an empty mesh with exit 0: the reason comes first and nothing is written."""
+    if case == "one point":
+        scan = tmp_path / "one.npz"
+        np.savez(scan, points=np.array([[1.0, 2.0, 0.5]]))
+    elif case == "identical":
+        scan = tmp_path / "same.npz"
+        np.savez(scan, points=np.tile([[1.0, 2.0, 0.5]], (50_000, 1)))
+    else:
+        scan = tmp_path / "bad.las"
+        write_las(scan, tiny_sample(1)["input_points"].astype(np.float64))
+        raw = bytearray(scan.read_bytes())
+        if case == "las scale 0":
+            struct.pack_into("<d", raw, 131, 0.0)  # x scale factor of the LAS 1.2 public header
+        else:
+            struct.pack_into("<I", raw, 107, 0xFFFFFFFF)  # legacy point count
+            raw = raw[:400]
+        scan.write_bytes(bytes(raw))
+    res = hgca("complete", scan, "-o", tmp_path / "out.npz", "--weights", small_weights, "--progress", "jsonl")
+    clear_error(res, *needles)
+    assert "too large" not in res.stderr
+    assert json.loads(res.stdout.splitlines()[-1])["stage"] == "error"
+    assert not list(tmp_path.glob("out*"))
+
+
+@pytest.mark.parametrize("argv, needles", [
+    (["--t1", "-3"], ["argument --t1", "must be 0"]),
+    (["--t2", "-1"], ["argument --t2", "must be 0"]),
+    (["--t1", "two"], ["argument --t1", "not a whole number"]),
+    (["--device", "tpu"], ["argument --device", "unknown device 'tpu'"]),
+])
+def test_bad_flags_are_clear_errors(tmp_path, argv, needles):
+    np.savez(tmp_path / "s.npz", points=np.zeros((5, 3)))
+    clear_error(hgca("complete", tmp_path / "s.npz", "-o", tmp_path / "o.npz", *argv), *needles)
+    assert not list(tmp_path.glob("o*"))
+
+
+def test_bench_and_eval_share_the_step_and_device_checks(tmp_path):
+    clear_error(hgca("bench", "--t1", "-1", "--out", tmp_path), "argument --t1")
+    clear_error(hgca("bench", "--device", "tpu", "--out", tmp_path), "unknown device")
+    clear_error(hgca("eval", "--t2", "-2", "--data", tmp_path), "argument --t2")
+
+
+def test_t1_zero_means_the_weights_own_steps(small_weights, tmp_path):
+    """`--t1 0` is what leaving it out does: the weights' step count (3 for these), not zero steps."""
+    scan = tmp_path / "scan.npz"
+    s = tiny_sample(3)
+    np.savez(scan, points=s["input_points"].astype(np.float64))
+    res = hgca("complete", scan, "-o", tmp_path / "o.npz", "--weights", small_weights, "--t1", 0,
+               "--region", "3,3,1,6,6,4", "--progress", "jsonl")
+    assert res.returncode == 0, res.stderr[-2000:]
+    totals = {r["total"] for r in map(json.loads, res.stdout.splitlines()) if r["stage"] == "coarse"}
+    assert totals == {3}
+
+
+def test_python_api_refuses_negative_steps(small_weights):
+    import hgca_core
+
+    pts = tiny_sample(3)["input_points"].astype(np.float64)
+    with pytest.raises(hgca_core.InputError, match="t1 must be a whole number >= 0"):
+        hgca_core.complete(pts, region=hgca_core.Region.parse("3,3,1,6,6,4"), t1=-2, weights=small_weights)
