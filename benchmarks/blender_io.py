@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
             assert len(obj.data.vertices) == args.points
 
         t_import = timed(do_import, args.repeat)
-        pts, attrs = operators_import.read_scans(python, [scan])
+        pts, attrs, _origins, _offset = operators_import.read_scans(python, [scan])
 
         def do_build() -> None:
             mesh_build.build_point_object("scan", pts, attrs, bpy.context.scene.collection)

@@ -24,7 +24,7 @@ import time
 
 import bpy
 
-from . import core, jobs, operators_import, preferences, preview, region, sources
+from . import core, georef, jobs, operators_import, preferences, preview, region, sources
 
 
 def script_args(argv: list[str]) -> list[str]:
@@ -68,21 +68,22 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     try:
         obj, skipped = operators_import.import_scans(python, [Path(s) for s in args.scans], scene.collection,
-                                                     Path(args.poses) if args.poses else None)
+                                                     Path(args.poses) if args.poses else None, scene=scene)
     except (core.CoreError, ValueError, OSError) as exc:
         _log(f"error: {exc}")
         return 2
     _log(f"imported {len(obj.data.vertices):,} points as '{obj.name}' in {time.perf_counter() - t0:.1f} s"
          + (f" (skipped attributes: {', '.join(skipped)})" if skipped else ""))
-    points = sources.world_points([obj])
+    points = sources.world_points([obj])  # Blender coordinates: world minus the scene's georeference origin
     try:
-        box = (region.parse_region(args.region) if args.region
+        box = (georef.region_to_scene(scene, region.parse_region(args.region)) if args.region
                else region.default_region(python, points, sources.world_origins([obj])))
     except (region.RegionError, core.CoreError) as exc:
         _log(f"error: {exc}")
         return 2
     region.create_region_box(scene.collection, box)
-    params = jobs.CompletionParams(python=python, points=points, region=box, samples=args.samples, seed=args.seed,
+    params = jobs.CompletionParams(python=python, points=georef.to_world(scene, points),
+                                   region=georef.region_to_world(scene, box), samples=args.samples, seed=args.seed,
                                    stage=args.stage, device=args.device, t1=args.t1, t2=args.t2,
                                    max_faces=args.max_faces,
                                    scene_name=scene.name,

@@ -13,14 +13,13 @@ from pathlib import Path
 import bpy
 import numpy as np
 
+from . import georef
+
 ROLE_KEY = "hgca_role"  # custom property marking objects the add-on created: "scan", "region", "result"
 OBSERVED_ATTRIBUTE = "observed_distance"
 # Vertices closer than this to an input point count as observed, farther ones as generated (metres).
 OBSERVED_NEAR = 0.05
 OBSERVED_FAR = 0.3
-# Coordinates farther than this from the origin are re-centred (object location holds the offset),
-# so georeferenced scans do not jitter in the viewport.
-RECENTER_ABOVE = 1000.0
 POINT_NODE_GROUP = "hGCA Points"
 
 
@@ -97,25 +96,13 @@ def add_point_attributes(mesh: bpy.types.Mesh, attributes: dict[str, np.ndarray]
     return skipped
 
 
-def points_mesh(name: str, points: np.ndarray, offset: np.ndarray | None = None) -> bpy.types.Mesh:
-    """A vertex-only mesh holding `points - offset` (float32 inside Blender)."""
-    pts = np.asarray(points, dtype=np.float64)
-    if offset is not None:
-        pts = pts - offset
+def points_mesh(name: str, points: np.ndarray) -> bpy.types.Mesh:
+    """A vertex-only mesh holding `points` (float32 inside Blender: keep them near zero, see georef.place)."""
     mesh = bpy.data.meshes.new(name)
-    mesh.vertices.add(len(pts))
-    mesh.vertices.foreach_set("co", np.ascontiguousarray(pts, dtype=np.float32).ravel())
+    mesh.vertices.add(len(points))
+    mesh.vertices.foreach_set("co", np.ascontiguousarray(points, dtype=np.float32).ravel())
     mesh.update()
     return mesh
-
-
-def recenter_offset(points: np.ndarray) -> np.ndarray:
-    """Offset (whole metres) to move far-away scans near the origin, zero for local ones."""
-    pts = np.asarray(points, dtype=np.float64)
-    centre = (pts.min(axis=0) + pts.max(axis=0)) / 2 if len(pts) else np.zeros(3)
-    if np.max(np.abs(centre)) <= RECENTER_ABOVE:
-        return np.zeros(3)
-    return np.round(centre)
 
 
 def point_display_group(created: Created) -> bpy.types.NodeTree:
@@ -140,17 +127,18 @@ def point_display_group(created: Created) -> bpy.types.NodeTree:
 
 
 def build_point_object(name: str, points: np.ndarray, attributes: dict[str, np.ndarray],
-                       collection: bpy.types.Collection, show_points: bool = True) -> tuple[bpy.types.Object, list[str]]:
-    """A new point object in `collection`; returns it and the attribute names that could not be stored."""
+                       collection: bpy.types.Collection, show_points: bool = True,
+                       location: np.ndarray | None = None) -> tuple[bpy.types.Object, list[str]]:
+    """A new point object in `collection` holding `points` at `location` (Blender coordinates, from
+    `georef.place`); returns it and the attribute names that could not be stored."""
     created = Created()
     try:
-        offset = recenter_offset(points)
-        mesh = points_mesh(name, points, offset)
+        mesh = points_mesh(name, points)
         created.meshes.append(mesh)
         skipped = add_point_attributes(mesh, attributes)
         obj = bpy.data.objects.new(name, mesh)
         created.objects.append(obj)
-        obj.location = offset.tolist()
+        obj.location = (0.0, 0.0, 0.0) if location is None else [float(v) for v in location]
         obj[ROLE_KEY] = "scan"
         if show_points:
             mod = obj.modifiers.new("hGCA Points", "NODES")
@@ -167,9 +155,10 @@ def build_point_object(name: str, points: np.ndarray, attributes: dict[str, np.n
 
 @dataclass
 class ResultArrays:
-    vertices: np.ndarray  # (V, 3) float32
+    vertices: np.ndarray  # (V, 3) float32, relative to offset
     faces: np.ndarray  # (F, 3) int32
     observed_distance: np.ndarray  # (V,) float32
+    offset: np.ndarray  # (3,) float64: world = vertices + offset
 
 
 def read_result(path: Path) -> ResultArrays:
@@ -184,6 +173,7 @@ def read_result(path: Path) -> ResultArrays:
             observed = np.asarray(data["observed_distance"], dtype=np.float32)
         else:
             observed = np.zeros(len(vertices), dtype=np.float32)
+        offset = np.asarray(data["offset"]) if "offset" in data.files else np.zeros(3)
     if vertices.ndim != 2 or vertices.shape[1] != 3:
         raise ValueError(f"{path.name}: vertices must be (V, 3), got {vertices.shape}")
     if faces.size == 0:
@@ -196,7 +186,9 @@ def read_result(path: Path) -> ResultArrays:
         raise ValueError(f"{path.name}: observed_distance must be ({len(vertices)},), got {observed.shape}")
     if not np.all(np.isfinite(vertices)):
         raise ValueError(f"{path.name}: vertices contain NaN or infinite values")
-    return ResultArrays(vertices, faces.astype(np.int32), observed)
+    if offset.shape != (3,) or offset.dtype.kind not in "iuf" or not np.all(np.isfinite(offset)):
+        raise ValueError(f"{path.name}: offset must be 3 finite numbers, got {offset.shape} {offset.dtype}")
+    return ResultArrays(vertices, faces.astype(np.int32), observed, offset.astype(np.float64))
 
 
 def triangle_mesh(name: str, vertices: np.ndarray, faces: np.ndarray) -> bpy.types.Mesh:
@@ -247,15 +239,18 @@ def observed_material(name: str = "hGCA observed/generated") -> bpy.types.Materi
     return mat
 
 
-def result_object(name: str, arrays: ResultArrays, material: bpy.types.Material,
-                  created: Created) -> bpy.types.Object:
-    mesh = triangle_mesh(name, arrays.vertices, arrays.faces)
+def result_object(name: str, arrays: ResultArrays, material: bpy.types.Material, created: Created,
+                  origin: np.ndarray | None = None) -> bpy.types.Object:
+    """One sample's mesh object, placed relative to the scene origin `origin` (see georef)."""
+    vertices, location = georef.place(arrays.vertices, arrays.offset, np.zeros(3) if origin is None else origin)
+    mesh = triangle_mesh(name, vertices, arrays.faces)
     created.meshes.append(mesh)
     attr = mesh.attributes.new(OBSERVED_ATTRIBUTE, "FLOAT", "POINT")
     attr.data.foreach_set("value", arrays.observed_distance)
     mesh.materials.append(material)
     obj = bpy.data.objects.new(name, mesh)
     created.objects.append(obj)
+    obj.location = [float(v) for v in location]
     obj[ROLE_KEY] = "result"
     return obj
 
@@ -266,6 +261,7 @@ def build_results(scene: bpy.types.Scene, outputs: list[Path], run_name: str) ->
     All files are read and checked first; on any failure everything created here is removed.
     """
     arrays = [read_result(Path(p)) for p in outputs]
+    origin = georef.scene_origin(scene)
     created = Created()
     try:
         collection = bpy.data.collections.new(run_name)
@@ -274,7 +270,7 @@ def build_results(scene: bpy.types.Scene, outputs: list[Path], run_name: str) ->
         created.materials.append(material)
         objects = []
         for i, arr in enumerate(arrays):
-            obj = result_object(f"{run_name} sample {i}", arr, material, created)
+            obj = result_object(f"{run_name} sample {i}", arr, material, created, origin)
             obj["hgca_sample"] = i
             collection.objects.link(obj)
             objects.append(obj)

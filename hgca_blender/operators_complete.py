@@ -9,7 +9,7 @@ import math
 
 import bpy
 
-from . import core, jobs, preferences, region, sources
+from . import core, georef, jobs, preferences, region, sources
 
 
 def _scene_props(context: bpy.types.Context):
@@ -37,11 +37,14 @@ def panel_region(context: bpy.types.Context) -> region.Region:
 
 
 def gather_params(context: bpy.types.Context) -> jobs.CompletionParams:
-    """Everything the panel says, turned into job parameters (raises with a user-facing message)."""
+    """Everything the panel says, turned into job parameters (raises with a user-facing message). Points and
+    region go to the core in world coordinates: Blender's plus the scene's georeference origin (float64)."""
     props = _scene_props(context)
-    points = sources.world_points(source_objects(context))
+    scene = context.scene
+    points = georef.to_world(scene, sources.world_points(source_objects(context)))
     return jobs.CompletionParams(
-        python=preferences.core_python(context), points=points, region=panel_region(context),
+        python=preferences.core_python(context), points=points,
+        region=georef.region_to_world(scene, panel_region(context)),
         samples=props.samples, seed=props.seed, stage=props.stage, device=props.device,
         t1=props.t1, t2=props.t2, max_faces=props.max_faces, scene_name=context.scene.name,
         extra_args=preferences.core_extra_args(context))

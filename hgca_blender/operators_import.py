@@ -13,7 +13,7 @@ import numpy as np
 from bpy.props import BoolProperty, CollectionProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from . import core, mesh_build, preferences, sources
+from . import core, georef, mesh_build, preferences, sources
 
 EXTENSIONS = (".ply", ".las", ".laz", ".pcd", ".xyz", ".csv", ".txt", ".npy", ".npz", ".bin")
 READ_TIMEOUT_S = 3600
@@ -30,8 +30,9 @@ def object_name(paths: list[Path]) -> str:
 
 
 def read_scans(python: str, paths: list[Path], poses: Path | None = None
-               ) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray | None]:
-    """Run `hgca read` into a temporary .npz; returns (points (N,3), per-point attributes, sensor origins or None)."""
+               ) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray | None, np.ndarray]:
+    """Run `hgca read` into a temporary .npz; returns (points (N,3) float32, per-point attributes, sensor
+    origins (world, float64) or None, the points' float64 offset: world = points + offset)."""
     tmpdir = Path(tempfile.mkdtemp(prefix="hgca_read_"))
     try:
         out = tmpdir / "scan.npz"
@@ -45,18 +46,23 @@ def read_scans(python: str, paths: list[Path], poses: Path | None = None
             if "points" not in data.files:
                 raise core.CoreError("hgca read wrote no 'points' array")
             points = np.asarray(data["points"])
-            attributes = {k: np.asarray(data[k]) for k in data.files if k not in ("points", "origins")}
+            offset = np.asarray(data["offset"], dtype=np.float64) if "offset" in data.files else np.zeros(3)
+            attributes = {k: np.asarray(data[k]) for k in data.files if k not in ("points", "origins", "offset")}
             origins = np.asarray(data["origins"], dtype=np.float64) if "origins" in data.files else None
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
         raise core.CoreError(f"no points read from {', '.join(p.name for p in paths)}")
-    return points, attributes, origins
+    if offset.shape != (3,) or not np.all(np.isfinite(offset)):
+        raise core.CoreError(f"hgca read wrote a bad offset {offset.tolist()}")
+    return points, attributes, origins, offset
 
 
 def import_scans(python: str, paths: list[Path], collection: bpy.types.Collection, poses: Path | None = None,
-                 name: str = "", show_points: bool = True) -> tuple[bpy.types.Object, list[str]]:
-    """Read and add one point object to `collection`; returns it and the attributes not stored."""
+                 name: str = "", show_points: bool = True,
+                 scene: bpy.types.Scene | None = None) -> tuple[bpy.types.Object, list[str]]:
+    """Read and add one point object to `collection`, placed relative to `scene`'s georeference origin (set
+    here when the scene has none and the scans lie far from zero); returns it and the attributes not stored."""
     # absolute, not resolved: the core runs elsewhere, and poses match scans by their file names
     paths = [Path(p).absolute() for p in paths]
     poses = Path(poses).absolute() if poses is not None else None
@@ -65,10 +71,21 @@ def import_scans(python: str, paths: list[Path], collection: bpy.types.Collectio
         raise core.CoreError(f"file not found: {', '.join(missing)}")
     if poses is not None and not poses.is_file():
         raise core.CoreError(f"poses file not found: {poses}")
-    points, attributes, origins = read_scans(python, paths, poses)
-    obj, skipped = mesh_build.build_point_object(name or object_name(paths), points, attributes, collection,
-                                                 show_points)
-    sources.set_sensor_origins(obj, origins)  # the default region is centred on the first one
+    points, attributes, origins, offset = read_scans(python, paths, poses)
+    scene = scene or bpy.context.scene
+    centre = offset + (points.min(axis=0).astype(np.float64) + points.max(axis=0)) / 2
+    previous = scene.get(georef.ORIGIN_KEY)
+    origin = georef.ensure_origin(scene, centre)
+    vertices, location = georef.place(points, offset, origin)
+    try:
+        obj, skipped = mesh_build.build_point_object(name or object_name(paths), vertices, attributes, collection,
+                                                     show_points, location)
+    except Exception:
+        if previous is None and georef.ORIGIN_KEY in scene:  # leave the scene as it was
+            del scene[georef.ORIGIN_KEY]
+        raise
+    if origins is not None:  # the default region is centred on the first one (Blender coordinates)
+        sources.set_sensor_origins(obj, origins - origin)
     return obj, skipped
 
 
@@ -108,7 +125,8 @@ class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
         python = preferences.core_python(context)
         collection = context.collection or context.scene.collection
         try:
-            obj, skipped = import_scans(python, paths, collection, poses, show_points=self.show_points)
+            obj, skipped = import_scans(python, paths, collection, poses, show_points=self.show_points,
+                                        scene=context.scene)
         except (core.CoreError, ValueError, OSError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}

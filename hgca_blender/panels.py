@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import jobs
+from . import georef, jobs
 
 
 class _SidebarTab:
@@ -41,6 +41,12 @@ class HGCA_PT_main(_SidebarTab, bpy.types.Panel):
             col.prop(props, "region_size")
             col.prop(props, "region_yaw")
         col.operator("hgca.add_region_box", icon="CUBE")
+        if context.scene.get(georef.ORIGIN_KEY) is not None:
+            try:
+                x, y, z = georef.scene_origin(context.scene)
+                col.label(text=f"Georeference origin: {x:.3f}, {y:.3f}, {z:.3f}", icon="WORLD")
+            except ValueError as exc:
+                col.label(text=str(exc), icon="ERROR")
 
         col = layout.column()
         col.prop(props, "samples")

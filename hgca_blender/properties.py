@@ -30,7 +30,7 @@ class HGCA_PG_scene(bpy.types.PropertyGroup):
     region_object: PointerProperty(name="Box", type=bpy.types.Object,
                                    description="Object whose bounding box is the completion region (a mesh or an empty)")
     region_center: FloatVectorProperty(name="Centre", size=3, subtype="TRANSLATION", unit="LENGTH",
-                                       description="Centre of the region (world)")
+                                       description="Centre of the region (scene coordinates: relative to the hGCA georeference origin, if any)")
     region_size: FloatVectorProperty(name="Size", size=3, default=DEFAULT_SIZE, min=0.1, subtype="XYZ",
                                      unit="LENGTH", description="Size of the region")
     region_yaw: FloatProperty(name="Yaw", subtype="ANGLE", description="Rotation of the region about Z")

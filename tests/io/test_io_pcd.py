@@ -244,3 +244,40 @@ def test_pcd_written_by_open3d(tmp_path, kw):
     scan = read_scan(path)
     np.testing.assert_array_equal(scan.points, grid.astype(np.float64))
     np.testing.assert_array_equal(scan.attributes["intensity"], intensity)
+
+
+@pytest.mark.parametrize("mode, change, field", [
+    ("ascii", "extra rows", "POINTS"),
+    ("binary", "extra rows", "POINTS"),
+    ("binary_compressed", "trailing garbage", "POINTS"),
+    ("binary", "trailing garbage", "POINTS"),
+    ("ascii", "trailing garbage", "malformed"),
+    ("binary", "width x height", "WIDTH x HEIGHT"),
+    ("ascii", "fewer points", "WIDTH x HEIGHT"),
+])
+def test_pcd_header_that_disagrees_with_the_data_is_refused(tmp_path, mode, change, field):
+    """POINTS vs the rows, WIDTH x HEIGHT vs POINTS, bytes after the data: refused naming the header field,
+    where before the extra points were silently dropped or the garbage ignored (issue 11, item 5)."""
+    a = make_cloud(40, seed=7)
+    head = header(len(a), mode)
+    data = encode(a, mode)
+    if change == "extra rows":  # 50 points of data under a header that says 40
+        data = encode(make_cloud(50, seed=7), mode)
+    elif change == "trailing garbage":
+        data += b"\x00garbage after the last point\n" if mode != "ascii" else b"1 2 3 junk\n"
+    elif change == "width x height":
+        head = head.replace(b"WIDTH 40", b"WIDTH 39")
+    else:  # POINTS smaller than WIDTH x HEIGHT: the reader used to take POINTS and drop the rest
+        head = head.replace(b"POINTS 40", b"POINTS 30")
+    path = tmp_path / f"disagree_{mode}.pcd"
+    path.write_bytes(head + data)
+    with pytest.raises(InputError, match=field) as exc:
+        read_scan(path)
+    assert path.name in str(exc.value)
+
+
+def test_pcd_single_trailing_newline_after_binary_data_is_fine(tmp_path):
+    a = make_cloud(30, seed=8)
+    path = tmp_path / "newline.pcd"
+    path.write_bytes(header(len(a), "binary") + encode(a, "binary") + b"\n")
+    check(read_scan(path), a)

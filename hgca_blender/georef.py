@@ -1,0 +1,70 @@
+"""The scene's georeference origin: float64 world coordinates in, float32 Blender coordinates near zero.
+
+Blender stores vertex positions and object locations in float32, whose spacing is 1 m at a UTM northing of
+1e7 m: a scan placed there in world coordinates is drawn, measured and sent back on a 1 m grid. As the
+BlenderGIS / georeferencing add-ons do, the scene keeps one origin in a custom property (`scene["hgca_origin"]`,
+three float64 numbers; ID properties hold doubles) and everything the add-on adds lies relative to it:
+
+    world (float64) = origin (scene, float64) + Blender coordinates (object location + vertex, float32)
+
+Imports set the origin (whole metres near the first georeferenced scan) when the scene has none; later imports
+and completion results reuse it, each object placed at a whole-metre location with vertices within about its
+own extent of zero, so float32 keeps sub-millimetre detail. Points and regions go back to the core as
+`origin + Blender coordinates` computed in float64. Nothing here changes an existing object.
+"""
+from __future__ import annotations
+
+import bpy
+import numpy as np
+
+ORIGIN_KEY = "hgca_origin"
+# Objects whose data centre lies farther than this from the scene origin get a whole-metre location (the data
+# then stays near zero); nearer ones keep location 0, as an import of local scans always did.
+RECENTER_ABOVE = 1000.0
+
+
+def scene_origin(scene: bpy.types.Scene) -> np.ndarray:
+    """(3,) float64 world position of Blender's (0, 0, 0) in `scene`; zeros when the scene has no origin."""
+    value = scene.get(ORIGIN_KEY)
+    if value is None:
+        return np.zeros(3)
+    origin = np.array([float(v) for v in value], dtype=np.float64)
+    if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+        raise ValueError(f"scene {scene.name!r} has a broken {ORIGIN_KEY!r} property: {list(value)}")
+    return origin
+
+
+def ensure_origin(scene: bpy.types.Scene, centre_world: np.ndarray) -> np.ndarray:
+    """The scene's origin, first set to `centre_world` rounded to whole metres when the scene has none and
+    the data is far from zero (a georeferenced scan); local data leaves the scene without one."""
+    if scene.get(ORIGIN_KEY) is None and float(np.abs(centre_world).max()) > RECENTER_ABOVE:
+        scene[ORIGIN_KEY] = [float(v) for v in np.round(centre_world)]
+    return scene_origin(scene)
+
+
+def place(local: np.ndarray, offset: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Float32 vertices and a whole-metre object location for points `local + offset` (world, computed in
+    float64) in a scene whose origin is `origin`."""
+    pts = np.asarray(local, dtype=np.float64)
+    rel_offset = np.asarray(offset, dtype=np.float64) - origin
+    centre = (pts.min(axis=0) + pts.max(axis=0)) / 2 + rel_offset if len(pts) else rel_offset
+    location = np.round(centre) if float(np.abs(centre).max()) > RECENTER_ABOVE else np.zeros(3)
+    vertices = (pts + (rel_offset - location)).astype(np.float32)
+    return vertices, location
+
+
+def to_world(scene: bpy.types.Scene, points: np.ndarray) -> np.ndarray:
+    """Blender coordinates (float64 from float32 data) -> world coordinates for the core."""
+    return np.asarray(points, dtype=np.float64) + scene_origin(scene)
+
+
+def region_to_world(scene: bpy.types.Scene, region: tuple[float, ...]) -> tuple[float, ...]:
+    """A (cx, cy, cz, sx, sy, sz, yaw) region in Blender coordinates -> the same region in world coordinates."""
+    centre = np.asarray(region[:3], dtype=np.float64) + scene_origin(scene)
+    return (*map(float, centre), *map(float, region[3:]))
+
+
+def region_to_scene(scene: bpy.types.Scene, region: tuple[float, ...]) -> tuple[float, ...]:
+    """A world region (the CLI's --region) -> Blender coordinates of `scene`."""
+    centre = np.asarray(region[:3], dtype=np.float64) - scene_origin(scene)
+    return (*map(float, centre), *map(float, region[3:]))
