@@ -63,14 +63,13 @@ def import_scans(python: str, paths: list[Path], collection: bpy.types.Collectio
                  scene: bpy.types.Scene | None = None) -> tuple[bpy.types.Object, list[str]]:
     """Read and add one point object to `collection`, placed relative to `scene`'s georeference origin (set
     here when the scene has none and the scans lie far from zero); returns it and the attributes not stored."""
-    # absolute, not resolved: the core runs elsewhere, and poses match scans by their file names
+    # absolute: the core runs in a temporary folder (poses then match scans by their resolved paths)
     paths = [Path(p).absolute() for p in paths]
     poses = Path(poses).absolute() if poses is not None else None
     missing = [str(p) for p in paths if not p.is_file()]
     if missing:
         raise core.CoreError(f"file not found: {', '.join(missing)}")
-    if poses is not None and not poses.is_file():
-        raise core.CoreError(f"poses file not found: {poses}")
+    # a poses path that is no file (missing, a folder, a link loop) is described by `hgca read` itself
     points, attributes, origins, offset = read_scans(python, paths, poses)
     scene = scene or bpy.context.scene
     centre = offset + (points.min(axis=0).astype(np.float64) + points.max(axis=0)) / 2

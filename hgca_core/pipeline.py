@@ -11,6 +11,7 @@ Two layers, so that `hgca eval` scores exactly what `hgca complete` ships:
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
@@ -20,7 +21,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from hgca_core.errors import InputError
+from hgca_core.errors import HgcaWarning, InputError
 from hgca_core.geometry import coords as cs
 from hgca_core.geometry.region import Region, default_region
 from hgca_core.geometry.voxel import COARSE, FINE, voxelize
@@ -185,6 +186,9 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
 
             report("mesh", 0, 1, f"{tag}: simplifying {len(mesh.faces)} faces", i)
             mesh = decimate(mesh, max_faces)
+        if len(mesh.faces) == 0:  # inputs too small to complete were refused above: this is the model's doing
+            warnings.warn(HgcaWarning(f"{tag} is an empty mesh: the model made no surface from {len(s0)} input "
+                                      "cells (untrained or mismatched weights?)"), stacklevel=2)
         results.append(LocalCompletion(mesh=mesh, coarse_cells=cells, fine_cells=cells10, seed=seed + i))
         report("mesh", 1, 1, tag, i)
     return results
