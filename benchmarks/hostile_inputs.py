@@ -50,21 +50,11 @@ def run_case(case, timeout: float) -> dict:
         problems.append(f"message lacks {case.expect!r}")
     if not unchanged:
         problems.append("files changed")
-    return {"case": case.name, "exit": code, "seconds": round(seconds, 2), "ok": not problems,
+    return {"case": case.name, "group": case.group, "exit": code, "seconds": round(seconds, 2), "ok": not problems,
             "problems": problems, "message": errors[-1] if errors else err.strip()[-300:]}
 
 
-def group(name: str) -> str:
-    command, _, rest = name.partition(": ")
-    if rest.startswith("poses"):
-        return "poses"
-    if "output" in rest or "sample" in rest:
-        return "outputs"
-    if rest.startswith("--"):
-        return "flags"
-    if command == "complete" and any(w in rest for w in ("point", "line", "pair")) and "." not in rest:
-        return "degenerate scans"
-    return f"bad files ({command})"
+GROUPS = {c.name: c.group for c in CASES}
 
 
 def plot(rows: list[dict], path: Path) -> None:
@@ -73,12 +63,15 @@ def plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    groups = sorted({group(r["case"]) for r in rows})
-    ok = Counter(group(r["case"]) for r in rows if r["ok"])
-    bad = Counter(group(r["case"]) for r in rows if not r["ok"])
-    fig, ax = plt.subplots(figsize=(7, 3.2))
+    groups = sorted({GROUPS[r["case"]] for r in rows}, reverse=True)
+    ok = Counter(GROUPS[r["case"]] for r in rows if r["ok"])
+    bad = Counter(GROUPS[r["case"]] for r in rows if not r["ok"])
+    fig, ax = plt.subplots(figsize=(7.5, 3.4))
     ax.barh(groups, [ok[g] for g in groups], color="#4a8", label="exit 2, clear error, inputs unchanged")
     ax.barh(groups, [bad[g] for g in groups], left=[ok[g] for g in groups], color="#d53", label="failed a check")
+    for i, g in enumerate(groups):
+        ax.text(ok[g] + bad[g] + 0.5, i, f"{ok[g]}/{ok[g] + bad[g]}", va="center", fontsize=8)
+    ax.set_xlim(0, max(ok[g] + bad[g] for g in groups) * 1.45)
     ax.set_xlabel("cases")
     ax.set_title(f"hgca hostile-input campaign: {sum(ok.values())} of {len(rows)} cases pass")
     ax.legend(loc="lower right", fontsize=8)
@@ -92,7 +85,11 @@ def main() -> int:
     p.add_argument("--only", default="", help="run only cases whose name contains this")
     p.add_argument("--timeout", type=float, default=120.0)
     p.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "hostile_inputs"))
+    p.add_argument("--replot", action="store_true", help="only redraw the PNG from the JSON of an earlier run")
     args = p.parse_args()
+    if args.replot:
+        plot(json.loads(Path(args.out).with_suffix(".json").read_text())["rows"], Path(args.out).with_suffix(".png"))
+        return 0
     cases = [c for c in CASES if args.only in c.name]
     rows = []
     t0 = time.perf_counter()

@@ -24,14 +24,15 @@ class Case:
     name: str
     build: Callable[[Path], list[str]]  # makes files under the folder, returns argv (after `hgca`)
     expect: str = ""  # a piece of the error message that names the problem
+    group: str = ""  # bad files, paths, poses, outputs, flags, degenerate scans
 
 
 CASES: list[Case] = []
 
 
-def case(name: str, expect: str = ""):
+def case(name: str, expect: str = "", group: str = ""):
     def register(build: Callable[[Path], list[str]]) -> Callable[[Path], list[str]]:
-        CASES.append(Case(name, build, expect))
+        CASES.append(Case(name, build, expect, group))
         return build
     return register
 
@@ -204,46 +205,47 @@ for _label, (_file, _content, _expect) in BAD_FILES.items():
         return read_cmd(path, d) if command == "read" else complete_cmd(path, d)
 
     for _command in ("read", "info", "complete"):
-        CASES.append(Case(f"{_command}: {_label}", lambda d, f=_bad_file, c=_command: f(d, c), _expect))
+        CASES.append(Case(f"{_command}: {_label}", lambda d, f=_bad_file, c=_command: f(d, c), _expect,
+                          f"bad files ({_command})"))
 
 
 # --- paths that are not files ---------------------------------------------------------------------------------
 
-@case("read: a folder as scan", "is a folder")
+@case("read: a folder as scan", "is a folder", group="paths")
 def _(d):
     (d / "dir.ply").mkdir()
     return read_cmd(d / "dir.ply", d)
 
 
-@case("read: symlink loop as scan", "symbolic link loop")
+@case("read: symlink loop as scan", "symbolic link loop", group="paths")
 def _(d):
     (d / "loop.las").symlink_to(d / "loop.las")
     return read_cmd(d / "loop.las", d)
 
 
-@case("read: dangling symlink as scan", "missing target")
+@case("read: dangling symlink as scan", "missing target", group="paths")
 def _(d):
     (d / "gone.las").symlink_to(d / "nowhere.las")
     return read_cmd(d / "gone.las", d)
 
 
-@case("read: a fifo as scan", "not a regular file")
+@case("read: a fifo as scan", "not a regular file", group="paths")
 def _(d):
     os.mkfifo(d / "pipe.xyz")
     return read_cmd(d / "pipe.xyz", d)
 
 
-@case("read: /dev/zero as scan", "not a regular file")
+@case("read: /dev/zero as scan", "not a regular file", group="paths")
 def _(d):
     return read_cmd(Path("/dev/zero"), d, "--format", "xyz")
 
 
-@case("read: missing scan", "not found")
+@case("read: missing scan", "not found", group="paths")
 def _(d):
     return read_cmd(d / "missing.ply", d)
 
 
-@case("read: unknown --format", "unknown format")
+@case("read: unknown --format", "unknown format", group="paths")
 def _(d):
     return read_cmd(good_npz(d), d, "--format", "e57")
 
@@ -251,7 +253,7 @@ def _(d):
 # --- poses ------------------------------------------------------------------------------------------------------
 
 def poses_case(name: str, doc, expect: str = "") -> None:
-    @case(f"read: poses {name}", expect)
+    @case(f"read: poses {name}", expect, "poses")
     def _(d, doc=doc):
         scan = good_npz(d)
         text = doc(scan) if callable(doc) else doc
@@ -294,19 +296,19 @@ poses_case("nested 100000 deep", '{"scans": ' + "[" * 100_000 + "]" * 100_000 + 
 poses_case("utf-16", lambda s: json.dumps({"scans": []}).encode("utf-16").decode("latin-1"), "")
 
 
-@case("read: poses is a folder", "is a folder")
+@case("read: poses is a folder", "is a folder", group="poses")
 def _(d):
     (d / "poses").mkdir()
     return read_cmd(good_npz(d), d, "--poses", d / "poses")
 
 
-@case("read: poses is a symlink loop", "symbolic link loop")
+@case("read: poses is a symlink loop", "symbolic link loop", group="poses")
 def _(d):
     (d / "poses.json").symlink_to(d / "poses.json")
     return read_cmd(good_npz(d), d, "--poses", d / "poses.json")
 
 
-@case("read: poses is empty", "empty")
+@case("read: poses is empty", "empty", group="poses")
 def _(d):
     (d / "poses.json").write_text("")
     return read_cmd(good_npz(d), d, "--poses", d / "poses.json")
@@ -314,62 +316,62 @@ def _(d):
 
 # --- outputs ----------------------------------------------------------------------------------------------------
 
-@case("read: output is the input", "overwrite an input")
+@case("read: output is the input", "overwrite an input", group="outputs")
 def _(d):
     scan = good_npz(d)
     return ["read", str(scan), "-o", str(scan)]
 
 
-@case("read: output is a hard link to the input", "overwrite an input")
+@case("read: output is a hard link to the input", "overwrite an input", group="outputs")
 def _(d):
     scan = good_npz(d)
     os.link(scan, d / "link.npz")
     return ["read", str(scan), "-o", str(d / "link.npz")]
 
 
-@case("read: output is a symlink to the input", "overwrite an input")
+@case("read: output is a symlink to the input", "overwrite an input", group="outputs")
 def _(d):
     scan = good_npz(d)
     (d / "link.npz").symlink_to(scan)
     return ["read", str(scan), "-o", str(d / "link.npz")]
 
 
-@case("read: output in a missing folder", "does not exist")
+@case("read: output in a missing folder", "does not exist", group="outputs")
 def _(d):
     return ["read", str(good_npz(d)), "-o", str(d / "missing" / "out.npz")]
 
 
-@case("read: output is a folder", "existing folder")
+@case("read: output is a folder", "existing folder", group="outputs")
 def _(d):
     (d / "out.npz").mkdir()
     return ["read", str(good_npz(d)), "-o", str(d / "out.npz")]
 
 
-@case("read: output extension", "must end in .npz")
+@case("read: output extension", "must end in .npz", group="outputs")
 def _(d):
     return ["read", str(good_npz(d)), "-o", str(d / "out.ply")]
 
 
-@case("complete: sample 0 is the input", "overwrite an input")
+@case("complete: sample 0 is the input", "overwrite an input", group="outputs")
 def _(d):
     scan = good_npz(d, "a_s0.npz")
     return ["complete", str(scan), "-o", str(d / "a.npz")]
 
 
-@case("complete: sample 1 is the poses file", "overwrite an input")
+@case("complete: sample 1 is the poses file", "overwrite an input", group="outputs")
 def _(d):
     scan = good_npz(d)
     (d / "p_s1.npz").write_text(json.dumps({"scans": [{"file": scan.name, "pose": EYE}]}))
     return ["complete", str(scan), "--poses", str(d / "p_s1.npz"), "--samples", "2", "-o", str(d / "p.npz")]
 
 
-@case("complete: output under a file", "not a folder")
+@case("complete: output under a file", "not a folder", group="outputs")
 def _(d):
     (d / "file").write_text("x")
     return ["complete", str(good_npz(d)), "-o", str(d / "file" / "out.npz")]
 
 
-@case("complete: output extension", "must end in")
+@case("complete: output extension", "must end in", group="outputs")
 def _(d):
     return ["complete", str(good_npz(d)), "-o", str(d / "out.stl")]
 
@@ -377,7 +379,7 @@ def _(d):
 # --- flags --------------------------------------------------------------------------------------------------------
 
 def flag_case(name: str, flags: list[str], expect: str = "") -> None:
-    @case(f"complete: {name}", expect)
+    @case(f"complete: {name}", expect, "flags")
     def _(d, flags=flags):
         return complete_cmd(good_npz(d), d, *flags)
 
@@ -406,13 +408,13 @@ flag_case("--weights missing", ["--weights", "/nonexistent/coarse.pt"], "")
 flag_case("--fine-weights missing", ["--stage", "full", "--fine-weights", "/nonexistent/fine.pt"], "")
 
 
-@case("complete: --weights is random bytes", "")
+@case("complete: --weights is random bytes", "", group="flags")
 def _(d):
     (d / "w.pt").write_bytes(RANDOM)
     return complete_cmd(good_npz(d), d, "--weights", d / "w.pt")
 
 
-@case("complete: --weights is a folder", "")
+@case("complete: --weights is a folder", "", group="flags")
 def _(d):
     (d / "w.pt").mkdir()
     return complete_cmd(good_npz(d), d, "--weights", d / "w.pt")
@@ -421,7 +423,7 @@ def _(d):
 # --- degenerate scans --------------------------------------------------------------------------------------------
 
 def degenerate(name: str, points: np.ndarray, expect: str) -> None:
-    @case(f"complete: {name}", expect)
+    @case(f"complete: {name}", expect, "degenerate scans")
     def _(d, points=points):
         np.savez(d / "scan.npz", points=points)
         return complete_cmd(d / "scan.npz", d)
