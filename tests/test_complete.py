@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from hgca_testdata import tiny_sample
+from hgca_core.models.weights import save_weights
 from hgca_core.progress import PROTOCOL
 
 

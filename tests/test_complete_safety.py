@@ -42,7 +42,7 @@ def test_completion_of_a_utm_las_lands_on_its_grid_to_the_mm(small_weights, tmp_
     region = f"--region={lo[0] + 3!r},{lo[1] + 3!r},{lo[2] + 1!r},6,6,4"
     for ext in (".npz", ".ply"):
         res = hgca("complete", tmp_path / "scan.las", "-o", tmp_path / f"out{ext}", "--weights", small_weights,
-                   "--t1", 2, region, "--progress", "none")
+                   "--stage", "coarse", "--t1", 2, region, "--progress", "none")
         assert res.returncode == 0, res.stderr[-2000:]
     with np.load(tmp_path / "out_s0.npz") as z:
         assert z["offset"].dtype == np.float64
@@ -85,7 +85,8 @@ def test_degenerate_input_is_refused_with_its_reason(small_weights, tmp_path, ca
             struct.pack_into("<I", raw, 107, 0xFFFFFFFF)  # legacy point count
             raw = raw[:400]
         scan.write_bytes(bytes(raw))
-    res = hgca("complete", scan, "-o", tmp_path / "out.npz", "--weights", small_weights, "--progress", "jsonl")
+    res = hgca("complete", scan, "-o", tmp_path / "out.npz", "--weights", small_weights, "--stage", "coarse",
+               "--progress", "jsonl")
     clear_error(res, *needles)
     assert "too large" not in res.stderr
     assert json.loads(res.stdout.splitlines()[-1])["stage"] == "error"
@@ -115,8 +116,8 @@ def test_t1_zero_means_the_weights_own_steps(small_weights, tmp_path):
     scan = tmp_path / "scan.npz"
     s = tiny_sample(3)
     np.savez(scan, points=s["input_points"].astype(np.float64))
-    res = hgca("complete", scan, "-o", tmp_path / "o.npz", "--weights", small_weights, "--t1", 0,
-               "--region", "3,3,1,6,6,4", "--progress", "jsonl")
+    res = hgca("complete", scan, "-o", tmp_path / "o.npz", "--weights", small_weights, "--stage", "coarse",
+               "--t1", 0, "--region", "3,3,1,6,6,4", "--progress", "jsonl")
     assert res.returncode == 0, res.stderr[-2000:]
     totals = {r["total"] for r in map(json.loads, res.stdout.splitlines()) if r["stage"] == "coarse"}
     assert totals == {3}
@@ -127,4 +128,5 @@ def test_python_api_refuses_negative_steps(small_weights):
 
     pts = tiny_sample(3)["input_points"].astype(np.float64)
     with pytest.raises(hgca_core.InputError, match="t1 must be a whole number >= 0"):
-        hgca_core.complete(pts, region=hgca_core.Region.parse("3,3,1,6,6,4"), t1=-2, weights=small_weights)
+        hgca_core.complete(pts, region=hgca_core.Region.parse("3,3,1,6,6,4"), stage="coarse", t1=-2,
+                           weights=small_weights)
