@@ -22,9 +22,11 @@ from hgca_core.hardware import machine
 WIDTHS = (40, 60, 80, 100, 120)
 
 
-def scene_inputs(width: float, seed: int = 4_000_000, depth: float = 40.0) -> tuple[np.ndarray, np.ndarray, "object"]:
-    """Input points (world) of scans every ~8 m along a synthetic drive, and a width x depth x 8 m region
-    centred on the drive, aligned with it (the paper's 40 x w m strips; depth 38.4 for the default)."""
+def scene_inputs(width: float, seed: int = 4_000_000,
+                 depth: float = 40.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, "object"]:
+    """Input points (world) of scans every ~8 m along a synthetic drive, the scans' sensor origins, each point's
+    origin index, and a width x depth x 8 m region centred on the drive, aligned with it (the paper's 40 x w m
+    strips; depth 38.4 for the default)."""
     from hgca_core.geometry.region import Region
     from hgca_core.geometry.raycast import make_intersector
     from hgca_core.synth.dataset import Drive
@@ -42,11 +44,12 @@ def scene_inputs(width: float, seed: int = 4_000_000, depth: float = 40.0) -> tu
     scans = [scan(inter, scene.face_materials, drive.pose(s), unit, rng, PAPER_EFFECTS)
              for s in mid + np.linspace(-half, half, n)]
     pts = np.concatenate([sc.points for sc in scans])
+    index = np.concatenate([np.full(len(sc.points), i, dtype=np.int64) for i, sc in enumerate(scans)])
     poses = [sc.pose for sc in scans]
     ego = drive.pose(mid) @ unit.mount
     region = Region.around(ego[None, :3, 3], sensor=ego[:3, 3], ground_z=float(scene.terrain.height(ego[:2, 3])[0]),
                            size=(width, depth, 8.0), yaw=float(np.arctan2(ego[1, 0], ego[0, 0])))
-    return pts, np.array([p[:3, 3] for p in poses]), region
+    return pts, np.array([p[:3, 3] for p in poses]), index, region
 
 
 def run_one(width: float, depth: float, stage: str, device: str, t1: int | None, seed: int,
@@ -57,11 +60,11 @@ def run_one(width: float, depth: float, stage: str, device: str, t1: int | None,
     from hgca_core.pipeline import complete
     from hgca_core.progress import StageClock
 
-    pts, origins, region = scene_inputs(width, depth=depth)
+    pts, origins, index, region = scene_inputs(width, depth=depth)
     t_start = time.perf_counter()
     clock = StageClock()
     res = complete(pts, region=region, origins=origins, samples=1, seed=seed, stage=stage, device=device, t1=t1,
-                   progress=clock, precision=precision)[0]
+                   progress=clock, precision=precision, origin_index=index)[0]
     t_mesh = time.perf_counter()
     from hgca_core.io import write_mesh
 

@@ -33,6 +33,13 @@ if TYPE_CHECKING:
     from hgca_core.models.gca import GCAKernel
 
 ProgressFn = Callable[[str, int, int, str, int], None]  # (stage, step, total, message, sample index)
+# Observed free space (`--free-space`): auto = feature where the weights take it (nothing otherwise); feature = the
+# input of the networks trained with it; mask = that input where taken, and seen-empty cells forbidden in every
+# sampled state; off = neither (networks trained with it see "unknown" everywhere). The mask is not the default:
+# grazing rays cross the top of ground cells between LiDAR rings, so "seen empty" holds true surface cells (1.2 %
+# of the ground-truth cells of 4 synthetic test samples, 61 % of those road or sidewalk), and masking cost the
+# shipped coarse model 1.1 to 2.0 IoU points on each of them (mean 69.2 -> 67.7 %; docs/CONTRACTS.md).
+FREE_SPACE_MODES = ("auto", "feature", "mask", "off")
 # Peak memory of a full-stage completion, linear in the region's area: benchmarks/results/completion_full_cpu
 # measured 2.90 GiB at 40 x 40 m and 5.31 GiB at 40 x 120 m (0.81 MB per m^2 on top of ~1.7 GiB). With margin,
 # used to refuse regions that cannot fit before spending minutes on them.
@@ -129,15 +136,56 @@ def load_models(stage: str, weights: str | Path | None = None, fine_weights: str
     return models
 
 
+def takes_free_space(models: Models) -> bool:
+    """Whether any of the loaded networks was trained with observed free space as an input."""
+    return any(m is not None and getattr(m.cfg, "free_space", False) for m in (models.coarse, models.fine))
+
+
+def observed_free(local: np.ndarray, region: Region, models: Models, mode: str, origins: np.ndarray | None,
+                  origin_index: np.ndarray | None) -> tuple[np.ndarray | None, bool, str]:
+    """(seen-empty 20 cm cells as a dense (X, Y, Z) bool grid or None, mask them?, a note for the progress line)
+    for `mode` (FREE_SPACE_MODES). Asked for explicitly (feature, mask) without sensor origins, or as a feature
+    the weights do not take, it is an `InputError`; auto without origins gives None and, when the weights take
+    the feature, a warning that it is all unknown."""
+    from hgca_core.geometry.freespace import observed_empty
+
+    if mode not in FREE_SPACE_MODES:
+        raise InputError(f"free_space must be one of {', '.join(FREE_SPACE_MODES)}, not {mode!r}")
+    takes = takes_free_space(models)
+    if mode == "off" or (mode == "auto" and not takes):
+        return None, False, "off" if mode == "off" else "not an input of these weights"
+    if mode == "feature" and not takes:
+        raise InputError("--free-space feature: these weights were trained without observed free space as an "
+                         "input (use --free-space mask to forbid seen-empty cells, or weights trained with "
+                         "`hgca train --free-space`)")
+    if origins is None or len(origins) == 0:
+        if mode != "auto":
+            raise InputError(f"--free-space {mode} needs the sensor origins of the scans (poses or origins in "
+                             "the files), and these points have none")
+        if takes:
+            warnings.warn(HgcaWarning("no sensor origins: observed free space is unknown, so the weights' free-space "
+                                      "input is all 'unknown' and nothing is masked"), stacklevel=3)
+        return None, False, "unknown (no sensor origins)"
+    free = observed_empty(local, origins, origin_index, region.grid_shape(COARSE))
+    mask = mode == "mask"
+    use = "input" if takes else ""
+    return free, mask, " + ".join(x for x in (use, "mask" if mask else "") if x) + f": {int(free.sum())} cells"
+
+
 def complete_local(local: np.ndarray, region: Region, models: Models, stage: str = "coarse", samples: int = 1,
                    seed: int = 0, t1: int | None = None, t2: int | None = None, progress: ProgressFn | None = None,
-                   precision: str = "auto", max_faces: int | None = None) -> list[LocalCompletion]:
+                   precision: str = "auto", max_faces: int | None = None, origins: np.ndarray | None = None,
+                   origin_index: np.ndarray | None = None, free_space: str = "auto") -> list[LocalCompletion]:
     """The region-frame core: `local` (N, 3) points in `region`'s frame (metres; only the region's size is used
     here) -> `samples` completions, meshes in the same frame. Sample i uses seed + i.
 
-    Points outside the box [0, size) are dropped first, so every caller crops the same way. The coarse stage's
-    mesh is the 20 cm cells' `voxel_mesh`; the full stage's is the decoded unsigned distance's marching cubes.
-    Runs on the models' device. See `complete` for `precision` and `max_faces`.
+    Points outside the box [0, size) are dropped first, so every caller crops the same way; the observed free
+    space uses every point's ray (a ray to a hit outside the box still crosses it). `origins` (S, 3) are the
+    sensor positions in the region frame and `origin_index` (N,) each point's (None: the nearest origin, see
+    `geometry.freespace.ray_origins`); `free_space` is one of FREE_SPACE_MODES. The free space is computed
+    once and given to both stages. The coarse stage's mesh is the 20 cm cells' `voxel_mesh`; the full stage's
+    is the decoded unsigned distance's marching cubes. Runs on the models' device. See `complete` for
+    `precision` and `max_faces`.
     """
     from hgca_core.models.gca import sample as gca_sample
     from hgca_core.nn.conv import gemm_precision, resolve_precision
@@ -153,10 +201,18 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
     except ValueError as exc:
         raise InputError(str(exc)) from exc
     report = progress or (lambda *a: None)
-    local = np.asarray(local, dtype=np.float64).reshape(-1, 3)
-    local = local[region.contains_local(local)]
+    everything = np.asarray(local, dtype=np.float64).reshape(-1, 3)
+    inside = region.contains_local(everything)
+    local = everything[inside]
     if len(local) == 0:
         raise InputError(f"no input points inside the {region.size.tolist()} m region")
+    if origins is not None and len(origins) and origin_index is None:
+        from hgca_core.geometry.freespace import ray_origins
+
+        origin_index = ray_origins(np.asarray(origins), {}, everything)
+    free_np, mask, note = observed_free(everything, region, models, free_space, origins, origin_index)
+    free = None if free_np is None else torch.from_numpy(free_np)[None].to(device)
+    report("free space", 1, 1, note, 0)
     s0 = voxelize(local, COARSE, region.size)
     grid = region.grid_shape(COARSE)
     check_input_cells(len(s0), local)
@@ -168,14 +224,14 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
         gen = torch.Generator(device=device).manual_seed(seed + i)
         with gemm_precision(gemm_dtype):
             occ = gca_sample(models.coarse, cs.with_batch(torch.from_numpy(s0).to(device)), grid, steps, gen,
-                             lambda t, n: report("planner" if t == 0 else "coarse", t, n, tag, i))
+                             lambda t, n: report("planner" if t == 0 else "coarse", t, n, tag, i), free, mask)
         cells, cells10 = occ[:, 1:].cpu().numpy(), None
         if stage == "full":
             from hgca_core.models.cgca import decode_mesh, upsample
 
             with gemm_precision(gemm_dtype):
                 c10, latents = upsample(models.fine, models.autoencoder, local, cells, region.grid_shape(FINE), t2,
-                                        gen, lambda t, n: report("fine", t, n, tag, i))
+                                        gen, lambda t, n: report("fine", t, n, tag, i), free, mask)
             report("mesh", 0, 1, tag, i)
             mesh, cells10 = decode_mesh(models.autoencoder, c10, latents), c10.cpu().numpy()
         else:
@@ -198,8 +254,13 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
              samples: int = 1, seed: int = 0, stage: str = "coarse", device: str = "cpu",
              t1: int | None = None, t2: int | None = None, weights: str | Path | None = None,
              fine_weights: str | Path | None = None, progress: ProgressFn | None = None,
-             precision: str = "auto", max_faces: int | None = None) -> list[Completion]:
+             precision: str = "auto", max_faces: int | None = None, origin_index: np.ndarray | None = None,
+             free_space: str = "auto") -> list[Completion]:
     """Complete accumulated LiDAR points (world frame). Sample i uses seed + i, so a (seed, i) pair names one mesh.
+
+    `origins` (S, 3, world frame) are the sensor positions and `origin_index` (N,) names each point's (a reader's
+    `origin_index` / `scan_index`, see `geometry.freespace.ray_origins`; None: the nearest origin). With them the
+    observed free space is computed and used as `free_space` says (FREE_SPACE_MODES, default auto).
 
     `precision` is the GEMM precision of the sparse convs while sampling ('auto': bf16 where the hardware has
     it, see `hgca_core.nn.conv.resolve_precision`); a (seed, precision) pair names one result. `max_faces`
@@ -220,10 +281,13 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
         raise InputError(f"no input points inside the region (centre {np.round(region.center, 2).tolist()}, "
                          f"size {region.size.tolist()} m); the points span {np.round(pts.min(0), 2).tolist()} "
                          f"to {np.round(pts.max(0), 2).tolist()}")
+    if origin_index is not None and len(origin_index) != len(pts):
+        raise InputError(f"origin_index has {len(origin_index)} entries for {len(pts)} points")
+    origins_local = None if origins is None or len(origins) == 0 else region.to_local(np.asarray(origins, np.float64))
     tree = cKDTree(pts[inside])
     results = []
-    for r in complete_local(local[inside], region, models, stage, samples, seed, t1, t2, progress, precision,
-                            max_faces):
+    for r in complete_local(local, region, models, stage, samples, seed, t1, t2, progress, precision,
+                            max_faces, origins_local, origin_index, free_space):
         mesh = r.mesh
         mesh.vertices = region.to_world(mesh.vertices)
         dist = tree.query(mesh.vertices, workers=-1)[0].astype(np.float32) if len(mesh.vertices) else np.zeros(0, np.float32)

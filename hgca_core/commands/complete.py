@@ -30,6 +30,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weights", default=None, help="coarse weights file (default: the shipped ones)")
     p.add_argument("--fine-weights", default=None, help="fine weights file (default: the shipped ones)")
     p.add_argument("--progress", choices=("bar", "jsonl", "none"), default="bar")
+    p.add_argument("--free-space", choices=("auto", "feature", "mask", "off"), default="auto",
+                   help="observed free space (what the sensor saw through; needs sensor origins): feature = give it "
+                        "to weights trained with it; mask = also never output a seen-empty cell; off = neither; "
+                        "auto (default) = feature where the weights take it (the shipped ones do not)")
 
 
 def add_precision_argument(p: argparse.ArgumentParser) -> None:
@@ -112,10 +116,15 @@ def _run(args: argparse.Namespace, progress) -> list[Path]:
     scan = read_scans(args.scans, poses=args.poses, fmt=args.fmt)
     progress("read", 1, 1, f"{len(scan.points)} points", 0)
     region = Region.parse(args.region) if args.region else None
+    index = None
+    if scan.origins is not None and len(scan.origins) and args.free_space != "off":
+        from hgca_core.geometry.freespace import ray_origins
+
+        index = ray_origins(scan.origins, scan.attributes, scan.points)
     results = complete(scan.points, region=region, origins=scan.origins, samples=args.samples, seed=args.seed,
                        stage=args.stage, device=args.device, t1=args.t1, t2=args.t2, weights=args.weights,
                        fine_weights=args.fine_weights, progress=progress, precision=args.precision,
-                       max_faces=args.max_faces)
+                       max_faces=args.max_faces, origin_index=index, free_space=args.free_space)
     with AtomicBatch() as batch:  # every sample or none: an interrupted write leaves nothing behind
         for i, (res, path) in enumerate(zip(results, paths)):
             progress("write", i, len(paths), path.name, i)

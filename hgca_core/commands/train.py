@@ -30,6 +30,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (1 is fastest on a busy machine)")
     p.add_argument("--device", default="cpu",
                    help="cpu, cuda or cuda:N (under torchrun, cuda puts each rank on its own GPU, cuda:LOCAL_RANK)")
+    p.add_argument("--free-space", action="store_true",
+                   help="coarse / fine: observed free space (what the input rays crossed) as a model input")
+    p.add_argument("--init-from", default=None, metavar="WEIGHTS",
+                   help="coarse / fine: start from these weights or checkpoint (its architecture; with --free-space, "
+                        "weights trained without it gain zero-initialised free-space inputs); ignored by --resume "
+                        "of an existing checkpoint")
     p.add_argument("--export", action="store_true", help="after training, write hgca_core/weights/<stage>.pt")
     p.add_argument("--no-progress", action="store_true")
 
@@ -40,27 +46,59 @@ def _saved_config(ckpt: Path) -> dict | None:
     return load_file(ckpt)["config"] if ckpt.exists() else None
 
 
+def _init_config(args: argparse.Namespace) -> dict | None:
+    """The architecture of the --init-from file (weights or checkpoint), or None without one."""
+    if not getattr(args, "init_from", None):
+        return None
+    from hgca_core.errors import InputError
+    from hgca_core.models.weights import load_file
+
+    if args.stage == "autoencoder":
+        raise InputError("--init-from is for the coarse and fine stages")
+    config = load_file(args.init_from).get("config")
+    if not isinstance(config, dict):
+        raise InputError("no model config in the file: not hgca weights or a training checkpoint", args.init_from)
+    return config
+
+
 def build_task(args: argparse.Namespace, ckpt: Path):
-    """The task for the stage; a resumed run keeps the architecture it was started with."""
+    """The task for the stage; a resumed run keeps the architecture it was started with, a run started
+    --init-from takes the file's architecture (with --free-space switched on when asked)."""
     saved = _saved_config(ckpt) if args.resume else None
+    init = None if saved else _init_config(args)
+    free = bool(getattr(args, "free_space", False))
     if args.stage.startswith("coarse"):
         from hgca_core.models.gca import GCAConfig
         from hgca_core.training.coarse import CoarseTask
 
-        cfg = GCAConfig.from_dict(saved) if saved else GCAConfig(use_planner=args.stage == "coarse")
-        if args.channels and not saved:
+        if saved:
+            cfg = GCAConfig.from_dict(saved)
+        elif init:
+            cfg = GCAConfig.from_dict({**init, "free_space": free or bool(init.get("free_space"))})
+        else:
+            cfg = GCAConfig(use_planner=args.stage == "coarse", free_space=free)
+        if args.channels and not saved and not init:
             cfg.channels = tuple(int(c) for c in args.channels.split(","))
         return CoarseTask(args.data, cfg, crop=args.crop or 64)
     if args.stage == "autoencoder":
         from hgca_core.models.autoencoder import AutoencoderConfig
         from hgca_core.training.fine import AutoencoderTask
 
+        if free:
+            from hgca_core.errors import InputError
+
+            raise InputError("--free-space is for the coarse and fine stages (the autoencoder does not see it)")
         return AutoencoderTask(args.data, AutoencoderConfig.from_dict(saved) if saved else AutoencoderConfig())
     from hgca_core.models.cgca import CGCAConfig
     from hgca_core.models.weights import shipped
     from hgca_core.training.fine import FineTask
 
-    cfg = CGCAConfig.from_dict(saved) if saved else CGCAConfig()
+    if saved:
+        cfg = CGCAConfig.from_dict(saved)
+    elif init:
+        cfg = CGCAConfig.from_dict({**init, "free_space": free or bool(init.get("free_space"))})
+    else:
+        cfg = CGCAConfig(free_space=free)
     if args.crop and not saved:
         cfg.crop = args.crop
     return FineTask(args.data, cfg, autoencoder=args.autoencoder or str(shipped("autoencoder")))
@@ -82,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
     if args.minutes > 0 or args.max_steps:
         state = train(task, out, args.minutes, resume=args.resume, batch=args.batch, buffer_size=args.buffer,
                       val_every_min=args.val_every, max_steps=args.max_steps, progress=not args.no_progress,
-                      device=args.device)
+                      device=args.device, init_from=args.init_from)
         last_val = next((h for h in reversed(state["history"]) if h["kind"] == "val"), {})
         print(json.dumps({"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1), **last_val}))
     if args.export:

@@ -20,6 +20,10 @@ per-child layers in and out at 10 cm; 3.4 s instead of 12-17 s per step on the d
 
 x^0 = union(cells of the input points at 10 cm, with latents encoded from the raw points at distance 0;
 upsample2(coarse cells) with zero latents), as in the paper.
+
+Observed free space (beyond the paper; `free_space`): one more input column, last, "in free" = the 10 cm cell lies
+in a 20 cm cell the sensor's rays crossed (`hgca_core.models.free`); `sample(mask=True)` forbids those cells in
+every sampled state. Without it the model is exactly the one before the field existed.
 """
 from __future__ import annotations
 
@@ -33,6 +37,7 @@ from torch import nn
 
 from hgca_core.geometry import coords as cs
 from hgca_core.models.autoencoder import Autoencoder
+from hgca_core.models import free as fs
 from hgca_core.models.config import Config
 from hgca_core.nn.encoding import sinusoidal
 from hgca_core.nn.sparse import SparseConv3d, SparseConvTranspose3d, SparseTensor
@@ -57,6 +62,7 @@ class CGCAConfig(Config):
     latent_weight: float = 1.0                         # weight of the latent NLL term (1 / 2 sigma^2 folded in)
     crop: int | None = 64                              # training: x/y crop in 10 cm cells
     grid: tuple[int, int, int] = (384, 384, 80)
+    free_space: bool = False                           # observed free space as the last input column
 
 
 def _table(cells: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -94,7 +100,8 @@ class CGCAKernel(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.pe_axes = ["xyz".index(a) for a in cfg.pe_axes]
-        in_ch = 2 + 2 * cfg.latent + len(self.pe_axes) * 2 * cfg.pe_freq
+        self.pe_dim = len(self.pe_axes) * 2 * cfg.pe_freq
+        in_ch = 2 + 2 * cfg.latent + self.pe_dim + int(cfg.free_space)
         # The projection keeps the first conv at in_proj input channels rather than ~80.
         self.proj = nn.Sequential(nn.Linear(in_ch, cfg.in_proj), nn.ReLU())
         if cfg.unet_stride == 1:
@@ -111,10 +118,16 @@ class CGCAKernel(nn.Module):
     def neighbourhood(self, state: torch.Tensor, grid: tuple[int, int, int]) -> torch.Tensor:
         return cs.dilate(state, self.cfg.radius, self.cfg.metric, grid)
 
+    def free_columns(self) -> dict[str, tuple[int, list[int]]]:
+        """{parameter name: (dim, indices)} where the free-space input enters (see GCAKernel.free_columns)."""
+        return {"proj.0.weight": (1, [self.proj[0].in_features - 1])} if self.cfg.free_space else {}
+
     def forward(self, nbhd: torch.Tensor, state: torch.Tensor, z_state: torch.Tensor, x0: torch.Tensor,
-                z0: torch.Tensor, grid: tuple[int, int, int]) -> tuple[torch.Tensor, torch.Tensor]:
-        """nbhd (M, 4) sorted unique cells; state / x0 (N, 4) cells with latents (N, K); grid bounds x, y, z."""
-        feats = self.project(nbhd, state, z_state, x0, z0, grid)
+                z0: torch.Tensor, grid: tuple[int, int, int],
+                free: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """nbhd (M, 4) sorted unique cells; state / x0 (N, 4) cells with latents (N, K); grid bounds x, y, z;
+        free (B, *grid) bool seen-empty 10 cm cells (read only with cfg.free_space; None: all unknown)."""
+        feats = self.project(nbhd, state, z_state, x0, z0, grid, free)
         x = SparseTensor(nbhd, feats, check=False)
         if self.cfg.unet_stride == 1:
             out = self.unet(x).feats
@@ -131,8 +144,8 @@ class CGCAKernel(nn.Module):
         return out[:, 0], out[:, 1:]
 
     def project(self, nbhd: torch.Tensor, state: torch.Tensor, z_state: torch.Tensor, x0: torch.Tensor,
-                z0: torch.Tensor, grid: tuple[int, int, int]) -> torch.Tensor:
-        """relu(proj([in x^t, in x^0, z^t, z^0, PE])) per neighbourhood cell, computed block by block.
+                z0: torch.Tensor, grid: tuple[int, int, int], free: torch.Tensor | None = None) -> torch.Tensor:
+        """relu(proj([in x^t, in x^0, z^t, z^0, PE (, in free)])) per neighbourhood cell, computed block by block.
 
         The same linear map as on the concatenated (M, 2 + 2K + PE) input, but the latent blocks are multiplied
         only on the rows that have a latent (the ~20 % of N(x) in x^t or x^0; the rest are zeros), and a height-only
@@ -140,15 +153,19 @@ class CGCAKernel(nn.Module):
         projection's multiply-adds, every step.
         """
         lin, k = self.proj[0], self.cfg.latent
-        w = lin.weight                                                  # (P, 2 + 2K + PE)
+        w = lin.weight                                                  # (P, 2 + 2K + PE (+ 1))
+        w_pe = w[:, 2 + 2 * k: 2 + 2 * k + self.pe_dim]
         g = torch.tensor(grid, dtype=torch.float32, device=nbhd.device)[self.pe_axes]
         if self.pe_axes == [2]:
             levels = sinusoidal(((torch.arange(grid[2], device=nbhd.device).float() + 0.5) / g)[:, None],
                                 self.cfg.pe_freq)
-            h = torch.addmm(lin.bias, levels, w[:, 2 + 2 * k:].T)[nbhd[:, 3]]
+            h = torch.addmm(lin.bias, levels, w_pe.T)[nbhd[:, 3]]
         else:
             pe = sinusoidal((nbhd[:, 1:][:, self.pe_axes].float() + 0.5) / g, self.cfg.pe_freq)
-            h = torch.addmm(lin.bias, pe, w[:, 2 + 2 * k:].T)
+            h = torch.addmm(lin.bias, pe, w_pe.T)
+        if self.cfg.free_space and free is not None:
+            rows = fs.at(free, nbhd).nonzero().squeeze(1)
+            h = h.index_add(0, rows, w[:, -1].expand(len(rows), -1))
         nk = cs.pack(nbhd)
         for col, (cells, z) in enumerate(((state, z_state), (x0, z0))):
             keys, zs = _table(cells, z)
@@ -161,23 +178,28 @@ class CGCAKernel(nn.Module):
 
 @torch.no_grad()
 def sample(model: CGCAKernel, x0: torch.Tensor, z0: torch.Tensor, grid: tuple[int, int, int], steps: int,
-           generator: torch.Generator, progress: Callable[[int, int], None] | None = None
-           ) -> tuple[torch.Tensor, torch.Tensor]:
+           generator: torch.Generator, progress: Callable[[int, int], None] | None = None,
+           free: torch.Tensor | None = None, mask: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Run the chain from x^0 for `steps` transitions; the last one by maximum likelihood.
 
     x0: (N, 4) batched cells, z0: (N, K). Returns the final (cells (M, 4), latents (M, K)). All randomness comes
-    from `generator`, so a seed names one result.
+    from `generator`, so a seed names one result. free: (B, *grid) bool seen-empty 10 cm cells (the model's input
+    when it has free_space); mask: also drop them from every sampled state (the same random draws either way).
     """
     model.eval()
     state, z = x0, z0
     for t in range(steps):
         nbhd = model.neighbourhood(state, grid)
-        logits, mu = model(nbhd, state, z, x0, z0, grid)
+        logits, mu = model(nbhd, state, z, x0, z0, grid, free)
         if t == steps - 1:
             keep = logits > 0
+            if mask:
+                keep &= ~fs.at(free, nbhd)
             state, z = nbhd[keep], mu[keep]
         else:
             keep = torch.rand(logits.shape, generator=generator, device=logits.device) < torch.sigmoid(logits)
+            if mask:
+                keep &= ~fs.at(free, nbhd)
             state, z = nbhd[keep], mu[keep]   # latent noise only for the cells kept (~1/5 of N(x))
             z = z + model.cfg.sigma * torch.randn(z.shape, generator=generator, device=z.device)
         if progress is not None:
@@ -218,16 +240,18 @@ def initial_state(autoencoder: Autoencoder, points_local: np.ndarray | torch.Ten
 
 def upsample(model: CGCAKernel, autoencoder: Autoencoder, input_points_local: np.ndarray | torch.Tensor,
              coarse_cells: np.ndarray | torch.Tensor, grid10: tuple[int, int, int], steps: int | None,
-             generator: torch.Generator, progress: Callable[[int, int], None] | None = None
-             ) -> tuple[torch.Tensor, torch.Tensor]:
+             generator: torch.Generator, progress: Callable[[int, int], None] | None = None,
+             free20: torch.Tensor | None = None, mask: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """The fine stage of one sample: x^0 from the input and the coarse cells, then T2 cGCA steps.
 
     input_points_local: (P, 3) region-frame points (metres); coarse_cells: (M, 3) int 20 cm cells (s^T1);
-    grid10: the 10 cm grid shape (Region.grid_shape(0.1)). Returns (cells (N, 3) int64, latents (N, K) float32)
-    on the model's device, for `decode_mesh`.
+    grid10: the 10 cm grid shape (Region.grid_shape(0.1)); free20: (1, X, Y, Z) bool seen-empty 20 cm cells or
+    None, given to the model as 10 cm cells (and forbidden with `mask`). Returns (cells (N, 3) int64, latents
+    (N, K) float32) on the model's device, for `decode_mesh`.
     """
     x0, z0 = initial_state(autoencoder, input_points_local, coarse_cells, grid10)
-    cells, z = sample(model, x0, z0, tuple(grid10), steps or model.cfg.steps, generator, progress)
+    free = fs.upsample(free20, tuple(grid10)) if free20 is not None and (mask or model.cfg.free_space) else None
+    cells, z = sample(model, x0, z0, tuple(grid10), steps or model.cfg.steps, generator, progress, free, mask)
     return cells[:, 1:], z
 
 

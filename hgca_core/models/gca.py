@@ -5,6 +5,12 @@ Chebyshev metric, i.e. the 3x3x3 cube for r = 1), with input features [in s^t, i
 positional encoding (of height only by default: training sees random x/y crops, inference whole regions, so
 an x/y encoding would mean different things in the two); it outputs one Bernoulli logit per cell (Eq. 2-3). With the planner, the decoder
 features are de-normalised per BEV pillar by SPADE (gamma, beta) maps computed once from s^0.
+
+Observed free space (beyond the paper; `free_space`): the kernel input becomes [in s^t, in s^0, in free] + PE,
+where "free" are the cells the sensor's rays crossed (`hgca_core.models.free`), and the planner sees per pillar
+the share of its cells seen empty per height bin. Without it (the default, and every file written before the
+field existed) the model and its results are exactly those of before. `sample(mask=True)` also forbids
+seen-empty cells in every sampled state, whatever the model learnt.
 """
 from __future__ import annotations
 
@@ -15,6 +21,7 @@ import torch
 from torch import nn
 
 from hgca_core.geometry import coords as cs
+from hgca_core.models import free as fs
 from hgca_core.models.config import Config
 from hgca_core.models.planner import BevOutput, Planner, pillar_index
 from hgca_core.nn.encoding import sinusoidal
@@ -36,6 +43,7 @@ class GCAConfig(Config):
     alpha0: float = 0.15              # infusion alpha_t = alpha0 + alpha1 * t
     alpha1: float = 0.005
     grid: tuple[int, int, int] = (192, 192, 40)
+    free_space: bool = False          # observed free space as an input (kernel column, planner height bins)
 
     legacy: ClassVar[dict] = {"pe_axes": "xyz"}  # files written before pe_axes existed encoded all three axes
 
@@ -47,23 +55,38 @@ class GCAKernel(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.pe_axes = ["xyz".index(a) for a in cfg.pe_axes]
-        in_ch = 2 + len(self.pe_axes) * 2 * cfg.pe_freq
+        in_ch = 2 + int(cfg.free_space) + len(self.pe_axes) * 2 * cfg.pe_freq
         self.unet = SparseUNet(in_ch, 1, channels=cfg.channels, blocks=cfg.blocks)
-        self.planner = Planner(list(self.unet.channels[: self.unet.num_levels]), z_r=cfg.z_r) if cfg.use_planner else None
+        self.planner = Planner(list(self.unet.channels[: self.unet.num_levels]), z_r=cfg.z_r,
+                               free_bins=cfg.z_r if cfg.free_space else 0) if cfg.use_planner else None
 
-    def bev(self, s0: torch.Tensor, batch: int, grid: tuple[int, int, int]) -> BevOutput | None:
-        return self.planner(s0, batch, grid) if self.planner is not None else None
+    def bev(self, s0: torch.Tensor, batch: int, grid: tuple[int, int, int],
+            free: torch.Tensor | None = None) -> BevOutput | None:
+        return self.planner(s0, batch, grid, free if self.cfg.free_space else None) if self.planner is not None else None
+
+    def free_columns(self) -> dict[str, tuple[int, list[int]]]:
+        """{parameter name: (dim, indices)}: where the free-space inputs enter the weights (empty without them).
+        A model trained without free space warm-starts one with it by zeros there (`weights.load_into`)."""
+        if not self.cfg.free_space:
+            return {}
+        cols = {"unet.stem.0.weight": (1, [2])}    # SubMConv3d weight (K, C_in, C_out); column 2 = "in free"
+        if self.planner is not None:
+            cols.update(self.planner.free_columns("planner."))
+        return cols
 
     def neighbourhood(self, state: torch.Tensor, grid: tuple[int, int, int]) -> torch.Tensor:
         return cs.dilate(state, self.cfg.radius, bounds=grid)
 
     def forward(self, nbhd: torch.Tensor, state: torch.Tensor, s0: torch.Tensor,
-                grid: tuple[int, int, int], bev: BevOutput | None) -> torch.Tensor:
-        in_state = cs.isin(nbhd, state).float()[:, None]
-        in_s0 = cs.isin(nbhd, s0).float()[:, None]
+                grid: tuple[int, int, int], bev: BevOutput | None, free: torch.Tensor | None = None) -> torch.Tensor:
+        """`free`: (B, *grid) bool seen-empty cells (`hgca_core.models.free`); read only with cfg.free_space,
+        where None means all unknown."""
+        cols = [cs.isin(nbhd, state).float()[:, None], cs.isin(nbhd, s0).float()[:, None]]
+        if self.cfg.free_space:
+            cols.append(fs.at(free, nbhd).float()[:, None])
         g = torch.tensor(grid, dtype=torch.float32, device=nbhd.device)[self.pe_axes]
         pe = sinusoidal((nbhd[:, 1:][:, self.pe_axes].float() + 0.5) / g, self.cfg.pe_freq)
-        x = SparseTensor(nbhd, torch.cat([in_state, in_s0, pe], dim=1))
+        x = SparseTensor(nbhd, torch.cat([*cols, pe], dim=1))
         out = self.unet(x, modulate=self._spade(bev, grid) if bev is not None else None)
         return out.feats[:, 0]
 
@@ -84,24 +107,29 @@ class GCAKernel(nn.Module):
 
 @torch.no_grad()
 def sample(model: GCAKernel, s0: torch.Tensor, grid: tuple[int, int, int], steps: int,
-           generator: torch.Generator, progress: Callable[[int, int], None] | None = None) -> torch.Tensor:
+           generator: torch.Generator, progress: Callable[[int, int], None] | None = None,
+           free: torch.Tensor | None = None, mask: bool = False) -> torch.Tensor:
     """Run the Markov chain from s^0 for `steps` transitions (Eq. 1); the last one by maximum likelihood.
 
     s0: (N, 4) coordinates of one or more samples (batch column). Returns the final occupied set.
+    free: (B, *grid) bool seen-empty cells, the model's input when it has free_space; mask: also drop them from
+    every sampled state (the random draws are the same with or without the mask).
     """
     model.eval()
     batch = int(s0[:, 0].max().item()) + 1 if len(s0) else 1
-    bev = model.bev(s0, batch, grid)
+    bev = model.bev(s0, batch, grid, free)
     if progress is not None:  # the planner's share of the time ends here
         progress(0, steps)
     state = s0
     for t in range(steps):
         nbhd = model.neighbourhood(state, grid)
-        prob = torch.sigmoid(model(nbhd, state, s0, grid, bev))
+        prob = torch.sigmoid(model(nbhd, state, s0, grid, bev, free))
         if t == steps - 1:
             keep = prob > 0.5
         else:
             keep = torch.rand(prob.shape, generator=generator, device=prob.device) < prob
+        if mask:
+            keep &= ~fs.at(free, nbhd)
         state = nbhd[keep]
         if progress is not None:
             progress(t + 1, steps)

@@ -4,6 +4,11 @@ Pillars of 3 x 3 x z_max voxels of s^0 -> a local PointNet per pillar -> 2D posi
 U-Net -> f_BEV; small conv heads turn f_BEV into SPADE (gamma, beta) maps for each sparse decoder level and a
 rough dense occupancy O_r with z_r height bins, supervised by the BEV loss (Eq. 6). f_BEV depends on s^0
 only, so it is computed once per completion and reused at every GCA step.
+
+With `free_bins` > 0 (beyond the paper, `GCAConfig.free_space`), the 2D U-Net also sees per pillar the share of
+its cells seen empty in each of `free_bins` height bins (`hgca_core.models.free.pillar_fractions`), concatenated
+after the positional encoding so that a planner trained without them keeps its meaning when they are added as
+zero-initialised input channels (warm start, `hgca_core.models.weights.load_into`).
 """
 from __future__ import annotations
 
@@ -13,6 +18,7 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
+from hgca_core.models import free as fs
 from hgca_core.nn.encoding import grid_encoding_2d
 
 PILLAR = 3  # voxels per pillar side (paper: h_r = h_max / 3)
@@ -101,11 +107,12 @@ class UNet2d(nn.Module):
 class Planner(nn.Module):
     """s^0 -> SPADE maps per decoder level + rough occupancy logits."""
 
-    def __init__(self, level_channels: list[int], z_r: int = 4, point_dim: int = 32, bev_dim: int = 64) -> None:
+    def __init__(self, level_channels: list[int], z_r: int = 4, point_dim: int = 32, bev_dim: int = 64,
+                 free_bins: int = 0) -> None:
         super().__init__()
-        self.z_r = z_r
+        self.z_r, self.free_bins = z_r, free_bins
         self.pointnet = PillarPointNet(point_dim)
-        self.unet = UNet2d(point_dim, bev_dim)
+        self.unet = UNet2d(point_dim + free_bins, bev_dim)
         self.spade_heads = nn.ModuleList([
             nn.Sequential(_block(bev_dim, bev_dim), nn.Conv2d(bev_dim, 2 * ch, 1)) for ch in level_channels])
         self.rough_head = nn.Sequential(_block(bev_dim, bev_dim), nn.Conv2d(bev_dim, z_r, 1))
@@ -117,13 +124,26 @@ class Planner(nn.Module):
     def bev_shape(grid: tuple[int, int, int]) -> tuple[int, int]:
         return -(-grid[0] // PILLAR), -(-grid[1] // PILLAR)
 
-    def forward(self, s0: torch.Tensor, batch: int, grid: tuple[int, int, int]) -> BevOutput:
+    def forward(self, s0: torch.Tensor, batch: int, grid: tuple[int, int, int],
+                free: torch.Tensor | None = None) -> BevOutput:
+        """`free`: (batch, *grid) bool seen-empty cells, used when the planner has free_bins (None: all unknown)."""
         hw = self.bev_shape(grid)
         x = self.pointnet(s0, batch, hw, grid[2])
         x = x + grid_encoding_2d(hw[0], hw[1], x.shape[1], x.device)[None]
+        if self.free_bins:
+            frac = (fs.pillar_fractions(free, PILLAR, self.free_bins).to(x.dtype) if free is not None
+                    else x.new_zeros((batch, self.free_bins, *hw)))
+            x = torch.cat([x, frac], dim=1)
         f_bev = self.unet(x)
         spade = [tuple(head(f_bev).chunk(2, dim=1)) for head in self.spade_heads]
         return BevOutput(spade=spade, rough=self.rough_head(f_bev))
+
+    def free_columns(self, prefix: str = "") -> dict[str, tuple[int, list[int]]]:
+        """{parameter: (dim, indices)} of the weights that read the free-space inputs (see GCAKernel.free_columns)."""
+        if not self.free_bins:
+            return {}
+        first = self.unet.downs[0][0].in_channels - self.free_bins
+        return {f"{prefix}unet.downs.0.0.weight": (1, list(range(first, first + self.free_bins)))}
 
 
 def rough_target(gt: torch.Tensor, batch: int, grid: tuple[int, int, int], z_r: int) -> torch.Tensor:

@@ -272,3 +272,64 @@ def load_autoencoder(path: str | os.PathLike | None = None, device: str | torch.
     if kind != "autoencoder" or checkpoint:
         raise _wrong_kind(path, kind, checkpoint, "autoencoder")
     return build("autoencoder", blob.get("config"), blob["state_dict"], path).to(device)
+
+
+# -- warm start -------------------------------------------------------------------------------------------------
+def load_into(model: nn.Module, path: str | os.PathLike) -> dict:
+    """Initialise `model` from the weights or training checkpoint at `path` (`hgca train --init-from`); returns
+    the file's meta ({"steps", "checkpoint"} for a checkpoint) with "widened": the tensors that gained columns.
+
+    Every tensor must have the file's shape, except where the model reads inputs the file's model did not have
+    (`model.free_columns()`: the observed-free-space columns): there the file's weights are copied into the
+    other columns and the new ones start at zero, so the new model computes exactly what the file's did until
+    training moves them (up to float rounding of the wider sums). Anything else that does not fit (another
+    architecture, another kind of model) is an `InputError` naming the file."""
+    kind, p = kind_of(model), str(path)
+    blob = load_file(p, " (--init-from takes weights or a training checkpoint)")
+    found, checkpoint = identify(blob)
+    if found != kind:
+        what = f"a {found} {'training checkpoint' if checkpoint else 'weights file'}" if found else \
+            "not an hgca weights file or training checkpoint"
+        raise InputError(f"--init-from of a {kind} model needs {KINDS[kind].label} or its training checkpoint; "
+                         f"this is {what}", p)
+    if checkpoint:
+        sd = {k.removeprefix("model."): v for k, v in trained_weights(blob).items()}
+        state = blob.get("state") if isinstance(blob.get("state"), dict) else {}
+        meta = {"kind": kind, "steps": state.get("step"), "checkpoint": p}
+    else:
+        sd, meta = blob["state_dict"], _meta(blob)
+    source = build(kind, blob.get("config"), sd, p).state_dict()   # the file is consistent in itself
+    model.load_state_dict(widened(source, model, p))
+    return {**meta, "widened": sorted(k for k, v in model.state_dict().items() if v.shape != source[k].shape)}
+
+
+def widened(source: dict[str, torch.Tensor], model: nn.Module, path: str = "") -> dict[str, torch.Tensor]:
+    """`source` (a state dict) fitted to `model`: equal shapes copied, new free-space input columns zero."""
+    cols = model.free_columns() if hasattr(model, "free_columns") else {}
+    target = model.state_dict()
+    out, problems = {}, []
+    for name, t in target.items():
+        s = source.get(name)
+        if s is None:
+            problems.append(f"{name} missing")
+        elif s.shape == t.shape:
+            out[name] = s.to(t.dtype)
+        elif name in cols:
+            dim, new = cols[name]
+            keep = [i for i in range(t.shape[dim]) if i not in new]
+            expect = list(t.shape)
+            expect[dim] = len(keep)
+            if list(s.shape) != expect:
+                problems.append(f"{name}: file {tuple(s.shape)}, model {tuple(t.shape)}")
+                continue
+            w = torch.zeros_like(t)
+            w.index_copy_(dim, torch.tensor(keep, dtype=torch.long), s.to(t.dtype))
+            out[name] = w
+        else:
+            problems.append(f"{name}: file {tuple(s.shape)}, model {tuple(t.shape)}")
+    problems += [f"{name} unknown to the model" for name in source if name not in target]
+    if problems:
+        raise InputError(f"cannot start this {kind_of(model)} model from the file: its tensors do not fit "
+                         f"({len(problems)}: {'; '.join(problems[:3])}); only the observed-free-space inputs may "
+                         "be new", path or None)
+    return out

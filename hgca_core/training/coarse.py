@@ -1,4 +1,7 @@
-"""Infusion training of the coarse GCA (+ planner): losses Eq. 5-7 on persistent chains."""
+"""Infusion training of the coarse GCA (+ planner): losses Eq. 5-7 on persistent chains.
+
+With `GCAConfig.free_space` every chain also carries its crop's observed free space (`extra["free"]`, a dense
+bool grid cut and flipped with the same crop as s^0 and the ground truth), which the kernel and the planner read."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -9,11 +12,12 @@ from torch import nn
 import torch.nn.functional as F
 
 from hgca_core.geometry import coords as cs
+from hgca_core.models import free as fs
 from hgca_core.models.gca import GCAConfig, GCAKernel, sample
 from hgca_core.models.infusion import alpha
 from hgca_core.models.planner import rough_target
 from hgca_core.training.buffer import Chain
-from hgca_core.training.data import coarse_pair, crop_flip, load_arrays, split_files
+from hgca_core.training.data import coarse_pair, crop_flip, free_cells, load_arrays, split_files
 
 
 def batched(sets: list[torch.Tensor]) -> torch.Tensor:
@@ -31,9 +35,10 @@ class CoarseLoss(nn.Module):
     def forward(self, chains: list[Chain]) -> tuple[torch.Tensor, dict, list[torch.Tensor]]:
         cfg, grid, b = self.cfg, chains[0].grid, len(chains)
         s0, st, gt = (batched([getattr(c, k) for c in chains]) for k in ("s0", "state", "gt"))
+        free = torch.stack([c.extra["free"] for c in chains]) if cfg.free_space else None
         nbhd = self.model.neighbourhood(st, grid)
-        bev = self.model.bev(s0, b, grid)
-        logits = self.model(nbhd, st, s0, grid, bev)
+        bev = self.model.bev(s0, b, grid, free)
+        logits = self.model(nbhd, st, s0, grid, bev, free)
         target = cs.isin(nbhd, gt).float()
         loss_gca = F.binary_cross_entropy_with_logits(logits, target)
         loss = loss_gca
@@ -70,9 +75,18 @@ class CoarseTask:
 
     def new_example(self, rng: np.random.Generator) -> Chain:
         path = self.train_files[int(rng.integers(len(self.train_files)))]
+        (s0_t, gt_t), grid, extra = self.example(path, [], rng)
+        return Chain(s0=s0_t, gt=gt_t, state=s0_t.clone(), t=0, grid=grid, extra=extra)
+
+    def example(self, path, more: list[np.ndarray], rng: np.random.Generator
+                ) -> tuple[list[torch.Tensor], tuple[int, int, int], dict | None]:
+        """([s0, gt, *more] cut by one random crop, the crop's grid, {"free": its free space} or None)."""
         s0, gt, full = coarse_pair(path)
-        (s0_t, gt_t), grid = crop_flip([s0, gt], full, self.crop, rng)
-        return Chain(s0=s0_t, gt=gt_t, state=s0_t.clone(), t=0, grid=grid)
+        sets = [s0, gt, *more] + ([free_cells(path)] if self.cfg.free_space else [])
+        cut, grid = crop_flip(sets, full, self.crop, rng)
+        if not self.cfg.free_space:
+            return cut, grid, None
+        return cut[:-1], grid, {"free": fs.from_cells(cut[-1], grid)[0]}
 
     def validate(self, loss_module: CoarseLoss, seed: int = 0) -> dict:
         """IoU (20 cm, visible cells) of full T1 sampling on the first val samples, cropped like training."""
@@ -83,11 +97,11 @@ class CoarseTask:
         scores = []
         for k, path in enumerate(files):
             rng = np.random.default_rng(1000 + k)  # fixed crops: the curve compares like with like
-            s0, gt, full = coarse_pair(path)
             vis = load_arrays(str(path), ("visible20",))["visible20"].astype(np.int64)
-            (s0_t, gt_t, vis_t), grid = crop_flip([s0, gt, vis], full, self.crop, rng)
+            (s0_t, gt_t, vis_t), grid, extra = self.example(path, [vis], rng)
+            free = extra["free"][None].to(dev) if extra else None
             gen = torch.Generator(dev).manual_seed(seed + k)
-            out = sample(loss_module.model, cs.with_batch(s0_t.to(dev)), grid, self.cfg.steps, gen)
+            out = sample(loss_module.model, cs.with_batch(s0_t.to(dev)), grid, self.cfg.steps, gen, free=free)
             scores.append(iou(out[:, 1:].cpu().numpy(), gt_t.numpy(), vis_t.numpy()))
         loss_module.train()
         return {"val_iou": float(np.nanmean(scores)) if np.any(np.isfinite(scores)) else float("nan")}

@@ -1,4 +1,5 @@
-"""Training examples from synthetic samples: sparse voxel sets, random crops and flips."""
+"""Training examples from synthetic samples: sparse voxel sets, random crops and flips, and the observed free
+space of a sample's input (`free_cells`), cached beside it."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -9,7 +10,9 @@ import numpy as np
 import torch
 
 from hgca_core.errors import InputError
+from hgca_core.geometry.freespace import observed_empty
 from hgca_core.geometry.keys import unique_rows
+from hgca_core.io.atomic import atomic_write
 from hgca_core.geometry.voxel import COARSE, FINE, grid_shape, point_cells, voxelize
 
 
@@ -38,6 +41,41 @@ def coarse_pair(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[int, in
     """(s0, gt, grid) at 20 cm for a sample: the input voxelised as the paper says, and the ground truth."""
     a = load_arrays(str(path), ("region", "input_points", "gt_occ20"))
     return voxelize(a["input_points"], COARSE, a["region"][3:6]), a["gt_occ20"].astype(np.int64), grids(path)[1]
+
+
+def free_path(path: str | Path) -> Path:
+    """The observed-free-space sidecar of a sample: sample_X.npz -> sample_X.free20.npy."""
+    p = Path(path)
+    return p.with_name(p.name.removesuffix(".npz") + ".free20.npy")
+
+
+def free_cells(path: str | Path) -> np.ndarray:
+    """(F, 3) int64 20 cm cells of a sample's region that its input rays saw empty (`observed_empty` of the stored
+    input points, origins and scan index), sorted.
+
+    The ray walk costs ~1 s of CPU on a 5-scan sample (0.8-1.0 s measured on 540-700 k points) and a trainer
+    draws samples at random from the whole split, so the result is kept in a sidecar file (the dense grid as
+    packed bits, ~180 kB) written atomically beside the sample, and read back in ~1 ms; a sidecar older than its
+    sample, of the wrong size or unreadable is recomputed, and a folder that cannot be written to only costs the
+    recomputation. Not kept in memory: reading the sidecar is cheaper than holding a split's worth of cells."""
+    shape = grids(path)[1]
+    side, n = free_path(path), int(np.prod(shape))
+    grid = None
+    try:
+        if side.stat().st_mtime_ns >= Path(path).stat().st_mtime_ns:
+            bits = np.load(side, allow_pickle=False)
+            if bits.dtype == np.uint8 and bits.shape == ((n + 7) // 8,):
+                grid = np.unpackbits(bits, count=n).astype(bool).reshape(shape)
+    except (OSError, ValueError):
+        grid = None
+    if grid is None:
+        with np.load(path, allow_pickle=False) as a:
+            grid = observed_empty(a["input_points"], a["input_origins"], a["input_scan_index"], shape)
+        try:
+            atomic_write(side, lambda f: np.save(f, np.packbits(grid.reshape(-1))))
+        except InputError:
+            pass   # a read-only dataset: recompute next time
+    return np.argwhere(grid).astype(np.int64)
 
 
 @dataclass(frozen=True)
@@ -91,3 +129,4 @@ def crop_flip(sets: list[np.ndarray], grid: tuple[int, int, int], crop: int | No
     """Cut the same random x/y window from every cell set and flip it at random; returns tensors and the grid."""
     spec = draw_crop(grid, crop, rng)
     return [torch.from_numpy(spec.cells(s)) for s in sets], spec.grid
+

@@ -15,6 +15,8 @@ latents = the frozen encoder over all GT distance pairs and surface points of ea
 BCE on occupancy + latent_weight * mean squared error of the latent mean on GT cells (the Gaussian NLL with
 fixed sigma, up to its constant). Infusion: per cell, with probability alpha_t the next state copies the GT (GT
 occupancy, and the GT latent where the GT cell is occupied), otherwise it samples the model.
+With `CGCAConfig.free_space` a chain also carries its crop's observed free space as 10 cm cells (`extra["free"]`,
+the children of the sample's seen-empty 20 cm cells, cut and flipped with the same crop).
 """
 from __future__ import annotations
 
@@ -33,10 +35,11 @@ from hgca_core.meshing import udf_surface_points
 from hgca_core.metrics.chamfer import chamfer_or_penalty
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel, _gather, _table, sample
+from hgca_core.models import free as fs
 from hgca_core.models.infusion import alpha
 from hgca_core.models.weights import load_autoencoder, load_file, save_weights, shipped, trained_weights
 from hgca_core.training.buffer import Chain
-from hgca_core.training.data import draw_crop, grids, load_arrays, split_files
+from hgca_core.training.data import draw_crop, free_cells, grids, load_arrays, split_files
 from hgca_core.training.trainer import run_record
 
 KEYS = ("input_points", "gt_occ10", "gt_occ20", "gt_surface", "udf_points", "udf_dist")
@@ -51,9 +54,10 @@ def upsample2_np(c20: np.ndarray) -> np.ndarray:
 
 
 def crop_sample(path: str | Path, crop: int | None, rng: np.random.Generator,
-                max_pairs: int | None = None) -> tuple[dict[str, torch.Tensor], tuple[int, int, int]]:
+                max_pairs: int | None = None, free: bool = False) -> tuple[dict[str, torch.Tensor], tuple[int, int, int]]:
     """Every set the fine stage trains on, cut to one random crop: cells gt10 and coarse10 (= upsampled GT
-    20 cm), points lidar (input), surf (GT surface) and the distance pairs udf_p / udf_d (at most max_pairs)."""
+    20 cm), points lidar (input), surf (GT surface) and the distance pairs udf_p / udf_d (at most max_pairs);
+    with `free`, free10: the 10 cm children of the seen-empty 20 cm cells (`free_cells`)."""
     a = load_arrays(str(path), KEYS)
     spec = draw_crop(grids(path)[0], crop, rng)
     udf_p, keep = spec.points(a["udf_points"])
@@ -64,6 +68,12 @@ def crop_sample(path: str | Path, crop: int | None, rng: np.random.Generator,
     out = {"gt10": spec.cells(a["gt_occ10"]), "coarse10": spec.cells(upsample2_np(a["gt_occ20"])),
            "lidar": spec.points(a["input_points"])[0], "surf": spec.points(a["gt_surface"])[0],
            "udf_p": udf_p, "udf_d": udf_d}
+    if free:
+        f20 = free_cells(path)
+        lo, hi = spec.ox // 2, (spec.ox + spec.grid[0] - 1) // 2   # parents of the window's 10 cm cells only
+        ly, hy = spec.oy // 2, (spec.oy + spec.grid[1] - 1) // 2
+        f20 = f20[(f20[:, 0] >= lo) & (f20[:, 0] <= hi) & (f20[:, 1] >= ly) & (f20[:, 1] <= hy)]
+        out["free10"] = spec.cells(upsample2_np(f20))
     return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in out.items()}, spec.grid
 
 
@@ -222,8 +232,9 @@ class FineLoss(nn.Module):
         cfg, grid, b = self.cfg, chains[0].grid, len(chains)
         x0, st, gt = (_batched([getattr(c, k) for c in chains]) for k in ("s0", "state", "gt"))
         z0, zt, zgt = (torch.cat([c.extra[k] for c in chains]) for k in ("z0", "zt", "zgt"))
+        free = torch.stack([c.extra["free"] for c in chains]) if cfg.free_space else None
         nbhd = self.model.neighbourhood(st, grid)
-        logits, mu = self.model(nbhd, st, zt, x0, z0, grid)
+        logits, mu = self.model(nbhd, st, zt, x0, z0, grid, free)
         in_gt, z_target = _gather(cs.pack(nbhd), *_table(gt, zgt))
         target = in_gt[:, 0]
         on = target > 0
@@ -274,7 +285,7 @@ class FineTask:
     @torch.no_grad()
     def example(self, path: str | Path, rng: np.random.Generator) -> tuple[Chain, dict[str, torch.Tensor]]:
         """x^0 (input cells with latents + upsampled GT 20 cm cells), GT cells and GT latents of one crop."""
-        ex, grid = crop_sample(path, self.cfg.crop, rng, self.max_pairs)
+        ex, grid = crop_sample(path, self.cfg.crop, rng, self.max_pairs, free=self.cfg.free_space)
         lidar = ex["lidar"]
         inside = ((torch.round(lidar / FINE) >= 0) & (torch.round(lidar / FINE) < torch.tensor(grid))).all(1)
         in_cells, z_in = self.ae.encode(lidar[inside], torch.zeros(int(inside.sum())))
@@ -283,8 +294,10 @@ class FineTask:
         z0[cs.lookup(in_cells, cs.pack(x0))] = z_in
         zgt = gt_latents(self.ae, ex["gt10"], ex["udf_p"], ex["udf_d"], ex["surf"])
         x0_3 = x0[:, 1:].contiguous()
-        chain = Chain(s0=x0_3, gt=ex["gt10"], state=x0_3.clone(), t=0, grid=grid,
-                      extra={"z0": z0, "zt": z0.clone(), "zgt": zgt})
+        extra = {"z0": z0, "zt": z0.clone(), "zgt": zgt}
+        if self.cfg.free_space:
+            extra["free"] = fs.from_cells(ex.pop("free10"), grid)[0]
+        chain = Chain(s0=x0_3, gt=ex["gt10"], state=x0_3.clone(), t=0, grid=grid, extra=extra)
         return chain, ex
 
     def new_example(self, rng: np.random.Generator) -> Chain:
@@ -298,7 +311,9 @@ class FineTask:
         for k, path in enumerate(split_files(self.data_dir, "val")[: self.val_count]):
             ch, ex = self.example(path, np.random.default_rng(1000 + k))
             gen = torch.Generator().manual_seed(seed + k)
-            cells, z = sample(loss_module.model, cs.with_batch(ch.s0), ch.extra["z0"], ch.grid, self.cfg.steps, gen)
+            free = ch.extra["free"][None] if self.cfg.free_space else None
+            cells, z = sample(loss_module.model, cs.with_batch(ch.s0), ch.extra["z0"], ch.grid, self.cfg.steps, gen,
+                              free=free)
             pred, gt = cs.pack(cells), cs.pack(cs.with_batch(ch.gt))
             inter = int(torch.isin(pred, gt).sum())
             union = len(pred) + len(gt) - inter

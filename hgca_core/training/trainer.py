@@ -150,14 +150,18 @@ def _gather(obj: dict, rank: int, world: int) -> list[dict] | None:
 def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False, batch: int = 2,
           buffer_size: int = 8, lr: float = 5e-4, clip: float = 0.5, seed: int = 0,
           val_every_min: float = 10.0, ckpt_every_min: float = 5.0, max_steps: int | None = None,
-          progress: bool = True, ema_decay: float = 0.999, device: str = "cpu") -> dict:
+          progress: bool = True, ema_decay: float = 0.999, device: str = "cpu",
+          init_from: str | os.PathLike | None = None) -> dict:
     """Train `task` for `minutes` of wall time (or `max_steps`), resuming from out_dir/ckpt.pt if asked.
 
     `device` 'cuda' trains on the GPU (each torchrun rank on its own, cuda:LOCAL_RANK): the model, its optimiser
     state, the weight average and the chain buffer live there. Every rank draws from its own random streams
     (torch seeded with seed + rank, numpy with seed + 7919 rank) and the checkpoint keeps each rank's streams
     and chains, so a resumed run continues every rank where it stopped: one process resumed gives bit for bit
-    the run that never stopped. Validation runs on rank 0 on the CPU (it meshes and measures with numpy / scipy)."""
+    the run that never stopped. Validation runs on rank 0 on the CPU (it meshes and measures with numpy / scipy).
+
+    `init_from` (weights or a checkpoint of the task's kind) initialises a run that does not resume a checkpoint
+    (`weights.load_into`: new free-space inputs start at zero); the run's notes record it."""
     rank, world, dev = _dist(device)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -182,8 +186,16 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
             torch.manual_seed(_stream_seed(seed, rank, state["step"]))
             buffer.rng = np.random.default_rng(_stream_seed(seed + 1, rank, state["step"]))
         ema_state = ck.get("ema")
-    elif resume and rank == 0:
-        print(f"no checkpoint at {ckpt_path}: starting from scratch")
+    else:
+        if resume and rank == 0:
+            print(f"no checkpoint at {ckpt_path}: starting {'from ' + str(init_from) if init_from else 'from scratch'}")
+        if init_from:
+            from hgca_core.models.weights import load_into
+
+            meta = load_into(module.model, init_from)
+            state.setdefault("notes", []).append(
+                f"initialised from {init_from} ({meta.get('steps')} steps)"
+                + (", its free-space inputs new and zero-initialised" if meta.get("widened") else ""))
     ema = EMA(module, ema_decay)  # a checkpoint from before the EMA existed starts it at its weights
     if ema_state:
         ema.load_state_dict(ema_state)

@@ -1,0 +1,127 @@
+"""Observed free space in the pipeline (`--free-space`): computed once per completion from every ray and handed to
+both stages, old weights unchanged by default, the mask never outputs a seen-empty cell, clear errors."""
+import numpy as np
+import pytest
+import torch
+
+from hgca_testdata import tiny_sample
+from hgca_core.errors import InputError
+from hgca_core.geometry import freespace
+from hgca_core.geometry.region import Region
+from hgca_core.geometry.voxel import COARSE
+from hgca_core.models import cgca, gca
+from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
+from hgca_core.models.cgca import CGCAConfig, CGCAKernel
+from hgca_core.models.gca import GCAConfig, GCAKernel
+from hgca_core.pipeline import Models, complete_local, load_models
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """The tiny sample's input (seen from (3, 3, 3)) plus a fan of horizontal rays from (-1, 3, 1.7) to hits 2 m
+    beyond the far side of the box at 0.2-3.4 m: they cross the whole box (hits outside it still prove the cells
+    before them empty), below the ground too, where the shipped model grows on this scene. Not a physical
+    scan (the rays pass through the ground and the wall), a test of what is done with the free cells."""
+    s = tiny_sample(3)
+    pts = s["input_points"].astype(np.float64)
+    y, z = np.meshgrid(np.linspace(0.0, 6.0, 80), np.linspace(0.2, 3.4, 33))
+    fan = np.c_[np.full(y.size, 8.0), y.ravel(), z.ravel()]
+    local = np.concatenate([pts, fan])
+    origins = np.array([[3.0, 3.0, 3.0], [-1.0, 3.0, 1.7]])
+    index = np.r_[np.zeros(len(pts), np.int64), np.ones(len(fan), np.int64)]
+    region = Region.from_tuple(s["region"])
+    return local, origins, index, region
+
+
+def _free_models():
+    torch.manual_seed(0)
+    coarse = GCAKernel(GCAConfig(channels=(8, 8, 16, 16, 16), steps=3, free_space=True)).eval()
+    fine = CGCAKernel(CGCAConfig(latent=4, channels=(8, 8, 8), in_proj=8, pe_freq=1, steps=2, free_space=True)).eval()
+    ae = Autoencoder(AutoencoderConfig(latent=4, enc_hidden=8, mlp_hidden=8, dec_channels=8)).eval()
+    return Models(coarse, fine, ae)
+
+
+def test_free_space_is_computed_once_from_every_ray_and_reaches_both_stages(scene, monkeypatch):
+    local, origins, index, region = scene
+    want = freespace.observed_empty(local, origins, index, region.grid_shape(COARSE))
+    inside_only = freespace.observed_empty(local[region.contains_local(local)], origins,
+                                           index[region.contains_local(local)], region.grid_shape(COARSE))
+    assert want.sum() > inside_only.sum()      # the rays to hits outside the box count
+    calls, seen = [], {"coarse": [], "fine": []}
+    real_walk, real_gca, real_up = freespace.observed_empty, gca.sample, cgca.upsample
+    monkeypatch.setattr(freespace, "observed_empty", lambda *a, **k: calls.append(1) or real_walk(*a, **k))
+
+    def spy_gca(*a, **k):
+        seen["coarse"].append(a[6])                                  # free
+        return real_gca(*a, **k)
+
+    def spy_up(*a, **k):
+        seen["fine"].append(a[8])                                    # free20
+        return real_up(*a, **k)
+
+    monkeypatch.setattr(gca, "sample", spy_gca)
+    monkeypatch.setattr(cgca, "upsample", spy_up)
+    res = complete_local(local, region, _free_models(), "full", samples=2, origins=origins, origin_index=index,
+                         precision="fp32")
+    assert len(res) == 2 and len(calls) == 1
+    for free in seen["coarse"] + seen["fine"]:
+        assert free.shape == (1, *want.shape) and np.array_equal(free[0].numpy(), want)
+    assert len(seen["coarse"]) == len(seen["fine"]) == 2
+
+
+def test_old_weights_give_the_old_result_unless_the_mask_is_asked_for(scene):
+    """The shipped weights take no free-space input: auto (the default) with or without origins and off are the
+    same chains, and nothing is computed for them; feature is refused, mask changes the result."""
+    local, origins, index, region = scene
+    models = load_models("coarse")
+    runs = {name: complete_local(local, region, models, samples=1, seed=3, precision="fp32", **kw)[0].coarse_cells
+            for name, kw in {"plain": {}, "auto": dict(origins=origins, origin_index=index),
+                             "off": dict(origins=origins, origin_index=index, free_space="off"),
+                             "mask": dict(origins=origins, origin_index=index, free_space="mask")}.items()}
+    assert np.array_equal(runs["plain"], runs["auto"]) and np.array_equal(runs["plain"], runs["off"])
+    assert not np.array_equal(runs["plain"], runs["mask"])
+    with pytest.raises(InputError, match="trained without observed free space"):
+        complete_local(local, region, models, origins=origins, free_space="feature")
+    with pytest.raises(InputError, match="needs the sensor origins"):
+        complete_local(local, region, models, free_space="mask")
+    with pytest.raises(InputError, match="free_space must be one of"):
+        complete_local(local, region, models, origins=origins, free_space="maybe")
+
+
+def test_the_mask_never_outputs_a_seen_empty_cell(scene):
+    local, origins, index, region = scene
+    free = freespace.observed_empty(local, origins, index, region.grid_shape(COARSE))
+    models = load_models("full")                                        # the shipped coarse and fine weights
+    kw = dict(origins=origins, origin_index=index, samples=1, seed=0, precision="fp32")
+    off = complete_local(local, region, models, "full", free_space="off", **kw)[0]
+    assert free[tuple(off.coarse_cells.T)].sum() > 0                    # unmasked, the model does grow there
+    on = complete_local(local, region, models, "full", free_space="mask", **kw)[0]
+    assert len(on.coarse_cells) and len(on.fine_cells)
+    assert free[tuple(on.coarse_cells.T)].sum() == 0
+    parents = on.fine_cells // 2
+    parents = parents[(parents < free.shape).all(1)]
+    assert free[tuple(parents.T)].sum() == 0
+
+
+def test_free_space_weights_without_origins_warn_that_it_is_unknown(scene):
+    local, _, _, region = scene
+    models = _free_models()
+    with pytest.warns(UserWarning, match="no sensor origins"):
+        a = complete_local(local, region, models, samples=1, seed=1, precision="fp32")[0]
+    b = complete_local(local, region, models, samples=1, seed=1, precision="fp32", free_space="off")[0]
+    assert np.array_equal(a.coarse_cells, b.coarse_cells)              # all unknown = off
+
+
+def test_cli_free_space_option(tmp_path):
+    from hgca_core.cli import main
+
+    s = tiny_sample(3)
+    scan = tmp_path / "scan.npz"
+    np.savez(scan, points=s["input_points"].astype(np.float64), origins=s["input_origins"].astype(np.float64))
+    args = ["complete", str(scan), "-o", str(tmp_path / "out.npz"), "--region", "3,3,1,6,6,4", "--progress", "none",
+            "--t1", "2"]
+    assert main(args + ["--free-space", "feature"]) == 2               # shipped weights do not take it
+    assert not list(tmp_path.glob("out_s*"))
+    assert main(args + ["--free-space", "mask"]) == 0 and (tmp_path / "out_s0.npz").exists()
