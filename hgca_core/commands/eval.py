@@ -26,6 +26,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"comma list of {', '.join(METHODS)} (default: the coarse ones, plus hgca-full with --stage full)")
     p.add_argument("--t1", type=steps_arg, default=None, help="coarse steps (default from the weights)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--free-space", choices=("auto", "feature", "mask", "off"), default="auto",
+                   help="observed free space of each sample's input rays for the model rows (as `hgca complete "
+                        "--free-space`); compare runs to ablate it")
     p.add_argument("--out", default=None, help="write the rows as JSON and the table as .md next to it")
     p.add_argument("--reuse", nargs="+", default=None, metavar="JSON",
                    help="copy rows of earlier `--out` files on the same samples (e.g. the slow Poisson baseline) "
@@ -75,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         out = Path(args.out)
         out.write_text(json.dumps({"split": args.split, "files": [p.name for p in files], "rows": rows,
-                                   "samples": args.samples, "t1": args.t1,
+                                   "samples": args.samples, "t1": args.t1, "free_space": args.free_space,
                                    "precision": precision_name(gemm_dtype)}, indent=1))
         out.with_suffix(".md").write_text(table + "\n")
         if out.resolve().parent == WEIGHTS_DIR:  # results beside the weights go on the card
@@ -131,7 +134,9 @@ def evaluate_methods(path: Path, methods: list[str], models: dict, args: argpars
         if (name, stage) not in runs:
             clock = StageClock()
             runs[name, stage] = (complete_local(pts, region, models[name], stage, k, args.seed, args.t1, args.t2,
-                                                clock, args.precision), clock)
+                                                clock, args.precision, origins=sample["input_origins"],
+                                                origin_index=sample["input_scan_index"],
+                                                free_space=getattr(args, "free_space", "auto")), clock)
         return runs[name, stage]
 
     out = {}

@@ -5,6 +5,7 @@ bool grid cut and flipped with the same crop as s^0 and the ground truth), which
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -78,7 +79,7 @@ class CoarseTask:
         (s0_t, gt_t), grid, extra = self.example(path, [], rng)
         return Chain(s0=s0_t, gt=gt_t, state=s0_t.clone(), t=0, grid=grid, extra=extra)
 
-    def example(self, path, more: list[np.ndarray], rng: np.random.Generator
+    def example(self, path: str | Path, more: list[np.ndarray], rng: np.random.Generator
                 ) -> tuple[list[torch.Tensor], tuple[int, int, int], dict | None]:
         """([s0, gt, *more] cut by one random crop, the crop's grid, {"free": its free space} or None)."""
         s0, gt, full = coarse_pair(path)

@@ -12,8 +12,8 @@ import torch
 from hgca_core.errors import InputError
 from hgca_core.geometry.freespace import observed_empty
 from hgca_core.geometry.keys import unique_rows
-from hgca_core.io.atomic import atomic_write
 from hgca_core.geometry.voxel import COARSE, FINE, grid_shape, point_cells, voxelize
+from hgca_core.io.atomic import atomic_write
 
 
 def split_files(data_dir: str | Path, split: str) -> list[Path]:
@@ -53,11 +53,12 @@ def free_cells(path: str | Path) -> np.ndarray:
     """(F, 3) int64 20 cm cells of a sample's region that its input rays saw empty (`observed_empty` of the stored
     input points, origins and scan index), sorted.
 
-    The ray walk costs ~1 s of CPU on a 5-scan sample (0.8-1.0 s measured on 540-700 k points) and a trainer
-    draws samples at random from the whole split, so the result is kept in a sidecar file (the dense grid as
-    packed bits, ~180 kB) written atomically beside the sample, and read back in ~1 ms; a sidecar older than its
-    sample, of the wrong size or unreadable is recomputed, and a folder that cannot be written to only costs the
-    recomputation. Not kept in memory: reading the sidecar is cheaper than holding a split's worth of cells."""
+    Computing it costs 1.5-1.9 s of CPU on a 5-scan sample of 540-700 k points (reading them and the ray walk,
+    which alone takes 0.8-1.0 s), and a trainer draws samples at random from the whole split, so the result is kept in a
+    sidecar file (the dense grid as packed bits, 184 kB for the default region) written atomically beside the
+    sample and read back in 6-50 ms on the busy 2-core machine; a sidecar older than its sample, of the wrong
+    size or unreadable is recomputed, and a folder that cannot be written to only costs the recomputation. Not
+    kept in memory: reading the sidecar is cheaper than holding a split's worth of cells."""
     shape = grids(path)[1]
     side, n = free_path(path), int(np.prod(shape))
     grid = None
@@ -129,4 +130,3 @@ def crop_flip(sets: list[np.ndarray], grid: tuple[int, int, int], crop: int | No
     """Cut the same random x/y window from every cell set and flip it at random; returns tensors and the grid."""
     spec = draw_crop(grid, crop, rng)
     return [torch.from_numpy(spec.cells(s)) for s in sets], spec.grid
-

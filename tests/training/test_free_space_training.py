@@ -1,0 +1,123 @@
+"""Training with observed free space: the per-sample cache, crops that carry it, `hgca train --free-space
+--init-from` (warm start from weights without it) that trains and resumes, and the fine stage."""
+import os
+import shutil
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+
+from hgca_testdata import tiny_sample
+from hgca_core.cli import main
+from hgca_core.geometry import freespace
+from hgca_core.geometry.voxel import COARSE, grid_shape
+from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
+from hgca_core.models.cgca import CGCAConfig
+from hgca_core.models.gca import GCAConfig, GCAKernel
+from hgca_core.models.weights import load_file, save_weights
+from hgca_core.training import data
+from hgca_core.training.coarse import CoarseTask
+from hgca_core.training.data import free_cells, free_path
+from hgca_core.training.fine import FineTask
+from hgca_core.training.trainer import train
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+SMALL = dict(channels=(8, 8, 16, 16, 16))
+
+
+@pytest.fixture
+def dataset(tiny_dataset, tmp_path):
+    """A private copy of the tiny dataset (the sidecars are written next to the samples)."""
+    root = tmp_path / "data"
+    shutil.copytree(tiny_dataset, root)
+    return root
+
+
+def test_free_cells_are_cached_beside_the_sample(dataset, monkeypatch):
+    path = sorted((dataset / "train").glob("sample_*.npz"))[0]
+    s = np.load(path)
+    grid = grid_shape(s["region"][3:6], COARSE)
+    want = np.argwhere(freespace.observed_empty(s["input_points"], s["input_origins"], s["input_scan_index"], grid))
+    assert len(want) > 100
+    got = free_cells(path)
+    assert np.array_equal(got, want) and free_path(path).exists()
+    monkeypatch.setattr(data, "observed_empty", lambda *a: pytest.fail("recomputed although the sidecar is good"))
+    assert np.array_equal(free_cells(path), want)
+    monkeypatch.undo()
+    free_path(path).write_bytes(b"not a numpy file")                   # corrupt: recomputed and rewritten
+    assert np.array_equal(free_cells(path), want)
+    os.utime(path, ns=(free_path(path).stat().st_mtime_ns + 10**9,) * 2)   # a sample rebuilt after its sidecar
+    calls = []
+    real = data.observed_empty
+    monkeypatch.setattr(data, "observed_empty", lambda *a: calls.append(1) or real(*a))
+    assert np.array_equal(free_cells(path), want) and calls == [1]
+
+
+def test_coarse_chains_carry_their_crops_free_space(dataset):
+    task = CoarseTask(str(dataset), GCAConfig(**SMALL, steps=3, free_space=True), crop=16)
+    plain = CoarseTask(str(dataset), GCAConfig(**SMALL, steps=3), crop=16)
+    for seed in range(3):
+        ch, ref = task.new_example(np.random.default_rng(seed)), plain.new_example(np.random.default_rng(seed))
+        assert torch.equal(ch.s0, ref.s0) and torch.equal(ch.gt, ref.gt) and ref.extra is None   # the same crop
+        free = ch.extra["free"]
+        assert free.dtype == torch.bool and free.shape == ch.grid
+        assert not free[ch.s0[:, 0], ch.s0[:, 1], ch.s0[:, 2]].any()    # input cells are never seen empty
+    # the crop of the free set is the crop of the cells: one crop cut from the whole sample by CropSpec
+    path = task.train_files[0]
+    rng = np.random.default_rng(5)
+    (s0, gt), grid, extra = task.example(path, [], rng)
+    spec = data.draw_crop(data.grids(path)[1], 16, np.random.default_rng(5))
+    want = torch.zeros(grid, dtype=torch.bool)
+    c = spec.cells(free_cells(path))
+    want[c[:, 0], c[:, 1], c[:, 2]] = True
+    assert torch.equal(extra["free"], want) and want.sum() > 10
+
+
+def test_train_coarse_free_space_warm_starts_from_old_weights_and_resumes(dataset, tmp_path, capsys):
+    torch.manual_seed(0)
+    old = GCAKernel(GCAConfig(**SMALL, steps=3))
+    save_weights(tmp_path / "old.pt", old, {"steps": 123})
+    out = tmp_path / "run"
+    base = ["train", "coarse", "--data", str(dataset), "--out", str(out), "--crop", "16", "--batch", "2",
+            "--buffer", "2", "--threads", "1", "--no-progress", "--val-every", "100"]
+    assert main(base + ["--free-space", "--init-from", str(tmp_path / "old.pt"), "--max-steps", "3"]) == 0
+    ck = load_file(out / "ckpt.pt")
+    assert ck["config"]["free_space"] is True and ck["config"]["steps"] == 3 and ck["state"]["step"] == 3
+    assert any("initialised from" in n and "123 steps" in n and "zero-initialised" in n for n in ck["state"]["notes"])
+    w = ck["model"]["model.unet.stem.0.weight"]
+    assert w[:, 2].abs().sum() > 0                                     # the free column started at 0 and trained
+    first = old.state_dict()["unet.stem.0.weight"].half().float()
+    assert (w[:, [0, 1, 3]] - first[:, [0, 1, 2]]).abs().max() < 0.01  # the rest started from the old weights
+    assert all(c["extra"]["free"].dtype == torch.bool for c in ck["ranks"][0]["buffer"]["chains"])
+    assert main(base + ["--resume", "--max-steps", "2"]) == 0          # the checkpoint's architecture, no init
+    ck2 = load_file(out / "ckpt.pt")
+    assert ck2["state"]["step"] == 5 and ck2["config"]["free_space"] is True and len(ck2["state"]["sessions"]) == 2
+    assert sum("initialised from" in n for n in ck2["state"]["notes"]) == 1
+    capsys.readouterr()
+    assert main(base[:2] + ["--data", str(dataset), "--out", str(tmp_path / "bad"), "--free-space", "--init-from",
+                            str(tmp_path / "missing.pt"), "--max-steps", "1"]) == 2
+    assert "missing.pt" in capsys.readouterr().err
+
+
+def test_fine_stage_trains_with_free_space(dataset, tmp_path):
+    for split in ("train", "val"):                                     # the fine stage also needs distance pairs
+        for path in (dataset / split).glob("sample_*.npz"):
+            s = dict(np.load(path))
+            rng = np.random.default_rng(0)
+            q = s["gt_surface"][::5] + rng.normal(0, 0.05, (len(s["gt_surface"][::5]), 3)).astype(np.float32)
+            q = q[np.all((q >= 0) & (q < [6.0, 6.0, 4.0]), axis=1)]
+            s["udf_points"], s["udf_dist"] = q, cKDTree(s["gt_surface"]).query(q)[0].astype(np.float32)
+            np.savez(path, **s)
+    torch.manual_seed(0)
+    ae = Autoencoder(AutoencoderConfig(latent=4, enc_hidden=8, mlp_hidden=8, dec_channels=8))
+    save_weights(tmp_path / "ae.pt", ae)
+    cfg = CGCAConfig(latent=4, channels=(8, 8, 8), in_proj=8, pe_freq=1, crop=15, steps=2, free_space=True)
+    task = FineTask(str(dataset), cfg, str(tmp_path / "ae.pt"), val_count=1)
+    ch = task.new_example(np.random.default_rng(3))
+    free = ch.extra["free"]
+    assert free.shape == ch.grid == (15, 15, 40) and free.sum() > 10
+    state = train(task, tmp_path / "fine", minutes=5, max_steps=2, batch=2, buffer_size=2, progress=False)
+    assert state["step"] == 2 and 0.0 <= state["history"][-1]["val_iou"] <= 1.0
+    ck = load_file(tmp_path / "fine" / "ckpt.pt")
+    assert ck["model"]["model.proj.0.weight"].shape[1] == 2 + 8 + 2 + 1
