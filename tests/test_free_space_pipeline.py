@@ -43,6 +43,7 @@ def _free_models():
     return Models(coarse, fine, ae)
 
 
+@pytest.mark.filterwarnings("ignore:.*empty mesh")      # untrained small models
 def test_free_space_is_computed_once_from_every_ray_and_reaches_both_stages(scene, monkeypatch):
     local, origins, index, region = scene
     want = freespace.observed_empty(local, origins, index, region.grid_shape(COARSE))

@@ -75,6 +75,11 @@ def build_task(args: argparse.Namespace, ckpt: Path):
             cfg = GCAConfig.from_dict(saved)
         elif init:
             cfg = GCAConfig.from_dict({**init, "free_space": free or bool(init.get("free_space"))})
+            if cfg.use_planner != (args.stage == "coarse"):
+                from hgca_core.errors import InputError
+
+                raise InputError(f"--init-from: these weights are a model {'with' if cfg.use_planner else 'without'} "
+                                 f"the planner, not a {args.stage} model", args.init_from)
         else:
             cfg = GCAConfig(use_planner=args.stage == "coarse", free_space=free)
         if args.channels and not saved and not init:

@@ -98,6 +98,9 @@ def test_train_coarse_free_space_warm_starts_from_old_weights_and_resumes(datase
     assert main(base[:2] + ["--data", str(dataset), "--out", str(tmp_path / "bad"), "--free-space", "--init-from",
                             str(tmp_path / "missing.pt"), "--max-steps", "1"]) == 2
     assert "missing.pt" in capsys.readouterr().err
+    assert main(["train", "coarse-noplanner", "--data", str(dataset), "--out", str(tmp_path / "np"), "--init-from",
+                 str(tmp_path / "old.pt"), "--max-steps", "1"]) == 2     # a planner model is no planner ablation
+    assert "with the planner" in capsys.readouterr().err
 
 
 def test_fine_stage_trains_with_free_space(dataset, tmp_path):
