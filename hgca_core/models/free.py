@@ -3,7 +3,8 @@
 Both stages take it as a dense boolean grid `free` of shape (B, X, Y, Z) at their own resolution (20 cm for the
 coarse GCA and its planner, 10 cm for the fine cGCA), True where rays proved the cell empty
 (`hgca_core.geometry.freespace.observed_empty`); False means "unknown" or "seen occupied". A dense grid keeps
-the per-step lookup a gather (~10 ms for a million cells) instead of a sort, and a training crop's grid is small.
+the per-step lookup a gather (31 ms of CPU for a million cells, against 96 ms for `coords.isin` on the sorted
+free cells; measured on one thread) and a training crop's grid is small (64 x 64 x 40 = 164 kB).
 
 The three readings of it:
 - `at`: the per-cell "seen empty" input column of the GCA / cGCA kernels (and the hard mask of `--free-space mask`);
@@ -65,8 +66,8 @@ def height_bins(depth: int, bins: int) -> list[tuple[int, int]]:
 
 
 def pillar_fractions(free: torch.Tensor, pillar: int, bins: int) -> torch.Tensor:
-    """(B, bins, ceil(X / pillar), ceil(Y / pillar)) float: the share of each pillar's cells (pillar x pillar columns, those inside the grid) in
-    each height bin that are seen empty."""
+    """(B, bins, ceil(X / pillar), ceil(Y / pillar)) float: the share of each pillar's cells (pillar x pillar
+    columns, those inside the grid) in each height bin that are seen empty."""
     b, x, y, z = free.shape
     f = free.float()
     cols = torch.stack([f[..., z0:z1].mean(-1) if z1 > z0 else f.new_zeros((b, x, y))

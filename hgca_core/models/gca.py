@@ -62,7 +62,9 @@ class GCAKernel(nn.Module):
 
     def bev(self, s0: torch.Tensor, batch: int, grid: tuple[int, int, int],
             free: torch.Tensor | None = None) -> BevOutput | None:
-        return self.planner(s0, batch, grid, free if self.cfg.free_space else None) if self.planner is not None else None
+        if self.planner is None:
+            return None
+        return self.planner(s0, batch, grid, free if self.cfg.free_space else None)
 
     def free_columns(self) -> dict[str, tuple[int, list[int]]]:
         """{parameter name: (dim, indices)}: where the free-space inputs enter the weights (empty without them).
