@@ -1,0 +1,148 @@
+"""Observed free space: the cells a LiDAR's rays passed through before they hit something.
+
+A ray from the sensor to a return proves the space it crossed empty (the beam went through). We walk every
+ray from its sensor origin to `stop_short` metres before its hit over the region's 20 cm grid, exactly (every
+cell the segment enters, Amanatides-Woo style), and drop cells next to any hit (26-neighbourhood), since a
+grazing ray near a surface says little about the surface's own cell. A completion that puts geometry in
+these cells is certainly wrong there: the sensor saw through it. Used by `hgca eval-real`, and meant as a
+model input later, so it is vectorised: every boundary crossing of every ray is one array element, and each
+crossing names the cell it enters on its own (no sort), marked in a dense grid.
+
+Cells follow the project's voxeliser (`hgca_core.geometry.voxel`): a 20 cm cell c holds region-frame points
+p with floor((p + 0.05) / 0.2) = c, i.e. points that round to the 10 cm cells 2c and 2c + 1.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from hgca_core.errors import InputError
+from hgca_core.geometry.voxel import COARSE, FINE, voxelize_coarse
+
+STOP_SHORT = 0.4      # metres before the hit where a ray stops proving emptiness
+SHIFT = FINE / 2      # 20 cm cell c spans [c * 0.2 - 0.05, c * 0.2 + 0.15)
+CHUNK_EVENTS = 8_000_000  # crossings per chunk: bounds memory at a few hundred MB
+
+
+def ray_origins(origins: np.ndarray | None, attributes: dict[str, np.ndarray], points: np.ndarray) -> np.ndarray:
+    """(N,) index into `origins` of each point's sensor: `origin_index` when the reader gave it, else the
+    scan's origin (`scan_index`, one origin per scan), else the only origin, else the nearest one."""
+    if origins is None or len(origins) == 0:
+        raise InputError("observed free space needs the sensor origins, and these scans have none")
+    n = len(points)
+    if "origin_index" in attributes and int(attributes["origin_index"].max()) < len(origins):
+        return attributes["origin_index"].astype(np.int64)
+    if len(origins) == 1:
+        return np.zeros(n, dtype=np.int64)
+    if "scan_index" in attributes and int(attributes["scan_index"].max()) + 1 == len(origins):
+        return attributes["scan_index"].astype(np.int64)
+    from scipy.spatial import cKDTree
+
+    return cKDTree(origins).query(points, workers=-1)[1].astype(np.int64)
+
+
+def _clip(o: np.ndarray, e: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Segments o->e clipped to the box [lo, hi] (slab method): (start, end, keep)."""
+    d = e - o
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t0 = (lo - o) * inv
+        t1 = (hi - o) * inv
+    tmin = np.where(d == 0, -np.inf, np.minimum(t0, t1))
+    tmax = np.where(d == 0, np.inf, np.maximum(t0, t1))
+    inside_flat = (d != 0) | ((o >= lo) & (o <= hi))
+    enter = np.maximum(tmin.max(axis=1), 0.0)
+    leave = np.minimum(tmax.min(axis=1), 1.0)
+    keep = inside_flat.all(axis=1) & (enter < leave)
+    return o + enter[:, None] * d, o + leave[:, None] * d, keep
+
+
+def _cell(p: np.ndarray) -> np.ndarray:
+    return np.floor((p + SHIFT) / COARSE).astype(np.int64)
+
+
+def _mark_crossings(start: np.ndarray, end: np.ndarray, grid: np.ndarray) -> None:
+    """Mark in `grid` every cell the segments start->end touch: their start cells and, for every crossing
+    of a cell boundary plane, the cell entered there.
+
+    Along a ray the k-th crossing of axis a's planes is at t_k = t_0 + k dt, so the entered cell's other
+    two coordinates are floor(C + k E) with per-ray C, E: one gather per crossing, no sort."""
+    shape = np.asarray(grid.shape)
+    flat = grid.reshape(-1)
+    strides = np.array([shape[1] * shape[2], shape[2], 1])
+
+    def mark(cells: list[np.ndarray]) -> None:
+        ok = np.ones(len(cells[0]), dtype=bool)
+        for c, n in zip(cells, shape):
+            ok &= (c >= 0) & (c < n)
+        flat[sum(c[ok] * w for c, w in zip(cells, strides))] = True
+
+    s_cell, e_cell = _cell(start), _cell(end)
+    mark([s_cell[:, 0], s_cell[:, 1], s_cell[:, 2]])
+    d = end - start
+    for axis in range(3):
+        n = np.abs(e_cell[:, axis] - s_cell[:, axis])
+        rays = np.flatnonzero(n)
+        if len(rays) == 0:
+            continue
+        counts = n[rays]
+        k = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)  # 0..n-1 per ray
+        da = d[rays, axis]
+        step = np.sign(da)
+        entered0 = s_cell[rays, axis] + step
+        plane0 = (np.where(step > 0, entered0, entered0 + 1)) * COARSE - SHIFT
+        t0 = (plane0 - start[rays, axis]) / da
+        dt = COARSE / np.abs(da)
+        per_ray = [entered0, step]
+        others = [b for b in range(3) if b != axis]
+        for b in others:
+            db = d[rays, b] / COARSE
+            per_ray += [(start[rays, b] + SHIFT) / COARSE + t0 * db, dt * db]
+        rep = np.repeat(np.stack(per_ray, axis=1), counts, axis=0)
+        cells = [None, None, None]
+        cells[axis] = (rep[:, 0] + k * rep[:, 1]).astype(np.int64)
+        for i, b in enumerate(others):
+            cells[b] = np.floor(rep[:, 2 + 2 * i] + k * rep[:, 3 + 2 * i]).astype(np.int64)
+        mark(cells)
+
+
+def observed_empty(points: np.ndarray, origins: np.ndarray, origin_index: np.ndarray | None,
+                   grid_shape: tuple[int, int, int], stop_short: float = STOP_SHORT) -> np.ndarray:
+    """Dense bool grid (20 cm cells, region frame) of cells observed empty.
+
+    `points` (N, 3) are hits and `origins` (S, 3) sensor positions, both in the region frame;
+    `origin_index` (N,) names each point's origin (None: all from origins[0]). Every hit in `points` counts
+    for the "next to a hit" rule, inside the region or not.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    org = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    idx = np.zeros(len(pts), dtype=np.int64) if origin_index is None else np.asarray(origin_index, np.int64)
+    if len(idx) != len(pts) or (len(idx) and (idx.min() < 0 or idx.max() >= len(org))):
+        raise InputError(f"origin_index must name one of {len(org)} origins for each of {len(pts)} points")
+    shape = tuple(int(v) for v in grid_shape)
+    grid = np.zeros(shape, dtype=bool)
+    o = org[idx]
+    ray = pts - o
+    length = np.linalg.norm(ray, axis=1)
+    far = length > stop_short
+    o, pts_far, ray, length = o[far], pts[far], ray[far], length[far]
+    end = pts_far - ray * (stop_short / length)[:, None]
+    lo = np.full(3, -SHIFT + 1e-9)
+    hi = np.asarray(shape) * COARSE - SHIFT - 1e-9
+    start, end, keep = _clip(o, end, lo, hi)
+    start, end = start[keep], end[keep]
+    if len(start):
+        cum = np.cumsum(np.abs(_cell(end) - _cell(start)).sum(axis=1) + 1)
+        cuts = np.searchsorted(cum, np.arange(CHUNK_EVENTS, cum[-1], CHUNK_EVENTS))
+        for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(start)]):
+            if b > a:
+                _mark_crossings(start[a:b], end[a:b], grid)
+    hits = voxelize_coarse(pts, None).astype(np.int64)
+    near = np.zeros(shape, dtype=bool)
+    shp = np.asarray(shape)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                c = hits + (dx, dy, dz)
+                c = c[np.all((c >= 0) & (c < shp), axis=1)]
+                near[c[:, 0], c[:, 1], c[:, 2]] = True
+    return grid & ~near
