@@ -136,13 +136,24 @@ def observed_empty(points: np.ndarray, origins: np.ndarray, origin_index: np.nda
         for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(start)]):
             if b > a:
                 _mark_crossings(start[a:b], end[a:b], grid)
-    hits = voxelize_coarse(pts, None).astype(np.int64)
-    near = np.zeros(shape, dtype=bool)
+    return grid & ~dense(voxelize_coarse(pts, None), shape, dilate=1)
+
+
+def dense(cells: np.ndarray, shape: tuple[int, int, int], dilate: int = 0) -> np.ndarray:
+    """Bool grid of `cells` (those outside `shape` dropped), grown by `dilate` cells in every direction
+    (a (2 dilate + 1)^3 box: 26-neighbourhood for 1). Cells just outside the grid still grow into it."""
+    c = np.asarray(cells, dtype=np.int64).reshape(-1, 3)
     shp = np.asarray(shape)
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            for dz in (-1, 0, 1):
-                c = hits + (dx, dy, dz)
-                c = c[np.all((c >= 0) & (c < shp), axis=1)]
-                near[c[:, 0], c[:, 1], c[:, 2]] = True
-    return grid & ~near
+    c = c[np.all((c >= -dilate) & (c < shp + dilate), axis=1)] + dilate
+    grid = np.zeros(tuple(shp + 2 * dilate), dtype=bool)
+    grid[c[:, 0], c[:, 1], c[:, 2]] = True
+    for _ in range(dilate):
+        for axis in range(3):
+            grown = grid.copy()
+            a, b = [slice(None)] * 3, [slice(None)] * 3
+            a[axis], b[axis] = slice(1, None), slice(None, -1)
+            grown[tuple(a)] |= grid[tuple(b)]
+            grown[tuple(b)] |= grid[tuple(a)]
+            grid = grown
+    inner = tuple(slice(dilate, dilate + int(n)) for n in shp)
+    return np.ascontiguousarray(grid[inner])
