@@ -28,7 +28,7 @@ def read_table(path: str, columns: tuple[str, ...], what: str) -> dict[str, np.n
     try:
         import pyarrow.feather as feather
     except ImportError as exc:
-        raise InputError(f"reading Argoverse 2 .feather files needs pyarrow (pip install 'hgca[av2]'): {exc}",
+        raise InputError(f"reading Argoverse 2 .feather files needs pyarrow (pip install 'hgca[real]'): {exc}",
                          path) from None
     if not os.path.isfile(path):
         raise InputError(f"{what} not found", path)
