@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from tqdm import tqdm
@@ -111,8 +111,11 @@ class Runner:
 
 
 def evaluate_input(item: dict, methods: list[str], cuts: list[float], full_cuts: list[float], args,
-                   out: Path, render: bool = True) -> dict[str, Any]:
-    """All cases and methods of one input; writes its renderings beside `out`."""
+                   out: Path, render: bool = True, done: dict | None = None,
+                   saved: Callable[[dict], None] | None = None) -> dict[str, Any]:
+    """All cases and methods of one input; writes its renderings beside `out`. Cases in `done` (an earlier
+    run's result for this input, same settings) are kept, not recomputed; `saved(result)` is called after each
+    case so an interrupted run loses at most one case."""
     scan = read_input(item)
     pts, origins = scan.points, scan.origins
     index = ray_origins(origins, scan.attributes, pts)
@@ -133,8 +136,11 @@ def evaluate_input(item: dict, methods: list[str], cuts: list[float], full_cuts:
         "cases": {},
     }
     runner = Runner(args, region, origins)
-    cases = [("full", None)] + [(f"cut_{h:g}", h) for h in cuts]
+    cases = [("full", None)] + [(f"cut_{h:g}", h) for h in sorted(cuts, reverse=True)]
     for case, h in tqdm(cases, desc=item["name"], unit="case", leave=False):
+        if done and case in done.get("cases", {}):
+            result["cases"][case] = done["cases"][case]
+            continue
         keep = np.ones(len(pts), dtype=bool) if h is None else local[:, 2] < ground + h
         case_pts = pts[keep]
         case_cells = voxelize_coarse(local[keep & inside], region.grid_shape(FINE))
@@ -170,6 +176,9 @@ def evaluate_input(item: dict, methods: list[str], cuts: list[float], full_cuts:
             entry["rendering"] = {"file": png.name, "mesh": shown}
         del meshes
         result["cases"][case] = entry
+        if saved is not None:
+            saved(result)
+    result["cases"] = {c: result["cases"][c] for c, _ in sorted(cases, key=lambda c: -1 if c[1] is None else c[1])}
     return result
 
 
@@ -220,7 +229,7 @@ def format_tables(results: dict) -> str:
              "| input | method | k | generated cells | in observed empty (%) ↓ | s / completion |",
              "|---|---|---:|---:|---:|---:|"]
     for name, res in results["inputs"].items():
-        for row, r in res["cases"]["full"]["rows"].items():
+        for row, r in res["cases"].get("full", {}).get("rows", {}).items():
             s, k = r["summary"], r["k"]
             lines.append(f"| {name} | {NAMES[row]} | {k} | {_num(s, 'generated', k)} | "
                          f"{_pct(s, 'empty_share', k)} | {_secs(r['seconds_per_completion'])} |")

@@ -48,6 +48,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fine-weights", default=None, help="fine weights (default: shipped)")
     p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto")
     p.add_argument("--no-render", action="store_true", help="skip the PNG renderings")
+    p.add_argument("--resume", action="store_true",
+                   help="keep the cases an earlier run with the same settings wrote to --out")
 
 
 def _floats(text: str, what: str) -> list[float]:
@@ -98,18 +100,40 @@ def run(args: argparse.Namespace) -> int:
               "full_samples": args.full_samples or args.samples, "seed": args.seed, "threads": args.threads,
               "t1": args.t1, "t2": args.t2, "precision": args.precision}
     results = {"config": config, "inputs": {}, "waymo_protocol": {"applicable": False, "reason": WAYMO_NA}}
-    total = time.time()
-    for item in tqdm(items, desc="eval-real", unit="input"):
-        res = evaluate_input(item, methods, cuts, full_cuts, args, out, render=not args.no_render)
-        results["inputs"][item["name"]] = res
+    earlier = _earlier(out, config) if args.resume else {}
+    total = time.time() - float(earlier.get("total_seconds") or 0.0)
+
+    def save(name: str, partial: dict) -> None:
+        results["inputs"][name] = partial
         results["total_seconds"] = time.time() - total
         text = json.dumps(_finite(results), indent=1).encode()
         atomic_write(out, lambda f: f.write(text))
-    table = format_tables(results)
-    md = table.encode()
-    atomic_write(out.with_suffix(".md"), lambda f: f.write(md))
-    print(table)
+        md = format_tables(results).encode()
+        atomic_write(out.with_suffix(".md"), lambda f: f.write(md))
+
+    for item in tqdm(items, desc="eval-real", unit="input"):
+        name = item["name"]
+        res = evaluate_input(item, methods, cuts, full_cuts, args, out, render=not args.no_render,
+                             done=earlier.get("inputs", {}).get(name), saved=lambda r, n=name: save(n, r))
+        save(name, res)
+    print(format_tables(results))
     return 0
+
+
+def _earlier(out: Path, config: dict) -> dict:
+    """An earlier run's results at `out` when its settings equal `config`, else nothing to resume."""
+    from hgca_core.errors import InputError
+
+    if not out.is_file():
+        return {}
+    try:
+        old = json.loads(out.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read earlier results to resume ({exc.__class__.__name__})", str(out)) from None
+    if old.get("config") != json.loads(json.dumps(config)):
+        raise InputError(f"earlier results were made with other settings ({old.get('config')}); "
+                         "run without --resume or with the same settings", str(out))
+    return old
 
 
 def _finite(obj):
