@@ -65,19 +65,17 @@ def _mark_crossings(start: np.ndarray, end: np.ndarray, grid: np.ndarray) -> Non
     of a cell boundary plane, the cell entered there.
 
     Along a ray the k-th crossing of axis a's planes is at t_k = t_0 + k dt, so the entered cell's other
-    two coordinates are floor(C + k E) with per-ray C, E: one gather per crossing, no sort."""
+    two coordinates are floor(C + k E) with per-ray C, E: a few per-ray numbers repeated per crossing, no
+    sort. The segments lie inside the grid (clipped by the caller); indices are clamped to it only against
+    rounding at its faces."""
     shape = np.asarray(grid.shape)
     flat = grid.reshape(-1)
-    strides = np.array([shape[1] * shape[2], shape[2], 1])
-
-    def mark(cells: list[np.ndarray]) -> None:
-        ok = np.ones(len(cells[0]), dtype=bool)
-        for c, n in zip(cells, shape):
-            ok &= (c >= 0) & (c < n)
-        flat[sum(c[ok] * w for c, w in zip(cells, strides))] = True
+    strides = (int(shape[1] * shape[2]), int(shape[2]), 1)
+    top = shape - 1
 
     s_cell, e_cell = _cell(start), _cell(end)
-    mark([s_cell[:, 0], s_cell[:, 1], s_cell[:, 2]])
+    first = np.clip(s_cell, 0, top)
+    flat[first[:, 0] * strides[0] + first[:, 1] * strides[1] + first[:, 2]] = True
     d = end - start
     for axis in range(3):
         n = np.abs(e_cell[:, axis] - s_cell[:, axis])
@@ -85,24 +83,25 @@ def _mark_crossings(start: np.ndarray, end: np.ndarray, grid: np.ndarray) -> Non
         if len(rays) == 0:
             continue
         counts = n[rays]
-        k = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)  # 0..n-1 per ray
+        k = np.arange(int(counts.sum()), dtype=np.float64)
+        k -= np.repeat((np.cumsum(counts) - counts).astype(np.float64), counts)  # 0..n-1 per ray
         da = d[rays, axis]
         step = np.sign(da)
         entered0 = s_cell[rays, axis] + step
-        plane0 = (np.where(step > 0, entered0, entered0 + 1)) * COARSE - SHIFT
-        t0 = (plane0 - start[rays, axis]) / da
+        t0 = (np.where(step > 0, entered0, entered0 + 1) * COARSE - SHIFT - start[rays, axis]) / da
         dt = COARSE / np.abs(da)
-        per_ray = [entered0, step]
-        others = [b for b in range(3) if b != axis]
-        for b in others:
+        index = np.repeat(entered0 * strides[axis], counts) + k * np.repeat(step * strides[axis], counts)
+        for b in range(3):
+            if b == axis:
+                continue
             db = d[rays, b] / COARSE
-            per_ray += [(start[rays, b] + SHIFT) / COARSE + t0 * db, dt * db]
-        rep = np.repeat(np.stack(per_ray, axis=1), counts, axis=0)
-        cells = [None, None, None]
-        cells[axis] = (rep[:, 0] + k * rep[:, 1]).astype(np.int64)
-        for i, b in enumerate(others):
-            cells[b] = np.floor(rep[:, 2 + 2 * i] + k * rep[:, 3 + 2 * i]).astype(np.int64)
-        mark(cells)
+            c = np.repeat((start[rays, b] + SHIFT) / COARSE + t0 * db, counts)
+            c += k * np.repeat(dt * db, counts)
+            np.floor(c, out=c)
+            np.clip(c, 0, top[b], out=c)
+            c *= strides[b]
+            index += c
+        flat[index.astype(np.int64)] = True
 
 
 def observed_empty(points: np.ndarray, origins: np.ndarray, origin_index: np.ndarray | None,

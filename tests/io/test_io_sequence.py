@@ -338,3 +338,19 @@ def test_folder_and_files_do_not_mix(real_dir, tmp_path):
         read_inputs([str(real_dir / NUSCENES)], frames="0:1")
     with pytest.raises(InputError, match="not a known sequence layout"):
         read_inputs([str(tmp_path)])
+
+
+def test_complete_av2_log_in_city_frame(real_dir, tmp_path, small_weights):
+    """`hgca complete <AV2 log> --frames 0:2` (small weights, 2 steps): the mesh lies around the ego in city
+    coordinates (km), in the default region around the first sweep's up_lidar."""
+    log = real_dir / AV2_7FAB
+    out = tmp_path / "out.npz"
+    res = cli("complete", log, "--frames", "0:2", "-o", out, "--weights", small_weights, "--t1", 2,
+              "--progress", "none")
+    assert res.returncode == 0, res.stderr
+    with np.load(tmp_path / "out_s0.npz") as z:
+        v = z["vertices"].astype(np.float64)
+    origin = read_sequence(log, "0:2").origins[0]
+    assert len(v) > 1000
+    np.testing.assert_allclose(np.median(v[:, :2], axis=0), origin[:2], atol=15.0)
+    assert np.abs(v[:, :2] - origin[:2]).max() < 38.4 / 2 * np.sqrt(2) + 0.5
