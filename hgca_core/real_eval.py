@@ -178,7 +178,11 @@ def evaluate_input(item: dict, methods: list[str], cuts: list[float], full_cuts:
         result["cases"][case] = entry
         if saved is not None:
             saved(result)
-    result["cases"] = {c: result["cases"][c] for c, _ in sorted(cases, key=lambda c: -1 if c[1] is None else c[1])}
+    if done:  # earlier cut levels not asked for now are kept too
+        for case, entry in done.get("cases", {}).items():
+            result["cases"].setdefault(case, entry)
+    result["cases"] = dict(sorted(result["cases"].items(),
+                                  key=lambda kv: -1.0 if kv[0] == "full" else float(kv[1]["cut_height"])))
     return result
 
 

@@ -49,7 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto")
     p.add_argument("--no-render", action="store_true", help="skip the PNG renderings")
     p.add_argument("--resume", action="store_true",
-                   help="keep the cases an earlier run with the same settings wrote to --out")
+                   help="keep the cases an earlier run with the same sampling settings wrote to --out (a later "
+                        "run may add cut levels)")
 
 
 def _floats(text: str, what: str) -> list[float]:
@@ -120,8 +121,12 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+RESUME_KEYS = ("methods", "samples", "full_samples", "seed", "t1", "t2", "precision")  # must match to resume
+
+
 def _earlier(out: Path, config: dict) -> dict:
-    """An earlier run's results at `out` when its settings equal `config`, else nothing to resume."""
+    """An earlier run's results at `out` when its sampling settings equal `config`'s (cut levels may differ:
+    cases are kept per cut level, so a later run can add levels), else an InputError."""
     from hgca_core.errors import InputError
 
     if not out.is_file():
@@ -130,8 +135,10 @@ def _earlier(out: Path, config: dict) -> dict:
         old = json.loads(out.read_text())
     except (OSError, ValueError) as exc:
         raise InputError(f"cannot read earlier results to resume ({exc.__class__.__name__})", str(out)) from None
-    if old.get("config") != json.loads(json.dumps(config)):
-        raise InputError(f"earlier results were made with other settings ({old.get('config')}); "
+    want = json.loads(json.dumps({k: config[k] for k in RESUME_KEYS}))
+    have = {k: old.get("config", {}).get(k) for k in RESUME_KEYS}
+    if have != want:
+        raise InputError(f"earlier results were made with other settings ({have}); "
                          "run without --resume or with the same settings", str(out))
     return old
 
