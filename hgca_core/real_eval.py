@@ -218,6 +218,10 @@ def _secs(v) -> str:
     return "-" if v is None or v != v or v == 0 else f"{v:.0f}"
 
 
+def _ordered(rows: dict) -> list:
+    return sorted(rows.items(), key=lambda kv: METHODS.index(kv[0]))
+
+
 def format_tables(results: dict) -> str:
     """Markdown: one table per measure, a row per input x (cut) x method; k samples as mean [min–max]."""
     cfg = results["config"]
@@ -225,7 +229,9 @@ def format_tables(results: dict) -> str:
              f"k = {cfg['samples']} samples for GCA / hGCA coarse, k = {cfg['full_samples']} for hGCA full "
              f"(seeds {cfg['seed']}..); values are mean [min–max] over the samples. Full stage run on the whole "
              f"input and at cut(s) {', '.join(f'{c:g} m' for c in cfg['full_cuts'])} only (CPU time); "
-             f"{cfg['threads']} thread(s), precision {cfg['precision']}. Cells are 20 cm, in the default region.",
+             f"{cfg['threads']} thread(s), precision {cfg['precision']}. Cells are 20 cm, in the default region. "
+             "Seconds are wall time on a 2-core machine shared with other jobs (only a rough guide; hGCA "
+             "coarse samples that came out of a full-stage run have no time of their own).",
              "", "## Observed free space (whole input)", "",
              "Generated cells: completion cells the input does not occupy. In observed empty: the share of them "
              "that lie where an input ray passed (walked from the sensor to 0.4 m short of its hit, cells next "
@@ -233,7 +239,7 @@ def format_tables(results: dict) -> str:
              "| input | method | k | generated cells | in observed empty (%) ↓ | s / completion |",
              "|---|---|---:|---:|---:|---:|"]
     for name, res in results["inputs"].items():
-        for row, r in res["cases"].get("full", {}).get("rows", {}).items():
+        for row, r in _ordered(res["cases"].get("full", {}).get("rows", {})):
             s, k = r["summary"], r["k"]
             lines.append(f"| {name} | {NAMES[row]} | {k} | {_num(s, 'generated', k)} | "
                          f"{_pct(s, 'empty_share', k)} | {_secs(r['seconds_per_completion'])} |")
@@ -247,7 +253,7 @@ def format_tables(results: dict) -> str:
         for case, entry in res["cases"].items():
             if case == "full":
                 continue
-            for row, r in entry["rows"].items():
+            for row, r in _ordered(entry["rows"]):
                 s, k = r["summary"], r["k"]
                 lines.append(f"| {name} | {entry['cut_height']:g} m | {NAMES[row]} | {k} | "
                              f"{entry['cut_away_cells']:,} | {_pct(s, 'recall', k)} | "
