@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from hgca_core.geometry.freespace import observed_empty, ray_origins
 from hgca_core.geometry.region import BELOW_GROUND, Region
-from hgca_core.geometry.voxel import COARSE, FINE, voxelize_coarse
+from hgca_core.geometry.voxel import COARSE, voxelize
 from hgca_core.metrics.realscan import cut_scores, free_space_scores, summarise
 
 SPACING = 0.05  # surface sampling of meshes before voxelising them (as `hgca eval` does)
@@ -42,23 +42,22 @@ def _mesh_cells(mesh, region: Region, seed: int) -> np.ndarray:
     """20 cm cells of a world-frame mesh's surface, in the region frame."""
     import trimesh
 
-    from hgca_core.metrics.iou import points_to_cells20
     from hgca_core.metrics.surface import sample_surface
 
     if len(mesh.faces) == 0:
         return np.zeros((0, 3), dtype=np.int64)
     local = trimesh.Trimesh(region.to_local(mesh.vertices), mesh.faces, process=False)
-    return points_to_cells20(sample_surface(local, SPACING, seed), region.size)
+    return voxelize(sample_surface(local, SPACING, seed), COARSE, region.size)
 
 
 class Runner:
     """Runs each method on one input case and keeps sample 0's mesh of the best row for the renderings."""
 
     def __init__(self, args, region: Region, origins: np.ndarray) -> None:
-        from hgca_core.training.coarse import weights_path
+        from hgca_core.models.weights import shipped
 
         self.args, self.region, self.origins = args, region, origins
-        self.noplanner = args.noplanner_weights or str(weights_path(False))
+        self.noplanner = args.noplanner_weights or str(shipped("coarse-noplanner"))
         self.k = args.samples
         self.kf = args.full_samples or args.samples
 
@@ -76,7 +75,7 @@ class Runner:
         inside = region.contains_local(local)
         t = time.time()
         if method == "input":
-            return {"input": ([voxelize_coarse(local[inside], region.grid_shape(FINE))], 0.0, None)}
+            return {"input": ([voxelize(local[inside], COARSE, region.size)], 0.0, None)}
         if method == "poisson":
             from hgca_core.metrics.baselines import poisson_baseline
 
@@ -143,11 +142,11 @@ def evaluate_input(item: dict, methods: list[str], cuts: list[float], full_cuts:
             continue
         keep = np.ones(len(pts), dtype=bool) if h is None else local[:, 2] < ground + h
         case_pts = pts[keep]
-        case_cells = voxelize_coarse(local[keep & inside], region.grid_shape(FINE))
+        case_cells = voxelize(local[keep & inside], COARSE, region.size)
         entry: dict[str, Any] = {"points": int((keep & inside).sum()), "rows": {}}
         if h is not None:
             cut_z = ground + h
-            away = voxelize_coarse(local[~keep & inside], region.grid_shape(FINE))
+            away = voxelize(local[~keep & inside], COARSE, region.size)
             from hgca_core.metrics.realscan import generated_cells
 
             away = generated_cells(away, case_cells, shape)  # a cell holding points below the cut is not cut away

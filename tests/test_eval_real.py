@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from PIL import Image
 
 from hgca_testdata import tiny_sample
@@ -57,18 +56,6 @@ def test_summarise():
     assert np.isnan(s["b"]["mean"])
 
 
-@pytest.fixture(scope="module")
-def small_weights(tmp_path_factory) -> Path:
-    from hgca_core.models.checkpoint import save_weights
-    from hgca_core.models.gca import GCAConfig, GCAKernel
-
-    torch.manual_seed(0)
-    cfg = GCAConfig(channels=(8, 8, 16, 16, 16), steps=3)
-    path = tmp_path_factory.mktemp("w") / "coarse_small.pt"
-    save_weights(GCAKernel(cfg), cfg.to_dict(), path, {"kind": "coarse", "stage": "test"})
-    return path
-
-
 def _naive_recall(target: np.ndarray, found: np.ndarray) -> float:
     found = {tuple(c) for c in found}
     hit = [any((t[0] + dx, t[1] + dy, t[2] + dz) in found for dx in (-1, 0, 1) for dy in (-1, 0, 1)
@@ -100,12 +87,12 @@ def test_eval_real_command(tmp_path, small_weights):
     assert cut["cut_away_cells"] > 20
     # the input row's recall, recomputed here from the cells: cut-away cells next to a kept cell
     from hgca_core.geometry.region import Region
-    from hgca_core.geometry.voxel import voxelize_coarse
+    from hgca_core.geometry.voxel import COARSE, voxelize
 
     region = Region(np.array(entry["region"][:3]), np.array(entry["region"][3:6]))
     local = region.to_local(s["input_points"].astype(np.float64) + offset)
     low = local[:, 2] < 1.6
-    kept, away = voxelize_coarse(local[low], None), voxelize_coarse(local[~low], None)
+    kept, away = voxelize(local[low], COARSE), voxelize(local[~low], COARSE)
     away = away[~(away[:, None] == kept[None]).all(-1).any(1)]
     assert len(away) == cut["cut_away_cells"]
     assert cut["rows"]["input"]["per_sample"][0]["recall"] == pytest.approx(_naive_recall(away, kept))

@@ -16,10 +16,10 @@ from __future__ import annotations
 import numpy as np
 
 from hgca_core.errors import InputError
-from hgca_core.geometry.voxel import COARSE, FINE, voxelize_coarse
+from hgca_core.geometry.voxel import COARSE, lower_corner, voxelize
 
 STOP_SHORT = 0.4      # metres before the hit where a ray stops proving emptiness
-SHIFT = FINE / 2      # 20 cm cell c spans [c * 0.2 - 0.05, c * 0.2 + 0.15)
+SHIFT = -lower_corner(COARSE)  # 20 cm cell c spans [c * 0.2 - 0.05, c * 0.2 + 0.15)
 CHUNK_EVENTS = 8_000_000  # crossings per chunk: bounds memory at a few hundred MB
 
 
@@ -135,7 +135,7 @@ def observed_empty(points: np.ndarray, origins: np.ndarray, origin_index: np.nda
         for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(start)]):
             if b > a:
                 _mark_crossings(start[a:b], end[a:b], grid)
-    return grid & ~dense(voxelize_coarse(pts, None), shape, dilate=1)
+    return grid & ~dense(voxelize(pts, COARSE), shape, dilate=1)
 
 
 def dense(cells: np.ndarray, shape: tuple[int, int, int], dilate: int = 0) -> np.ndarray:

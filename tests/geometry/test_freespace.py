@@ -8,7 +8,7 @@ import pytest
 
 from hgca_core.errors import InputError
 from hgca_core.geometry.freespace import STOP_SHORT, observed_empty, ray_origins
-from hgca_core.geometry.voxel import voxelize_coarse
+from hgca_core.geometry.voxel import COARSE, voxelize
 
 V, S = 0.2, 0.05  # cell size, shift: cell c spans [c V - S, c V + V - S)
 
@@ -49,7 +49,7 @@ def naive_observed_empty(points, origins, index, shape, stop_short=STOP_SHORT) -
             continue
         for c in naive_walk(o, p - (p - o) * (stop_short / length), shape):
             grid[c] = True
-    hits = voxelize_coarse(points, None)
+    hits = voxelize(points, COARSE)
     for c in hits:
         lo, hi = np.maximum(c - 1, 0), np.minimum(c + 2, shape)
         if np.all(lo < hi):

@@ -81,21 +81,6 @@ def poses_json(path: Path, files: list[Path], poses: list[np.ndarray]) -> Path:
     return path
 
 
-@pytest.fixture(scope="module")
-def small_weights(tmp_path_factory) -> Path:
-    """Small untrained coarse weights with 3 steps: the comparison is about poses, not quality."""
-    import torch
-
-    from hgca_core.models.checkpoint import save_weights
-    from hgca_core.models.gca import GCAConfig, GCAKernel
-
-    torch.manual_seed(0)
-    cfg = GCAConfig(channels=(8, 8, 16, 16, 16), steps=3)
-    path = tmp_path_factory.mktemp("w") / "coarse_small.pt"
-    save_weights(GCAKernel(cfg), cfg.to_dict(), path, {"kind": "coarse", "stage": "test"})
-    return path
-
-
 def cli(*args, cwd=None):
     return subprocess.run([sys.executable, "-m", "hgca_core.cli", *map(str, args)], capture_output=True,
                           text=True, timeout=300, cwd=cwd)
