@@ -16,7 +16,7 @@ from tqdm import tqdm
 from hgca_core.geometry.freespace import observed_empty, ray_origins
 from hgca_core.geometry.region import BELOW_GROUND, Region
 from hgca_core.geometry.voxel import COARSE, voxelize
-from hgca_core.metrics.realscan import cut_scores, free_space_scores, summarise
+from hgca_core.metrics.realscan import cut_scores, free_space_scores, generated_cells, summarise
 
 SPACING = 0.05  # surface sampling of meshes before voxelising them (as `hgca eval` does)
 METHODS = ("input", "poisson", "gca", "hgca", "hgca-full")
@@ -147,8 +147,6 @@ def evaluate_input(item: dict, methods: list[str], cuts: list[float], full_cuts:
         if h is not None:
             cut_z = ground + h
             away = voxelize(local[~keep & inside], COARSE, region.size)
-            from hgca_core.metrics.realscan import generated_cells
-
             away = generated_cells(away, case_cells, shape)  # a cell holding points below the cut is not cut away
             entry.update({"cut_height": h, "cut_z_region": cut_z, "cut_away_cells": len(away)})
         full = "hgca-full" in methods and (h is None or any(abs(h - c) < 1e-9 for c in full_cuts))
