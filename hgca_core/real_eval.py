@@ -256,7 +256,7 @@ def format_tables(results: dict) -> str:
                              f"{entry['cut_away_cells']:,} | {_pct(s, 'recall', k)} | "
                              f"{_num(s, 'generated_above', k)} | {_pct(s, 'above_empty_share', k)} |")
     lines += ["", "## Inputs", "", "| input | source | points (in region) | observed-empty cells | "
-              "ray walk (s) |", "|---|---|---:|---:|---:|"]
+              "ray walk, wall (s) |", "|---|---|---:|---:|---:|"]
     for name, res in results["inputs"].items():
         src = Path(res["source"]).name + (f" frames {res['frames']}" if res["frames"] else "")
         if res["calibration"]:
@@ -266,6 +266,11 @@ def format_tables(results: dict) -> str:
                      f"{fs['empty_cells']:,} | {fs['seconds']:.2f} |")
     lines += ["", f"Paper's Waymo protocol (ReSim and IoU against the other scans of a drive): "
               f"{results['waymo_protocol']['reason']}.", ""]
+    missing = [f"{NAMES[m]} at {name} {'whole input' if case == 'full' else case.replace('cut_', '') + ' m cut'}"
+               for name, res in results["inputs"].items() for case, e in res["cases"].items()
+               for m in METHODS if m not in e["rows"] and (m != "hgca-full" or case == "full")]
+    if missing:
+        lines += ["Not run (CPU time on the shared machine): " + "; ".join(missing) + ".", ""]
     pngs = [e["rendering"]["file"] for r in results["inputs"].values() for e in r["cases"].values()
             if "rendering" in e]
     if pngs:

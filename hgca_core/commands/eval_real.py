@@ -121,12 +121,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-RESUME_KEYS = ("methods", "samples", "full_samples", "seed", "t1", "t2", "precision")  # must match to resume
+RESUME_KEYS = ("samples", "full_samples", "seed", "t1", "t2", "precision")  # must match to resume
 
 
 def _earlier(out: Path, config: dict) -> dict:
-    """An earlier run's results at `out` when its sampling settings equal `config`'s (cut levels may differ:
-    cases are kept per cut level, so a later run can add levels), else an InputError."""
+    """An earlier run's results at `out` when its sampling settings equal `config`'s (cut levels and methods
+    may differ: cases are kept per cut level with the rows they have, so a later run can add levels), else an
+    InputError."""
     from hgca_core.errors import InputError
 
     if not out.is_file():
