@@ -159,7 +159,7 @@ def test_kitti_folder_completes_like_files_with_poses_json(tmp_path, small_weigh
     files = [root / "velodyne" / f"{i:06d}.bin" for i in range(1, 6)]
     pj = poses_json(tmp_path / "poses.json", files, poses[1:6])
     region = "6,0.5,0,9.6,9.6,6.4"
-    common = ["--weights", small_weights, "--seed", 3, "--region", region, "--progress", "none"]
+    common = ["--weights", small_weights, "--stage", "coarse", "--seed", 3, "--region", region, "--progress", "none"]
     a = cli("complete", root, "--frames", "1:6", "-o", tmp_path / "a.npz", *common)
     b = cli("complete", *files, "--poses", pj, "-o", tmp_path / "b.npz", *common)
     assert a.returncode == 0 and b.returncode == 0, a.stderr + b.stderr
@@ -330,8 +330,8 @@ def test_complete_av2_log_in_city_frame(real_dir, tmp_path, small_weights):
     coordinates (km), in the default region around the first sweep's up_lidar."""
     log = real_dir / AV2_7FAB
     out = tmp_path / "out.npz"
-    res = cli("complete", log, "--frames", "0:2", "-o", out, "--weights", small_weights, "--t1", 2,
-              "--progress", "none")
+    res = cli("complete", log, "--frames", "0:2", "-o", out, "--weights", small_weights, "--stage", "coarse",
+              "--t1", 2, "--progress", "none")
     assert res.returncode == 0, res.stderr
     with np.load(tmp_path / "out_s0.npz") as z:
         v = z["vertices"].astype(np.float64)
