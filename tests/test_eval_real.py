@@ -128,3 +128,30 @@ def test_eval_real_missing_input(tmp_path):
                           "--out", str(tmp_path / "r.json"), "--methods", "input"],
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 2 and "file not found" in res.stderr and not (tmp_path / "r.json").exists()
+
+
+def test_resume_keeps_cases_only_in_the_same_region(tmp_path):
+    s = tiny_sample(4)
+    scan = tmp_path / "street.npz"
+    np.savez(scan, points=s["input_points"].astype(np.float64), origins=[[3.0, 3.0, 3.0]])
+    out = tmp_path / "r.json"
+    base = [sys.executable, "-m", "hgca_core.cli", "eval-real", str(scan), "--out", str(out), "--methods", "input",
+            "--samples", "1", "--no-render"]
+    run = lambda *extra: subprocess.run(base + list(extra), capture_output=True, text=True, timeout=300)  # noqa: E731
+    assert run("--cuts", "1.0").returncode == 0
+    doc = json.loads(out.read_text())
+    doc["inputs"]["street"]["cases"]["cut_1"]["points"] = -1  # a marker: kept cases keep it
+    out.write_text(json.dumps(doc))
+    res = run("--cuts", "1.0,0.5", "--resume")
+    assert res.returncode == 0, res.stderr
+    cases = json.loads(out.read_text())["inputs"]["street"]["cases"]
+    assert cases["cut_1"]["points"] == -1 and cases["cut_0.5"]["points"] > 0
+    doc = json.loads(out.read_text())
+    doc["inputs"]["street"]["region"][2] += 0.1  # as if older code had placed the box elsewhere
+    out.write_text(json.dumps(doc))
+    res = run("--cuts", "1.0,0.5", "--resume")
+    assert res.returncode == 0 and "region differs" in res.stderr
+    assert json.loads(out.read_text())["inputs"]["street"]["cases"]["cut_1"]["points"] > 0
+    # other sampling settings cannot be resumed
+    res = run("--cuts", "1.0", "--resume", "--seed", "1")
+    assert res.returncode == 2 and "other settings" in res.stderr
