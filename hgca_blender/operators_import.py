@@ -1,7 +1,8 @@
 """File > Import > LiDAR Scan (hgca): read scans with `hgca read` and add them as one point object.
 
-Reading is the core's job (all formats, poses, accumulation); the add-on only turns the resulting
-.npz into a vertex-only mesh with point attributes. On any error nothing is added to the file.
+Reading is the core's job (all formats, poses, accumulation, sequence folders: a KITTI sequence, an
+Argoverse 2 log or nuScenes sweeps with `--frames`); the add-on only turns the resulting .npz into a
+vertex-only mesh with point attributes. On any error nothing is added to the file.
 """
 
 import shutil
@@ -15,12 +16,15 @@ from bpy_extras.io_utils import ImportHelper
 
 from . import core, georef, mesh_build, preferences, sources
 
-EXTENSIONS = (".ply", ".las", ".laz", ".pcd", ".xyz", ".csv", ".txt", ".npy", ".npz", ".bin")
+EXTENSIONS = (".ply", ".las", ".laz", ".pcd", ".xyz", ".csv", ".txt", ".npy", ".npz", ".bin", ".feather")
 READ_TIMEOUT_S = 3600
 
 
-def object_name(paths: list[Path]) -> str:
-    """Name after the first file ("scan", or "scan +4" for five files); drops double suffixes."""
+def object_name(paths: list[Path], frames: str = "") -> str:
+    """Name after the first file ("scan", or "scan +4" for five files; drops double suffixes), or after a
+    sequence folder and its frames ("00 [0:5]")."""
+    if len(paths) == 1 and paths[0].is_dir():
+        return f"{paths[0].name} [{frames}]" if frames else paths[0].name
     stem = paths[0].name
     for suffix in (".pcd.bin", ".copc.laz", *EXTENSIONS):
         if stem.lower().endswith(suffix):
@@ -29,16 +33,19 @@ def object_name(paths: list[Path]) -> str:
     return stem if len(paths) == 1 else f"{stem} +{len(paths) - 1}"
 
 
-def read_scans(python: str, paths: list[Path], poses: Path | None = None
+def read_scans(python: str, paths: list[Path], poses: Path | None = None, frames: str = ""
                ) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray | None, np.ndarray]:
     """Run `hgca read` into a temporary .npz; returns (points (N,3) float32, per-point attributes, sensor
-    origins (world, float64) or None, the points' float64 offset: world = points + offset)."""
+    origins (world, float64) or None, the points' float64 offset: world = points + offset). `paths` may be one
+    sequence folder, with `frames` START:STOP[:STEP] (empty: the core's default, 5 around the middle)."""
     tmpdir = Path(tempfile.mkdtemp(prefix="hgca_read_"))
     try:
         out = tmpdir / "scan.npz"
         args = ["read", *[str(p) for p in paths]]
         if poses is not None:
             args += ["--poses", str(poses)]
+        if frames:
+            args += ["--frames", frames]
         core.run_core(python, [*args, "-o", str(out)], timeout=READ_TIMEOUT_S, cwd=tmpdir)
         if not out.is_file():
             raise core.CoreError("hgca read finished but wrote no output")
@@ -59,26 +66,30 @@ def read_scans(python: str, paths: list[Path], poses: Path | None = None
 
 
 def import_scans(python: str, paths: list[Path], collection: bpy.types.Collection, poses: Path | None = None,
-                 name: str = "", show_points: bool = True,
-                 scene: bpy.types.Scene | None = None) -> tuple[bpy.types.Object, list[str]]:
+                 name: str = "", show_points: bool = True, scene: bpy.types.Scene | None = None,
+                 frames: str = "") -> tuple[bpy.types.Object, list[str]]:
     """Read and add one point object to `collection`, placed relative to `scene`'s georeference origin (set
-    here when the scene has none and the scans lie far from zero); returns it and the attributes not stored."""
+    here when the scene has none and the scans lie far from zero); returns it and the attributes not stored.
+    `paths` is scan files or one sequence folder (`frames` picks its frames)."""
     # absolute: the core runs in a temporary folder (poses then match scans by their resolved paths)
     paths = [Path(p).absolute() for p in paths]
     poses = Path(poses).absolute() if poses is not None else None
-    missing = [str(p) for p in paths if not p.is_file()]
+    folder = len(paths) == 1 and paths[0].is_dir()
+    missing = [str(p) for p in paths if not (folder or p.is_file())]
     if missing:
         raise core.CoreError(f"file not found: {', '.join(missing)}")
+    if frames and not folder:
+        raise core.CoreError("frames apply to a sequence folder, not to scan files")
     # a poses path that is no file (missing, a folder, a link loop) is described by `hgca read` itself
-    points, attributes, origins, offset = read_scans(python, paths, poses)
+    points, attributes, origins, offset = read_scans(python, paths, poses, frames)
     scene = scene or bpy.context.scene
     centre = offset + (points.min(axis=0).astype(np.float64) + points.max(axis=0)) / 2
     previous = scene.get(georef.ORIGIN_KEY)
     origin = georef.ensure_origin(scene, centre)
     vertices, location = georef.place(points, offset, origin)
     try:
-        obj, skipped = mesh_build.build_point_object(name or object_name(paths), vertices, attributes, collection,
-                                                     show_points, location)
+        obj, skipped = mesh_build.build_point_object(name or object_name(paths, frames), vertices, attributes,
+                                                     collection, show_points, location)
     except Exception:
         if previous is None and georef.ORIGIN_KEY in scene:  # leave the scene as it was
             del scene[georef.ORIGIN_KEY]
@@ -89,7 +100,8 @@ def import_scans(python: str, paths: list[Path], collection: bpy.types.Collectio
 
 
 class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
-    """Import LiDAR scans (PLY, LAS/LAZ, PCD, XYZ/CSV, NPY/NPZ, KITTI/nuScenes .bin) as one point object"""
+    """Import LiDAR scans (PLY, LAS/LAZ, PCD, XYZ/CSV, NPY/NPZ, KITTI/nuScenes .bin, AV2 .feather) as one point
+    object, or a sequence folder (KITTI, Argoverse 2 log, nuScenes sweeps: open the folder, select no file)"""
 
     bl_idname = "import_scene.hgca_lidar"
     bl_label = "Import LiDAR Scan"
@@ -102,12 +114,18 @@ class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
                                description="Optional poses JSON placing each scan in the world")
     show_points: BoolProperty(name="Show as Points", default=True,
                               description="Add a Geometry Nodes modifier that draws the vertices as points")
+    frames: StringProperty(name="Frames", default="",
+                           description="Frames of a sequence folder as START:STOP[:STEP] "
+                                       "(empty: the 5 around the middle)")
 
     def _paths(self) -> list[Path]:
         names = [f.name for f in self.files if f.name]
         if names and self.directory:
             return [Path(self.directory) / n for n in names]
-        return [Path(bpy.path.abspath(self.filepath))] if self.filepath else []
+        if self.filepath:
+            return [Path(bpy.path.abspath(self.filepath))]
+        # a folder opened in the browser with no file selected: the folder is the input (a sequence)
+        return [Path(bpy.path.abspath(self.directory))] if self.directory else []
 
     def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
         # files dropped on the viewport (FileHandler) arrive with paths set: confirm in a popup
@@ -125,7 +143,7 @@ class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
         collection = context.collection or context.scene.collection
         try:
             obj, skipped = import_scans(python, paths, collection, poses, show_points=self.show_points,
-                                        scene=context.scene)
+                                        scene=context.scene, frames=self.frames.strip())
         except (core.CoreError, ValueError, OSError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -138,6 +156,7 @@ class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
         layout = self.layout
         layout.use_property_split = True
         layout.prop(self, "poses_path")
+        layout.prop(self, "frames")
         layout.prop(self, "show_points")
 
 
@@ -150,7 +169,7 @@ class HGCA_FH_lidar(bpy.types.FileHandler):
     bl_idname = "HGCA_FH_lidar"
     bl_label = "LiDAR Scan (hgca)"
     bl_import_operator = HGCA_OT_import_scan.bl_idname
-    bl_file_extensions = ".las;.laz;.pcd;.bin;.xyz;.npz"
+    bl_file_extensions = ".las;.laz;.pcd;.bin;.xyz;.npz;.feather"
 
     @classmethod
     def poll_drop(cls, context: bpy.types.Context) -> bool:

@@ -24,6 +24,8 @@ COMMANDS = {
     "region": "print the default region `complete` would use for these scans (--region form, or --json)",
     "complete": "complete LiDAR scans into meshes",
     "eval": "evaluate completion on the synthetic test split against baselines",
+    "eval-real": "score completions of real scans without ground truth (height cut, observed free space)",
+    "poses": "write the poses JSON of a sequence folder (KITTI, Argoverse 2, nuScenes)",
     "bench": "measure time and memory of completion per stage",
     "demo": "complete the bundled example and render it",
 }
@@ -35,7 +37,7 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     for name, help_text in COMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
-        p.set_defaults(_module=f"hgca_core.commands.{name}")
+        p.set_defaults(_module=f"hgca_core.commands.{name.replace('-', '_')}")
         module = _load(name, argv)
         if module is not None:
             module.add_arguments(p)
@@ -44,7 +46,7 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
 
 def _load(name: str, argv: list[str]):
     """Import a command module only when argv names it (keeps start-up light), else None."""
-    return importlib.import_module(f"hgca_core.commands.{name}") if argv[:1] == [name] else None
+    return importlib.import_module(f"hgca_core.commands.{name.replace('-', '_')}") if argv[:1] == [name] else None
 
 
 def main(argv: list[str] | None = None) -> int:

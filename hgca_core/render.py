@@ -10,6 +10,9 @@ import numpy as np
 import trimesh
 
 
+MARK_BIAS = 0.3  # metres a marked point may lie behind the surface drawn at its pixel and still show
+
+
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
     """World -> camera rotation (rows: right, up, forward)."""
     f = target - eye
@@ -22,8 +25,11 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0,
 def render_mesh(mesh: trimesh.Trimesh, path: str | Path, points: np.ndarray | None = None,
                 colour_by: np.ndarray | None = None, size: tuple[int, int] = (1200, 800),
                 eye: np.ndarray | None = None, target: np.ndarray | None = None, fov_deg: float = 50.0,
-                samples: int = 1_500_000, seed: int = 0) -> None:
+                samples: int = 1_500_000, seed: int = 0, marked: np.ndarray | None = None) -> None:
     """Write a PNG of `mesh` (and optional input `points` as yellow dots) seen from `eye` towards `target`.
+
+    `marked` points are drawn red (e.g. the real points a height cut removed from the input), winning over a
+    surface up to `MARK_BIAS` in front of them, so points lying on a surface show on it.
 
     `colour_by` is a per-vertex scalar in metres (e.g. distance to the input): near 0 = observed (grey),
     far = generated (blue), the colouring the Blender material uses too.
@@ -40,7 +46,7 @@ def render_mesh(mesh: trimesh.Trimesh, path: str | Path, points: np.ndarray | No
     depth = np.full(h * w, np.inf)
     image = np.full((h * w, 3), 255.0)
 
-    def splat(pts: np.ndarray, rgb: np.ndarray, radius: int) -> None:
+    def splat(pts: np.ndarray, rgb: np.ndarray, radius: int, bias: float = 0.0) -> None:
         cam = (pts - eye) @ rot.T
         front = cam[:, 2] > 0.1
         cam, rgb = cam[front], rgb[front]
@@ -54,8 +60,8 @@ def render_mesh(mesh: trimesh.Trimesh, path: str | Path, points: np.ndarray | No
                 z = cam[ok, 2]
                 order = np.argsort(-z)  # far first, so the nearest write wins
                 pix, z, col = pix[order], z[order], rgb[ok][order]
-                closer = z < depth[pix]
-                depth[pix[closer]] = z[closer]
+                closer = z - bias < depth[pix]
+                depth[pix[closer]] = np.minimum(z[closer], depth[pix[closer]])
                 image[pix[closer]] = col[closer]
 
     if len(mesh.faces):
@@ -71,9 +77,10 @@ def render_mesh(mesh: trimesh.Trimesh, path: str | Path, points: np.ndarray | No
             t = np.clip(value / 0.5, 0, 1)[:, None]
             base = (1 - t) * base + t * np.array([70.0, 130.0, 230.0])
         splat(pts, base * shade[:, None], radius=2)
-    if points is not None and len(points):
-        p = np.asarray(points, float)
-        if len(p) > 200_000:
-            p = p[np.random.default_rng(seed).choice(len(p), 200_000, replace=False)]
-        splat(p, np.tile([245.0, 200.0, 40.0], (len(p), 1)), radius=1)
+    for cloud, rgb, bias in ((points, [245.0, 200.0, 40.0], 0.0), (marked, [220.0, 30.0, 30.0], MARK_BIAS)):
+        if cloud is not None and len(cloud):
+            p = np.asarray(cloud, float)
+            if len(p) > 200_000:
+                p = p[np.random.default_rng(seed).choice(len(p), 200_000, replace=False)]
+            splat(p, np.tile(rgb, (len(p), 1)), radius=1, bias=bias)
     Image.fromarray(image.reshape(h, w, 3).clip(0, 255).astype(np.uint8)).save(path)

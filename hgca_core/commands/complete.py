@@ -11,7 +11,11 @@ MESH_EXTS = (".ply", ".obj", ".glb", ".npz")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scans", nargs="+", help="scan files (ply, las/laz, pcd, xyz/csv, npy/npz, KITTI .bin, nuScenes .pcd.bin)")
+    from hgca_core.commands.read import add_frames_argument
+
+    p.add_argument("scans", nargs="+", help="scan files (ply, las/laz, pcd, xyz/csv, npy/npz, KITTI .bin, nuScenes "
+                                            ".pcd.bin, AV2 .feather) or one sequence folder (KITTI, AV2, nuScenes)")
+    add_frames_argument(p)
     p.add_argument("-o", "--out", required=True, help="output path; sample i goes to OUT_s<i>.ext (ply, obj, glb, npz)")
     p.add_argument("--poses", help="JSON with a sensor->world 4x4 pose per scan")
     p.add_argument("--format", dest="fmt", help="force the scan format instead of guessing from the extension")
@@ -99,8 +103,9 @@ def _run(args: argparse.Namespace, progress) -> list[Path]:
     check_outputs(paths, [*args.scans, args.poses, args.weights, args.fine_weights])
 
     from hgca_core.geometry.region import Region
-    from hgca_core.io import read_scans, write_mesh, write_mesh_npz
+    from hgca_core.io import write_mesh, write_mesh_npz
     from hgca_core.io.atomic import AtomicBatch
+    from hgca_core.io.sequence import read_inputs
     from hgca_core.pipeline import complete
 
     if args.device.startswith("cuda"):
@@ -113,7 +118,7 @@ def _run(args: argparse.Namespace, progress) -> list[Path]:
     load_models(args.stage, args.weights, args.fine_weights, args.device)   # bad weights fail before any work;
     # complete() gets the same models again from the cache
     progress("read", 0, 1, f"{len(args.scans)} scan(s)", 0)
-    scan = read_scans(args.scans, poses=args.poses, fmt=args.fmt)
+    scan = read_inputs(args.scans, poses=args.poses, fmt=args.fmt, frames=args.frames)
     progress("read", 1, 1, f"{len(scan.points)} points", 0)
     region = Region.parse(args.region) if args.region else None
     index = None

@@ -9,8 +9,12 @@ from typing import Any
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from hgca_core.commands.read import add_frames_argument
+
     p.add_argument("files", nargs="+", help="scan files (ply, las/laz/copc, pcd, xyz/csv/txt, npy/npz, "
-                                            "KITTI .bin, nuScenes .pcd.bin)")
+                                            "KITTI .bin, nuScenes .pcd.bin, AV2 .feather), or one sequence folder")
+    add_frames_argument(p)
+    p.add_argument("--poses", metavar="P", help="poses JSON replacing a sequence folder's own poses")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of text")
     p.add_argument("--format", dest="fmt", metavar="F",
                    help="force the format (ply, las, pcd, xyz, npy, npz, kitti, nuscenes) instead of the extension's")
@@ -36,6 +40,27 @@ def describe(path: str, fmt: str | None = None) -> dict[str, Any]:
     return info
 
 
+def describe_sequence(root: str, frames: str | None, poses: str | None) -> dict[str, Any]:
+    """Facts about the chosen frames of a sequence folder, accumulated with its poses."""
+    from hgca_core.io.read import read_scans
+    from hgca_core.io.sequence import open_sequence, parse_frames, select
+
+    seq = open_sequence(root, poses)
+    files, mats = select(seq, frames)
+    scan = read_scans(files, poses=mats, fmt=seq.fmt)
+    return {
+        "file": root,
+        "format": f"{seq.layout} sequence",
+        "frames_total": len(seq),
+        "frames": parse_frames(frames, len(seq), root),
+        "scans": files,
+        "points": len(scan),
+        "bounds": {"min": scan.points.min(axis=0).tolist(), "max": scan.points.max(axis=0).tolist()},
+        "attributes": {name: str(values.dtype) for name, values in scan.attributes.items()},
+        "origins": None if scan.origins is None else scan.origins.tolist(),
+    }
+
+
 def _text(info: dict[str, Any]) -> str:
     def fmt3(v: list[float]) -> str:
         return " ".join(f"{x:.3f}" for x in v)
@@ -43,6 +68,10 @@ def _text(info: dict[str, Any]) -> str:
     lines = [
         info["file"],
         f"  format:     {info['format']}",
+        *([f"  frames:     {len(info['frames'])} of {info['frames_total']} "
+           f"({info['frames'][0]} to {info['frames'][-1]}): "
+           + ", ".join(os.path.basename(f) for f in info["scans"][:3]) + (" ..." if len(info["scans"]) > 3 else "")]
+          if "frames" in info else []),
         f"  points:     {info['points']}",
         f"  bounds min: {fmt3(info['bounds']['min'])}",
         f"  bounds max: {fmt3(info['bounds']['max'])}",
@@ -64,7 +93,18 @@ def _text(info: dict[str, Any]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    infos = [describe(os.fspath(f), args.fmt) for f in args.files]
+    from hgca_core.errors import InputError
+    from hgca_core.io.sequence import is_sequence
+
+    files = [os.fspath(f) for f in args.files]
+    if is_sequence(files):
+        if args.fmt is not None:
+            raise InputError("--format applies to scan files, not to a sequence folder", files[0])
+        infos = [describe_sequence(files[0], args.frames, args.poses)]
+    elif args.frames is not None or args.poses is not None:
+        raise InputError("--frames and --poses need a sequence folder (KITTI, Argoverse 2 or nuScenes)")
+    else:
+        infos = [describe(f, args.fmt) for f in files]
     if args.json:
         json.dump({"files": infos}, sys.stdout, indent=2)
         sys.stdout.write("\n")

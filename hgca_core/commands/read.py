@@ -13,13 +13,21 @@ from hgca_core.errors import InputError
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scans", nargs="+", help="scan files (ply, las/laz/copc, pcd, xyz/csv/txt, npy/npz, "
-                                            "KITTI .bin, nuScenes .pcd.bin)")
+                                            "KITTI .bin, nuScenes .pcd.bin, AV2 .feather), or one sequence "
+                                            "folder (KITTI, Argoverse 2 log, nuScenes sweeps)")
+    add_frames_argument(p)
     p.add_argument("--poses", metavar="P",
                    help="JSON with a sensor->world 4x4 pose per scan (see docs/CONTRACTS.md)")
     p.add_argument("--format", dest="fmt", metavar="F",
                    help="force the format (ply, las, pcd, xyz, npy, npz, kitti, nuscenes) instead of the extension's")
     p.add_argument("-o", "--out", required=True, metavar="OUT.npz",
                    help="output .npz: points (N,3) f32 relative to offset (3,) f64, attributes, origins")
+
+
+def add_frames_argument(p: argparse.ArgumentParser) -> None:
+    """`--frames`, shared by read, info, complete and poses."""
+    p.add_argument("--frames", metavar="START:STOP[:STEP]",
+                   help="frames of a sequence folder, in time order (default: the 5 around the middle)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -29,12 +37,13 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("output must end in .npz", args.out)
     check_outputs([args.out], [*args.scans, args.poses])
 
-    from hgca_core.io import read_scans, write_points
+    from hgca_core.io import write_points
+    from hgca_core.io.sequence import read_inputs
     from hgca_core.io.writers import NPZ_RESERVED
 
-    scan = read_scans(args.scans, poses=args.poses, fmt=args.fmt)
+    scan = read_inputs(args.scans, poses=args.poses, fmt=args.fmt, frames=args.frames)
     attributes = {k: v for k, v in scan.attributes.items() if k not in NPZ_RESERVED}
     write_points(args.out, scan.points, attributes, origins=scan.origins)
-    print(f"{args.out}: {len(scan)} points from {len(args.scans)} scan(s), "
+    print(f"{args.out}: {len(scan)} points from {int(scan.attributes['scan_index'].max()) + 1} scan(s), "
           f"attributes: {', '.join(attributes) or 'none'}")
     return 0

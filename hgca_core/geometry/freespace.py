@@ -16,10 +16,10 @@ from __future__ import annotations
 import numpy as np
 
 from hgca_core.errors import InputError
-from hgca_core.geometry.voxel import COARSE, FINE, voxelize
+from hgca_core.geometry.voxel import COARSE, lower_corner, voxelize
 
 STOP_SHORT = 0.4      # metres before the hit where a ray stops proving emptiness
-SHIFT = FINE / 2      # 20 cm cell c spans [c * 0.2 - 0.05, c * 0.2 + 0.15)
+SHIFT = -lower_corner(COARSE)  # 20 cm cell c spans [c * 0.2 - 0.05, c * 0.2 + 0.15)
 CHUNK_EVENTS = 8_000_000  # crossings per chunk: bounds memory at a few hundred MB
 
 

@@ -8,7 +8,7 @@ import os
 
 from hgca_core.errors import InputError
 
-FORMATS = ("ply", "las", "pcd", "xyz", "npy", "npz", "kitti", "nuscenes")
+FORMATS = ("ply", "las", "pcd", "xyz", "npy", "npz", "kitti", "nuscenes", "av2")
 
 # Longest suffix first: ".pcd.bin" must win over ".bin".
 EXTENSIONS: tuple[tuple[str, str], ...] = (
@@ -24,11 +24,13 @@ EXTENSIONS: tuple[tuple[str, str], ...] = (
     (".npy", "npy"),
     (".npz", "npz"),
     (".bin", "kitti"),
+    (".feather", "av2"),
 )
 
 _LABELS = {
     "ply": "PLY", "las": "LAS/LAZ", "pcd": "PCD", "xyz": "XYZ/CSV text", "npy": "NumPy .npy",
     "npz": "NumPy .npz", "kitti": "KITTI .bin", "nuscenes": "nuScenes .pcd.bin",
+    "av2": "Argoverse 2 .feather",
 }
 
 
@@ -54,6 +56,8 @@ def sniff(head: bytes) -> str | None:
         return "las"
     if head.startswith(b"\x93NUMPY"):
         return "npy"
+    if head.startswith(b"ARROW1"):
+        return "av2"
     if head.startswith(b"PK\x03\x04") or head.startswith(b"PK\x05\x06"):
         return "npz"
     text = head.lstrip()

@@ -12,6 +12,7 @@ import numpy as np
 
 from hgca_core.errors import InputError
 from hgca_core.io.arrays import read_npy, read_npz
+from hgca_core.io.av2 import read_av2_sweep
 from hgca_core.io.formats import label, resolve_format
 from hgca_core.io.las import read_las
 from hgca_core.io.paths import check_readable
@@ -24,7 +25,7 @@ from hgca_core.io.text import read_xyz
 
 READERS: dict[str, Callable[[str], Scan]] = {
     "ply": read_ply, "las": read_las, "pcd": read_pcd, "xyz": read_xyz, "npy": read_npy, "npz": read_npz,
-    "kitti": read_kitti, "nuscenes": read_nuscenes,
+    "kitti": read_kitti, "nuscenes": read_nuscenes, "av2": read_av2_sweep,
 }
 
 
@@ -58,6 +59,13 @@ def _pose_list(poses: str | os.PathLike | Sequence, paths: list[str]) -> tuple[l
         names = ", ".join(os.path.basename(p) for p in paths[:5]) + (", ..." if len(paths) > 5 else "")
         raise InputError(f"{len(mats)} poses given for {len(paths)} scans ({names})")
     return [validate_pose(m, f"pose {i} (for {paths[i]})") for i, m in enumerate(mats)], [None] * len(mats)
+
+
+def _accumulated_origin_index(scans: list[Scan], origins: list[np.ndarray]) -> np.ndarray:
+    """Each point's row in the concatenated origins (a scan given one JSON origin points all at it)."""
+    start = np.cumsum([0] + [len(o) for o in origins[:-1]])
+    return np.concatenate([np.minimum(s.attributes["origin_index"].astype(np.int64), len(o) - 1) + first
+                           for s, o, first in zip(scans, origins, start)]).astype(np.uint16)
 
 
 def read_scans(paths: Sequence[str | os.PathLike], poses: str | os.PathLike | Sequence | None = None,
@@ -98,6 +106,10 @@ def read_scans(paths: Sequence[str | os.PathLike], poses: str | os.PathLike | Se
             origins.append(t[None].copy())
         any_origin = True
     attributes = {name: np.concatenate([s.attributes[name] for s in scans]) for name in sorted(common)}
+    if "origin_index" in attributes and len(origins) == len(scans):  # scan's own -> accumulated origin rows
+        attributes["origin_index"] = _accumulated_origin_index(scans, origins)
+    else:
+        attributes.pop("origin_index", None)
     attributes["scan_index"] = np.concatenate(
         [np.full(len(s), i, dtype=np.uint16) for i, s in enumerate(scans)])
     return Scan(

@@ -133,3 +133,40 @@ def test_attribute_conversion_keeps_types(addon) -> None:
     values = np.empty(100, dtype=np.int32)
     attributes["scan_index"].data.foreach_get("value", values)
     assert values.tolist() == (np.arange(100) % 3).tolist()
+
+
+AV2_LOG = FIXTURES / "av2" / "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
+
+
+def test_import_av2_sequence_folder(addon) -> None:
+    """A sequence folder goes through `hgca read FOLDER --frames`: both sweeps, placed with the log's poses."""
+    if not AV2_LOG.is_dir():
+        pytest.skip(f"real AV2 log missing: {AV2_LOG}")
+    from hgca_core.io.sequence import read_sequence  # the test (not the add-on) may use the core
+
+    want = read_sequence(AV2_LOG, "0:2")
+    before = snapshot()
+    assert bpy.ops.import_scene.hgca_lidar(directory=str(AV2_LOG) + "/", frames="0:2") == {"FINISHED"}
+    (obj,) = new_objects(before)
+    assert obj.name == f"{AV2_LOG.name} [0:2]"
+    assert len(obj.data.vertices) == len(want) == 99229 + 99466
+    # city coordinates (km): the scene's georeference origin takes them, float32 vertices stay good to a few mm
+    assert np.abs(np.array(bpy.context.scene["hgca_origin"])).max() > 1e3
+    np.testing.assert_allclose(world_vertices(obj), want.points, atol=0.01)
+    idx = np.empty(len(want), dtype=np.int32)
+    obj.data.attributes["scan_index"].data.foreach_get("value", idx)
+    assert np.bincount(idx).tolist() == [99229, 99466]
+
+
+def test_import_sequence_errors_add_nothing(addon, tmp_path: Path) -> None:
+    if not AV2_LOG.is_dir():
+        pytest.skip(f"real AV2 log missing: {AV2_LOG}")
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="selects no frame"):
+        bpy.ops.import_scene.hgca_lidar(directory=str(AV2_LOG) + "/", frames="5:9")
+    with pytest.raises(RuntimeError, match="not a known sequence layout"):
+        bpy.ops.import_scene.hgca_lidar(directory=str(tmp_path) + "/")
+    path = require_fixture(NUSCENES)
+    with pytest.raises(RuntimeError, match="frames apply to a sequence folder"):
+        bpy.ops.import_scene.hgca_lidar(filepath=str(path), frames="0:1")
+    assert snapshot() == before

@@ -23,7 +23,7 @@ def run_cli(monkeypatch, capsys, *argv: str) -> tuple[int, str, str]:
 
 
 def scan_files(real_dir: Path) -> list[Path]:
-    return sorted(p for p in real_dir.iterdir() if p.suffix != ".md")
+    return sorted(p for p in real_dir.iterdir() if p.is_file() and p.suffix != ".md")  # av2/ is a folder
 
 
 def expected_count(path: Path) -> int:

@@ -1,0 +1,155 @@
+"""`hgca eval-real`: score completions of real scans without ground truth, as a table with renderings.
+
+Measures (`hgca_core.metrics.realscan`): observed free space on the whole input, and height-cut
+extrapolation (input cut h metres above the estimated ground; recall of the real cells cut away, and
+generated cells above the cut in the full input's observed free space). Rows: the input itself, Open3D
+Poisson, GCA without planner, hGCA coarse and hGCA full, sampled k times where they sample. Completions go
+through the public `hgca_core.complete`, in the default region around the first sensor origin.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from hgca_core.real_eval import METHODS
+
+DEFAULT_REAL = "../shared/fixtures/real"
+AV2_7FAB = "av2/7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
+# The fixtures this project has: (name, path under --real-dir, frames, calibration for a log without one)
+DEFAULT_INPUTS = (
+    ("av2_7fab2350", AV2_7FAB, "0:2", None),
+    ("av2_adcf7d18", "av2/adcf7d18-0510-35b0-a2fa-b4cea13a6d76", None,
+     f"{AV2_7FAB}/calibration/egovehicle_SE3_sensor.feather"),
+    ("nuscenes_1532402927647951", "nuscenes_lidar_top_1532402927647951.pcd.bin", None, None),
+)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("inputs", nargs="*", help="scan files or sequence folders (default: every real fixture in "
+                                            "--real-dir: both AV2 logs and the nuScenes sweep)")
+    p.add_argument("--real-dir", default=DEFAULT_REAL, help="the real fixtures folder (for the default inputs)")
+    p.add_argument("--frames", metavar="START:STOP[:STEP]", help="frames of the sequence inputs given")
+    p.add_argument("--calibration", help="AV2 egovehicle_SE3_sensor table for logs given without one")
+    p.add_argument("--out", default="benchmarks/results/real_scans.json",
+                   help="results JSON; the table goes to .md beside it, renderings to <stem>_<input>*.png")
+    p.add_argument("--methods", default=",".join(METHODS), help=f"comma list of {', '.join(METHODS)}")
+    p.add_argument("--cuts", default="1.5,2.0", help="cut heights above the ground, metres")
+    p.add_argument("--full-cuts", default="2.0", help="cut heights where the full stage runs (it is slow)")
+    p.add_argument("--samples", type=int, default=3, help="k for the sampling rows")
+    p.add_argument("--full-samples", type=int, default=None, help="k for the full-stage rows (default --samples)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=1, help="torch / Open3D threads")
+    p.add_argument("--t1", type=int, default=None, help="coarse steps (default from the weights)")
+    p.add_argument("--t2", type=int, default=None, help="fine steps (default from the weights)")
+    p.add_argument("--weights", default=None, help="hGCA coarse weights (default: shipped)")
+    p.add_argument("--noplanner-weights", default=None, help="GCA weights without planner (default: shipped)")
+    p.add_argument("--fine-weights", default=None, help="fine weights (default: shipped)")
+    p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto")
+    p.add_argument("--no-render", action="store_true", help="skip the PNG renderings")
+    p.add_argument("--resume", action="store_true",
+                   help="keep the cases an earlier run with the same sampling settings wrote to --out (a later "
+                        "run may add cut levels)")
+
+
+def _floats(text: str, what: str) -> list[float]:
+    from hgca_core.errors import InputError
+
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise InputError(f"{what} must be comma-separated numbers, got {text!r}") from None
+
+
+def inputs_of(args: argparse.Namespace) -> list[dict]:
+    """(name, source, frames, calibration) of every input, checked to exist."""
+    from hgca_core.errors import InputError
+
+    if args.inputs:
+        return [{"name": Path(p.rstrip("/")).name.split(".")[0], "path": p, "frames": args.frames,
+                 "calibration": args.calibration} for p in args.inputs]
+    root = Path(args.real_dir)
+    if not root.is_dir():
+        raise InputError("real fixtures folder not found (give --real-dir or inputs)", str(root))
+    return [{"name": n, "path": str(root / p), "frames": f, "calibration": None if c is None else str(root / c)}
+            for n, p, f, c in DEFAULT_INPUTS]
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+    from tqdm import tqdm
+
+    from hgca_core.errors import InputError
+    from hgca_core.io.atomic import atomic_write
+
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    unknown = set(methods) - set(METHODS)
+    if unknown:
+        raise InputError(f"unknown methods {sorted(unknown)}; choose from {', '.join(METHODS)}")
+    cuts, full_cuts = _floats(args.cuts, "--cuts"), _floats(args.full_cuts, "--full-cuts")
+    if args.samples < 1 or (args.full_samples is not None and args.full_samples < 1):
+        raise InputError("--samples and --full-samples must be at least 1")
+    out = Path(args.out)
+    if not out.parent.is_dir():
+        raise InputError("output folder does not exist", str(out.parent))
+    torch.set_num_threads(max(1, args.threads))
+    from hgca_core.real_eval import WAYMO_NA, evaluate_input, format_tables
+
+    items = inputs_of(args)
+    config = {"methods": methods, "cuts": cuts, "full_cuts": full_cuts, "samples": args.samples,
+              "full_samples": args.full_samples or args.samples, "seed": args.seed, "threads": args.threads,
+              "t1": args.t1, "t2": args.t2, "precision": args.precision}
+    results = {"config": config, "inputs": {}, "waymo_protocol": {"applicable": False, "reason": WAYMO_NA}}
+    earlier = _earlier(out, config) if args.resume else {}
+    total = time.time() - float(earlier.get("total_seconds") or 0.0)
+
+    def save(name: str, partial: dict) -> None:
+        results["inputs"][name] = partial
+        results["total_seconds"] = time.time() - total
+        text = json.dumps(_finite(results), indent=1).encode()
+        atomic_write(out, lambda f: f.write(text))
+        md = format_tables(results).encode()
+        atomic_write(out.with_suffix(".md"), lambda f: f.write(md))
+
+    for item in tqdm(items, desc="eval-real", unit="input"):
+        name = item["name"]
+        res = evaluate_input(item, methods, cuts, full_cuts, args, out, render=not args.no_render,
+                             done=earlier.get("inputs", {}).get(name), saved=lambda r, n=name: save(n, r))
+        save(name, res)
+    print(format_tables(results))
+    return 0
+
+
+RESUME_KEYS = ("samples", "full_samples", "seed", "t1", "t2", "precision")  # must match to resume
+
+
+def _earlier(out: Path, config: dict) -> dict:
+    """An earlier run's results at `out` when its sampling settings equal `config`'s (cut levels and methods
+    may differ: cases are kept per cut level with the rows they have, so a later run can add levels), else an
+    InputError."""
+    from hgca_core.errors import InputError
+
+    if not out.is_file():
+        return {}
+    try:
+        old = json.loads(out.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read earlier results to resume ({exc.__class__.__name__})", str(out)) from None
+    want = json.loads(json.dumps({k: config[k] for k in RESUME_KEYS}))
+    have = {k: old.get("config", {}).get(k) for k in RESUME_KEYS}
+    if have != want:
+        raise InputError(f"earlier results were made with other settings ({have}); "
+                         "run without --resume or with the same settings", str(out))
+    return old
+
+
+def _finite(obj):
+    """JSON has no NaN: write null instead."""
+    if isinstance(obj, float):
+        return obj if obj == obj and abs(obj) != float("inf") else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj

@@ -1,0 +1,33 @@
+"""`hgca poses SEQUENCE -o poses.json [--frames A:B]`: a sequence folder's poses in our JSON, so the scan
+files of a KITTI sequence, an Argoverse 2 log or nuScenes sweeps can be read by every tool (and the add-on)
+with `--poses`, exactly as the folder itself places them."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+from hgca_core.errors import InputError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("sequence", help="sequence folder (KITTI velodyne/ + poses.txt + calib.txt, Argoverse 2 log, "
+                                    "nuScenes *.pcd.bin with poses.json)")
+    p.add_argument("--frames", metavar="START:STOP[:STEP]", help="frames to write (default: all)")
+    p.add_argument("-o", "--out", required=True, metavar="POSES.json", help="output JSON (docs/CONTRACTS.md)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from hgca_core.io.atomic import atomic_write
+    from hgca_core.io.sequence import open_sequence, poses_document
+
+    if os.path.splitext(args.out)[1].lower() != ".json":
+        raise InputError("output must end in .json", args.out)
+    out_dir = os.path.dirname(os.path.abspath(args.out))
+    if not os.path.isdir(out_dir):
+        raise InputError("output folder does not exist", out_dir)
+    doc = poses_document(open_sequence(args.sequence), args.frames, out_dir)
+    text = json.dumps(doc, indent=1).encode("utf-8")
+    atomic_write(args.out, lambda f: f.write(text))
+    print(f"{args.out}: poses of {len(doc['scans'])} {doc['layout']} scan(s)")
+    return 0

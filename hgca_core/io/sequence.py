@@ -1,0 +1,253 @@
+"""Driving sequences as input: a KITTI odometry / SemanticKITTI sequence, an Argoverse 2 sensor log, or a
+folder of nuScenes sweeps, read as the frames a user picks and accumulated with the sequence's own poses.
+
+Every layout is turned into (scan file, sensor->world pose) pairs and handed to `read_scans`, so a sequence
+gives exactly what the same files give with an equivalent poses JSON (`hgca poses` writes that JSON).
+Layouts:
+- KITTI: `velodyne/NNNNNN.bin`, `poses.txt` (one 3x4 camera-0 pose per line, line i for frame i) and
+  `calib.txt` (`Tr:` velodyne -> camera 0); scan i's pose is Tr^-1 . P_i . Tr. `labels/` is ignored.
+- AV2: `sensors/lidar/<timestamp_ns>.feather` with `city_SE3_egovehicle.feather` (see `hgca_core.io.av2`).
+- nuScenes: `*.pcd.bin` sweeps, with poses from `poses.json` in the folder (or `--poses`); a single sweep
+  needs none (it stays in its sensor frame).
+A poses JSON given explicitly (`--poses`) replaces the layout's own poses for any layout.
+"""
+from __future__ import annotations
+
+import glob
+import os
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from hgca_core.errors import InputError
+from hgca_core.io import av2
+from hgca_core.io.poses import load_poses, match_poses, validate_pose
+from hgca_core.io.scan import Scan
+
+DEFAULT_FRAMES = 5  # the paper accumulates 5 scans
+KITTI_NAME = re.compile(r"^(\d+)\.bin$")
+
+
+@dataclass(frozen=True)
+class Sequence:
+    """A sequence's frames in time order: scan files, float64 sensor->world poses, reader format."""
+
+    layout: str
+    root: str
+    files: tuple[str, ...]
+    poses: tuple[np.ndarray, ...] | None  # None: no poses needed (a single sweep) or given later
+    fmt: str
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+
+def parse_frames(spec: str | None, count: int, what: str = "sequence") -> list[int]:
+    """Frame indices of `START:STOP[:STEP]` (Python slice rules on the frames in time order); by default the
+    5 frames around the middle. An empty selection is an error, not a silent no-op."""
+    if count == 0:
+        raise InputError("sequence has no frames", what)
+    if spec is None:
+        start = max(0, (count - DEFAULT_FRAMES) // 2)
+        return list(range(start, min(count, start + DEFAULT_FRAMES)))
+    parts = spec.split(":")
+    try:
+        if len(parts) not in (2, 3):
+            raise ValueError
+        values = [int(p) if p.strip() else None for p in parts]
+    except ValueError:
+        raise InputError(f"--frames must be START:STOP[:STEP] (integers), got {spec!r}") from None
+    if len(values) == 3 and values[2] == 0:
+        raise InputError("--frames step must not be 0")
+    chosen = list(range(count))[slice(*values)]
+    if not chosen:
+        raise InputError(f"--frames {spec} selects no frame of the {count} in the sequence", what)
+    return chosen
+
+
+def detect_layout(root: str) -> str:
+    """kitti, av2 or nuscenes, from the folder's contents; anything else is an InputError listing the layouts."""
+    if os.path.isdir(os.path.join(root, "velodyne")):
+        return "kitti"
+    if os.path.isdir(os.path.join(root, "sensors", "lidar")):
+        return "av2"
+    if glob.glob(os.path.join(glob.escape(root), "*.pcd.bin")):
+        return "nuscenes"
+    raise InputError("folder is not a known sequence layout: expected velodyne/ (KITTI), sensors/lidar/ "
+                     "(Argoverse 2) or *.pcd.bin sweeps (nuScenes)", root)
+
+
+def _kitti_matrix(values: list[str], what: str, path: str) -> np.ndarray:
+    try:
+        nums = [float(v) for v in values]
+    except ValueError:
+        raise InputError(f"{what}: not 12 numbers", path) from None
+    if len(nums) != 12:
+        raise InputError(f"{what}: expected 12 numbers (a 3x4 matrix), got {len(nums)}", path)
+    m = np.eye(4)
+    m[:3] = np.asarray(nums, dtype=np.float64).reshape(3, 4)
+    return m
+
+
+def kitti_calibration(path: str) -> np.ndarray:
+    """Tr (velodyne -> camera 0) from calib.txt."""
+    if not os.path.isfile(path):
+        raise InputError("KITTI sequence has no calib.txt (needed for Tr, velodyne -> camera)", path)
+    with open(path, "r", encoding="utf-8", errors="replace") as f:
+        for line in f:
+            key, _, rest = line.partition(":")
+            if key.strip() == "Tr":
+                return validate_pose(_kitti_matrix(rest.split(), "Tr", path), "calib.txt Tr", path)
+    raise InputError("calib.txt has no 'Tr:' line (velodyne -> camera 0 transform)", path)
+
+
+def kitti_poses(path: str) -> list[np.ndarray]:
+    """Camera-0 poses P_i, one 3x4 per line."""
+    if not os.path.isfile(path):
+        raise InputError("KITTI sequence has no poses.txt (give a poses JSON with --poses instead)", path)
+    with open(path, "r", encoding="utf-8", errors="replace") as f:
+        lines = [ln.split() for ln in f if ln.strip()]
+    return [validate_pose(_kitti_matrix(v, f"line {i + 1}", path), f"line {i + 1}", path)
+            for i, v in enumerate(lines)]
+
+
+def _open_kitti(root: str) -> Sequence:
+    files = _files_only(root, "kitti")
+    if not files:
+        raise InputError("KITTI velodyne/ folder holds no NNNNNN.bin sweeps", os.path.join(root, "velodyne"))
+    tr = kitti_calibration(os.path.join(root, "calib.txt"))
+    poses_path = os.path.join(root, "poses.txt")
+    cams = kitti_poses(poses_path)
+    numbers = [int(os.path.basename(f)[:-4]) for f in files]
+    missing = [os.path.basename(f) for f, n in zip(files, numbers) if n >= len(cams)]
+    if missing:
+        raise InputError(f"no pose for {len(missing)} sweep(s) ({', '.join(missing[:3])}"
+                         f"{', ...' if len(missing) > 3 else ''}): poses.txt has {len(cams)} lines", poses_path)
+    tr_inv = np.linalg.inv(tr)
+    return Sequence("kitti", root, files, tuple(tr_inv @ cams[n] @ tr for n in numbers), "kitti")
+
+
+def _open_av2(root: str) -> Sequence:
+    files = _files_only(root, "av2")
+    if not files:
+        raise InputError("AV2 sensors/lidar/ folder holds no <timestamp_ns>.feather sweeps",
+                         os.path.join(root, "sensors", "lidar"))
+    return Sequence("av2", root, files, tuple(av2.ego_poses(root, [av2.sweep_timestamp(f) for f in files])), "av2")
+
+
+def _open_nuscenes(root: str) -> Sequence:
+    files = _files_only(root, "nuscenes")
+    own = os.path.join(root, "poses.json")
+    poses = None
+    if os.path.isfile(own):
+        poses = tuple(e.pose for e in match_poses(load_poses(own), list(files), own))
+    return Sequence("nuscenes", root, tuple(files), poses, "nuscenes")
+
+
+def open_sequence(root: str | os.PathLike, poses: str | os.PathLike | None = None) -> Sequence:
+    """The sequence in folder `root`; `poses` (our JSON) replaces the layout's own poses when given."""
+    root = os.fspath(root)
+    if not os.path.isdir(root):
+        raise InputError("sequence folder not found", root)
+    layout = detect_layout(root)
+    if poses is not None:
+        files = _files_only(root, layout)
+        pose_path = os.fspath(poses)
+        entries = match_poses(load_poses(pose_path), list(files), pose_path)
+        return Sequence(layout, root, files, tuple(e.pose for e in entries), _FORMAT[layout])
+    return {"kitti": _open_kitti, "av2": _open_av2, "nuscenes": _open_nuscenes}[layout](root)
+
+
+_FORMAT = {"kitti": "kitti", "av2": "av2", "nuscenes": "nuscenes"}
+
+
+def _files_only(root: str, layout: str) -> tuple[str, ...]:
+    """The layout's scan files in time order, without reading any pose table."""
+    if layout == "kitti":
+        velodyne = os.path.join(root, "velodyne")
+        named = sorted((int(n[:-4]), n) for n in os.listdir(velodyne) if KITTI_NAME.match(n))
+        return tuple(os.path.join(velodyne, n) for _, n in named)
+    if layout == "av2":
+        lidar = os.path.join(root, "sensors", "lidar")
+        return tuple(sorted((os.path.join(lidar, n) for n in os.listdir(lidar) if n.endswith(".feather")),
+                            key=av2.sweep_timestamp))
+    return tuple(sorted(glob.glob(os.path.join(glob.escape(root), "*.pcd.bin"))))
+
+
+def select(seq: Sequence, frames: str | None) -> tuple[list[str], list[np.ndarray] | None]:
+    """The chosen frames' files and poses; several frames without poses is an error (they would not line up)."""
+    idx = parse_frames(frames, len(seq), seq.root)
+    files = [seq.files[i] for i in idx]
+    if seq.poses is None:
+        if len(idx) > 1:
+            raise InputError(f"{len(idx)} {seq.layout} sweeps selected but the folder has no poses.json: give "
+                             "their poses with --poses, or select one sweep with --frames", seq.root)
+        return files, None
+    return files, [seq.poses[i] for i in idx]
+
+
+def read_sequence(root: str | os.PathLike, frames: str | None = None, poses: str | os.PathLike | None = None,
+                  calibration: str | os.PathLike | None = None) -> Scan:
+    """The chosen frames of a sequence accumulated in its world frame (float64), via `read_scans`.
+
+    `calibration` (AV2 only) is an egovehicle_SE3_sensor table to take the lidar origins from, for a log
+    that lacks its own (the av2-api test logs): without one such a log's origins are the ego origins."""
+    from hgca_core.io.read import read_scans
+
+    seq = open_sequence(root, poses)
+    files, mats = select(seq, frames)
+    scan = read_scans(files, poses=mats, fmt=seq.fmt)
+    if calibration is not None:
+        if seq.layout != "av2":
+            raise InputError(f"a lidar calibration applies to Argoverse 2 logs, not to a {seq.layout} sequence",
+                             os.fspath(calibration))
+        local = av2.lidar_origins(os.fspath(calibration))
+        scan.origins = np.concatenate([local @ m[:3, :3].T + m[:3, 3] for m in mats])
+        scan.attributes["origin_index"] = (scan.attributes["scan_index"].astype(np.int64) * len(local)
+                                           + scan.attributes["laser_number"] // 32).astype(np.uint16)
+    return scan
+
+
+def is_sequence(inputs: list[str]) -> bool:
+    """True when the inputs are one folder (a sequence); a folder among files is an error."""
+    dirs = [p for p in inputs if os.path.isdir(p)]
+    if dirs and len(inputs) > 1:
+        raise InputError(f"give one sequence folder or scan files, not both ({len(dirs)} folder(s) "
+                         f"among {len(inputs)} inputs)", dirs[0])
+    return bool(dirs)
+
+
+def read_inputs(inputs: list[str], poses: str | None = None, fmt: str | None = None,
+                frames: str | None = None) -> Scan:
+    """What `hgca read` and `hgca complete` read: one sequence folder (with --frames) or scan files."""
+    from hgca_core.io.read import read_scans
+
+    if is_sequence(inputs):
+        if fmt is not None:
+            raise InputError("--format applies to scan files, not to a sequence folder", inputs[0])
+        return read_sequence(inputs[0], frames, poses)
+    if frames is not None:
+        raise InputError("--frames needs a sequence folder (KITTI, Argoverse 2 or nuScenes), not scan files")
+    return read_scans(inputs, poses=poses, fmt=fmt)
+
+
+def poses_document(seq: Sequence, frames: str | None, out_dir: str) -> dict:
+    """Our poses JSON for the chosen frames; files relative to the JSON's folder when they can be."""
+    idx = list(range(len(seq))) if frames is None else parse_frames(frames, len(seq), seq.root)
+    if seq.poses is None:
+        if len(idx) > 1:
+            raise InputError(f"the {seq.layout} folder has no poses.json: its {len(idx)} sweeps have no poses "
+                             "to write", seq.root)
+        mats = [np.eye(4)]
+    else:
+        mats = [seq.poses[i] for i in idx]
+    scans = []
+    for i, m in zip(idx, mats):
+        path = os.path.abspath(seq.files[i])
+        try:
+            name = os.path.relpath(path, os.path.abspath(out_dir))
+        except ValueError:  # another drive (Windows)
+            name = path
+        scans.append({"file": name, "pose": np.asarray(m, dtype=np.float64).tolist()})
+    return {"layout": seq.layout, "sequence": os.path.abspath(seq.root), "scans": scans}

@@ -1,0 +1,157 @@
+"""`hgca eval-real`: the label-free scores on hand-made cells, and the command end to end on a small scene with
+small untrained weights (the real numbers come from benchmarks/results/real_scans.md)."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from hgca_testdata import tiny_sample
+from hgca_core.metrics.realscan import (cut_scores, free_space_scores, generated_cells, in_grid,
+                                        recall_within_one, summarise)
+
+SHAPE = (20, 20, 10)
+
+
+def test_recall_within_one_cell():
+    target = np.array([[5, 5, 5], [10, 10, 5]])
+    assert recall_within_one(target, np.array([[6, 6, 6]]), SHAPE) == 0.5   # diagonal neighbour counts
+    assert recall_within_one(target, np.array([[7, 5, 5]]), SHAPE) == 0.0   # two cells away does not
+    assert recall_within_one(target, np.array([[6, 4, 4], [10, 11, 4]]), SHAPE) == 1.0
+    assert np.isnan(recall_within_one(np.zeros((0, 3)), target, SHAPE))
+
+
+def test_generated_and_free_space_share():
+    empty = np.zeros(SHAPE, dtype=bool)
+    empty[:, :, 5:] = True
+    inp = np.array([[1, 1, 1], [2, 2, 6]])
+    cells = np.array([[1, 1, 1], [2, 2, 6], [3, 3, 6], [3, 3, 2], [4, 4, 7], [30, 0, 0]])
+    np.testing.assert_array_equal(generated_cells(cells, inp, SHAPE), [[3, 3, 6], [3, 3, 2], [4, 4, 7]])
+    s = free_space_scores(cells, inp, empty)
+    assert s["generated"] == 3 and s["in_empty"] == 2 and s["empty_share"] == pytest.approx(2 / 3)
+    assert np.isnan(free_space_scores(inp, inp, empty)["empty_share"])
+    np.testing.assert_array_equal(in_grid(np.array([[0, 0, 5], [0, 0, 4], [-1, 0, 5]]), empty), [1, 0, 0])
+
+
+def test_cut_scores_count_only_above_the_cut():
+    empty = np.zeros(SHAPE, dtype=bool)
+    empty[10:, :, :] = True
+    cut_inp = np.array([[5, 5, 2]])
+    away = np.array([[5, 5, 6], [5, 5, 7]])
+    # cell centres: z = (c + 0.25) * 0.2; the cut at 1.0 m keeps cells 5.. above
+    cells = np.array([[5, 5, 2], [5, 5, 4], [12, 5, 6], [5, 5, 6]])
+    s = cut_scores(cells, cut_inp, away, 1.0, empty)
+    assert s["recall"] == 1.0                            # (5,5,6) found, (5,5,7) next to it
+    assert s["generated_above"] == 2 and s["above_in_empty"] == 1 and s["above_empty_share"] == 0.5
+
+
+def test_summarise():
+    s = summarise([{"a": 0.2, "b": float("nan")}, {"a": 0.4, "b": float("nan")}, {"a": 0.3, "b": float("nan")}])
+    assert s["a"] == pytest.approx({"min": 0.2, "mean": 0.3, "max": 0.4, "spread": 0.2})
+    assert np.isnan(s["b"]["mean"])
+
+
+def _naive_recall(target: np.ndarray, found: np.ndarray) -> float:
+    found = {tuple(c) for c in found}
+    hit = [any((t[0] + dx, t[1] + dy, t[2] + dz) in found for dx in (-1, 0, 1) for dy in (-1, 0, 1)
+               for dz in (-1, 0, 1)) for t in target]
+    return float(np.mean(hit))
+
+
+def test_eval_real_command(tmp_path, small_weights):
+    s = tiny_sample(3)
+    scan = tmp_path / "street.npz"
+    offset = np.array([5000.0, 2000.0, 60.0])  # city-scale coordinates, as AV2 gives
+    np.savez(scan, points=s["input_points"].astype(np.float64) + offset, origins=[offset + [3.0, 3.0, 3.0]])
+    out = tmp_path / "res" / "real.json"
+    out.parent.mkdir()
+    cmd = [sys.executable, "-m", "hgca_core.cli", "eval-real", str(scan), "--out", str(out), "--methods",
+           "input,gca,hgca", "--samples", "2", "--weights", str(small_weights), "--noplanner-weights",
+           str(small_weights), "--t1", "2", "--cuts", "0.6,1.0", "--threads", "1"]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    doc = json.loads(out.read_text())
+    entry = doc["inputs"]["street"]
+    assert set(entry["cases"]) == {"full", "cut_0.6", "cut_1", }
+    assert doc["waymo_protocol"]["applicable"] is False
+    full = entry["cases"]["full"]["rows"]
+    assert set(full) == {"input", "gca", "hgca"} and full["gca"]["k"] == 2 and full["input"]["k"] == 1
+    assert full["input"]["per_sample"][0]["generated"] == 0
+    assert full["hgca"]["per_sample"][0]["generated"] > 0
+    cut = entry["cases"]["cut_0.6"]
+    assert cut["cut_away_cells"] > 20
+    # the input row's recall, recomputed here from the cells: cut-away cells next to a kept cell
+    from hgca_core.geometry.region import Region
+    from hgca_core.geometry.voxel import COARSE, voxelize
+
+    region = Region(np.array(entry["region"][:3]), np.array(entry["region"][3:6]))
+    local = region.to_local(s["input_points"].astype(np.float64) + offset)
+    low = local[:, 2] < 1.6
+    kept, away = voxelize(local[low], COARSE), voxelize(local[~low], COARSE)
+    away = away[~(away[:, None] == kept[None]).all(-1).any(1)]
+    assert len(away) == cut["cut_away_cells"]
+    assert cut["rows"]["input"]["per_sample"][0]["recall"] == pytest.approx(_naive_recall(away, kept))
+    md = out.with_suffix(".md").read_text()
+    assert "| street | 0.6 m | GCA (no planner) | 2 |" in md and "Waymo" in md
+    for png in ("real_street.png", "real_street_cut1.png"):
+        image = np.asarray(Image.open(out.parent / png))
+        assert (image < 250).any(axis=-1).mean() > 0.01  # something was drawn
+
+
+def _red_pixels(path: Path) -> int:
+    im = np.asarray(Image.open(path)).astype(int)
+    return int(((im[..., 0] > 200) & (im[..., 1] < 60) & (im[..., 2] < 60)).sum())
+
+
+def test_marked_points_show_on_a_surface_not_behind_it(tmp_path):
+    import trimesh
+
+    from hgca_core.render import render_mesh
+
+    plane = trimesh.Trimesh([[0, 0, 0], [4, 0, 0], [4, 4, 0], [0, 4, 0]], [[0, 1, 2], [0, 2, 3]])
+    grid = np.stack(np.meshgrid(np.linspace(1, 3, 40), np.linspace(1, 3, 40)), -1).reshape(-1, 2)
+    eye, target = np.array([2.0, -3.0, 6.0]), np.array([2.0, 2.0, 0.0])
+    for z, name in ((0.0, "on.png"), (-1.0, "behind.png")):
+        render_mesh(plane, tmp_path / name, marked=np.c_[grid, np.full(len(grid), z)], eye=eye, target=target,
+                    size=(300, 200))
+    assert _red_pixels(tmp_path / "on.png") > 200
+    assert _red_pixels(tmp_path / "behind.png") == 0
+
+
+def test_eval_real_missing_input(tmp_path):
+    res = subprocess.run([sys.executable, "-m", "hgca_core.cli", "eval-real", str(tmp_path / "none.ply"),
+                          "--out", str(tmp_path / "r.json"), "--methods", "input"],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2 and "file not found" in res.stderr and not (tmp_path / "r.json").exists()
+
+
+def test_resume_keeps_cases_only_in_the_same_region(tmp_path):
+    s = tiny_sample(4)
+    scan = tmp_path / "street.npz"
+    np.savez(scan, points=s["input_points"].astype(np.float64), origins=[[3.0, 3.0, 3.0]])
+    out = tmp_path / "r.json"
+    base = [sys.executable, "-m", "hgca_core.cli", "eval-real", str(scan), "--out", str(out), "--methods", "input",
+            "--samples", "1", "--no-render"]
+    run = lambda *extra: subprocess.run(base + list(extra), capture_output=True, text=True, timeout=300)  # noqa: E731
+    assert run("--cuts", "1.0").returncode == 0
+    doc = json.loads(out.read_text())
+    doc["inputs"]["street"]["cases"]["cut_1"]["points"] = -1  # a marker: kept cases keep it
+    out.write_text(json.dumps(doc))
+    res = run("--cuts", "1.0,0.5", "--resume")
+    assert res.returncode == 0, res.stderr
+    cases = json.loads(out.read_text())["inputs"]["street"]["cases"]
+    assert cases["cut_1"]["points"] == -1 and cases["cut_0.5"]["points"] > 0
+    doc = json.loads(out.read_text())
+    doc["inputs"]["street"]["region"][2] += 0.1  # as if older code had placed the box elsewhere
+    out.write_text(json.dumps(doc))
+    res = run("--cuts", "1.0,0.5", "--resume")
+    assert res.returncode == 0 and "region differs" in res.stderr
+    assert json.loads(out.read_text())["inputs"]["street"]["cases"]["cut_1"]["points"] > 0
+    # other sampling settings cannot be resumed
+    res = run("--cuts", "1.0", "--resume", "--seed", "1")
+    assert res.returncode == 2 and "other settings" in res.stderr
