@@ -74,6 +74,10 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
         raise InputError(f"samples must be at least 1, got {samples}")
     if workers < 1:
         raise InputError(f"workers must be at least 1, got {workers}")
+    if workers > 1 or address:
+        from hgca_core.tiling.runners import require_ray
+
+        require_ray()
     store = DriveStore(out)
     ext = "." + mesh_format
     _check_outputs(paths, poses, store)
@@ -147,6 +151,7 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     try:
         if pending:
             runner = _runner(workers, threads, address, memory_need(regions[0]))
+            doc["timings"]["engine_start_s"] = round(time.perf_counter() - t_tiles, 3)
             runner.run(pending, points, on_result)
     except BaseException as exc:
         doc["status"] = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"

@@ -57,6 +57,16 @@ def tile_task(job: TileJob, n_scans: int, *inputs) -> tuple[dict, NeighbourCells
     return result, (job.region, cells_of(result))
 
 
+def require_ray():
+    """The ray module, or an InputError saying how to get it (checked before a drive writes anything)."""
+    try:
+        import ray
+    except ImportError:
+        raise InputError("Ray is not installed: `pip install 'hgca[ray]'`, or run with --workers 1 "
+                         "(the same plan in this process)") from None
+    return ray
+
+
 class RayRunner:
     """Tiles as Ray tasks with their memory declared (so a node never takes more tiles than fit), on a Ray
     started in this process (`workers` CPUs' worth of tiles at `threads` torch threads each) or on the cluster
@@ -65,12 +75,7 @@ class RayRunner:
     name = "ray"
 
     def __init__(self, workers: int, threads: int, memory: float, address: str | None = None) -> None:
-        try:
-            import ray
-        except ImportError:
-            raise InputError("Ray is not installed: `pip install 'hgca[ray]'`, or run with --workers 1 "
-                             "(the same plan in this process)") from None
-        self.ray = ray
+        self.ray = ray = require_ray()
         self.threads = threads
         self.memory = memory
         self.started = False

@@ -124,11 +124,11 @@ def test_georeferenced_drive_is_the_same_drive_moved(drive_weights, tmp_path):
     assert np.array_equal(fa, fb) and np.abs(va - vb).max() < 1e-4   # file coordinates relative to the origin
 
 
-def _cli(*args, **kw):
+def _cli(*args):
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(hgca_core.__file__).parents[1]),
-                                                         os.environ.get("PYTHONPATH", "")])}
+                                                                os.environ.get("PYTHONPATH", "")])}
     return subprocess.Popen([sys.executable, "-m", "hgca_core.cli", "drive", *map(str, args)], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def done_tiles(out: Path) -> int:
@@ -201,7 +201,25 @@ def test_ray_two_workers_survive_a_killed_worker(finished, flat_drive, drive_wei
         assert (out / f"drive_s{k}.ply").read_bytes() == (local_out / f"drive_s{k}.ply").read_bytes()
 
 
-def test_bad_input_is_one_clear_error_and_writes_nothing(flat_drive, drive_weights, tmp_path):
+def test_without_ray_one_worker_runs_in_process_and_more_say_what_is_missing(drive_weights, tmp_path, capsys,
+                                                                            monkeypatch):
+    from hgca_core.cli import main
+
+    monkeypatch.setitem(sys.modules, "ray", None)          # `import ray` raises ImportError, as if not installed
+    scans, poses = write_drive(tmp_path / "scans", length=8.0)
+    common = ["drive", *map(str, scans), "--poses", str(poses), "--weights", str(drive_weights), *CLI_SMALL,
+              "--progress", "jsonl"]
+    assert main([*common, "--out", str(tmp_path / "one")]) == 0
+    assert json.loads(capsys.readouterr().out.splitlines()[-1])["stage"] == "done"
+    assert json.loads((tmp_path / "one" / "drive.json").read_text())["engine"] == "local"
+    assert main([*common, "--out", str(tmp_path / "two"), "--workers", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "Ray is not installed" in err and "hgca[ray]" in err and not (tmp_path / "two").exists()
+
+
+def test_bad_input_is_one_clear_error_and_writes_nothing(flat_drive, drive_weights, tmp_path, capsys):
+    from hgca_core.cli import main
+
     scans, poses = flat_drive
     bare = tmp_path / "bare.npz"
     np.savez(bare, points=np.random.default_rng(0).normal(size=(100, 3)))
@@ -211,8 +229,9 @@ def test_bad_input_is_one_clear_error_and_writes_nothing(flat_drive, drive_weigh
     (tmp_path / "file").write_text("x")
     cases.append(([*scans, "--poses", poses, "--out", tmp_path / "file"], "not a folder"))
     for args, message in cases:
-        proc = _cli(*args, "--weights", drive_weights, "--stage", "coarse", "--progress", "jsonl")
-        out, err = proc.communicate(timeout=120)
-        assert proc.returncode == 2 and message in err and "Traceback" not in err, err
+        rc = main(["drive", *map(str, args), "--weights", str(drive_weights), "--stage", "coarse",
+                   "--progress", "jsonl"])
+        out, err = capsys.readouterr()
+        assert rc == 2 and message in err and "Traceback" not in err, err
         assert json.loads(out.splitlines()[-1])["stage"] == "error"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bare.npz", "file"]
