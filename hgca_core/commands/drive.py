@@ -36,6 +36,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="tiles at once; more than 1 starts a local Ray in this process (needs hgca[ray])")
     p.add_argument("--address", default=None, help="run on an existing Ray cluster (ray://host:port)")
     p.add_argument("--threads", type=int, default=None, help="torch threads per tile (default: cores / workers)")
+    p.add_argument("--tile-memory", type=float, default=None, metavar="GIB",
+                   help="memory each tile declares to Ray (default: estimated from the tile's area)")
     p.add_argument("--mesh-format", choices=("ply", "glb", "obj", "npz"), default="ply", help="tile and drive meshes")
     p.add_argument("--progress", choices=("bar", "jsonl", "none"), default="bar")
 
@@ -63,8 +65,9 @@ def run(args: argparse.Namespace) -> int:
                     scans_per_tile=args.scans_per_tile, samples=args.samples, seed=args.seed, stage=args.stage,
                     t1=args.t1, t2=args.t2, weights=args.weights, fine_weights=args.fine_weights,
                     precision=args.precision, max_faces=args.max_faces, device=args.device, workers=args.workers,
-                    address=args.address, threads=args.threads, seams=args.seams, mesh_format=args.mesh_format,
-                    report=lambda stage, step, total, msg: progress(stage, step, total, msg), on_tile=on_tile)
+                    address=args.address, threads=args.threads,
+                    tile_memory=args.tile_memory * 2**30 if args.tile_memory else None, seams=args.seams, mesh_format=args.mesh_format,
+                    report=progress, on_tile=on_tile)
     except Exception as exc:
         progress.error(str(exc))
         raise

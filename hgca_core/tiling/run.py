@@ -25,7 +25,7 @@ from hgca_core.tiling.store import DriveStore
 from hgca_core.tiling.tile import Settings, TileJob, cells_of, file_digest, points_digest, weight_files
 
 MESH_FORMATS = ("ply", "glb", "obj", "npz")
-Report = Callable[[str, int, int, str], None]   # (stage, step, total, message)
+Report = Callable[[str, int, int, str, int], None]   # (stage, step, total, message, sample): pipeline.ProgressFn
 
 
 def read_drive_scans(paths: Sequence[str | os.PathLike], poses: str | os.PathLike | None, fmt: str | None,
@@ -42,7 +42,7 @@ def read_drive_scans(paths: Sequence[str | os.PathLike], poses: str | os.PathLik
                              "(sensor->world per scan)", os.fspath(p))
         points.append(scan.points)
         positions.append(scan.origins.mean(axis=0))
-        report("read", i + 1, len(paths), os.path.basename(os.fspath(p)))
+        report("read", i + 1, len(paths), os.path.basename(os.fspath(p)), 0)
     return points, np.array(positions)
 
 
@@ -51,14 +51,16 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
           scans_per_tile: int = 5, samples: int = 1, seed: int = 0, stage: str = "full", t1: int | None = None,
           t2: int | None = None, weights: str | None = None, fine_weights: str | None = None,
           precision: str = "auto", max_faces: int | None = None, device: str = "cpu", workers: int = 1,
-          address: str | None = None, threads: int | None = None, seams: bool = True, mesh_format: str = "ply",
+          address: str | None = None, threads: int | None = None, tile_memory: float | None = None,
+          seams: bool = True, mesh_format: str = "ply",
           report: Report | None = None, on_tile: Callable[[int, int, int], None] | None = None) -> dict:
     """Complete the drive seen by `scans` (in trajectory order) into DIR=`out`; returns drive.json's content.
 
     Tiles are `size` m squares (8 m high) along the sensor positions, `overlap` m apart; each is completed from
     its `scans_per_tile` nearest scans, sample k of tile i with seed + i * samples + k. With `seams`, odd tiles
     run second with their finished neighbours' coarse cells in their initial state. `workers` > 1 or an
-    `address` runs tiles on Ray. `report(stage, step, total, message)` hears of reading and merging;
+    `address` runs tiles on Ray, each declaring `tile_memory` bytes (default: `pipeline.memory_need` of a tile) so
+    no node takes more tiles at once than fit. `report(stage, step, total, message, sample)` hears of reading and merging;
     `on_tile(done, total, index)` of each finished tile (done counts resumed tiles too).
     """
     from hgca_core.pipeline import check_memory, load_models, memory_need
@@ -91,7 +93,9 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     plans = plan_tiles(positions, size, overlap, scans_per_tile)
     tile_size = (float(size), float(size), DEFAULT_SIZE[2])
     regions = [tile_region(t, np.concatenate([points[i] for i in t.scans]), tile_size) for t in plans]
-    check_memory(regions[0])
+    memory = tile_memory or memory_need(regions[0])
+    if workers == 1 and not address:
+        check_memory(regions[0])                                  # on Ray, each node is checked instead
     scan_digests = [points_digest(p) for p in points]
     jobs = _jobs(plans, regions, scan_digests, seed, samples, settings, digests, seams)
 
@@ -102,7 +106,7 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     origin = np.floor(positions[0])
     doc = {"status": "running", "runs": run_no, "pid": os.getpid(), "host": socket.gethostname(),
            "origin": origin.tolist(), "engine": "ray" if (workers > 1 or address) else "local",
-           "workers": workers, "threads": threads, "address": address,
+           "workers": workers, "threads": threads, "address": address, "tile_memory": memory,
            "settings": {**settings.keyed(), "weights": [str(p) for p in weight_files(stage, weights, fine_weights)],
                         "weights_sha256": list(digests), "device": device},
            "plan": {"size": list(tile_size), "overlap": overlap, "stride": size - overlap,
@@ -120,7 +124,8 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
                  "outputs": [str(store.tile_mesh(t.index, k, ext).relative_to(store.root)) for k in range(samples)]}
         if done:
             entry.update({k: v for k, v in old_tiles.get(job.key, {}).items() if k in ("seconds", "worker", "run",
-                                                                                     "peak_rss", "faces")})
+                                                                                     "peak_rss", "faces", "started",
+                                                                                     "finished", "fixed_cells")})
             entry.setdefault("run", None)
         doc["tiles"].append(entry)
     store.write_manifest(doc)
@@ -140,6 +145,7 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
         faces = _export_tile(store, result, Region.from_tuple(jobs[result["index"]].region), origin, ext)
         finished += 1
         doc["tiles"][result["index"]].update({"status": "done", "seconds": result["seconds"], "run": run_no,
+                                              "started": result["started"], "finished": result["finished"],
                                               "worker": result["worker"], "peak_rss": result["peak_rss"],
                                               "faces": faces,
                                               "fixed_cells": [s["fixed_cells"] for s in result["samples"]]})
@@ -150,7 +156,7 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     runner = None
     try:
         if pending:
-            runner = _runner(workers, threads, address, memory_need(regions[0]))
+            runner = _runner(workers, threads, address, memory)
             doc["timings"]["engine_start_s"] = round(time.perf_counter() - t_tiles, 3)
             runner.run(pending, points, on_result)
     except BaseException as exc:
@@ -221,13 +227,13 @@ def _merge(store: DriveStore, jobs: list[TileJob], regions: list[Region], origin
            ext: str, say: Report) -> list[str]:
     outputs = []
     for k in range(samples):
-        say("merge", k, samples, f"sample {k + 1}/{samples}")
-        tile_samples = [store.load(j.key)["samples"][k] for j in jobs]
+        say("merge", k, samples, f"sample {k + 1}/{samples}", k)
+        tile_samples = [store.load(j.key, only=k)["samples"][k] for j in jobs]
         piece = merge_sample(tile_samples, regions)
         path = store.drive_mesh(k, ext)
         write_piece(path, piece, origin)
         outputs.append(str(path))
-    say("merge", samples, samples, "")
+    say("merge", samples, samples, "", samples - 1)
     return outputs
 
 

@@ -67,16 +67,18 @@ class DriveStore:
         atomic_write(path, lambda f: np.savez(f, **arrays))
         return path
 
-    def load(self, key: str) -> dict:
-        """A finished tile's result, as `complete_tile` returned it."""
+    def load(self, key: str, only: int | None = None) -> dict:
+        """A finished tile's result, as `complete_tile` returned it; with `only`, the arrays of that sample alone
+        (the others' are None), so merging sample k does not hold every sample of every tile."""
         path = self.entry(key)
+        names = ("vertices", "faces", "observed_distance", "cells")
         try:
             with np.load(path, allow_pickle=False) as z:
                 meta = json.loads(str(z["meta"]))
                 samples = []
                 for k, s in enumerate(meta["samples"]):
-                    samples.append({**s, **{n: z[f"s{k}_{n}"] for n in
-                                            ("vertices", "faces", "observed_distance", "cells")}})
+                    wanted = only is None or k == only
+                    samples.append({**s, **{n: z[f"s{k}_{n}"] if wanted else None for n in names}})
         except (OSError, ValueError, KeyError) as exc:
             raise InputError(f"finished tile is unreadable ({exc}); delete it to recompute the tile", str(path)) \
                 from None

@@ -130,7 +130,7 @@ def complete_tile(job: TileJob, scans: list[np.ndarray], neighbour_cells: list[t
 
     from hgca_core.pipeline import complete_local, load_models
 
-    start = time.perf_counter()
+    start, started = time.perf_counter(), time.time()
     s = job.settings
     for path, want in zip(weight_files(s.stage, s.weights, s.fine_weights), job.weights):
         if file_digest(path) != want:
@@ -159,8 +159,8 @@ def complete_tile(job: TileJob, scans: list[np.ndarray], neighbour_cells: list[t
                         "fixed_cells": int(len(np.unique(fixed, axis=0)))})
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     return {"index": job.index, "key": job.key, "samples": samples, "points": int(len(local)),
-            "seconds": round(time.perf_counter() - start, 3), "worker": f"{socket.gethostname()}:{os.getpid()}",
-            "peak_rss": int(rss)}
+            "seconds": round(time.perf_counter() - start, 3), "started": started, "finished": time.time(),
+            "worker": f"{socket.gethostname()}:{os.getpid()}", "peak_rss": int(rss)}
 
 
 def _empty(seed: int, fixed: int) -> dict:
