@@ -83,7 +83,12 @@ class RayRunner:
             kwargs: dict = {"include_dashboard": False, "log_to_driver": False, "logging_level": logging.WARNING,
                             "configure_logging": True}
             if address:
-                ray.init(address=address, **kwargs)
+                try:
+                    ray.init(address=address, **kwargs)
+                except (ConnectionError, TimeoutError) as exc:
+                    raise InputError(f"cannot reach the Ray cluster at {address} ({exc}); a cluster with token "
+                                     "authentication (Ray's default) also needs RAY_AUTH_MODE=token and its token "
+                                     "(RAY_AUTH_TOKEN or ~/.ray/auth_token) here") from None
             else:
                 root = str(Path(__file__).resolve().parents[2])   # workers import this hgca_core, not another
                 path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p)
