@@ -30,27 +30,35 @@ def street_surface(length: float, slope: float, rng: np.random.Generator, densit
     return np.concatenate([ground, *walls, *boxes])
 
 
+def save_scans(folder: Path, scans_world: list[np.ndarray], poses: list[np.ndarray]) -> tuple[list[Path], Path]:
+    """Each scan (world points, float64) in its sensor frame as scan_<i>.npz, and poses.json (sensor->world)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    paths, entries = [], []
+    for i, (pts, pose) in enumerate(zip(scans_world, poses)):
+        pose = np.asarray(pose, dtype=np.float64)
+        path = folder / f"scan_{i:03d}.npz"
+        np.savez(path, points=(np.asarray(pts, dtype=np.float64) - pose[:3, 3]) @ pose[:3, :3])
+        paths.append(path)
+        entries.append({"file": path.name, "pose": pose.tolist()})
+    poses_path = folder / "poses.json"
+    poses_path.write_text(json.dumps({"scans": entries}))
+    return paths, poses_path
+
+
 def write_drive(folder: Path, length: float = 40.0, spacing: float = 4.0, slope: float = 0.0, seed: int = 0,
-                offset=(0.0, 0.0, 0.0), radius: float = 14.0,
-                weave: float = 0.3) -> tuple[list[Path], Path]:
+                offset=(0.0, 0.0, 0.0), radius: float = 14.0, weave: float = 0.3) -> tuple[list[Path], Path]:
     """Scans (npz, sensor frame) every `spacing` m along x from 0 to `length`, sensor 2 m above the ground, and
     the poses JSON; the path weaves `weave` m sideways; the whole drive is shifted by `offset` (float64, e.g.
     UTM-sized)."""
     rng = np.random.default_rng(seed)
     surface = street_surface(length, slope, rng)
-    folder.mkdir(parents=True, exist_ok=True)
     off = np.asarray(offset, dtype=np.float64)
-    paths, entries = [], []
-    for i, x in enumerate(np.arange(0.0, length + 1e-9, spacing)):
+    scans, poses = [], []
+    for x in np.arange(0.0, length + 1e-9, spacing):
         pos = np.array([x, weave * np.sin(x / 9.0), slope * x + 2.0])
         near = surface[np.linalg.norm(surface[:, :2] - pos[:2], axis=1) < radius]
-        pts = near - pos + rng.normal(0, 0.005, near.shape)
-        path = folder / f"scan_{i:03d}.npz"
-        np.savez(path, points=pts)
+        scans.append(near + rng.normal(0, 0.005, near.shape) + off)
         pose = np.eye(4)
         pose[:3, 3] = pos + off
-        paths.append(path)
-        entries.append({"file": path.name, "pose": pose.tolist()})
-    poses = folder / "poses.json"
-    poses.write_text(json.dumps({"scans": entries}))
-    return paths, poses
+        poses.append(pose)
+    return save_scans(folder, scans, poses)
