@@ -167,7 +167,7 @@ def plot(out: Path, path: Path, scores: dict) -> None:
     doc = json.loads((out / "drive.json").read_text())
     store = DriveStore(out)
     regions = [Region.from_tuple(t["region"]) for t in doc["tiles"]]
-    fig, ax = plt.subplots(2, 1, figsize=(14, 7.5), gridspec_kw={"height_ratios": [2.2, 1]})
+    fig, ax = plt.subplots(2, 1, figsize=(14, 6.0), gridspec_kw={"height_ratios": [1.4, 1]})
     cmap = plt.get_cmap("tab10")
     for i, (t, r) in enumerate(zip(doc["tiles"], regions)):
         c = store.load(t["key"], only=0)["samples"][0]["cells"].astype(np.int64)

@@ -89,15 +89,15 @@ def merge_sample(tile_samples: list[dict | None], regions: list[Region]) -> Piec
     return weld(pieces)
 
 
-def write_piece(path, piece: Piece, origin: np.ndarray) -> str:
-    """Write a world-frame piece relative to `origin` (float64 subtraction, then the writer's float32)."""
+def write_piece(path, piece: Piece) -> str:
+    """Write a world-frame piece; the writers keep georeferenced coordinates exact (float64 PLY x/y/z, an NPZ
+    `offset`, a GLB node translation: `hgca_core.io.georef`)."""
     import trimesh
 
     from hgca_core.io import write_mesh, write_mesh_npz
 
-    local = piece.vertices - np.asarray(origin, dtype=np.float64)
     if str(path).lower().endswith(".npz"):
-        return write_mesh_npz(path, local, piece.faces, piece.observed_distance)
-    mesh = trimesh.Trimesh(local, piece.faces, process=False)
+        return write_mesh_npz(path, piece.vertices, piece.faces, piece.observed_distance)
+    mesh = trimesh.Trimesh(piece.vertices, piece.faces, process=False)
     mesh.vertex_attributes["observed_distance"] = piece.observed_distance.astype(np.float32)
     return write_mesh(path, mesh)

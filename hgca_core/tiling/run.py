@@ -103,9 +103,8 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     previous = store.read_manifest() or {}
     run_no = int(previous.get("runs", 0)) + 1
     old_tiles = {t.get("key"): t for t in previous.get("tiles", []) if isinstance(t, dict)}
-    origin = np.floor(positions[0])
     doc = {"status": "running", "runs": run_no, "pid": os.getpid(), "host": socket.gethostname(),
-           "origin": origin.tolist(), "engine": "ray" if (workers > 1 or address) else "local",
+           "engine": "ray" if (workers > 1 or address) else "local",
            "workers": workers, "threads": threads, "address": address, "tile_memory": memory,
            "settings": {**settings.keyed(), "weights": [str(p) for p in weight_files(stage, weights, fine_weights)],
                         "weights_sha256": list(digests), "device": device},
@@ -133,7 +132,7 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     finished = sum(t["status"] == "done" for t in doc["tiles"])
     for t, job in zip(doc["tiles"], jobs):                         # a resumed run re-exports missing tile meshes
         if t["status"] == "done" and not all((store.root / o).is_file() for o in t["outputs"]):
-            _export_tile(store, store.load(job.key), Region.from_tuple(job.region), origin, ext)
+            _export_tile(store, store.load(job.key), regions, ext)
     if on_tile:
         on_tile(finished, len(jobs), -1)
     pending = _pending(jobs, doc["tiles"], store)
@@ -142,7 +141,7 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     def on_result(result: dict) -> None:
         nonlocal finished
         store.save(result)
-        faces = _export_tile(store, result, Region.from_tuple(jobs[result["index"]].region), origin, ext)
+        faces = _export_tile(store, result, regions, ext)
         finished += 1
         doc["tiles"][result["index"]].update({"status": "done", "seconds": result["seconds"], "run": run_no,
                                               "started": result["started"], "finished": result["finished"],
@@ -168,7 +167,7 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
         if runner is not None and hasattr(runner, "close"):
             runner.close()
     t_merge = time.perf_counter()
-    doc["outputs"] = _merge(store, jobs, regions, origin, samples, ext, say)
+    doc["outputs"] = _merge(store, jobs, regions, samples, ext, say)
     t_end = time.perf_counter()
     computed = [t for t in doc["tiles"] if t.get("run") == run_no]
     doc["timings"].update({"tiles_s": round(t_merge - t_tiles, 3), "merge_s": round(t_end - t_merge, 3),
@@ -212,26 +211,25 @@ def _runner(workers: int, threads: int, address: str | None, memory: float):
     return RayRunner(workers, threads, memory, address)
 
 
-def _export_tile(store: DriveStore, result: dict, region: Region, origin: np.ndarray, ext: str) -> list[int]:
-    """Write a finished tile's meshes (drive frame, uncut) to DIR/tiles/<i>_s<k>.ext; returns face counts."""
-    from hgca_core.tiling.merge import tile_piece
+def _export_tile(store: DriveStore, result: dict, regions: list[Region], ext: str) -> list[int]:
+    """Write a finished tile's meshes, each cut to the part the tile owns (so the tiles of a drive partition it),
+    to DIR/tiles/<i>_s<k>.ext; returns the uncut face counts."""
+    from hgca_core.tiling.merge import cut, tile_piece
 
-    faces = []
+    i = result["index"]
     for k, s in enumerate(result["samples"]):
-        write_piece(store.tile_mesh(result["index"], k, ext), tile_piece(s, region), origin)
-        faces.append(int(len(s["faces"])))
-    return faces
+        write_piece(store.tile_mesh(i, k, ext), cut(tile_piece(s, regions[i]), i, regions))
+    return [int(len(s["faces"])) for s in result["samples"]]
 
 
-def _merge(store: DriveStore, jobs: list[TileJob], regions: list[Region], origin: np.ndarray, samples: int,
-           ext: str, say: Report) -> list[str]:
+def _merge(store: DriveStore, jobs: list[TileJob], regions: list[Region], samples: int, ext: str,
+           say: Report) -> list[str]:
     outputs = []
     for k in range(samples):
         say("merge", k, samples, f"sample {k + 1}/{samples}", k)
         tile_samples = [store.load(j.key, only=k)["samples"][k] for j in jobs]
-        piece = merge_sample(tile_samples, regions)
         path = store.drive_mesh(k, ext)
-        write_piece(path, piece, origin)
+        write_piece(path, merge_sample(tile_samples, regions))
         outputs.append(str(path))
     say("merge", samples, samples, "", samples - 1)
     return outputs

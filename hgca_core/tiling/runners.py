@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -79,7 +81,9 @@ class RayRunner:
         self.threads = threads
         self.memory = memory
         self.started = False
+        self._previous: dict = {}
         if not ray.is_initialized():
+            before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
             kwargs: dict = {"include_dashboard": False, "log_to_driver": False, "logging_level": logging.WARNING,
                             "configure_logging": True}
             if address:
@@ -95,6 +99,7 @@ class RayRunner:
                 ray.init(num_cpus=workers * threads, object_store_memory=OBJECT_STORE_BYTES,
                          runtime_env={"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": str(threads)}}, **kwargs)
             self.started = True
+            self._take_signals(before)
         largest = max((n["Resources"].get("memory", 0.0) for n in ray.nodes() if n.get("Alive")), default=0.0)
         if largest < memory:
             self.close()
@@ -130,7 +135,30 @@ class RayRunner:
                 raise
             on_result(result)
 
+    def _take_signals(self, before: dict) -> None:
+        """ray.init replaces the SIGTERM handler with one that aborts the process (exit 134, a crash report):
+        take SIGINT and SIGTERM back, stop the Ray this process started, then do what was done `before` (the
+        CLI's one-line exit 130 / 143, or Python's KeyboardInterrupt / termination)."""
+        if threading.current_thread() is not threading.main_thread():
+            return
+        self._previous = before
+
+        def handler(signum: int, frame) -> None:
+            self.close()
+            previous = before.get(signum)
+            if callable(previous):
+                previous(signum, frame)
+            else:
+                signal.signal(signum, signal.SIG_DFL)
+                os.kill(os.getpid(), signum)
+
+        for sig in before:
+            signal.signal(sig, handler)
+
     def close(self) -> None:
         if self.started:
-            self.ray.shutdown()
             self.started = False
+            self.ray.shutdown()
+            if threading.current_thread() is threading.main_thread():
+                for sig, previous in self._previous.items():
+                    signal.signal(sig, previous if previous is not None else signal.SIG_DFL)

@@ -3,12 +3,11 @@
     DIR/cache/<key>.npz      one finished tile, all samples (written atomically, once: the commit record that
                              makes a tile finished; a re-run with the same inputs, weights, seed and settings
                              finds it and skips the tile)
-    DIR/tiles/<i>_s<k>.ply   tile i, sample k, in the drive frame (exported from the cache entry)
+    DIR/tiles/<i>_s<k>.ply   tile i, sample k: the part of it the tile owns (exported from the cache entry)
     DIR/drive_s<k>.ply       the merged drive, sample k
     DIR/drive.json           the plan, scans, tiles (regions, seeds, keys, status, timings, worker) and status
 
-Meshes are written relative to the drive's `origin` (float64, in drive.json), so that float32 file
-coordinates stay exact however far the drive is from the world origin.
+Meshes are in world coordinates; the writers keep georeferenced ones exact (`hgca_core.io.georef`).
 """
 from __future__ import annotations
 

@@ -22,9 +22,9 @@ import numpy as np
 
 from hgca_core.errors import InputError
 from hgca_core.geometry.region import Region
-from hgca_core.geometry.voxel import COARSE, FINE, cell_centers, voxelize
+from hgca_core.geometry.voxel import COARSE, cell_centers, voxelize
 
-KEY_VERSION = 1   # bump when the same key would give different content (a change to this algorithm)
+KEY_VERSION = 2   # bump when the same key would give different content (a change to this algorithm)
 
 
 @dataclass(frozen=True)
@@ -108,15 +108,15 @@ def points_digest(points: np.ndarray) -> str:
 
 
 def transfer_cells(cells: np.ndarray, source: Region, target: Region) -> np.ndarray:
-    """20 cm cells of `source`'s frame -> the 20 cm cells of `target`'s frame they fall in (only those inside
-    `target`'s grid, i.e. in the overlap). Each cell goes over as its eight 10 cm sub-cell centres, so a
-    yawed or shifted target grid still gets every cell the source's surface passes through."""
+    """20 cm cells of `source`'s frame -> the 20 cm cells of `target`'s frame their centres fall in (only those
+    inside `target`'s grid, i.e. in the overlap). One cell each: consecutive tiles' grids differ by a fraction of
+    a degree and millimetres of ground height, and mapping a cell's whole box instead thickens every surface by
+    a cell wherever the grids are offset (up to a third more cells on a synthetic drive), which the phase-two
+    tile then takes as observed."""
     c = np.asarray(cells, dtype=np.int64).reshape(-1, 3)
     if len(c) == 0:
         return np.zeros((0, 3), dtype=np.int64)
-    sub = (2 * c[:, None, :] + np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])).reshape(-1, 3)
-    world = source.to_world(cell_centers(sub, FINE))
-    return voxelize(target.to_local(world), COARSE, target.size)
+    return voxelize(target.to_local(source.to_world(cell_centers(c, COARSE))), COARSE, target.size)
 
 
 def complete_tile(job: TileJob, scans: list[np.ndarray], neighbour_cells: list[tuple[tuple, list[np.ndarray]]]
@@ -128,7 +128,7 @@ def complete_tile(job: TileJob, scans: list[np.ndarray], neighbour_cells: list[t
     import torch
     from scipy.spatial import cKDTree
 
-    from hgca_core.pipeline import complete_local, load_models
+    from hgca_core.pipeline import MIN_INPUT_CELLS, complete_local, load_models
 
     start, started = time.perf_counter(), time.time()
     s = job.settings
@@ -142,7 +142,8 @@ def complete_tile(job: TileJob, scans: list[np.ndarray], neighbour_cells: list[t
     local = region.to_local(points)
     local = local[region.contains_local(local)]
     models = load_models(s.stage, s.weights, s.fine_weights, s.device)
-    tree = cKDTree(local) if len(local) else None
+    # a tile that sees (almost) nothing gets no mesh, where `hgca complete` would refuse the region
+    tree = cKDTree(local) if len(voxelize(local, COARSE, region.size)) >= MIN_INPUT_CELLS else None
     samples = []
     for k in range(s.samples):
         fixed = [transfer_cells(cells[k], Region.from_tuple(reg), region) for reg, cells in neighbour_cells]
@@ -164,7 +165,7 @@ def complete_tile(job: TileJob, scans: list[np.ndarray], neighbour_cells: list[t
 
 
 def _empty(seed: int, fixed: int) -> dict:
-    """A tile whose box holds no input point: no mesh (its neighbours cover what can be covered)."""
+    """A tile whose box holds too few input points: no mesh (its neighbours cover what can be covered)."""
     return {"vertices": np.zeros((0, 3), np.float32), "faces": np.zeros((0, 3), np.int32),
             "observed_distance": np.zeros(0, np.float32), "cells": np.zeros((0, 3), np.int16), "seed": seed,
             "fixed_cells": fixed}

@@ -69,21 +69,28 @@ def test_every_tile_once_and_one_merged_mesh_per_sample(finished):
     assert len(s0[1]) > 1000 and not (len(s0[1]) == len(s1[1]) and np.array_equal(s0[0], s1[0])), "samples differ"
     xyz, faces, dist = s0
     assert len(dist) == len(xyz) and np.all(dist >= 0)
-    origin = np.array(doc["origin"])
-    world = xyz + origin
-    assert world[:, 0].min() > -6.5 - 1 and world[:, 0].max() < 46.5 + 1, "the drive frame is world - origin"
+    assert xyz[:, 0].min() > -6.5 - 1 and xyz[:, 0].max() < 46.5 + 1, "world coordinates"
 
 
 def test_merged_mesh_has_no_doubled_overlap(finished):
+    from hgca_core.geometry.region import Region
+    from hgca_core.tiling.merge import tile_piece
+    from hgca_core.tiling.store import DriveStore
+
     out, doc = finished
-    tile_meshes = [read_ply(out / "tiles" / f"{i}_s0.ply") for i in range(5)]
-    offsets = np.cumsum([0] + [len(m[0]) for m in tile_meshes])
-    union = (np.concatenate([m[0] for m in tile_meshes]),
-             np.concatenate([m[1] + o for m, o in zip(tile_meshes, offsets)]))
-    assert doubled_faces(*union) > 1000, "uncut tiles repeat their overlaps (so the check below can fail)"
+    store = DriveStore(out)
+    pieces = [tile_piece(store.load(t["key"])["samples"][0], Region.from_tuple(t["region"])) for t in doc["tiles"]]
+    offsets = np.cumsum([0] + [len(p.vertices) for p in pieces])
+    union = (np.concatenate([p.vertices for p in pieces]), np.concatenate([p.faces + o for p, o in zip(pieces, offsets)]))
+    assert doubled_faces(*union) > 1000, "uncut tiles repeat their overlaps (so the checks below can fail)"
     xyz, faces, _ = read_ply(out / "drive_s0.ply")
     assert doubled_faces(xyz, faces) == 0
     assert len(faces) < len(union[1]) - 1000
+    # the tile files are the parts each tile owns: together they are the merged mesh, nothing doubled
+    parts = [read_ply(out / "tiles" / f"{i}_s0.ply") for i in range(5)]
+    offsets = np.cumsum([0] + [len(m[0]) for m in parts])
+    tiled = (np.concatenate([m[0] for m in parts]), np.concatenate([m[1] + o for m, o in zip(parts, offsets)]))
+    assert doubled_faces(*tiled) == 0 and len(tiled[1]) == len(faces)
 
 
 def test_rerun_keeps_every_tile_and_a_new_seed_recomputes_all(finished, flat_drive, drive_weights, tmp_path):
@@ -116,12 +123,11 @@ def test_georeferenced_drive_is_the_same_drive_moved(drive_weights, tmp_path):
     far = write_drive(tmp_path / "far", length=16.0, slope=0.05, offset=offset)
     a = hgca_core.drive(near[0], tmp_path / "a", poses=near[1], weights=str(drive_weights), **SMALL)
     b = hgca_core.drive(far[0], tmp_path / "b", poses=far[1], weights=str(drive_weights), **SMALL)
-    assert np.array_equal(np.array(b["origin"]) - np.array(a["origin"]), offset)
     for ta, tb in zip(a["tiles"], b["tiles"]):
         assert np.allclose(np.array(tb["region"][:3]) - offset, ta["region"][:3], atol=1e-6)
     va, fa, _ = read_ply(a["outputs"][0])
-    vb, fb, _ = read_ply(b["outputs"][0])
-    assert np.array_equal(fa, fb) and np.abs(va - vb).max() < 1e-4   # file coordinates relative to the origin
+    vb, fb, _ = read_ply(b["outputs"][0])          # world coordinates, float64 in the file (io.georef)
+    assert np.array_equal(fa, fb) and np.abs(vb - offset - va).max() < 1e-4
 
 
 def _cli(*args):
@@ -150,10 +156,9 @@ def test_resume_after_being_killed_halfway(tmp_path, drive_weights, sig):
     proc.send_signal(sig)
     proc.communicate(timeout=60)
     first = json.loads((out / "drive.json").read_text())
-    if sig == signal.SIGKILL:       # nothing ran after the kill: drive.json is the last one a tile wrote
-        assert proc.returncode == -signal.SIGKILL and first["status"] == "running"
-    else:                           # Ctrl-C: the tile in flight is dropped, drive.json says so
-        assert proc.returncode == 130 and first["status"] == "interrupted"
+    # nothing runs after the kill, and the CLI ends at once on Ctrl-C (hgca_core.interrupt): drive.json is the one
+    # the last finished tile wrote
+    assert proc.returncode == (-signal.SIGKILL if sig == signal.SIGKILL else 130) and first["status"] == "running"
     kept = {t["key"]: (out / "cache" / f"{t['key']}.npz").stat().st_mtime_ns
             for t in first["tiles"] if t["status"] == "done"}
     n = len(first["tiles"])
@@ -199,6 +204,29 @@ def test_ray_two_workers_survive_a_killed_worker(finished, flat_drive, drive_wei
     assert str(killed) not in {t["worker"].split(":")[-1] for t in doc["tiles"]}, "the killed worker finished nothing"
     for k in (0, 1):
         assert (out / f"drive_s{k}.ply").read_bytes() == (local_out / f"drive_s{k}.ply").read_bytes()
+
+
+def test_sigterm_on_ray_stops_ray_and_exits_143(flat_drive, drive_weights, tmp_path):
+    """ray.init puts an aborting SIGTERM handler in place (exit 134 and a crash report); the drive takes the
+    signal back, stops its Ray and leaves the CLI's one line and exit status."""
+    pytest.importorskip("ray")
+    import psutil
+
+    start = time.time()
+    scans, poses = flat_drive
+    proc = _cli(*scans, "--poses", poses, "--out", tmp_path / "d", "--weights", drive_weights, *CLI_SMALL,
+                "--workers", 2, "--progress", "none")
+    deadline = time.time() + 240
+    while proc.poll() is None and time.time() < deadline and not any(
+            "ray::tile_task" in " ".join(p.info["cmdline"] or []) for p in psutil.process_iter(["cmdline"])):
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143 and "hgca drive: terminated (SIGTERM)" in err, err[-2000:]
+    time.sleep(2)
+    left = [p for p in psutil.process_iter(["name", "cmdline", "create_time"]) if p.info["create_time"] >= start
+            and any(n in " ".join(p.info["cmdline"] or []) for n in ("raylet", "gcs_server", "ray::"))]
+    assert not left, [" ".join(p.info["cmdline"])[:80] for p in left]
 
 
 def test_without_ray_one_worker_runs_in_process_and_more_say_what_is_missing(drive_weights, tmp_path, capsys,
