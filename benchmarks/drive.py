@@ -2,8 +2,9 @@
 
     .venv/bin/python benchmarks/drive.py [--stage coarse|full] [--work DIR] [--spacing 8]
 
-Two seeded city scenes (`hgca_core.synth.scene`, 120 m each) side by side make a street of 240 m; a sensor
-drives 232 m along it and scans every `--spacing` m (WAYMO64, the paper's noise). Then, each as the CLI in its
+Two seeded straight city scenes (`hgca_core.synth.scene`, 120 m each) one after the other make a street of
+240 m; the ego vehicle drives ~230 m along it and scans every `--spacing` m (the Waymo profile, the paper's
+noise). Then, each as the CLI in its
 own process: `hgca drive` on 1 worker (in-process), on 2 local Ray workers, and without neighbour
 conditioning (`--no-seams`, phase-one tiles taken from the 1-worker run's cache: they are the same tiles).
 Measured: wall time, tiles per minute, peak RSS of the driver and of each worker, and seam quality: IoU of the
@@ -37,58 +38,75 @@ from hgca_core.hardware import machine  # noqa: E402
 from hgca_core.tiling.plan import footprint_contains, owned  # noqa: E402
 from hgca_core.tiling.store import DriveStore  # noqa: E402
 
-SEEDS = (4_000_000, 4_000_001)
-SCENE = 120.0
+SEEDS = (4_000_011, 4_000_010)   # two straight city streets (flat; a 0.9 % grade), both driven towards +x
+SCENE = 120.0                    # the layout square of a scene; the second goes 120 m further along x
 WRAP = ("import resource, sys; from hgca_core.cli import main; rc = main(sys.argv[1:]); "
         "print('MAXRSS', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr); sys.exit(rc)")
 
 
-def scenes():
-    """The two scenes, the second moved +120 m along x (the street continues)."""
+def scenes() -> list[tuple]:
+    """(scene, shift): the second scene moved so that its drive starts where the first one's ends (x + 120 m,
+    the road heights matched)."""
     from hgca_core.synth.scene import make_scene
 
-    return [(make_scene(s, "city"), np.array([i * SCENE, 0.0, 0.0])) for i, s in enumerate(SEEDS)]
+    a, b = (make_scene(s, "city") for s in SEEDS)
+    shift = np.array([SCENE, *(a.drive[-1, 1:] - b.drive[0, 1:])])
+    shift[1] = 0.0
+    return [(a, np.zeros(3)), (b, shift)]
+
+
+def _side(x: np.ndarray, k: int) -> np.ndarray:
+    """Which world x belong to scene k of the stitched street (the first up to x = 60 m, the second beyond)."""
+    return x < SCENE / 2 if k == 0 else x >= SCENE / 2
 
 
 def build_drive(folder: Path, spacing: float, seed: int = 0) -> tuple[list[Path], Path, float]:
+    """The stitched street scanned by the paper's sensor (WAYMO64 geometry, the paper's noise) every `spacing` m."""
     import trimesh
 
-    from hgca_core.synth.lidar import WAYMO64, cast, make_intersector
+    from hgca_core.geometry.raycast import make_intersector
+    from hgca_core.synth.dataset import Drive
+    from hgca_core.synth.lidar import PAPER_EFFECTS, PROFILES, Unit, scan
 
-    parts = []
-    for scene, shift in scenes():
+    meshes, materials, drive, up = [], [], [], []
+    for k, (scene, shift) in enumerate(scenes_cached()):
         m = scene.mesh.copy()
         m.apply_translation(shift)
-        parts.append(m)
-    inter = make_intersector(trimesh.util.concatenate(parts))
+        keep = _side(m.triangles_center[:, 0], k)          # each scene's ground reaches past the join: cut it
+        m.update_faces(keep)
+        meshes.append(m)
+        materials.append(np.asarray(scene.face_materials)[keep])
+        drive.append(scene.drive + shift)
+        up.append(scene.drive_up)
+    inter = make_intersector(trimesh.util.concatenate(meshes))
+    path = Drive(np.concatenate(drive), np.concatenate(up))
     rng = np.random.default_rng(seed)
-    xs = np.arange(-SCENE / 2 + 4.0, SCENE * 1.5 - 4.0 + 1e-9, spacing)
-    scans, poses = [], []
-    for x in xs:
-        pose = np.eye(4)
-        pose[:3, 3] = [x, -1.7 + 0.2 * np.sin(x / 30.0), 2.0]
-        scans.append(cast(inter, pose, WAYMO64, rng, 0.01, 0.02))
-        poses.append(pose)
-    paths, poses_path = save_scans(folder, scans, poses)
-    return paths, poses_path, float(xs[-1] - xs[0])
+    unit = Unit.draw(PROFILES["waymo"], rng, PAPER_EFFECTS)
+    arcs = np.arange(2.0, path.length - 2.0 + 1e-9, spacing)
+    scans = [scan(inter, np.concatenate(materials), path.pose(a), unit, rng, PAPER_EFFECTS) for a in arcs]
+    paths, poses_path = save_scans(folder, [sc.points for sc in scans], [sc.pose for sc in scans])
+    return paths, poses_path, float(arcs[-1] - arcs[0])
 
 
 def ground_truth(region: Region, density: float = 400.0) -> np.ndarray:
-    """20 cm cells (region frame) of the scenes' surface a complete scan could see (`synth.groundtruth`)."""
+    """20 cm cells (region frame) of the street's surface a complete scan could see (`synth.groundtruth`), each
+    scene's on its side of the join."""
     from hgca_core.synth.groundtruth import RegionSurface
 
     cells = []
     for k, (scene, shift) in enumerate(scenes_cached()):
         moved = Region(region.center - shift, region.size, region.yaw)    # same frame, scene coordinates
-        surf = RegionSurface(scene.mesh, scene.face_labels, scene.solids, moved, np.random.default_rng(k), density)
-        cells.append(surf.occupancy()[1])
+        surf = RegionSurface(scene.mesh, scene.face_labels, scene.solids, moved, np.random.default_rng(k), density,
+                             terrain=scene.terrain, ground_faces=scene.ground_faces)
+        occ = surf.occupancy()[1].astype(np.int64)
+        cells.append(occ[_side(region.to_world(cell_centers(occ, COARSE))[:, 0], k)])
     return np.unique(np.concatenate(cells), axis=0)
 
 
 _SCENES: list = []
 
 
-def scenes_cached():
+def scenes_cached() -> list[tuple]:
     if not _SCENES:
         _SCENES.extend(scenes())
     return _SCENES
