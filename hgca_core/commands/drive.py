@@ -66,7 +66,8 @@ def run(args: argparse.Namespace) -> int:
                     t1=args.t1, t2=args.t2, weights=args.weights, fine_weights=args.fine_weights,
                     precision=args.precision, max_faces=args.max_faces, device=args.device, workers=args.workers,
                     address=args.address, threads=args.threads,
-                    tile_memory=args.tile_memory * 2**30 if args.tile_memory else None, seams=args.seams, mesh_format=args.mesh_format,
+                    tile_memory=args.tile_memory * 2**30 if args.tile_memory else None, seams=args.seams,
+                    mesh_format=args.mesh_format,
                     report=progress, on_tile=on_tile)
     except Exception as exc:
         progress.error(str(exc))

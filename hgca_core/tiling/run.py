@@ -60,7 +60,8 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     its `scans_per_tile` nearest scans, sample k of tile i with seed + i * samples + k. With `seams`, odd tiles
     run second with their finished neighbours' coarse cells in their initial state. `workers` > 1 or an
     `address` runs tiles on Ray, each declaring `tile_memory` bytes (default: `pipeline.memory_need` of a tile) so
-    no node takes more tiles at once than fit. `report(stage, step, total, message, sample)` hears of reading and merging;
+    no node takes more tiles at once than fit. `report(stage, step, total, message, sample)` hears of reading and
+    merging;
     `on_tile(done, total, index)` of each finished tile (done counts resumed tiles too).
     """
     from hgca_core.pipeline import check_memory, load_models, memory_need

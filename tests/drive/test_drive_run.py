@@ -57,7 +57,8 @@ def test_every_tile_once_and_one_merged_mesh_per_sample(finished):
     assert [t["index"] for t in tiles] == list(range(5)) and all(t["status"] == "done" for t in tiles)
     assert all(t["run"] == 1 for t in tiles) and doc["timings"]["tiles_computed"] == 5
     assert len(list((out / "cache").glob("*.npz"))) == 5 == len({t["key"] for t in tiles})
-    assert sorted(p.name for p in (out / "tiles").iterdir()) == sorted(f"{i}_s{k}.ply" for i in range(5) for k in (0, 1))
+    names = sorted(f"{i}_s{k}.ply" for i in range(5) for k in (0, 1))
+    assert sorted(p.name for p in (out / "tiles").iterdir()) == names
     assert [t["seeds"] for t in tiles] == [[3 + 2 * i, 4 + 2 * i] for i in range(5)]
     # phase two (odd tiles) started from their finished neighbours' cells; phase one from the input alone
     assert all((t["fixed_cells"][0] > 0) == (t["index"] % 2 == 1) for t in tiles)
@@ -81,7 +82,8 @@ def test_merged_mesh_has_no_doubled_overlap(finished):
     store = DriveStore(out)
     pieces = [tile_piece(store.load(t["key"])["samples"][0], Region.from_tuple(t["region"])) for t in doc["tiles"]]
     offsets = np.cumsum([0] + [len(p.vertices) for p in pieces])
-    union = (np.concatenate([p.vertices for p in pieces]), np.concatenate([p.faces + o for p, o in zip(pieces, offsets)]))
+    union = (np.concatenate([p.vertices for p in pieces]),
+             np.concatenate([p.faces + o for p, o in zip(pieces, offsets)]))
     assert doubled_faces(*union) > 1000, "uncut tiles repeat their overlaps (so the checks below can fail)"
     xyz, faces, _ = read_ply(out / "drive_s0.ply")
     assert doubled_faces(xyz, faces) == 0
