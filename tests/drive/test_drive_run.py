@@ -208,6 +208,28 @@ def test_ray_two_workers_survive_a_killed_worker(finished, flat_drive, drive_wei
         assert (out / f"drive_s{k}.ply").read_bytes() == (local_out / f"drive_s{k}.ply").read_bytes()
 
 
+def test_ctrl_c_in_a_library_call_marks_the_drive_interrupted(drive_weights, tmp_path, monkeypatch):
+    from hgca_core.tiling import runners
+
+    scans, poses = write_drive(tmp_path / "scans", length=20.0)
+    real, calls = runners.complete_tile, []
+
+    def second_is_interrupted(*args):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*args)
+
+    monkeypatch.setattr(runners, "complete_tile", second_is_interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        hgca_core.drive(scans, tmp_path / "d", poses=poses, weights=str(drive_weights), **SMALL)
+    doc = json.loads((tmp_path / "d" / "drive.json").read_text())
+    assert doc["status"] == "interrupted" and [t["status"] for t in doc["tiles"]] == ["done", "pending", "pending"]
+    monkeypatch.setattr(runners, "complete_tile", real)
+    again = hgca_core.drive(scans, tmp_path / "d", poses=poses, weights=str(drive_weights), **SMALL)
+    assert again["status"] == "complete" and again["timings"]["tiles_computed"] == 2
+
+
 def test_sigterm_on_ray_stops_ray_and_exits_143(flat_drive, drive_weights, tmp_path):
     """ray.init puts an aborting SIGTERM handler in place (exit 134 and a crash report); the drive takes the
     signal back, stops its Ray and leaves the CLI's one line and exit status."""
