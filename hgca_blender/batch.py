@@ -3,6 +3,7 @@
     blender --background --python hgca_blender/batch.py -- SCAN... --samples 2 --stage coarse \\
         --out scene.blend [--region cx,cy,cz,sx,sy,sz,yaw] [--render preview.png]
     python -m hgca_blender.batch SCAN... --out scene.blend        (bpy module)
+    ... SCAN... --poses P --drive DIR --out drive.blend           (a whole drive, `hgca drive`, into DIR)
 
 Timers never fire in background mode, so the job is driven by calling `poll_once()` in a loop; the
 code path is otherwise the one the UI uses (import via `hgca read`, `CompletionJob`, mesh building).
@@ -51,6 +52,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--render", default=None, help="also render a preview PNG with Cycles (CPU)")
     p.add_argument("--render-samples", type=int, default=16)
     p.add_argument("--timeout", type=float, default=3600.0, help="give up on the completion after this many seconds")
+    p.add_argument("--drive", default=None, metavar="DIR",
+                   help="complete the whole drive tile by tile (`hgca drive`, scans in trajectory order) into DIR "
+                        "(kept: running again resumes); one object per tile per sample")
+    p.add_argument("--workers", type=int, default=1, help="--drive: tiles at once (more than 1 needs hgca[ray])")
+    p.add_argument("--tile-size", type=float, default=38.4, help="--drive: tile side in metres")
+    p.add_argument("--overlap", type=float, default=6.4, help="--drive: overlap of consecutive tiles in metres")
     return p
 
 
@@ -74,6 +81,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
     _log(f"imported {len(obj.data.vertices):,} points as '{obj.name}' in {time.perf_counter() - t0:.1f} s"
          + (f" (skipped attributes: {', '.join(skipped)})" if skipped else ""))
+    if args.drive:
+        return _drive(args, python, scene, t0)
     points = sources.world_points([obj])  # Blender coordinates: world minus the scene's georeference origin
     try:
         box = (georef.region_to_scene(scene, region.parse_region(args.region)) if args.region
@@ -116,6 +125,38 @@ def run(args: argparse.Namespace) -> int:
     if args.render:
         png = preview.render_png(scene, Path(args.render))
         _log(f"rendered {png}")
+    return 0
+
+
+def _drive(args: argparse.Namespace, python: str, scene: bpy.types.Scene, t0: float) -> int:
+    """`--drive DIR`: `hgca drive` on the scans, its tiles into one collection, then save."""
+    from . import drive_job
+
+    params = drive_job.DriveParams(
+        python=python, scans=list(args.scans), out_dir=args.drive, poses=args.poses, samples=args.samples,
+        seed=args.seed, stage=args.stage, device=args.device, t1=args.t1, max_faces=args.max_faces,
+        workers=args.workers, tile_size=args.tile_size, overlap=args.overlap, scene_name=scene.name,
+        extra_args=["--weights", args.weights] if args.weights else [])
+    try:
+        job = drive_job.start_drive_job(params)
+    except core.CoreError as exc:
+        _log(f"error: {exc}")
+        return 2
+    last = [""]
+
+    def show(j: core.Job) -> None:
+        if j.status != last[0]:
+            last[0] = j.status
+            _log(f"{j.progress * 100:5.1f}% {j.status}")
+
+    if job.wait(timeout=args.timeout, on_poll=show) != "done":
+        _log(f"error: drive {job.state}: {job.error or job.status} (finished tiles stay in {args.drive})")
+        return 2
+    _log(f"{job.status} after {time.perf_counter() - t0:.1f} s")
+    out = Path(args.out).resolve()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    bpy.ops.wm.save_as_mainfile(filepath=str(out), check_existing=False)
+    _log(f"saved {out}")
     return 0
 
 

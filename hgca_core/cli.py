@@ -23,6 +23,7 @@ COMMANDS = {
     "train": "train a model stage with a time budget, resuming from its checkpoint",
     "region": "print the default region `complete` would use for these scans (--region form, or --json)",
     "complete": "complete LiDAR scans into meshes",
+    "drive": "complete a whole drive tile by tile along its trajectory (resumable, parallel on Ray)",
     "eval": "evaluate completion on the synthetic test split against baselines",
     "eval-real": "score completions of real scans without ground truth (height cut, observed free space)",
     "poses": "write the poses JSON of a sequence folder (KITTI, Argoverse 2, nuScenes)",

@@ -102,6 +102,12 @@ def check_points(points: np.ndarray, what: str = "input") -> np.ndarray:
     return p
 
 
+def memory_need(region: Region) -> float:
+    """Estimated peak bytes of one completion of `region` (the measured slope above, with margin); `check_memory`
+    refuses by it and `hgca drive` declares it as each tile's Ray memory."""
+    return BASE_BYTES + float(region.size[0] * region.size[1]) * BYTES_PER_M2
+
+
 def check_input_cells(cells: int, points: np.ndarray) -> None:
     """Refuse inputs too small or degenerate to complete, before any sampling."""
     if cells >= MIN_INPUT_CELLS:
@@ -115,7 +121,7 @@ def check_memory(region: Region) -> None:
     """Refuse a region whose estimated peak memory exceeds what this machine has available."""
     import psutil
 
-    need = BASE_BYTES + float(region.size[0] * region.size[1]) * BYTES_PER_M2
+    need = memory_need(region)
     avail = psutil.virtual_memory().available
     if need > avail:
         raise InputError(f"region {region.size[0]:.1f} x {region.size[1]:.1f} m needs about {need / 2**30:.1f} GiB, "
@@ -175,7 +181,8 @@ def observed_free(local: np.ndarray, region: Region, models: Models, mode: str, 
 def complete_local(local: np.ndarray, region: Region, models: Models, stage: str = "coarse", samples: int = 1,
                    seed: int = 0, t1: int | None = None, t2: int | None = None, progress: ProgressFn | None = None,
                    precision: str = "auto", max_faces: int | None = None, origins: np.ndarray | None = None,
-                   origin_index: np.ndarray | None = None, free_space: str = "auto") -> list[LocalCompletion]:
+                   origin_index: np.ndarray | None = None, free_space: str = "auto",
+                   fixed_cells: np.ndarray | None = None) -> list[LocalCompletion]:
     """The region-frame core: `local` (N, 3) points in `region`'s frame (metres; only the region's size is used
     here) -> `samples` completions, meshes in the same frame. Sample i uses seed + i.
 
@@ -186,6 +193,10 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
     once and given to both stages. The coarse stage's mesh is the 20 cm cells' `voxel_mesh`; the full stage's
     is the decoded unsigned distance's marching cubes. Runs on the models' device. See `complete` for
     `precision` and `max_faces`.
+
+    `fixed_cells` ((M, 3) 20 cm cells in this frame) join the initial state s0 exactly as observed cells do:
+    `hgca drive` passes the cells its finished neighbours generated in a tile's overlap, so the joins agree.
+    Cells outside the grid are ignored; None (or none inside) leaves the run unchanged.
     """
     from hgca_core.models.gca import sample as gca_sample
     from hgca_core.nn.conv import gemm_precision, resolve_precision
@@ -216,6 +227,12 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
     s0 = voxelize(local, COARSE, region.size)
     grid = region.grid_shape(COARSE)
     check_input_cells(len(s0), local)
+    if fixed_cells is not None and len(fixed_cells):
+        from hgca_core.geometry.keys import unique_rows
+
+        fixed = np.asarray(fixed_cells, dtype=np.int64).reshape(-1, 3)
+        fixed = fixed[np.all((fixed >= 0) & (fixed < np.asarray(grid)), axis=1)]
+        s0 = unique_rows(np.concatenate([s0, fixed])) if len(fixed) else s0
     report("voxelise", 1, 1, f"{len(s0)} cells at 20 cm", 0)
     steps = t1 or models.coarse.cfg.steps
     results = []

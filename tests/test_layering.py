@@ -15,6 +15,7 @@ FORBIDDEN = {
     "nn": ("hgca_core.models", "hgca_core.training", "hgca_core.commands", "hgca_core.pipeline", "hgca_core.bench"),
     "models": ("hgca_core.training", "hgca_core.commands", "hgca_core.pipeline", "hgca_core.bench"),
     "training": ("hgca_core.bench", "hgca_core.commands", "hgca_core.pipeline"),
+    "tiling": ("hgca_core.bench", "hgca_core.commands", "hgca_core.training"),
 }
 
 

@@ -1,6 +1,7 @@
 """Batch mode: `python -m hgca_blender.batch` (bpy module) writes a .blend that bpy opens, and a PNG."""
 from __future__ import annotations
 
+import json
 import os
 import struct
 import subprocess
@@ -69,3 +70,30 @@ def test_batch_rejects_bad_region(tmp_path: Path) -> None:
 def _fresh_file_after():
     yield
     bpy.ops.wm.read_homefile(use_empty=True)
+
+
+def test_batch_drive_makes_one_object_per_tile_per_sample(tmp_path: Path) -> None:
+    """`--drive DIR`: `hgca drive` on the scans, the tiles' own parts as objects in one collection."""
+    sys.path.insert(0, str(REPO / "tests" / "drive"))
+    from drive_data import write_drive
+
+    scans, poses = write_drive(tmp_path / "scans", length=30.0, weave=0.0)
+    blend, folder = tmp_path / "drive.blend", tmp_path / "drive"
+    args = [*map(str, scans), "--poses", str(poses), "--drive", str(folder), "--tile-size", "12.8", "--overlap",
+            "3.2", "--samples", "2", "--stage", "coarse", "--t1", "2", "--python", CORE_PYTHON, "--out", str(blend)]
+    proc = run_batch(args, tmp_path)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "Done: 3 tiles x 2 sample(s)" in proc.stdout
+    assert json.loads((folder / "drive.json").read_text())["status"] == "complete"
+
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    colls = [c for c in bpy.data.collections if c.name.startswith("hGCA drive ")]
+    assert len(colls) == 1
+    objs = sorted(colls[0].objects, key=lambda o: (o["hgca_tile"], o["hgca_sample"]))
+    assert [(o["hgca_tile"], o["hgca_sample"]) for o in objs] == [(i, k) for i in range(3) for k in range(2)]
+    assert all(len(o.data.polygons) > 0 and "observed_distance" in o.data.attributes for o in objs)
+    assert [o.hide_render for o in objs] == [False, True] * 3, "only sample 0 shows"
+    # the objects are the tiles' own parts: side by side along x, overlapping at most along their cut
+    xs = [(min(v.co.x for v in o.data.vertices) + o.location.x, max(v.co.x for v in o.data.vertices) + o.location.x)
+          for o in objs[::2]]
+    assert all(a[1] < b[0] + 0.5 for a, b in zip(xs, xs[1:]))

@@ -1,0 +1,83 @@
+"""`hgca drive SCAN... --poses P --out DIR`: a whole drive, tile by tile along its trajectory (`hgca_core.drive`).
+
+Writes DIR/tiles/<i>_s<k>.ply, DIR/drive_s<k>.ply (one merged mesh per sample) and DIR/drive.json. Running
+the same command again resumes: finished tiles are kept. `--workers N` runs tiles in parallel on a Ray started
+in this process; `--address ray://host:port` on an existing cluster.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from hgca_core.commands.complete import add_precision_argument
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scans", nargs="+", help="scan files in trajectory order (any format `hgca complete` reads)")
+    p.add_argument("--out", "-o", required=True, metavar="DIR", help="drive folder (created; re-running resumes)")
+    p.add_argument("--poses", help="JSON with a sensor->world 4x4 pose per scan (see docs/CONTRACTS.md)")
+    p.add_argument("--format", dest="fmt", help="force the scan format instead of guessing from the extension")
+    p.add_argument("--size", type=float, default=38.4, help="tile side in metres (default 38.4, the paper's region)")
+    p.add_argument("--overlap", type=float, default=6.4, help="overlap of consecutive tiles in metres (default 6.4)")
+    p.add_argument("--scans-per-tile", type=int, default=5, help="each tile is completed from its N nearest scans")
+    p.add_argument("--samples", type=int, default=1, help="number of completions k (one merged mesh each)")
+    p.add_argument("--seed", type=int, default=0, help="sample k of tile i uses seed + i * samples + k")
+    p.add_argument("--stage", choices=("coarse", "full"), default="full", help="as `hgca complete --stage`")
+    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--max-faces", type=int, default=None, help="simplify each tile's mesh to at most N triangles")
+    add_precision_argument(p)
+    p.add_argument("--t1", type=int, default=None, help="coarse steps T1 (default from the weights)")
+    p.add_argument("--t2", type=int, default=None, help="fine steps T2 (default from the weights)")
+    p.add_argument("--weights", default=None, help="coarse weights file (default: the shipped ones)")
+    p.add_argument("--fine-weights", default=None, help="fine weights file (default: the shipped ones)")
+    p.add_argument("--no-seams", dest="seams", action="store_false",
+                   help="do not condition tiles on their finished neighbours (faster start, joins may disagree)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="tiles at once; more than 1 starts a local Ray in this process (needs hgca[ray])")
+    p.add_argument("--address", default=None, help="run on an existing Ray cluster (ray://host:port)")
+    p.add_argument("--threads", type=int, default=None, help="torch threads per tile (default: cores / workers)")
+    p.add_argument("--tile-memory", type=float, default=None, metavar="GIB",
+                   help="memory each tile declares to Ray (default: estimated from the tile's area)")
+    p.add_argument("--mesh-format", choices=("ply", "glb", "obj", "npz"), default="ply", help="tile and drive meshes")
+    p.add_argument("--progress", choices=("bar", "jsonl", "none"), default="bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from hgca_core.progress import Progress
+    from hgca_core.tiling.run import drive
+
+    progress = Progress(args.progress if args.progress != "bar" else "none", samples=args.samples)
+    bar = None
+
+    def on_tile(done: int, total: int, index: int) -> None:
+        nonlocal bar
+        if args.progress == "bar":
+            if bar is None:
+                from tqdm import tqdm
+
+                bar = tqdm(total=total, initial=done, desc="tiles", unit="tile", file=sys.stderr, smoothing=0.1)
+            else:
+                bar.update(done - bar.n)
+        progress("tile", done, total, f"tile {index} done" if index >= 0 else f"{done} of {total} already done")
+
+    try:
+        doc = drive(args.scans, args.out, poses=args.poses, fmt=args.fmt, size=args.size, overlap=args.overlap,
+                    scans_per_tile=args.scans_per_tile, samples=args.samples, seed=args.seed, stage=args.stage,
+                    t1=args.t1, t2=args.t2, weights=args.weights, fine_weights=args.fine_weights,
+                    precision=args.precision, max_faces=args.max_faces, device=args.device, workers=args.workers,
+                    address=args.address, threads=args.threads,
+                    tile_memory=args.tile_memory * 2**30 if args.tile_memory else None, seams=args.seams,
+                    mesh_format=args.mesh_format,
+                    report=progress, on_tile=on_tile)
+    except Exception as exc:
+        progress.error(str(exc))
+        raise
+    finally:
+        if bar is not None:
+            bar.close()
+    progress.done(doc["outputs"])
+    if args.progress == "bar":
+        t = doc["timings"]
+        print(f"{len(doc['tiles'])} tiles ({t['tiles_computed']} computed in {t['tiles_s']:.1f} s), "
+              f"merged in {t['merge_s']:.1f} s: {', '.join(doc['outputs'])}", file=sys.stderr)
+    return 0

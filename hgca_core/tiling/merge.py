@@ -1,0 +1,103 @@
+"""One mesh per sample from a drive's tiles: each tile cut to the part it owns (the overlap midline), then the
+pieces welded where they meet.
+
+A face stays with the tile that owns its centroid (`plan.owned`), so every place of the overlap comes from
+exactly one tile and nothing is doubled. Only vertices on a cut (used by a kept and by a dropped face) can
+coincide with another tile's, so only those are welded (positions equal to `WELD` metres), which keeps the
+weld cheap for meshes of tens of millions of faces. `observed_distance` stays per vertex (a welded vertex
+keeps the smaller of its copies'). All positions are float64 world metres until the caller writes them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hgca_core.geometry.region import Region
+from hgca_core.tiling.plan import owned
+
+WELD = 1e-4   # metres: tiles' meshes meet on a common grid or not at all; this only absorbs float rounding
+
+
+@dataclass
+class Piece:
+    """Part of a mesh: float64 world vertices, int64 faces, per-vertex distance, and which vertices lie on a cut."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    observed_distance: np.ndarray
+    seam: np.ndarray   # (V,) bool
+
+    @classmethod
+    def empty(cls) -> "Piece":
+        return cls(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0, np.float32), np.zeros(0, bool))
+
+
+def tile_piece(sample: dict, region: Region) -> Piece:
+    """A tile result's sample (region-frame mesh) as a world-frame piece, uncut."""
+    v = region.to_world(np.asarray(sample["vertices"], dtype=np.float64))
+    return Piece(v, np.asarray(sample["faces"], dtype=np.int64), np.asarray(sample["observed_distance"], np.float32),
+                 np.zeros(len(v), bool))
+
+
+def cut(piece: Piece, index: int, regions: list[Region]) -> Piece:
+    """The faces of tile `index`'s piece whose centroid the tile owns, with their vertices renumbered."""
+    if len(piece.faces) == 0:
+        return Piece.empty()
+    centroids = piece.vertices[piece.faces].mean(axis=1)
+    keep = owned(centroids[:, :2], index, regions)
+    used_kept = np.zeros(len(piece.vertices), bool)
+    used_kept[piece.faces[keep].ravel()] = True
+    used_dropped = np.zeros(len(piece.vertices), bool)
+    used_dropped[piece.faces[~keep].ravel()] = True
+    new_index = np.cumsum(used_kept) - 1
+    return Piece(piece.vertices[used_kept], new_index[piece.faces[keep]], piece.observed_distance[used_kept],
+                 (piece.seam | used_dropped)[used_kept])
+
+
+def weld(pieces: list[Piece]) -> Piece:
+    """Concatenate pieces, merging seam vertices at the same position (to WELD metres) and dropping faces that
+    the merge made degenerate."""
+    pieces = [p for p in pieces if len(p.faces)]
+    if not pieces:
+        return Piece.empty()
+    offsets = np.cumsum([0] + [len(p.vertices) for p in pieces])
+    v = np.concatenate([p.vertices for p in pieces])
+    f = np.concatenate([p.faces + o for p, o in zip(pieces, offsets[:-1])])
+    d = np.concatenate([p.observed_distance for p in pieces])
+    seam = np.concatenate([p.seam for p in pieces])
+    target = np.arange(len(v))
+    idx = np.flatnonzero(seam)
+    if len(idx):
+        q = np.round((v[idx] - v[idx].min(axis=0)) / WELD).astype(np.int64)
+        _, first, inverse = np.unique(q, axis=0, return_index=True, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        rep = idx[first][inverse]                     # each seam vertex -> the first vertex at its position
+        target[idx] = rep
+        np.minimum.at(d, rep, d[idx])
+    f = target[f]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    used = np.zeros(len(v), bool)
+    used[f.ravel()] = True
+    renumber = np.cumsum(used) - 1
+    return Piece(v[used], renumber[f], d[used], seam[used])
+
+
+def merge_sample(tile_samples: list[dict | None], regions: list[Region]) -> Piece:
+    """The drive mesh of one sample: every tile's sample (None for a tile without one) cut and welded."""
+    pieces = [cut(tile_piece(s, regions[i]), i, regions) for i, s in enumerate(tile_samples) if s is not None]
+    return weld(pieces)
+
+
+def write_piece(path, piece: Piece) -> str:
+    """Write a world-frame piece; the writers keep georeferenced coordinates exact (float64 PLY x/y/z, an NPZ
+    `offset`, a GLB node translation: `hgca_core.io.georef`)."""
+    import trimesh
+
+    from hgca_core.io import write_mesh, write_mesh_npz
+
+    if str(path).lower().endswith(".npz"):
+        return write_mesh_npz(path, piece.vertices, piece.faces, piece.observed_distance)
+    mesh = trimesh.Trimesh(piece.vertices, piece.faces, process=False)
+    mesh.vertex_attributes["observed_distance"] = piece.observed_distance.astype(np.float32)
+    return write_mesh(path, mesh)

@@ -1,0 +1,251 @@
+"""`hgca_core.drive(...)`, the Python API of `hgca drive`: a whole drive completed tile by tile.
+
+Read the scans (float64 world points after their poses), plan tiles along the sensor positions (`plan`), place
+each tile on its own ground, name each tile's result by a content key (`tile.TileJob.key`: its scans' content,
+region, seed, settings, weights, and the keys of the neighbours it is conditioned on), skip the tiles whose
+key is already in DIR/cache (a resumed run), run the rest (`runners`: in-process or Ray), then cut and weld
+one mesh per sample (`merge`). drive.json is rewritten (atomically) after every finished tile, so a crash or
+Ctrl-C loses at most the tiles in flight.
+"""
+from __future__ import annotations
+
+import os
+import socket
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from hgca_core.errors import InputError
+from hgca_core.geometry.region import DEFAULT_SIZE, Region
+from hgca_core.tiling.merge import merge_sample, write_piece
+from hgca_core.tiling.plan import MIN_OVERLAP, neighbours, plan_tiles, tile_region
+from hgca_core.tiling.store import DriveStore
+from hgca_core.tiling.tile import Settings, TileJob, cells_of, file_digest, points_digest, weight_files
+
+MESH_FORMATS = ("ply", "glb", "obj", "npz")
+Report = Callable[[str, int, int, str, int], None]   # (stage, step, total, message, sample): pipeline.ProgressFn
+
+
+def read_drive_scans(paths: Sequence[str | os.PathLike], poses: str | os.PathLike | None, fmt: str | None,
+                     report: Report) -> tuple[list[np.ndarray], np.ndarray]:
+    """Each scan's float64 world points and its sensor position (the mean of its origins), one file at a time
+    through `hgca_core.io.read_scans` (same formats, pose matching and checks as `hgca complete`)."""
+    from hgca_core.io import read_scans
+
+    points, positions = [], []
+    for i, p in enumerate(paths):
+        scan = read_scans([p], poses=poses, fmt=fmt)
+        if scan.origins is None or not len(scan.origins):
+            raise InputError("a drive needs each scan's sensor position: this scan has no origin; give --poses "
+                             "(sensor->world per scan)", os.fspath(p))
+        points.append(scan.points)
+        positions.append(scan.origins.mean(axis=0))
+        report("read", i + 1, len(paths), os.path.basename(os.fspath(p)), 0)
+    return points, np.array(positions)
+
+
+def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str | os.PathLike | None = None,
+          fmt: str | None = None, size: float = DEFAULT_SIZE[0], overlap: float = MIN_OVERLAP,
+          scans_per_tile: int = 5, samples: int = 1, seed: int = 0, stage: str = "full", t1: int | None = None,
+          t2: int | None = None, weights: str | None = None, fine_weights: str | None = None,
+          precision: str = "auto", max_faces: int | None = None, device: str = "cpu", workers: int = 1,
+          address: str | None = None, threads: int | None = None, tile_memory: float | None = None,
+          seams: bool = True, mesh_format: str = "ply",
+          report: Report | None = None, on_tile: Callable[[int, int, int], None] | None = None) -> dict:
+    """Complete the drive seen by `scans` (in trajectory order) into DIR=`out`; returns drive.json's content.
+
+    Tiles are `size` m squares (8 m high) along the sensor positions, `overlap` m apart; each is completed from
+    its `scans_per_tile` nearest scans, sample k of tile i with seed + i * samples + k. With `seams`, odd tiles
+    run second with their finished neighbours' coarse cells in their initial state. `workers` > 1 or an
+    `address` runs tiles on Ray, each declaring `tile_memory` bytes (default: `pipeline.memory_need` of a tile) so
+    no node takes more tiles at once than fit. `report(stage, step, total, message, sample)` hears of reading and
+    merging;
+    `on_tile(done, total, index)` of each finished tile (done counts resumed tiles too).
+    """
+    from hgca_core.pipeline import check_memory, load_models, memory_need
+
+    t_start = time.perf_counter()
+    say = report or (lambda *a: None)
+    paths = [os.fspath(p) for p in scans]
+    if not paths:
+        raise InputError("no scan files given")
+    if mesh_format not in MESH_FORMATS:
+        raise InputError(f"mesh format must be one of {', '.join(MESH_FORMATS)}, not {mesh_format!r}")
+    if samples < 1:
+        raise InputError(f"samples must be at least 1, got {samples}")
+    if workers < 1:
+        raise InputError(f"workers must be at least 1, got {workers}")
+    if workers > 1 or address:
+        from hgca_core.tiling.runners import require_ray
+
+        require_ray()
+    store = DriveStore(out)
+    ext = "." + mesh_format
+    _check_outputs(paths, poses, store)
+    threads = threads or max(1, (os.cpu_count() or 1) // workers)
+    settings = Settings(stage, samples, seed, t1, t2, precision, max_faces, weights, fine_weights, device, threads)
+    load_models(stage, weights, fine_weights, device)              # bad weights fail before reading a scan
+    digests = tuple(file_digest(p) for p in weight_files(stage, weights, fine_weights))
+
+    points, positions = read_drive_scans(paths, poses, fmt, say)
+    t_read = time.perf_counter()
+    plans = plan_tiles(positions, size, overlap, scans_per_tile)
+    tile_size = (float(size), float(size), DEFAULT_SIZE[2])
+    regions = [tile_region(t, np.concatenate([points[i] for i in t.scans]), tile_size) for t in plans]
+    memory = tile_memory or memory_need(regions[0])
+    if workers == 1 and not address:
+        check_memory(regions[0])                                  # on Ray, each node is checked instead
+    scan_digests = [points_digest(p) for p in points]
+    jobs = _jobs(plans, regions, scan_digests, seed, samples, settings, digests, seams)
+
+    store.prepare()
+    previous = store.read_manifest() or {}
+    run_no = int(previous.get("runs", 0)) + 1
+    old_tiles = {t.get("key"): t for t in previous.get("tiles", []) if isinstance(t, dict)}
+    doc = {"status": "running", "runs": run_no, "pid": os.getpid(), "host": socket.gethostname(),
+           "engine": "ray" if (workers > 1 or address) else "local",
+           "workers": workers, "threads": threads, "address": address, "tile_memory": memory,
+           "settings": {**settings.keyed(), "weights": [str(p) for p in weight_files(stage, weights, fine_weights)],
+                        "weights_sha256": list(digests), "device": device},
+           "plan": {"size": list(tile_size), "overlap": overlap, "stride": size - overlap,
+                    "scans_per_tile": scans_per_tile, "seams": seams, "length": float(_path_length(positions)),
+                    "mesh_format": mesh_format},
+           "scans": [{"file": p, "position": positions[i].tolist(), "points": int(len(points[i])),
+                      "sha256": scan_digests[i]} for i, p in enumerate(paths)],
+           "tiles": [], "outputs": [], "timings": {"read_s": round(t_read - t_start, 3)}}
+    for t, job in zip(plans, jobs):
+        done = store.has(job.key)
+        entry = {"index": t.index, "phase": t.phase, "arc": round(t.arc, 3), "region": list(job.region),
+                 "scans": list(t.scans), "seeds": [job.seed + k for k in range(samples)], "key": job.key,
+                 "conditioned_on": list(neighbours(t.index, len(plans))) if job.conditioned_on else [],
+                 "status": "done" if done else "pending",
+                 "outputs": [str(store.tile_mesh(t.index, k, ext).relative_to(store.root)) for k in range(samples)]}
+        if done:
+            entry.update({k: v for k, v in old_tiles.get(job.key, {}).items() if k in ("seconds", "worker", "run",
+                                                                                     "peak_rss", "faces", "started",
+                                                                                     "finished", "fixed_cells")})
+            entry.setdefault("run", None)
+        doc["tiles"].append(entry)
+    store.write_manifest(doc)
+
+    finished = sum(t["status"] == "done" for t in doc["tiles"])
+    for t, job in zip(doc["tiles"], jobs):                         # a resumed run re-exports missing tile meshes
+        if t["status"] == "done" and not all((store.root / o).is_file() for o in t["outputs"]):
+            _export_tile(store, store.load(job.key), regions, ext)
+    if on_tile:
+        on_tile(finished, len(jobs), -1)
+    pending = _pending(jobs, doc["tiles"], store)
+    t_tiles = time.perf_counter()
+
+    def on_result(result: dict) -> None:
+        nonlocal finished
+        store.save(result)
+        faces = _export_tile(store, result, regions, ext)
+        finished += 1
+        doc["tiles"][result["index"]].update({"status": "done", "seconds": result["seconds"], "run": run_no,
+                                              "started": result["started"], "finished": result["finished"],
+                                              "worker": result["worker"], "peak_rss": result["peak_rss"],
+                                              "faces": faces,
+                                              "fixed_cells": [s["fixed_cells"] for s in result["samples"]]})
+        store.write_manifest(doc)
+        if on_tile:
+            on_tile(finished, len(jobs), result["index"])
+
+    runner = None
+    try:
+        if pending:
+            runner = _runner(workers, threads, address, memory)
+            doc["timings"]["engine_start_s"] = round(time.perf_counter() - t_tiles, 3)
+            runner.run(pending, points, on_result)
+    except BaseException as exc:
+        doc["status"] = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        doc["error"] = f"{type(exc).__name__}: {exc}"
+        store.write_manifest(doc)
+        raise
+    finally:
+        if runner is not None and hasattr(runner, "close"):
+            runner.close()
+    t_merge = time.perf_counter()
+    doc["outputs"] = _merge(store, jobs, regions, samples, ext, say)
+    t_end = time.perf_counter()
+    computed = [t for t in doc["tiles"] if t.get("run") == run_no]
+    doc["timings"].update({"tiles_s": round(t_merge - t_tiles, 3), "merge_s": round(t_end - t_merge, 3),
+                           "total_s": round(t_end - t_start, 3), "tiles_computed": len(computed),
+                           "tiles_per_min": round(60 * len(computed) / max(t_merge - t_tiles, 1e-9), 3)})
+    doc["status"] = "complete"
+    store.write_manifest(doc)
+    return {"format": 1, **doc}
+
+
+def _jobs(plans, regions, scan_digests, seed, samples, settings, digests, seams) -> list[TileJob]:
+    """One TileJob per tile, by index; a phase-two job's key includes its neighbours' (phase one) keys."""
+    def job(t, cond: tuple[str, ...]) -> TileJob:
+        return TileJob(t.index, regions[t.index].as_tuple(), t.scans, tuple(scan_digests[i] for i in t.scans),
+                       seed + t.index * samples, settings, digests, cond)
+
+    first = {t.index: job(t, ()) for t in plans if t.phase == 1}
+    return [first[t.index] if t.phase == 1 else
+            job(t, tuple(first[j].key for j in neighbours(t.index, len(plans))) if seams else ()) for t in plans]
+
+
+def _pending(jobs: list[TileJob], tiles: list[dict], store: DriveStore) -> list:
+    """The tiles still to run, phase one first, with the cells of finished neighbours they are conditioned on."""
+    from hgca_core.tiling.runners import Pending
+
+    todo = [j for j, t in zip(jobs, tiles) if t["status"] != "done"]
+    todo.sort(key=lambda j: (j.index % 2, j.index))
+    out = []
+    for job in todo:
+        cond = neighbours(job.index, len(jobs)) if job.conditioned_on else ()
+        ready = {j: (jobs[j].region, cells_of(store.load(jobs[j].key))) for j in cond if tiles[j]["status"] == "done"}
+        out.append(Pending(job, cond, ready))
+    return out
+
+
+def _runner(workers: int, threads: int, address: str | None, memory: float):
+    from hgca_core.tiling.runners import LocalRunner, RayRunner
+
+    if workers == 1 and not address:
+        return LocalRunner()
+    return RayRunner(workers, threads, memory, address)
+
+
+def _export_tile(store: DriveStore, result: dict, regions: list[Region], ext: str) -> list[int]:
+    """Write a finished tile's meshes, each cut to the part the tile owns (so the tiles of a drive partition it),
+    to DIR/tiles/<i>_s<k>.ext; returns the uncut face counts."""
+    from hgca_core.tiling.merge import cut, tile_piece
+
+    i = result["index"]
+    for k, s in enumerate(result["samples"]):
+        write_piece(store.tile_mesh(i, k, ext), cut(tile_piece(s, regions[i]), i, regions))
+    return [int(len(s["faces"])) for s in result["samples"]]
+
+
+def _merge(store: DriveStore, jobs: list[TileJob], regions: list[Region], samples: int, ext: str,
+           say: Report) -> list[str]:
+    outputs = []
+    for k in range(samples):
+        say("merge", k, samples, f"sample {k + 1}/{samples}", k)
+        tile_samples = [store.load(j.key, only=k)["samples"][k] for j in jobs]
+        path = store.drive_mesh(k, ext)
+        write_piece(path, merge_sample(tile_samples, regions))
+        outputs.append(str(path))
+    say("merge", samples, samples, "", samples - 1)
+    return outputs
+
+
+def _path_length(positions: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(positions[:, :2], axis=0), axis=1).sum()) if len(positions) > 1 else 0.0
+
+
+def _check_outputs(paths: list[str], poses, store: DriveStore) -> None:
+    """No input may be one of the files a drive writes (a drive folder inside the scans' folder is fine)."""
+    inputs = {os.path.realpath(p) for p in paths} | ({os.path.realpath(os.fspath(poses))} if poses else set())
+    for p in inputs:
+        if Path(p).parent == Path(os.path.realpath(store.root)) and (Path(p).name == "drive.json"
+                                                                     or Path(p).name.startswith("drive_s")):
+            raise InputError("an input lies where the drive writes its outputs; choose another --out", p)
+        if os.path.realpath(store.tiles) == str(Path(p).parent) or os.path.realpath(store.cache) == str(Path(p).parent):
+            raise InputError("an input lies in the drive's tiles/ or cache/ folder; choose another --out", p)

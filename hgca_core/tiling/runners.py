@@ -1,0 +1,164 @@
+"""Who runs the tiles: in this process, one after another, or as Ray tasks on a local or existing cluster.
+
+Both run the same plan with the same `tile.complete_tile` and hand every result to the driver's callback, in
+the order tiles finish. A phase-two tile needs its neighbours' coarse cells: in-process they are simply ready
+(phase one runs first); on Ray the phase-two task gets the phase-one tasks' cell outputs as ObjectRefs, so Ray
+starts it when both are done. Ray retries a task whose worker died (`MAX_RETRIES`); its result reaches the
+driver once, and the driver writes it once, under its content key.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from hgca_core.errors import HgcaError, InputError
+from hgca_core.tiling.tile import TileJob, cells_of, complete_tile
+
+MAX_RETRIES = 3
+OBJECT_STORE_BYTES = 512 * 2**20   # local Ray: tile results are tens of MB; Ray spills to disk beyond this
+NeighbourCells = tuple[tuple, list[np.ndarray]]   # (region tuple, coarse cells per sample)
+
+
+@dataclass
+class Pending:
+    """A tile to run: its job, its scans' indices, and the tiles (by index) whose cells it is conditioned on,
+    with the cells of those that finished before this run."""
+
+    job: TileJob
+    conditioned_on: tuple[int, ...]
+    ready_cells: dict[int, NeighbourCells]
+
+
+class LocalRunner:
+    """Tiles in this process, phase one before phase two (the order of `pending`)."""
+
+    name = "local"
+
+    def run(self, pending: list[Pending], scans: list[np.ndarray], on_result: Callable[[dict], None]) -> None:
+        made: dict[int, NeighbourCells] = {}
+        for p in pending:
+            cells = {**p.ready_cells, **made}
+            neighbours = [cells[j] for j in p.conditioned_on]
+            result = complete_tile(p.job, [scans[i] for i in p.job.scans], neighbours)
+            made[p.job.index] = (p.job.region, cells_of(result))
+            on_result(result)
+
+
+def tile_task(job: TileJob, n_scans: int, *inputs) -> tuple[dict, NeighbourCells]:
+    """The Ray task: `inputs` are the tile's scans then its neighbours' cells (top-level arguments, so Ray
+    resolves their ObjectRefs, waiting for the phase-one tasks that make them). Returns the result and, as a
+    second object for the phase-two tasks that depend on it, the cells alone."""
+    result = complete_tile(job, list(inputs[:n_scans]), list(inputs[n_scans:]))
+    return result, (job.region, cells_of(result))
+
+
+def require_ray():
+    """The ray module, or an InputError saying how to get it (checked before a drive writes anything)."""
+    try:
+        import ray
+    except ImportError:
+        raise InputError("Ray is not installed: `pip install 'hgca[ray]'`, or run with --workers 1 "
+                         "(the same plan in this process)") from None
+    return ray
+
+
+class RayRunner:
+    """Tiles as Ray tasks with their memory declared (so a node never takes more tiles than fit), on a Ray
+    started in this process (`workers` CPUs' worth of tiles at `threads` torch threads each) or on the cluster
+    at `address`."""
+
+    name = "ray"
+
+    def __init__(self, workers: int, threads: int, memory: float, address: str | None = None) -> None:
+        self.ray = ray = require_ray()
+        self.threads = threads
+        self.memory = memory
+        self.started = False
+        self._previous: dict = {}
+        if not ray.is_initialized():
+            before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+            kwargs: dict = {"include_dashboard": False, "log_to_driver": False, "logging_level": logging.WARNING,
+                            "configure_logging": True}
+            if address:
+                try:
+                    ray.init(address=address, **kwargs)
+                except (ConnectionError, TimeoutError) as exc:
+                    raise InputError(f"cannot reach the Ray cluster at {address} ({exc}); a cluster with token "
+                                     "authentication (Ray's default) also needs RAY_AUTH_MODE=token and its token "
+                                     "(RAY_AUTH_TOKEN or ~/.ray/auth_token) here") from None
+            else:
+                root = str(Path(__file__).resolve().parents[2])   # workers import this hgca_core, not another
+                path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p)
+                ray.init(num_cpus=workers * threads, object_store_memory=OBJECT_STORE_BYTES,
+                         runtime_env={"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": str(threads)}}, **kwargs)
+            self.started = True
+            self._take_signals(before)
+        largest = max((n["Resources"].get("memory", 0.0) for n in ray.nodes() if n.get("Alive")), default=0.0)
+        if largest < memory:
+            self.close()
+            raise InputError(f"a tile needs about {memory / 2**30:.1f} GiB, the largest Ray node offers "
+                             f"{largest / 2**30:.1f} GiB: use smaller tiles (--size) or bigger nodes")
+
+    def run(self, pending: list[Pending], scans: list[np.ndarray], on_result: Callable[[dict], None]) -> None:
+        ray = self.ray
+        task = ray.remote(tile_task).options(num_cpus=self.threads, memory=int(self.memory), num_returns=2,
+                                             max_retries=MAX_RETRIES, retry_exceptions=False)
+        scan_refs: dict[int, object] = {}
+        cell_refs: dict[int, object] = {}
+        results = []
+        for p in pending:                      # phase one first: phase-two tasks refer to their outputs
+            for i in p.job.scans:
+                if i not in scan_refs:
+                    scan_refs[i] = ray.put(scans[i])
+            for j, cells in p.ready_cells.items():
+                if j not in cell_refs:
+                    cell_refs[j] = ray.put(cells)
+            inputs = [scan_refs[i] for i in p.job.scans] + [cell_refs[j] for j in p.conditioned_on]
+            result_ref, cell_refs[p.job.index] = task.remote(p.job, len(p.job.scans), *inputs)
+            results.append(result_ref)
+        waiting = list(results)
+        while waiting:
+            done, waiting = ray.wait(waiting, num_returns=1)
+            try:
+                result = ray.get(done[0])
+            except ray.exceptions.RayTaskError as exc:
+                cause = getattr(exc, "cause", None)
+                if isinstance(cause, HgcaError):
+                    raise cause from None
+                raise
+            on_result(result)
+
+    def _take_signals(self, before: dict) -> None:
+        """ray.init replaces the SIGTERM handler with one that aborts the process (exit 134, a crash report):
+        take SIGINT and SIGTERM back, stop the Ray this process started, then do what was done `before` (the
+        CLI's one-line exit 130 / 143, or Python's KeyboardInterrupt / termination)."""
+        if threading.current_thread() is not threading.main_thread():
+            return
+        self._previous = before
+
+        def handler(signum: int, frame) -> None:
+            self.close()
+            previous = before.get(signum)
+            if callable(previous):
+                previous(signum, frame)
+            else:
+                signal.signal(signum, signal.SIG_DFL)
+                os.kill(os.getpid(), signum)
+
+        for sig in before:
+            signal.signal(sig, handler)
+
+    def close(self) -> None:
+        if self.started:
+            self.started = False
+            self.ray.shutdown()
+            if threading.current_thread() is threading.main_thread():
+                for sig, previous in self._previous.items():
+                    signal.signal(sig, previous if previous is not None else signal.SIG_DFL)

@@ -1,0 +1,176 @@
+"""One tile's completion as a pure function of its inputs: the unit `hgca drive` runs in-process or as a Ray task.
+
+`complete_tile` takes everything it needs as arguments (the job, the tile's scans as float64 world points, the
+neighbours' coarse cells) and returns arrays, touching no file: the driver alone writes results, under the
+job's content key, so a retried or duplicated task can never leave two copies or half a file. Each sample is
+one `pipeline.complete_local` run (sample k uses the tile's seed + k, as `hgca complete` does) whose initial
+state also holds, fixed like the input, the cells the finished neighbours' sample k generated in this tile.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import resource
+import socket
+import time
+from dataclasses import asdict, dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from hgca_core.errors import InputError
+from hgca_core.geometry.region import Region
+from hgca_core.geometry.voxel import COARSE, cell_centers, voxelize
+
+KEY_VERSION = 2   # bump when the same key would give different content (a change to this algorithm)
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What every tile of a drive is completed with (the `hgca complete` options). `threads` and `device`
+    decide only where and how fast, not what, so they are not part of a tile's key."""
+
+    stage: str = "full"
+    samples: int = 1
+    seed: int = 0
+    t1: int | None = None
+    t2: int | None = None
+    precision: str = "auto"
+    max_faces: int | None = None
+    weights: str | None = None
+    fine_weights: str | None = None
+    device: str = "cpu"
+    threads: int = 1
+
+    def keyed(self) -> dict:
+        d = asdict(self)
+        for name in ("weights", "fine_weights", "device", "threads"):   # files enter by digest, see weight_files
+            d.pop(name)
+        return d
+
+
+@dataclass(frozen=True)
+class TileJob:
+    """Everything that names one tile's result: its region, scans (by content digest), seed, the settings, the
+    weights' digests and the keys of the neighbours it is conditioned on. `key` is their hash."""
+
+    index: int
+    region: tuple[float, ...]          # Region.as_tuple(): cx, cy, cz, sx, sy, sz, yaw_deg
+    scans: tuple[int, ...]
+    scan_digests: tuple[str, ...]
+    seed: int                          # sample k uses seed + k
+    settings: Settings
+    weights: tuple[str, ...]           # sha256 of the weights files the stage loads
+    conditioned_on: tuple[str, ...]    # keys of the finished neighbours whose cells join s0
+
+    @property
+    def key(self) -> str:
+        doc = {"version": KEY_VERSION, "region": [repr(float(v)) for v in self.region],
+               "scans": list(self.scan_digests), "seed": self.seed, "settings": self.settings.keyed(),
+               "weights": list(self.weights), "conditioned_on": list(self.conditioned_on)}
+        return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:32]
+
+
+def weight_files(stage: str, weights: str | None, fine_weights: str | None) -> list[Path]:
+    """The files a stage loads: the coarse weights, and for the full stage the fine ones (shipped when None)."""
+    from hgca_core.models.weights import shipped
+
+    files = [Path(weights) if weights else shipped("coarse")]
+    if stage == "full":
+        files.append(Path(fine_weights) if fine_weights else shipped("fine"))
+    return files
+
+
+def file_digest(path: str | os.PathLike) -> str:
+    """sha256 of a file, cached per (path, mtime, size) so a worker hashes its weights once."""
+    p = Path(path)
+    try:
+        st = p.stat()
+    except OSError:
+        raise InputError("file not found", str(p)) from None
+    return _digest(str(p.resolve()), st.st_mtime_ns, st.st_size)
+
+
+@lru_cache(maxsize=16)
+def _digest(path: str, mtime: int, size: int) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def points_digest(points: np.ndarray) -> str:
+    """sha256 of a scan's float64 world points (after its pose): the content a tile sees, whatever the format."""
+    return hashlib.sha256(np.ascontiguousarray(points, dtype=np.float64).tobytes()).hexdigest()
+
+
+def transfer_cells(cells: np.ndarray, source: Region, target: Region) -> np.ndarray:
+    """20 cm cells of `source`'s frame -> the 20 cm cells of `target`'s frame their centres fall in (only those
+    inside `target`'s grid, i.e. in the overlap). One cell each: consecutive tiles' grids differ by a fraction of
+    a degree and millimetres of ground height, and mapping a cell's whole box instead thickens every surface by
+    a cell wherever the grids are offset (up to a third more cells on a synthetic drive), which the phase-two
+    tile then takes as observed."""
+    c = np.asarray(cells, dtype=np.int64).reshape(-1, 3)
+    if len(c) == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    return voxelize(target.to_local(source.to_world(cell_centers(c, COARSE))), COARSE, target.size)
+
+
+def complete_tile(job: TileJob, scans: list[np.ndarray], neighbour_cells: list[tuple[tuple, list[np.ndarray]]]
+                  ) -> dict:
+    """Complete one tile. `scans`: the tile's scans, (N_i, 3) float64 world points each; `neighbour_cells`:
+    (region tuple, [coarse cells of sample k]) of each finished neighbour. Returns the tile's result: per sample
+    the mesh in the tile's region frame (float32 vertices: exact to micrometres in a 40 m box; the region's
+    float64 `to_world` places them), observed_distance, the coarse cells and the fixed cells it was given."""
+    import torch
+    from scipy.spatial import cKDTree
+
+    from hgca_core.pipeline import MIN_INPUT_CELLS, complete_local, load_models
+
+    start, started = time.perf_counter(), time.time()
+    s = job.settings
+    for path, want in zip(weight_files(s.stage, s.weights, s.fine_weights), job.weights):
+        if file_digest(path) != want:
+            raise InputError(f"weights differ from the driver's (sha256 {file_digest(path)[:12]} here, "
+                             f"{want[:12]} there) on {socket.gethostname()}", str(path))
+    torch.set_num_threads(max(1, s.threads))
+    region = Region.from_tuple(job.region)
+    points = np.concatenate([np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in scans])
+    local = region.to_local(points)
+    local = local[region.contains_local(local)]
+    models = load_models(s.stage, s.weights, s.fine_weights, s.device)
+    # a tile that sees (almost) nothing gets no mesh, where `hgca complete` would refuse the region
+    tree = cKDTree(local) if len(voxelize(local, COARSE, region.size)) >= MIN_INPUT_CELLS else None
+    samples = []
+    for k in range(s.samples):
+        fixed = [transfer_cells(cells[k], Region.from_tuple(reg), region) for reg, cells in neighbour_cells]
+        fixed = np.concatenate(fixed) if fixed else np.zeros((0, 3), np.int64)
+        if tree is None:
+            samples.append(_empty(job.seed + k, len(fixed)))
+            continue
+        r = complete_local(local, region, models, s.stage, 1, job.seed + k, s.t1, s.t2, None, s.precision,
+                           s.max_faces, fixed_cells=fixed)[0]
+        v = np.asarray(r.mesh.vertices, dtype=np.float64)
+        dist = tree.query(v, workers=1)[0].astype(np.float32) if len(v) else np.zeros(0, np.float32)
+        samples.append({"vertices": v.astype(np.float32), "faces": np.asarray(r.mesh.faces, dtype=np.int32),
+                        "observed_distance": dist, "cells": r.coarse_cells.astype(np.int16), "seed": r.seed,
+                        "fixed_cells": int(len(np.unique(fixed, axis=0)))})
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    return {"index": job.index, "key": job.key, "samples": samples, "points": int(len(local)),
+            "seconds": round(time.perf_counter() - start, 3), "started": started, "finished": time.time(),
+            "worker": f"{socket.gethostname()}:{os.getpid()}", "peak_rss": int(rss)}
+
+
+def _empty(seed: int, fixed: int) -> dict:
+    """A tile whose box holds too few input points: no mesh (its neighbours cover what can be covered)."""
+    return {"vertices": np.zeros((0, 3), np.float32), "faces": np.zeros((0, 3), np.int32),
+            "observed_distance": np.zeros(0, np.float32), "cells": np.zeros((0, 3), np.int16), "seed": seed,
+            "fixed_cells": fixed}
+
+
+def cells_of(result: dict) -> list[np.ndarray]:
+    """The per-sample coarse cells of a tile result (what a phase-two neighbour is conditioned on)."""
+    return [s["cells"] for s in result["samples"]]

@@ -1,0 +1,64 @@
+"""A small synthetic drive made with numpy (no simulator): a straight street rising along x, walls on both
+sides with gaps, a few boxes; scans every few metres of the surface around each sensor position, stored in
+the sensor frame with a poses JSON, so `hgca drive` reads them the way it reads a real drive."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def street_surface(length: float, slope: float, rng: np.random.Generator, density: float = 40.0) -> np.ndarray:
+    """Points on the ground (z = slope * x), two walls (y = +-6 m, 3 m high, with gaps) and boxes."""
+    x0, x1 = -15.0, length + 15.0
+    area = (x1 - x0) * 24.0
+    g = np.c_[rng.uniform(x0, x1, int(area * density)), rng.uniform(-12, 12, int(area * density))]
+    ground = np.c_[g, slope * g[:, 0]]
+    walls = []
+    for side in (-6.0, 6.0):
+        n = int((x1 - x0) * 3.0 * density)
+        x = rng.uniform(x0, x1, n)
+        x = x[(x % 17.0) > 3.0]                       # a gap every 17 m
+        z = rng.uniform(0, 3.0, len(x))
+        walls.append(np.c_[x, np.full(len(x), side), slope * x + z])
+    boxes = []
+    for bx in np.arange(5.0, length, 11.0):
+        n = int(6.0 * density)
+        p = rng.uniform([0, 0, 0], [2.0, 1.5, 1.5], (n, 3)) + [bx, 2.5 if int(bx) % 2 else -4.0, slope * bx]
+        boxes.append(p)
+    return np.concatenate([ground, *walls, *boxes])
+
+
+def save_scans(folder: Path, scans_world: list[np.ndarray], poses: list[np.ndarray]) -> tuple[list[Path], Path]:
+    """Each scan (world points, float64) in its sensor frame as scan_<i>.npz, and poses.json (sensor->world)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    paths, entries = [], []
+    for i, (pts, pose) in enumerate(zip(scans_world, poses)):
+        pose = np.asarray(pose, dtype=np.float64)
+        path = folder / f"scan_{i:03d}.npz"
+        np.savez(path, points=(np.asarray(pts, dtype=np.float64) - pose[:3, 3]) @ pose[:3, :3])
+        paths.append(path)
+        entries.append({"file": path.name, "pose": pose.tolist()})
+    poses_path = folder / "poses.json"
+    poses_path.write_text(json.dumps({"scans": entries}))
+    return paths, poses_path
+
+
+def write_drive(folder: Path, length: float = 40.0, spacing: float = 4.0, slope: float = 0.0, seed: int = 0,
+                offset=(0.0, 0.0, 0.0), radius: float = 14.0, weave: float = 0.3) -> tuple[list[Path], Path]:
+    """Scans (npz, sensor frame) every `spacing` m along x from 0 to `length`, sensor 2 m above the ground, and
+    the poses JSON; the path weaves `weave` m sideways; the whole drive is shifted by `offset` (float64, e.g.
+    UTM-sized)."""
+    rng = np.random.default_rng(seed)
+    surface = street_surface(length, slope, rng)
+    off = np.asarray(offset, dtype=np.float64)
+    scans, poses = [], []
+    for x in np.arange(0.0, length + 1e-9, spacing):
+        pos = np.array([x, weave * np.sin(x / 9.0), slope * x + 2.0])
+        near = surface[np.linalg.norm(surface[:, :2] - pos[:2], axis=1) < radius]
+        scans.append(near + rng.normal(0, 0.005, near.shape) + off)
+        pose = np.eye(4)
+        pose[:3, 3] = pos + off
+        poses.append(pose)
+    return save_scans(folder, scans, poses)
