@@ -102,14 +102,7 @@ def run(args: argparse.Namespace) -> int:
     except core.CoreError as exc:
         _log(f"error: {exc}")
         return 2
-    last = [""]
-
-    def show(j: core.Job) -> None:
-        if j.status != last[0]:
-            last[0] = j.status
-            _log(f"{j.progress * 100:5.1f}% {j.status}")
-
-    state = job.wait(timeout=args.timeout, on_poll=show)
+    state = _wait_logged(job, args.timeout)
     jobs.poll_all()
     if state != "done":
         _log(f"error: completion {state}: {job.error or job.status}")
@@ -128,6 +121,18 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _wait_logged(job: core.Job, timeout: float | None) -> str:
+    """Drive the job to its end, logging each new status line; returns the final state."""
+    last = [""]
+
+    def show(j: core.Job) -> None:
+        if j.status != last[0]:
+            last[0] = j.status
+            _log(f"{j.progress * 100:5.1f}% {j.status}")
+
+    return job.wait(timeout=timeout, on_poll=show)
+
+
 def _drive(args: argparse.Namespace, python: str, scene: bpy.types.Scene, t0: float) -> int:
     """`--drive DIR`: `hgca drive` on the scans, its tiles into one collection, then save."""
     from . import drive_job
@@ -142,14 +147,7 @@ def _drive(args: argparse.Namespace, python: str, scene: bpy.types.Scene, t0: fl
     except core.CoreError as exc:
         _log(f"error: {exc}")
         return 2
-    last = [""]
-
-    def show(j: core.Job) -> None:
-        if j.status != last[0]:
-            last[0] = j.status
-            _log(f"{j.progress * 100:5.1f}% {j.status}")
-
-    if job.wait(timeout=args.timeout, on_poll=show) != "done":
+    if _wait_logged(job, args.timeout) != "done":
         _log(f"error: drive {job.state}: {job.error or job.status} (finished tiles stay in {args.drive})")
         return 2
     _log(f"{job.status} after {time.perf_counter() - t0:.1f} s")

@@ -119,10 +119,7 @@ def build_drive_results(scene: bpy.types.Scene, tiles: list[list[Path]], run_nam
                 if k:
                     hidden.append(obj)
         scene.collection.children.link(collection)
-        for obj in hidden:
-            obj.hide_render = True
-            for view_layer in scene.view_layers:
-                obj.hide_set(True, view_layer=view_layer)
+        mesh_build.hide_in_scene(scene, hidden)
     except Exception:
         created.rollback()
         raise

@@ -275,11 +275,16 @@ def build_results(scene: bpy.types.Scene, outputs: list[Path], run_name: str) ->
             collection.objects.link(obj)
             objects.append(obj)
         scene.collection.children.link(collection)
-        for obj in objects[1:]:
-            obj.hide_render = True
-            for view_layer in scene.view_layers:
-                obj.hide_set(True, view_layer=view_layer)
+        hide_in_scene(scene, objects[1:])
     except Exception:
         created.rollback()
         raise
     return collection
+
+
+def hide_in_scene(scene: "bpy.types.Scene", objects: list) -> None:
+    """Hide extra samples in the viewport and renders: sample 0 is what the user sees first."""
+    for obj in objects:
+        obj.hide_render = True
+        for view_layer in scene.view_layers:
+            obj.hide_set(True, view_layer=view_layer)
