@@ -264,7 +264,7 @@ def table(r: dict) -> str:
              f"Machine: {m['cpu']}, {m['cores']} cores shared with other jobs (load average {r['load_average']} "
              f"at the end), torch {m['torch']}, {r['threads_per_tile']} torch thread(s) per tile, {m['date']}. "
              "A synthetic drive of "
-             f"{r['length_m']} m (two seeded city scenes, {r['scans']} WAYMO64 scans every {r['spacing_m']} m), "
+             f"{r['length_m']} m (two seeded city scenes, {r['scans']} Waymo-profile scans every {r['spacing_m']} m), "
              f"{r['plan']['size'][0]} m tiles overlapping {r['plan']['overlap']} m, {r['plan']['scans_per_tile']} "
              "scans per tile.", "",
              "| run | tiles | wall (s) | Ray start (s) | tiles (s) | merge (s) | tiles/min | mean tile (s) | "
