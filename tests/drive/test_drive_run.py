@@ -146,8 +146,10 @@ def done_tiles(out: Path) -> int:
         return 0
 
 
-@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT], ids=["SIGKILL", "SIGINT"])
-def test_resume_after_being_killed_halfway(tmp_path, drive_weights, sig):
+def test_resume_after_being_killed_halfway(tmp_path, drive_weights):
+    """SIGKILL after two tiles (the hardest stop: nothing runs after it; the CLI's SIGINT / SIGTERM handler ends
+    the process the same way, at once); the rerun computes only the rest."""
+    sig = signal.SIGKILL
     scans, poses = write_drive(tmp_path / "scans", length=60.0)
     out = tmp_path / "drive"
     args = [*scans, "--poses", poses, "--out", out, "--weights", drive_weights, *CLI_SMALL, "--progress", "none"]
@@ -158,9 +160,8 @@ def test_resume_after_being_killed_halfway(tmp_path, drive_weights, sig):
     proc.send_signal(sig)
     proc.communicate(timeout=60)
     first = json.loads((out / "drive.json").read_text())
-    # nothing runs after the kill, and the CLI ends at once on Ctrl-C (hgca_core.interrupt): drive.json is the one
-    # the last finished tile wrote
-    assert proc.returncode == (-signal.SIGKILL if sig == signal.SIGKILL else 130) and first["status"] == "running"
+    # nothing ran after the kill: drive.json is the one the last finished tile wrote
+    assert proc.returncode == -sig and first["status"] == "running"
     kept = {t["key"]: (out / "cache" / f"{t['key']}.npz").stat().st_mtime_ns
             for t in first["tiles"] if t["status"] == "done"}
     n = len(first["tiles"])
