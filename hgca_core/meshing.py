@@ -3,7 +3,7 @@
 `voxel_mesh` turns occupied cells into the blocky surface of their union (the coarse stage's output and
 the voxel baselines). The fine stage's path: unsigned distance decoded on a 5 cm grid (`udf_grid`) -> one open
 surface at its zero level (`hgca_core.geometry.udf_surface`) -> cleanup (`hgca_core.geometry.mesh_clean`):
-floating fragments, consistent orientation towards the sensors, pinholes, flat ground. `finish_mesh` then
+floating fragments, consistent orientation towards the sensors, pinholes. `finish_mesh` then
 decimates, and adds per-vertex normals and the observed / generated face split every output carries.
 """
 from __future__ import annotations
@@ -72,8 +72,6 @@ UdfFn = Callable[[torch.Tensor], torch.Tensor]
 # Defaults of the fine stage's cleanup (see `udf_mesh`)
 MIN_AREA = 0.05          # m^2: connected pieces smaller than a 22 x 22 cm square are specks, not objects
 PINHOLE_EDGES = 12       # boundary loops of at most this many edges (~0.5 m around at 5 cm) are closed
-FLAT_SIGMA = 0.4         # m: scale of the flat-ground fit (several LiDAR rings); 0 turns it off
-FLAT_TOL = 0.04          # m: height scale of the flat-ground fit (kerbs are ~3x higher)
 OBSERVED_RADIUS = 0.1    # m: faces this close to an input point were seen (they vote on orientation)
 # Defaults of `finish_mesh`
 DEFAULT_MAX_FACES = 1_000_000
@@ -176,7 +174,7 @@ def project_to_zero(field: UdfFn, points: np.ndarray, steps: int = 1, max_dist: 
 def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.Tensor | None = None,
              lower_corner: float | np.ndarray | None = None, voxel: float = 0.1, res: float = 0.05,
              chunk: int = 1 << 15, min_area: float = MIN_AREA, pinhole_edges: int = PINHOLE_EDGES,
-             flat_sigma: float = FLAT_SIGMA, flat_tol: float = FLAT_TOL, points: np.ndarray | None = None,
+             points: np.ndarray | None = None,
              sensors: np.ndarray | None = None, timings: dict | None = None) -> trimesh.Trimesh:
     """One open surface at the zero level of the unsigned distance around occupied 10 cm cells (5 cm grid).
 
@@ -187,8 +185,7 @@ def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.T
       -voxel / 2 is the region frame of 10 cm cells made by rounding, so vertices come back in that frame.
     chunk: decoder queries per call (memory bound; results do not depend on it).
     min_area: connected pieces with less area (m^2) are dropped; pinhole_edges: boundary loops with at most
-      this many edges are closed (0: none); flat_sigma / flat_tol: the flat-ground fit (`mesh_clean.smooth_flat`,
-      flat_sigma 0: off).
+      this many edges are closed (0: none).
     points / sensors: input points and sensor positions (output frame): faces within OBSERVED_RADIUS of a
       point face the nearest sensor, and each connected piece follows its observed faces; pieces nobody saw
       face away from their own centre (outwards from what they enclose), or up. Without points: the latter.
@@ -206,46 +203,16 @@ def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.T
     surf = dual_surface(g, vals, res, voxel)
     v, f = surf.vertices * res + shift, surf.faces
     t2 = time.perf_counter()
-    v, f = mc.drop_fragments(v, f, min_area)
-    f = mc.orient(v, f, *orientation_prior(v, f, points, sensors))
-    if pinhole_edges >= 3:
-        f = mc.fill_pinholes(v, f, pinhole_edges)
-    if flat_sigma > 0:
-        v = mc.smooth_flat(v, f, flat_sigma, flat_tol)
+    observed = None
+    if points is not None and sensors is not None and len(points) and len(v):
+        from scipy.spatial import cKDTree
+
+        observed = np.isfinite(cKDTree(np.asarray(points, dtype=np.float64)).query(
+            v, distance_upper_bound=OBSERVED_RADIUS)[0])
+    v, f = mc.clean_surface(v, f, min_area, observed, sensors, pinhole_edges)
     if timings is not None:
         timings.update(decode=t1 - t0, extract=t2 - t1, clean=time.perf_counter() - t2)
     return trimesh.Trimesh(vertices=v, faces=f, process=False)
-
-
-def orientation_prior(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray | None,
-                      sensors: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """(wanted normal direction (F, 3), trusted (F,) bool) for `mesh_clean.orient` (see `udf_mesh`): faces with
-    all vertices within OBSERVED_RADIUS of an input point and not seen edge-on (|cos| > 0.1) want to face their
-    nearest sensor; every other face wants to face away from the centre of its connected piece, or up."""
-    from scipy.spatial import cKDTree
-
-    from hgca_core.geometry.mesh_clean import components, face_normals
-
-    nf = len(faces)
-    centre = vertices[faces].mean(1) if nf else np.zeros((0, 3))
-    n, label = components(faces, len(vertices))
-    count = np.maximum(np.bincount(label, minlength=n), 1)[:, None]
-    mid = np.stack([np.bincount(label, weights=centre[:, a], minlength=n) for a in range(3)], 1) / count
-    prior = centre - mid[label]
-    prior /= np.maximum(np.linalg.norm(prior, axis=1), 1e-9)[:, None]
-    prior[:, 2] += 1e-3
-    trusted = np.zeros(nf, dtype=bool)
-    if points is not None and sensors is not None and len(points) and len(sensors) and nf:
-        near = np.isfinite(cKDTree(np.asarray(points, dtype=np.float64)).query(
-            vertices, distance_upper_bound=OBSERVED_RADIUS)[0])
-        seen = near[faces].all(1)
-        s = np.asarray(sensors, dtype=np.float64).reshape(-1, 3)
-        look = s[cKDTree(s).query(centre[seen])[1]] - centre[seen]
-        look /= np.maximum(np.linalg.norm(look, axis=1), 1e-9)[:, None]
-        prior[seen] = look
-        fn, _ = face_normals(vertices, faces[seen])
-        trusted[np.flatnonzero(seen)] = np.abs(np.einsum("ij,ij->i", fn, look)) > 0.1
-    return prior, trusted
 
 
 def finish_mesh(mesh: trimesh.Trimesh, observed_distance: np.ndarray | None = None,

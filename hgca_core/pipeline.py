@@ -86,7 +86,9 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
 
     `precision` is the GEMM precision of the sparse convs while sampling ('auto': bf16 where the hardware has
     it, see `hgca_core.nn.conv.resolve_precision`); a (seed, precision) pair names one result. `max_faces`
-    simplifies each mesh to at most that many triangles (`hgca_core.meshing.decimate`)."""
+    simplifies each mesh to at most that many triangles (`hgca_core.meshing.decimate`; None: the default of
+    `hgca_core.meshing.DEFAULT_MAX_FACES`, 0: keep every triangle). Each mesh carries per-vertex normals and
+    `observed_distance` and an observed / generated face `material` (`hgca_core.meshing.finish_mesh`)."""
     if stage not in ("coarse", "full"):
         raise InputError(f"stage must be 'coarse' or 'full', not {stage!r}")
     fine_path = Path(fine_weights or default_weights("fine"))
@@ -95,8 +97,8 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
                          "use --stage coarse", str(fine_path))
     if samples < 1:
         raise InputError(f"samples must be at least 1, got {samples}")
-    if max_faces is not None and max_faces < 1000:
-        raise InputError(f"max_faces must be at least 1000 (or None for no limit), got {max_faces}")
+    if max_faces is not None and max_faces != 0 and max_faces < 1000:
+        raise InputError(f"max_faces must be 0 (keep every triangle) or at least 1000, got {max_faces}")
     pts = check_points(points)
     if region is None:
         sensor = None if origins is None or len(origins) == 0 else np.asarray(origins)[0]
@@ -124,6 +126,10 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
         raise InputError(str(exc)) from exc
     steps = t1 or model.cfg.steps
     tree = cKDTree(pts[inside])
+    # sensor positions (region frame) that observed faces turn towards; without them one 2 m above the
+    # ground at the region's centre (the region's box starts 1 m below the ground)
+    sensors = (region.to_local(np.asarray(origins, dtype=np.float64).reshape(-1, 3))
+               if origins is not None and len(origins) else np.array([[*(region.size[:2] / 2), 3.0]]))
     results = []
     for i in range(samples):
         gen = torch.Generator(device=device).manual_seed(seed + i)
@@ -140,20 +146,21 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
                 cells10, latents = upsample(fine_model, autoencoder, local[inside], cells, region.grid_shape(FINE), t2,
                                             gen, lambda t, n: report("fine", t, n, f"sample {i + 1}/{samples}"))
             report("mesh", i, samples, f"sample {i + 1}/{samples}")
-            mesh = decode_mesh(autoencoder, cells10, latents)
+            mesh = decode_mesh(autoencoder, cells10, latents, points=local[inside], sensors=sensors)
         else:
             from hgca_core.meshing import voxel_mesh
 
             report("mesh", i, samples, f"sample {i + 1}/{samples}")
             mesh = voxel_mesh(cells, COARSE, lower_corner=-FINE / 2)
-        if max_faces is not None and len(mesh.faces) > max_faces:
-            from hgca_core.meshing import decimate
+        from hgca_core.meshing import DEFAULT_MAX_FACES, decimate, finish_mesh
 
+        limit = DEFAULT_MAX_FACES if max_faces is None else max_faces
+        if limit and len(mesh.faces) > limit:
             report("mesh", i, samples, f"sample {i + 1}/{samples}: simplifying {len(mesh.faces)} faces")
-            mesh = decimate(mesh, max_faces)
+            mesh = decimate(mesh, limit)
         mesh.vertices = region.to_world(mesh.vertices)
         dist = tree.query(mesh.vertices, workers=-1)[0].astype(np.float32) if len(mesh.vertices) else np.zeros(0, np.float32)
-        mesh.vertex_attributes["observed_distance"] = dist
+        mesh = finish_mesh(mesh, dist)
         results.append(Completion(mesh=mesh, observed_distance=dist, coarse_cells=cells, region=region, seed=seed + i))
         report("mesh", i + 1, samples, f"sample {i + 1}/{samples}")
     return results

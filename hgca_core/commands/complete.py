@@ -22,7 +22,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="coarse: 20 cm voxels only; full: + 10 cm cGCA upsampling and an implicit mesh")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--max-faces", type=int, default=None,
-                   help="simplify each mesh to at most this many triangles (a default region gives 5-7 M at 5 cm)")
+                   help="simplify each mesh to at most this many triangles (default 1,000,000; 0 keeps every "
+                        "triangle: a default region's full-stage mesh has ~2 M)")
     add_precision_argument(p)
     p.add_argument("--t1", type=int, default=None, help="coarse steps T1 (default from the weights: 30)")
     p.add_argument("--t2", type=int, default=None, help="fine steps T2 (default 15)")
@@ -85,7 +86,8 @@ def _run(args: argparse.Namespace, progress) -> list[Path]:
     for i, (res, path) in enumerate(zip(results, paths)):
         progress("write", i, len(paths), path.name)
         if path.suffix.lower() == ".npz":
-            write_mesh_npz(path, res.mesh.vertices, res.mesh.faces, res.observed_distance)
+            write_mesh_npz(path, res.mesh.vertices, res.mesh.faces, res.observed_distance,
+                           normals=res.mesh.vertex_normals, face_material=res.mesh.face_attributes.get("material"))
         else:
             write_mesh(path, res.mesh)
     progress("write", len(paths), len(paths), "")

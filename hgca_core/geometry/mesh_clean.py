@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -40,12 +40,12 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def edge_faces(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Half-edges grouped by undirected edge: (edge key per half-edge sorted (3F,), face per half-edge, count of
-    half-edges of each half-edge's edge). Half-edge k of face f runs faces[f, k] -> faces[f, (k + 1) % 3]."""
+    """Half-edges grouped by undirected edge: (half-edge ids sorted by edge key (3F,), their edge keys, the number
+    of half-edges of each one's edge). Half-edge 3 f + k runs faces[f, k] -> faces[f, (k + 1) % 3]."""
     a = faces.reshape(-1)
     b = faces[:, [1, 2, 0]].reshape(-1)
     key = np.minimum(a, b).astype(np.int64) * n_vertices + np.maximum(a, b)
-    order = np.argsort(key, kind="stable")
+    order = np.argsort(key)
     ks = key[order]
     start = np.r_[True, ks[1:] != ks[:-1]]
     group = np.cumsum(start) - 1
@@ -72,10 +72,11 @@ def boundary_length(vertices: np.ndarray, faces: np.ndarray) -> float:
     return float(np.linalg.norm(vertices[a] - vertices[b], axis=1).sum())
 
 
-def _manifold_pairs(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _manifold_pairs(faces: np.ndarray, n_vertices: int, edges: tuple | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(face a, face b, same_direction) for every manifold edge; same_direction: both faces run the edge the same
-    way, i.e. one of them must flip for a consistent winding."""
-    order, ks, count = edge_faces(faces, n_vertices)
+    way, i.e. one of them must flip for a consistent winding. `edges`: `edge_faces` of these faces, if known."""
+    order, ks, count = edge_faces(faces, n_vertices) if edges is None else edges
     first = np.flatnonzero((count == 2) & np.r_[True, ks[1:] != ks[:-1]])
     h1, h2 = order[first], order[first + 1]
     start = faces.reshape(-1)
@@ -83,16 +84,17 @@ def _manifold_pairs(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.
 
 
 def orient(vertices: np.ndarray, faces: np.ndarray, prior: np.ndarray | None = None,
-           seed: np.ndarray | None = None) -> np.ndarray:
+           seed: np.ndarray | None = None, normals: np.ndarray | None = None, edges: tuple | None = None
+           ) -> np.ndarray:
     """Faces turned so that their normals follow `prior` where it is trusted (`seed`) and are consistent with their
     neighbours elsewhere.
 
     prior: (F, 3) wanted normal directions (e.g. towards the sensor that saw the face); seed: (F,) bool, the faces
-    whose prior is trusted (default: none). A spanning forest of the face graph (manifold edges only), rooted at
-    the seeds and otherwise preferring edges between faces whose normals are parallel (Hoppe et al. 1992: carry
-    orientation across smooth parts, not across folds), gives every face the winding of the seed it hangs from;
-    flips are accumulated by pointer doubling (O(F log depth), no Python loop over faces). A connected piece
-    without seeds gets a consistent winding, turned as a whole to agree with the area-weighted `prior`.
+    whose prior is trusted (default: none). A breadth-first forest of the face graph (manifold edges only), grown
+    from all seeds at once, gives every face the winding of the seed nearest to it (in steps); flips are
+    accumulated by pointer doubling (O(F log depth), no Python loop over faces). A connected piece without seeds
+    gets a consistent winding, turned as a whole to agree with `prior` (face-count weighted).
+    normals / edges: `face_normals(...)[0]` and `edge_faces(...)` of these faces, if already known.
     """
     faces = np.asarray(faces, dtype=np.int64)
     nf = len(faces)
@@ -100,45 +102,46 @@ def orient(vertices: np.ndarray, faces: np.ndarray, prior: np.ndarray | None = N
         return faces
     prior = np.zeros((nf, 3)) if prior is None else np.asarray(prior, dtype=np.float64)
     seed = np.zeros(nf, dtype=bool) if seed is None else np.asarray(seed, dtype=bool)
-    fa, fb, same = _manifold_pairs(faces, len(vertices))
-    n, area = face_normals(vertices, faces)
-    agree = (n * prior).sum(1) >= 0
-    n_comp, label = connected_components(coo_matrix((np.ones(len(fa)), (fa, fb)), shape=(nf, nf)), directed=False)
+    fa, fb, _ = _manifold_pairs(faces, len(vertices), edges)
+    n = face_normals(vertices, faces)[0] if normals is None else normals
+    agree = np.einsum("ij,ij->i", n, prior) >= 0
+    n_comp, label = connected_components(coo_matrix((np.ones(len(fa), dtype=np.int8), (fa, fb)), shape=(nf, nf)),
+                                         directed=False)
     # roots: every seed, and the first face of each piece without one (it keeps its winding)
     has_seed = np.bincount(label, weights=seed, minlength=n_comp) > 0
-    first = np.unique(label, return_index=True)[1]
+    first = np.empty(n_comp, dtype=np.int64)
+    first[label[::-1]] = np.arange(nf - 1, -1, -1)
     roots = np.r_[np.flatnonzero(seed), first[~has_seed]]
-    # cost 1 - |n_a . n_b| + a floor (explicit zeros would not be edges); root edges are cheaper than any
-    cost = 1.0 - np.abs(np.einsum("ij,ij->i", n[fa], n[fb])) + 1e-6
-    rows = np.r_[fa, np.full(len(roots), nf)]
-    cols = np.r_[fb, roots]
-    data = np.r_[cost, np.full(len(roots), 1e-9)]
-    tree = minimum_spanning_tree(coo_matrix((data, (rows, cols)), shape=(nf + 1, nf + 1)).tocsr())
-    _, pred = breadth_first_order(tree + tree.T, nf, directed=False, return_predecessors=True)
-    pred = pred[:nf]
+    # one breadth-first forest from a virtual root (index nf) joined to the roots
+    graph = coo_matrix((np.ones(len(fa) + len(roots), dtype=np.int8),
+                        (np.r_[fa, np.full(len(roots), nf)], np.r_[fb, roots])), shape=(nf + 1, nf + 1)).tocsr()
+    _, pred = breadth_first_order(graph, nf, directed=False, return_predecessors=True)
+    pred = pred[:nf].astype(np.int64)
     # flip relative to the parent (index nf: the virtual root, flip 0): a seed turns to its prior, any other
-    # face to its parent's winding
+    # face to its parent's winding (it must flip when both run their shared edge the same way)
     flip = np.zeros(nf + 1, dtype=np.int8)
     up = np.full(nf + 1, nf, dtype=np.int64)
     at_root = pred == nf
-    flip[:nf][at_root] = (seed[at_root] & ~agree[at_root]).astype(np.int8)
-    pk = np.minimum(fa, fb) * nf + np.maximum(fa, fb)
-    pk_order = np.argsort(pk, kind="stable")
+    flip[:nf][at_root] = seed[at_root] & ~agree[at_root]
     child = np.flatnonzero((pred >= 0) & (pred < nf))
-    ck = np.minimum(child, pred[child]) * nf + np.maximum(child, pred[child])
-    flip[child] = same[pk_order[np.searchsorted(pk[pk_order], ck)]]
+    fc, fp = faces[child], faces[pred[child]]
+    same = np.zeros(len(child), dtype=bool)
+    for i in range(3):
+        for j in range(3):
+            same |= (fc[:, i] == fp[:, j]) & (fc[:, (i + 1) % 3] == fp[:, (j + 1) % 3])
+    flip[child] = same
     up[child] = pred[child]
-    while True:  # pointer doubling: flip = xor of the relative flips from a face up to (excluding) `up`
-        if np.all(up == nf):
-            break
-        flip ^= flip[up]
-        up = up[up]
+    active = child
+    while len(active):  # pointer doubling: flip = xor of the relative flips from a face up to (excluding) `up`
+        flip[active] ^= flip[up[active]]
+        up[active] = up[up[active]]
+        active = active[up[active] != nf]
     flip = flip[:nf]
     # pieces without seeds: turn as a whole to the area-weighted prior
-    sgn = np.where(flip == 1, -1.0, 1.0)
-    vote = np.bincount(label, weights=sgn * (n * prior).sum(1) * area, minlength=n_comp)
-    turn = ~has_seed & (vote < 0)
-    flip ^= turn[label].astype(np.int8)
+    if not has_seed.all():
+        sgn = np.where(flip == 1, -1.0, 1.0)
+        vote = np.bincount(label, weights=sgn * np.einsum("ij,ij->i", n, prior), minlength=n_comp)
+        flip ^= (~has_seed & (vote < 0))[label].astype(np.int8)
     out = faces.copy()
     out[flip == 1] = out[flip == 1][:, ::-1]
     return out
@@ -160,9 +163,10 @@ def compact(vertices: np.ndarray, faces: np.ndarray, keep_faces: np.ndarray | No
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Keep the selected faces and the vertices they use: (vertices, faces, old index of each kept vertex)."""
     f = faces if keep_faces is None else faces[keep_faces]
-    used = np.unique(f)
-    remap = np.full(len(vertices), -1, dtype=np.int64)
-    remap[used] = np.arange(len(used))
+    mask = np.zeros(len(vertices), dtype=bool)
+    mask[f] = True
+    used = np.flatnonzero(mask)
+    remap = np.cumsum(mask) - 1
     return vertices[used], remap[f], used
 
 
@@ -177,13 +181,15 @@ def drop_fragments(vertices: np.ndarray, faces: np.ndarray, min_area: float) -> 
     return v, f
 
 
-def fill_pinholes(vertices: np.ndarray, faces: np.ndarray, max_edges: int = 12) -> np.ndarray:
+def fill_pinholes(vertices: np.ndarray, faces: np.ndarray, max_edges: int = 12, edges: tuple | None = None
+                  ) -> np.ndarray:
     """Faces plus fans closing every boundary loop of at most `max_edges` edges (the winding must be consistent:
-    run after `orient`). Loops through a vertex with more than one boundary edge out are left open."""
+    run after `orient`). Loops through a vertex with more than one boundary edge out are left open.
+    `edges`: `edge_faces` of these faces, if known."""
     if len(faces) == 0:
         return faces
     nv = len(vertices)
-    order, ks, count = edge_faces(faces, nv)
+    order, ks, count = edge_faces(faces, nv) if edges is None else edges
     half = order[count == 1]                              # boundary half-edges
     a = faces.reshape(-1)[half]
     b = faces[:, [1, 2, 0]].reshape(-1)[half]
@@ -219,63 +225,55 @@ def fill_pinholes(vertices: np.ndarray, faces: np.ndarray, max_edges: int = 12) 
     return np.concatenate([faces, *tris])
 
 
-def smooth_flat(vertices: np.ndarray, faces: np.ndarray, sigma: float = 0.4, tol: float = 0.04,
-                max_tilt_deg: float = 25.0, cell: float = 0.15) -> np.ndarray:
-    """Vertices with the height of near-horizontal parts replaced by a robust local plane fit (a bilateral
-    filter of the height field): the ground stays flat where the world is flat.
+def reversed_edges(edges: tuple, flipped: np.ndarray) -> tuple:
+    """`edge_faces` of the same faces after reversing (a, b, c) -> (c, b, a) those in `flipped` (F,) bool: the
+    edges are the same, only the half-edge ids within each reversed face move (ab: 0 -> 1, bc: 1 -> 0)."""
+    order, ks, count = edges
+    f, k = order // 3, order % 3
+    return np.where(flipped[f], 3 * f + np.array([1, 0, 2])[k], order), ks, count
 
-    Each vertex whose normal is within `max_tilt_deg` of vertical takes the height, at its x/y, of a weighted
-    least-squares plane z = a + b x + c y over the near-horizontal surface around it: Gaussian weights of width
-    `sigma` in x/y and `tol` in height, so a kerb or step higher than ~2 `tol` is a different surface, while
-    slopes, camber and ramps are kept (a plane through them). For speed the planes are fitted per `cell`-sized
-    cluster of vertices (in x, y and height / tol * sigma) and blended between the 4 nearest clusters.
-    No vertex moves by more than `tol`.
+
+def clean_surface(vertices: np.ndarray, faces: np.ndarray, min_area: float = 0.0,
+                  observed: np.ndarray | None = None, sensors: np.ndarray | None = None,
+                  pinhole_edges: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """Fragments -> orientation -> pinholes, sharing normals, components and edges between the steps.
+
+    min_area: connected pieces (through shared vertices) with less area are dropped.
+    observed: (V,) bool, vertices near an input point; sensors: (S, 3) sensor positions. A face with all three
+    vertices observed, not seen edge-on (|cos| > 0.1), is a seed of `orient` and faces its nearest sensor; pieces
+    without seeds face away from their own centre (outwards from what they enclose), ties broken upwards.
+    pinhole_edges: boundary loops of at most this many edges are closed (< 3: none).
     """
-    from scipy.spatial import cKDTree
-
-    v = np.asarray(vertices, dtype=np.float64).copy()
-    if len(faces) == 0:
-        return v
-    n = vertex_normals(v, faces)
-    flat = np.flatnonzero(np.abs(n[:, 2]) > np.cos(np.radians(max_tilt_deg)))
-    if len(flat) < 3:
-        return v
-    scale = np.array([1.0, 1.0, sigma / tol])
-    q = v[flat] * scale
-    key = np.floor(q / cell).astype(np.int64)
-    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
-    nc = len(cnt)
-    c = np.stack([np.bincount(inv, weights=q[:, a], minlength=nc) for a in range(3)], 1) / cnt[:, None]
-    pairs = cKDTree(c).query_pairs(2.0 * sigma, output_type="ndarray")
-    i = np.r_[pairs[:, 0], pairs[:, 1], np.arange(nc)]
-    j = np.r_[pairs[:, 1], pairs[:, 0], np.arange(nc)]
-    d2 = ((c[i] - c[j]) ** 2).sum(1)
-    w = np.exp(-0.5 * d2 / sigma ** 2) * cnt[j]
-    x, y, z = c[j, 0] - c[i, 0], c[j, 1] - c[i, 1], c[j, 2] / scale[2]
-
-    def s(val: np.ndarray) -> np.ndarray:
-        return np.bincount(i, weights=w * val, minlength=nc)
-
-    A = np.empty((nc, 3, 3))
-    A[:, 0, 0], A[:, 0, 1], A[:, 0, 2] = s(np.ones_like(x)), s(x), s(y)
-    A[:, 1, 1], A[:, 1, 2], A[:, 2, 2] = s(x * x), s(x * y), s(y * y)
-    A[:, 1, 0], A[:, 2, 0], A[:, 2, 1] = A[:, 0, 1], A[:, 0, 2], A[:, 1, 2]
-    rhs = np.stack([s(z), s(x * z), s(y * z)], 1)
-    # a plane where the neighbourhood spans two directions, else the weighted mean height
-    det = np.linalg.det(A[:, 1:, 1:] - A[:, 1:, :1] * A[:, :1, 1:] / A[:, :1, :1])
-    good = det > 1e-3 * A[:, 0, 0] ** 2 * sigma ** 4
-    coef = np.zeros((nc, 3))
-    coef[:, 0] = rhs[:, 0] / A[:, 0, 0]
-    if good.any():
-        coef[good] = np.linalg.solve(A[good], rhs[good][:, :, None])[:, :, 0]
-    # blend the planes of the (up to) 4 nearest clusters at each vertex
-    k = min(4, nc)
-    dist, idx = cKDTree(c).query(q, k=k)
-    dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
-    wv = np.exp(-0.5 * (dist / cell) ** 2) + 1e-12
-    dx, dy = q[:, None, 0] - c[idx, 0], q[:, None, 1] - c[idx, 1]
-    zp = coef[idx, 0] + coef[idx, 1] * dx + coef[idx, 2] * dy
-    znew = (wv * zp).sum(1) / wv.sum(1)
-    v[flat, 2] += np.clip(znew - v[flat, 2], -tol, tol)
-    return v
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    if len(f) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+    n_comp, label = components(f, len(v))
+    fn, area = face_normals(v, f)
+    keep = np.bincount(label, weights=area, minlength=n_comp)[label] >= min_area
+    v, f, used = compact(v, f, keep)
+    present = np.zeros(n_comp, dtype=bool)
+    present[label[keep]] = True
+    fn, label = fn[keep], (np.cumsum(present) - 1)[label[keep]]
+    n_comp = int(present.sum())
+    centre = (v[f[:, 0]] + v[f[:, 1]] + v[f[:, 2]]) / 3.0
+    count = np.maximum(np.bincount(label, minlength=n_comp), 1)[:, None]
+    mid = np.stack([np.bincount(label, weights=centre[:, a], minlength=n_comp) for a in range(3)], 1) / count
+    prior = centre - mid[label]
+    prior /= np.maximum(np.sqrt(np.einsum("ij,ij->i", prior, prior)), 1e-9)[:, None]
+    prior[:, 2] += 1e-3
+    seed = np.zeros(len(f), dtype=bool)
+    if observed is not None and sensors is not None and len(sensors):
+        seen = np.flatnonzero(np.asarray(observed)[used][f].all(1))
+        s = np.asarray(sensors, dtype=np.float64).reshape(-1, 3)
+        c = centre[seen]
+        best = np.argmin(((c[:, None, :] - s[None]) ** 2).sum(-1), axis=1) if len(s) > 1 else np.zeros(len(c), int)
+        look = s[best] - c
+        look /= np.maximum(np.sqrt(np.einsum("ij,ij->i", look, look)), 1e-9)[:, None]
+        prior[seen] = look
+        seed[seen] = np.abs(np.einsum("ij,ij->i", fn[seen], look)) > 0.1
+    edges = edge_faces(f, len(v))
+    out = orient(v, f, prior, seed, normals=fn, edges=edges)
+    if pinhole_edges >= 3:
+        out = fill_pinholes(v, out, pinhole_edges, reversed_edges(edges, out[:, 0] != f[:, 0]))
+    return v, out
