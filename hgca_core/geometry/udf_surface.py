@@ -63,8 +63,14 @@ class GridIndex:
         col = d[:, 0] * self.ny + d[:, 1]
         zlo = np.full(self.nx * self.ny, np.iinfo(np.int64).max, dtype=np.int64)
         zhi = np.full(self.nx * self.ny, -1, dtype=np.int64)
-        np.minimum.at(zlo, col, d[:, 2])
-        np.maximum.at(zhi, col, d[:, 2])
+        step = col[1:] - col[:-1]
+        if len(g) and np.all(step >= 0) and np.all((step > 0) | (d[1:, 2] > d[:-1, 2])):
+            first = np.flatnonzero(np.r_[True, step > 0])         # sorted (x, y, z), as the decoder returns them
+            last = np.r_[first[1:], len(g)] - 1
+            zlo[col[first]], zhi[col[first]] = d[first, 2], d[last, 2]
+        else:
+            np.minimum.at(zlo, col, d[:, 2])
+            np.maximum.at(zhi, col, d[:, 2])
         span = np.where(zhi >= 0, zhi - np.minimum(zlo, zhi) + 1, 0)
         self.base = np.cumsum(span) - span
         self.zlo, self.span = np.where(zhi >= 0, zlo, 0), span
