@@ -22,7 +22,7 @@ def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, n
     n[:, 1] = e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2]
     n[:, 2] = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
     area2 = np.sqrt(np.einsum("ij,ij->i", n, n))
-    n /= np.maximum(area2, 1e-300)[:, None]
+    n /= np.maximum(area2, np.finfo(n.dtype).tiny)[:, None]
     return n, 0.5 * area2
 
 
@@ -84,8 +84,8 @@ def _manifold_pairs(faces: np.ndarray, n_vertices: int, edges: tuple | None = No
 
 
 def orient(vertices: np.ndarray, faces: np.ndarray, prior: np.ndarray | None = None,
-           seed: np.ndarray | None = None, normals: np.ndarray | None = None, edges: tuple | None = None
-           ) -> np.ndarray:
+           seed: np.ndarray | None = None, normals: np.ndarray | None = None, edges: tuple | None = None,
+           pieces: tuple[int, np.ndarray] | None = None) -> np.ndarray:
     """Faces turned so that their normals follow `prior` where it is trusted (`seed`) and are consistent with their
     neighbours elsewhere.
 
@@ -94,7 +94,8 @@ def orient(vertices: np.ndarray, faces: np.ndarray, prior: np.ndarray | None = N
     from all seeds at once, gives every face the winding of the seed nearest to it (in steps); flips are
     accumulated by pointer doubling (O(F log depth), no Python loop over faces). A connected piece without seeds
     gets a consistent winding, turned as a whole to agree with `prior` (face-count weighted).
-    normals / edges: `face_normals(...)[0]` and `edge_faces(...)` of these faces, if already known.
+    normals / edges / pieces: `face_normals(...)[0]`, `edge_faces(...)` and `face_pieces(...)` of these faces,
+    if already known.
     """
     faces = np.asarray(faces, dtype=np.int64)
     nf = len(faces)
@@ -105,8 +106,7 @@ def orient(vertices: np.ndarray, faces: np.ndarray, prior: np.ndarray | None = N
     fa, fb, _ = _manifold_pairs(faces, len(vertices), edges)
     n = face_normals(vertices, faces)[0] if normals is None else normals
     agree = np.einsum("ij,ij->i", n, prior) >= 0
-    n_comp, label = connected_components(coo_matrix((np.ones(len(fa), dtype=np.int8), (fa, fb)), shape=(nf, nf)),
-                                         directed=False)
+    n_comp, label = face_pieces(nf, fa, fb) if pieces is None else pieces
     # roots: every seed, and the first face of each piece without one (it keeps its winding)
     has_seed = np.bincount(label, weights=seed, minlength=n_comp) > 0
     first = np.empty(n_comp, dtype=np.int64)
@@ -147,6 +147,12 @@ def orient(vertices: np.ndarray, faces: np.ndarray, prior: np.ndarray | None = N
     return out
 
 
+def face_pieces(n_faces: int, fa: np.ndarray, fb: np.ndarray) -> tuple[int, np.ndarray]:
+    """(count, label per face) of the pieces connected through manifold edges (face pairs fa, fb)."""
+    return connected_components(coo_matrix((np.ones(len(fa), dtype=np.int8), (fa, fb)), shape=(n_faces, n_faces)),
+                                directed=False)
+
+
 def components(faces: np.ndarray, n_vertices: int) -> tuple[int, np.ndarray]:
     """(count, label per face) of the pieces connected through shared vertices."""
     if len(faces) == 0:
@@ -168,17 +174,6 @@ def compact(vertices: np.ndarray, faces: np.ndarray, keep_faces: np.ndarray | No
     used = np.flatnonzero(mask)
     remap = np.cumsum(mask) - 1
     return vertices[used], remap[f], used
-
-
-def drop_fragments(vertices: np.ndarray, faces: np.ndarray, min_area: float) -> tuple[np.ndarray, np.ndarray]:
-    """Remove connected pieces whose total area is below `min_area` (floating specks), then unused vertices."""
-    if len(faces) == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
-    n, label = components(faces, len(vertices))
-    _, area = face_normals(vertices, faces)
-    keep = np.bincount(label, weights=area, minlength=n)[label] >= min_area
-    v, f, _ = compact(vertices, faces, keep)
-    return v, f
 
 
 def fill_pinholes(vertices: np.ndarray, faces: np.ndarray, max_edges: int = 12, edges: tuple | None = None
@@ -236,9 +231,10 @@ def reversed_edges(edges: tuple, flipped: np.ndarray) -> tuple:
 def clean_surface(vertices: np.ndarray, faces: np.ndarray, min_area: float = 0.0,
                   observed: np.ndarray | None = None, sensors: np.ndarray | None = None,
                   pinhole_edges: int = 12) -> tuple[np.ndarray, np.ndarray]:
-    """Fragments -> orientation -> pinholes, sharing normals, components and edges between the steps.
+    """Fragments (and faces of zero area) -> orientation -> pinholes, sharing normals, components and edges
+    between the steps.
 
-    min_area: connected pieces (through shared vertices) with less area are dropped.
+    min_area: connected pieces (through manifold edges) with less area are dropped.
     observed: (V,) bool, vertices near an input point; sensors: (S, 3) sensor positions. A face with all three
     vertices observed, not seen edge-on (|cos| > 0.1), is a seed of `orient` and faces its nearest sensor; pieces
     without seeds face away from their own centre (outwards from what they enclose), ties broken upwards.
@@ -248,15 +244,29 @@ def clean_surface(vertices: np.ndarray, faces: np.ndarray, min_area: float = 0.0
     f = np.asarray(faces, dtype=np.int64)
     if len(f) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
-    n_comp, label = components(f, len(v))
-    fn, area = face_normals(v, f)
-    keep = np.bincount(label, weights=area, minlength=n_comp)[label] >= min_area
-    v, f, used = compact(v, f, keep)
-    present = np.zeros(n_comp, dtype=bool)
-    present[label[keep]] = True
-    fn, label = fn[keep], (np.cumsum(present) - 1)[label[keep]]
-    n_comp = int(present.sum())
-    centre = (v[f[:, 0]] + v[f[:, 1]] + v[f[:, 2]]) / 3.0
+    edges = edge_faces(f, len(v))
+    fa, fb, _ = _manifold_pairs(f, len(v), edges)
+    n_comp, label = face_pieces(len(f), fa, fb)
+    v32 = v.astype(np.float32)                                 # normals and centres: float32 is plenty, and faster
+    fn, area = face_normals(v32, f)
+    keep = (np.bincount(label, weights=area, minlength=n_comp)[label] >= min_area) & (area > 0)
+    if not keep.all():                                        # drop the specks, carrying every structure along
+        v, f, used = compact(v, f, keep)
+        v32 = v32[used]
+        new_id = np.cumsum(keep) - 1
+        order, ks, _ = edges
+        he = keep[order // 3]
+        order, ks = new_id[order[he] // 3] * 3 + order[he] % 3, ks[he]
+        start = np.r_[True, ks[1:] != ks[:-1]]
+        group = np.cumsum(start) - 1
+        edges = (order, ks, np.bincount(group)[group])
+        pair = keep[fa] & keep[fb]
+        fa, fb = new_id[fa[pair]], new_id[fb[pair]]
+        fn = fn[keep]
+        n_comp, label = face_pieces(len(f), fa, fb)      # a dropped zero-area face may have split a piece
+    else:
+        used = np.arange(len(v))
+    centre = (v32[f[:, 0]] + v32[f[:, 1]] + v32[f[:, 2]]) / np.float32(3.0)
     count = np.maximum(np.bincount(label, minlength=n_comp), 1)[:, None]
     mid = np.stack([np.bincount(label, weights=centre[:, a], minlength=n_comp) for a in range(3)], 1) / count
     prior = centre - mid[label]
@@ -265,15 +275,21 @@ def clean_surface(vertices: np.ndarray, faces: np.ndarray, min_area: float = 0.0
     seed = np.zeros(len(f), dtype=bool)
     if observed is not None and sensors is not None and len(sensors):
         seen = np.flatnonzero(np.asarray(observed)[used][f].all(1))
-        s = np.asarray(sensors, dtype=np.float64).reshape(-1, 3)
+        s = np.asarray(sensors, dtype=np.float32).reshape(-1, 3)
         c = centre[seen]
-        best = np.argmin(((c[:, None, :] - s[None]) ** 2).sum(-1), axis=1) if len(s) > 1 else np.zeros(len(c), int)
+        best = np.zeros(len(c), dtype=np.int64)
+        if len(s) > 1:
+            dist = np.full(len(c), np.inf, dtype=np.float32)
+            for k in range(len(s)):
+                dk = ((c - s[k]) ** 2).sum(1)
+                best[dk < dist] = k
+                dist = np.minimum(dist, dk)
         look = s[best] - c
         look /= np.maximum(np.sqrt(np.einsum("ij,ij->i", look, look)), 1e-9)[:, None]
         prior[seen] = look
         seed[seen] = np.abs(np.einsum("ij,ij->i", fn[seen], look)) > 0.1
-    edges = edge_faces(f, len(v))
-    out = orient(v, f, prior, seed, normals=fn, edges=edges)
+    out = orient(v, f, prior, seed, normals=fn, edges=edges, pieces=(n_comp, label))
     if pinhole_edges >= 3:
         out = fill_pinholes(v, out, pinhole_edges, reversed_edges(edges, out[:, 0] != f[:, 0]))
     return v, out
+
