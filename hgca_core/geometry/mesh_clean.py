@@ -266,17 +266,18 @@ def clean_surface(vertices: np.ndarray, faces: np.ndarray, min_area: float = 0.0
         n_comp, label = face_pieces(len(f), fa, fb)      # a dropped zero-area face may have split a piece
     else:
         used = np.arange(len(v))
-    centre = (v32[f[:, 0]] + v32[f[:, 1]] + v32[f[:, 2]]) / np.float32(3.0)
-    count = np.maximum(np.bincount(label, minlength=n_comp), 1)[:, None]
-    mid = np.stack([np.bincount(label, weights=centre[:, a], minlength=n_comp) for a in range(3)], 1) / count
-    prior = centre - mid[label]
-    prior /= np.maximum(np.sqrt(np.einsum("ij,ij->i", prior, prior)), 1e-9)[:, None]
-    prior[:, 2] += 1e-3
+    def centre(sel: np.ndarray) -> np.ndarray:
+        return (v32[f[sel, 0]] + v32[f[sel, 1]] + v32[f[sel, 2]]) / np.float32(3.0)
+
+    def unit(x: np.ndarray) -> np.ndarray:
+        return x / np.maximum(np.sqrt(np.einsum("ij,ij->i", x, x)), 1e-9)[:, None]
+
+    prior = np.zeros((len(f), 3), dtype=np.float32)
     seed = np.zeros(len(f), dtype=bool)
     if observed is not None and sensors is not None and len(sensors):
         seen = np.flatnonzero(np.asarray(observed)[used][f].all(1))
         s = np.asarray(sensors, dtype=np.float32).reshape(-1, 3)
-        c = centre[seen]
+        c = centre(seen)
         best = np.zeros(len(c), dtype=np.int64)
         if len(s) > 1:
             dist = np.full(len(c), np.inf, dtype=np.float32)
@@ -284,10 +285,17 @@ def clean_surface(vertices: np.ndarray, faces: np.ndarray, min_area: float = 0.0
                 dk = ((c - s[k]) ** 2).sum(1)
                 best[dk < dist] = k
                 dist = np.minimum(dist, dk)
-        look = s[best] - c
-        look /= np.maximum(np.sqrt(np.einsum("ij,ij->i", look, look)), 1e-9)[:, None]
+        look = unit(s[best] - c)
         prior[seen] = look
         seed[seen] = np.abs(np.einsum("ij,ij->i", fn[seen], look)) > 0.1
+    # pieces without seeds (only they use it): away from the piece's centre, ties broken upwards
+    rest = np.flatnonzero(~(np.bincount(label, weights=seed, minlength=n_comp) > 0)[label])
+    if len(rest):
+        c = centre(rest)
+        count = np.maximum(np.bincount(label[rest], minlength=n_comp), 1)[:, None]
+        mid = np.stack([np.bincount(label[rest], weights=c[:, a], minlength=n_comp) for a in range(3)], 1) / count
+        prior[rest] = unit(c - mid[label[rest]])
+        prior[rest, 2] += 1e-3
     out = orient(v, f, prior, seed, normals=fn, edges=edges, pieces=(n_comp, label))
     if pinhole_edges >= 3:
         out = fill_pinholes(v, out, pinhole_edges, reversed_edges(edges, out[:, 0] != f[:, 0]))
