@@ -211,7 +211,7 @@ for _label, (_file, _content, _expect) in BAD_FILES.items():
 
 # --- paths that are not files ---------------------------------------------------------------------------------
 
-@case("read: a folder as scan", "is a folder", group="paths")
+@case("read: a folder as scan", "folder is not a known sequence layout", group="paths")  # folders are sequences now
 def _(d):
     (d / "dir.ply").mkdir()
     return read_cmd(d / "dir.ply", d)
