@@ -68,3 +68,24 @@ def snapshot() -> dict:
         "scene_children": sorted(c.name for c in bpy.context.scene.collection.children),
         "node_groups": sorted(n.name for n in bpy.data.node_groups),
     }
+
+
+def core_arrays(code: str, **names: str) -> dict[str, np.ndarray]:
+    """Run `code` in the core's interpreter (CORE_PYTHON: torch, pyarrow) and return the arrays it binds.
+
+    The LTS venvs hold only bpy, numpy and pytest, so a test that needs the core's own answer (a sample, a read
+    sequence) asks the interpreter the add-on itself would use, as the add-on does, instead of importing it here.
+    `names` maps each returned key to the expression evaluated after `code`.
+    """
+    import subprocess
+
+    with tempfile.TemporaryDirectory(prefix="hgca_core_arrays_") as tmp:
+        out = Path(tmp) / "out.npz"
+        fields = ", ".join(f"{k}=np.asarray({v})" for k, v in names.items())
+        script = (f"import sys; sys.path[:0] = [{str(REPO)!r}, {str(REPO / 'tests')!r}]\n"
+                  f"import numpy as np\n{code}\nnp.savez({str(out)!r}, {fields})\n")
+        done = subprocess.run([CORE_PYTHON, "-c", script], capture_output=True, text=True, timeout=600)
+        if done.returncode != 0:
+            raise RuntimeError(f"core snippet failed ({CORE_PYTHON}):\n{done.stderr[-4000:]}")
+        with np.load(out) as data:
+            return {k: data[k] for k in data.files}

@@ -12,8 +12,8 @@ import bpy
 import numpy as np
 import pytest
 
-from bl_helpers import addon_module, prefs
-from hgca_testdata import UTM_OFFSETS, tiny_sample, write_las
+from bl_helpers import addon_module, core_arrays, prefs
+from hgca_testdata import UTM_OFFSETS, write_las
 
 MM = 1e-3
 
@@ -64,7 +64,8 @@ def test_completion_of_a_utm_scan_round_trips_to_the_mm(addon, tmp_path: Path) -
     operators = addon_module("operators_complete")
     prefs().weights_path = ""  # the shipped weights
     base = np.array(UTM_OFFSETS["utm_1e7"])
-    held = write_las(tmp_path / "scan.las", tiny_sample(3)["input_points"].astype(np.float64) + base)
+    points = core_arrays("from hgca_testdata import tiny_sample", p='tiny_sample(3)["input_points"]')["p"]
+    held = write_las(tmp_path / "scan.las", points.astype(np.float64) + base)
     scan = import_las(tmp_path / "scan.las")
     scan.select_set(True)
     bpy.context.view_layer.objects.active = scan
