@@ -81,7 +81,7 @@ def completion_args(params: CompletionParams, in_path: Path, out_path: Path) -> 
     return ["complete", str(in_path), f"--region={region}", "--samples", str(int(params.samples)),
             "--seed", str(int(params.seed)), "--stage", params.stage, "--device", params.device,
             *steps, "--progress", "jsonl",
-            *(["--max-faces", str(int(params.max_faces))] if int(params.max_faces) else []),
+            "--max-faces", str(int(params.max_faces)),      # 0: every triangle (the core's default is 1 M)
             *params.extra_args, "-o", str(out_path)]
 
 

@@ -1,5 +1,10 @@
-"""Meshes from the fine stage's output: unsigned distance -> marching cubes (the coarse stage's blocky mesh
-is `hgca_core.geometry.voxel_mesh`)."""
+"""Meshes from the fine stage's output (the coarse stage's blocky mesh is `hgca_core.geometry.voxel_mesh`).
+
+Unsigned distance decoded on a 5 cm grid (`udf_grid`) -> one open surface at its zero level
+(`hgca_core.geometry.udf_surface`) -> cleanup (`hgca_core.geometry.mesh_clean`): floating fragments, consistent
+orientation towards the sensors, pinholes. `finish_mesh` adds per-vertex normals and the observed / generated face
+split every output carries; `decimate` makes a mesh light.
+"""
 from __future__ import annotations
 
 from typing import Callable
@@ -21,13 +26,13 @@ from hgca_core.geometry.keys import pack, unpack
 # ---------------------------------------------------------------------------------------------------------------
 UdfFn = Callable[[torch.Tensor], torch.Tensor]
 
-# Marching cubes level as a fraction of the grid spacing. An unsigned distance has no sign change, so the
-# surface is the boundary of the thin band {d < level}: a closed, double-sided shell around every sheet (the
-# paper's "thick meshes for thin structures"). For a plane, the grid points of one grid column have distances
-# spaced res * |n_i| >= res / sqrt(3) apart, so the closest one is at most res / 2 away: any level above res / 2
-# finds every surface; at exactly res / 2 a plane midway between grid planes is missed. 0.6 res (3 cm at 5 cm)
-# leaves a margin for decoder error while keeping the shell within 3 cm of the surface.
-LEVEL_FRACTION = 0.6
+
+# Defaults of the fine stage's cleanup (see `udf_mesh`)
+MIN_AREA = 0.05          # m^2: connected pieces smaller than a 22 x 22 cm square are specks, not objects
+PINHOLE_EDGES = 12       # boundary loops of at most this many edges (~0.5 m around at 5 cm) are closed
+# Defaults of `finish_mesh`
+DEFAULT_MAX_FACES = 1_000_000
+OBSERVED_SPLIT = 0.15    # m: faces whose vertices are on average farther from the input are "generated"
 
 
 def _as_field(decoder: object, cells: torch.Tensor, latents: torch.Tensor | None) -> UdfFn:
@@ -95,112 +100,6 @@ def udf_grid(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.T
     return g, vals
 
 
-def _tile_members(g: np.ndarray, tile: int) -> tuple[np.ndarray, np.ndarray]:
-    """For each grid point, every tile whose closed index box [k T, (k + 1) T] holds it (points on a tile face
-    belong to both tiles), as (point index, tile (3,)) rows sorted by tile. Sharing the boundary planes is what
-    makes adjacent tiles' marching cubes meet without a gap: each cube belongs to exactly one tile."""
-    home = np.floor_divide(g, tile)
-    on_face = (g % tile) == 0
-    idx, tiles = [], []
-    for o in np.stack(np.meshgrid((0, 1), (0, 1), (0, 1), indexing="ij"), -1).reshape(-1, 3):
-        ok = np.all(on_face | (o == 0), axis=1)
-        idx.append(np.nonzero(ok)[0])
-        tiles.append(home[ok] - o)
-    idx_a, tiles_a = np.concatenate(idx), np.concatenate(tiles)
-    order = np.argsort(pack(tiles_a), kind="stable")
-    return idx_a[order], tiles_a[order]
-
-
-def marching_tiles(g: np.ndarray, vals: np.ndarray, level: float, fill: float,
-                   tile: int = 32) -> tuple[np.ndarray, np.ndarray]:
-    """Marching cubes over sparse grid samples, one dense (tile + 1)^3 block at a time.
-
-    Returns vertices in grid-index units (float64) and faces; vertices on shared tile faces appear once per tile
-    at bit-identical positions (the same two samples are interpolated, then an integer tile origin is added).
-    """
-    from skimage.measure import marching_cubes
-
-    if tile < 2:
-        raise ValueError(f"tile must be at least 2 grid steps, got {tile}")
-    if len(g) == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
-    idx, tiles = _tile_members(g, tile)
-    tk = pack(tiles)
-    starts = np.r_[0, np.nonzero(tk[1:] != tk[:-1])[0] + 1, len(tk)]
-    verts, faces, nv = [], [], 0
-    for a, b in zip(starts[:-1], starts[1:]):
-        v_t = vals[idx[a:b]]
-        if not (v_t < level).any():
-            continue
-        origin = tiles[a] * tile
-        loc = g[idx[a:b]] - origin
-        vol = np.full((tile + 1,) * 3, fill, dtype=np.float32)
-        vol[loc[:, 0], loc[:, 1], loc[:, 2]] = v_t
-        if not (vol.min() < level < vol.max()):
-            continue
-        v, f, _, _ = marching_cubes(vol, level, allow_degenerate=False)
-        verts.append(v.astype(np.float64) + origin)
-        faces.append(f.astype(np.int64) + nv)
-        nv += len(v)
-    if not verts:
-        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
-    return np.concatenate(verts), np.concatenate(faces)
-
-
-def weld(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-4,
-         candidates: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Merge vertices closer than `tol`, then drop faces that collapse and duplicate faces.
-
-    Clustering by distance (a k-d tree), not by rounding: the same crossing computed by two tiles differs in
-    the last float32 bits, and rounding would split a pair that straddles a rounding boundary (a crack).
-    `candidates` (bool mask) limits the search to the vertices that can have a twin (those on tile faces, ~10 %
-    of a tiled marching-cubes mesh); faces without a candidate vertex are kept as they are.
-    """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
-    if len(faces) == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
-    n = len(vertices)
-    cand = np.arange(n) if candidates is None else np.flatnonzero(candidates)
-    pairs = cand[cKDTree(vertices[cand]).query_pairs(tol, output_type="ndarray")] if len(cand) else np.zeros((0, 2), int)
-    graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, label = connected_components(graph, directed=False)
-    _, first = np.unique(label, return_index=True)          # labels are 0..k-1: first vertex of each cluster
-    f = label[faces]
-    ok = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
-    touched = np.ones(len(f), dtype=bool) if candidates is None else candidates[faces].any(axis=1)
-    check = np.flatnonzero(ok & touched)
-    _, keep = np.unique(np.sort(f[check], axis=1), axis=0, return_index=True)
-    dup = np.ones(len(check), dtype=bool)
-    dup[keep] = False
-    ok[check[dup]] = False
-    return vertices[first], f[ok]
-
-
-def drop_small_components(vertices: np.ndarray, faces: np.ndarray, min_faces: int) -> tuple[np.ndarray, np.ndarray]:
-    """Remove connected pieces (sharing vertices) with fewer than `min_faces` faces, then unused vertices."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    if len(faces) == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
-    if min_faces > 1:
-        n = len(vertices)
-        rows = np.concatenate([faces[:, 0], faces[:, 1]])
-        cols = np.concatenate([faces[:, 1], faces[:, 2]])
-        graph = coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n, n))
-        _, label = connected_components(graph, directed=False)
-        face_label = label[faces[:, 0]]
-        counts = np.bincount(face_label)
-        faces = faces[counts[face_label] >= min_faces]
-    used = np.unique(faces)
-    remap = np.full(len(vertices), -1, dtype=np.int64)
-    remap[used] = np.arange(len(used))
-    return vertices[used], remap[faces]
-
-
 def project_to_zero(field: UdfFn, points: np.ndarray, steps: int = 1, max_dist: float | None = None,
                     chunk: int = 1 << 16) -> np.ndarray:
     """Move points onto the zero level along the distance gradient: p <- p - d(p) grad d / |grad d|.
@@ -226,47 +125,87 @@ def project_to_zero(field: UdfFn, points: np.ndarray, steps: int = 1, max_dist: 
 
 def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.Tensor | None = None,
              lower_corner: float | np.ndarray | None = None, voxel: float = 0.1, res: float = 0.05,
-             level: float | None = None, chunk: int = 1 << 15, tile: int = 32, min_faces: int = 16,
-             project: int = 0) -> trimesh.Trimesh:
-    """Mesh of the unsigned distance field around occupied 10 cm cells (paper: 5 cm marching cubes).
+             chunk: int = 1 << 15, min_area: float = MIN_AREA, pinhole_edges: int = PINHOLE_EDGES,
+             points: np.ndarray | None = None,
+             sensors: np.ndarray | None = None, timings: dict | None = None) -> trimesh.Trimesh:
+    """One open surface at the zero level of the unsigned distance around occupied 10 cm cells (5 cm grid).
 
     decoder: an autoencoder (anything with `.field(cells, latents)`) or a function of (Q, 3) cell-frame points
       (metres) -> (Q,) unsigned distances (metres), clamped at `voxel`.
     cells: (N, 3) int occupied cells; latents: (N, K) their codes (ignored by a plain function).
     lower_corner: where cell c's box starts, lower_corner + c * voxel, as in `geometry.voxel_mesh`; the default
       -voxel / 2 is the region frame of 10 cm cells made by rounding, so vertices come back in that frame.
-    level: iso-level in metres, default LEVEL_FRACTION * res (see there; a thin double-sided shell).
-    chunk: decoder queries per call (memory bound); tile: marching-cubes block edge in grid steps (memory of one
-      dense block); results do not depend on either.
-    min_faces: connected pieces with fewer faces are dropped (specks where the field barely dips below level).
-    project: gradient steps that move vertices onto the zero level (0 = keep the shell at `level`; >= 1 collapses
-      both sides of the shell onto the surface, better for metrics, but the two sheets then coincide).
+    chunk: decoder queries per call (memory bound; results do not depend on it).
+    min_area: connected pieces with less area (m^2) are dropped; pinhole_edges: boundary loops with at most
+      this many edges are closed (0: none).
+    points / sensors: input points and sensor positions (output frame): observed faces (`observed_vertices`)
+      face the nearest sensor, and each connected piece follows its observed faces; pieces nobody saw face
+      away from their own centre (outwards from what they enclose), or up. Without points: the latter.
+    timings: if given, filled with the wall seconds of each step (decode, extract, clean) and the CPU seconds
+      (`*_cpu`, all threads of this process: on a busy machine a fairer measure of the work).
     """
-    level = LEVEL_FRACTION * res if level is None else float(level)
-    if not 0 < level < voxel:
-        raise ValueError(f"level must lie in (0, voxel = {voxel}), got {level}")
+    import time
+
+    from hgca_core.geometry import mesh_clean as mc
+    from hgca_core.geometry.udf_surface import dual_surface
+
+    t0, c0 = time.perf_counter(), time.process_time()
     shift = np.asarray(-voxel / 2 if lower_corner is None else lower_corner, dtype=np.float64) + voxel / 2
     g, vals = udf_grid(decoder, cells, latents, voxel, res, chunk)
-    v, f = marching_tiles(g, vals, level, fill=voxel, tile=tile)
-    # twins: the same crossing from two tiles (on tile faces) and the vertices of edges that meet at a sample
-    # where the field equals the level (at grid points); the same result as welding all, 4x faster
-    r, frac = v % tile, np.abs(v - np.round(v))
-    twins = np.any((r < 1e-2) | (r > tile - 1e-2), axis=1) | np.all(frac < 1e-2, axis=1)
-    v, f = weld(v, f, tol=1e-3, candidates=twins)  # grid units: 50 um at 5 cm
-    v, f = drop_small_components(v, f, min_faces)
-    v = v * res
-    if project and len(v):
-        v = project_to_zero(_as_field(decoder, _cells_tensor(cells), latents), v, steps=project, max_dist=voxel * 0.999)
-    return trimesh.Trimesh(vertices=v + shift, faces=f, process=False)
+    t1, c1 = time.perf_counter(), time.process_time()
+    surf = dual_surface(g, vals, res, voxel)
+    v, f = surf.vertices * res + shift, surf.faces
+    t2, c2 = time.perf_counter(), time.process_time()
+    observed = None
+    if points is not None and sensors is not None and len(points) and len(v):
+        observed = observed_vertices(v, points, voxel)
+    v, f = mc.clean_surface(v, f, min_area, observed, sensors, pinhole_edges)
+    if timings is not None:   # wall seconds, and CPU seconds of this process (all its threads)
+        t3, c3 = time.perf_counter(), time.process_time()
+        timings.update(decode=t1 - t0, extract=t2 - t1, clean=t3 - t2,
+                       decode_cpu=c1 - c0, extract_cpu=c2 - c1, clean_cpu=c3 - c2)
+    return trimesh.Trimesh(vertices=v, faces=f, process=False)
+
+
+def observed_vertices(vertices: np.ndarray, points: np.ndarray, voxel: float) -> np.ndarray:
+    """(V,) bool: the vertex lies in a `voxel` cell (by rounding, like the 10 cm input cells) that holds an input
+    point, i.e. within ~0.9 voxel of one; a cell lookup, several times cheaper than a nearest-neighbour query."""
+    from hgca_core.geometry.udf_surface import GridIndex
+
+    cells = np.round(np.asarray(points, dtype=np.float64) / voxel).astype(np.int64)
+    return GridIndex(cells).find(np.round(vertices / voxel).astype(np.int64)) >= 0
+
+
+def finish_mesh(mesh: trimesh.Trimesh, observed_distance: np.ndarray | None = None,
+                split: float = OBSERVED_SPLIT) -> trimesh.Trimesh:
+    """Add what a scene builder expects to a finished mesh (in its final frame): per-vertex normals as the
+    vertex attributes `nx`, `ny`, `nz` (and trimesh's `vertex_normals`), `observed_distance` when given, and
+    the face attribute `material` (uint8: 0 observed, 1 generated: the mean observed_distance of the face's
+    vertices above `split` metres; all 0 without distances)."""
+    from hgca_core.geometry.mesh_clean import vertex_normals
+
+    v, f = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+    normals = vertex_normals(v, f) if len(v) else np.zeros((0, 3), np.float32)
+    out = trimesh.Trimesh(vertices=v, faces=f, vertex_normals=normals if len(v) else None, process=False)
+    if observed_distance is not None:
+        d = np.asarray(observed_distance, dtype=np.float32)
+        out.vertex_attributes["observed_distance"] = d
+        material = (d[f].mean(1) > split).astype(np.uint8) if len(f) else np.zeros(0, np.uint8)
+    else:
+        material = np.zeros(len(f), np.uint8)
+    for name, k in (("nx", 0), ("ny", 1), ("nz", 2)):
+        out.vertex_attributes[name] = normals[:, k]
+    out.face_attributes["material"] = material
+    return out
 
 
 def decimate(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
     """The mesh with at most `max_faces` triangles, by quadric edge collapse (fast-simplification).
 
-    A 5 cm marching-cubes surface of a default region has 5-7 M triangles (two sheets around every surface,
-    which an unsigned distance gives); scenes meant for a simulator or an editor rarely need a tenth of that,
-    and flat facades and roads, most of a street, lose nothing. Vertex attributes are dropped: the vertices
-    are new (the pipeline recomputes `observed_distance` after this).
+    Quadric error keeps detail where the surface bends and spends few triangles on flat facades and roads, most
+    of a street (a default region's 1.8 M -> 1 M moves the surface by < 1 mm, benchmarks/results/mesh_quality).
+    Open borders are kept as they are (collapsing them shrinks holes' rims and splits pieces) unless the limit
+    cannot be met otherwise. Vertex attributes are dropped: the vertices are new (`finish_mesh` adds them).
     """
     import fast_simplification
 
@@ -276,7 +215,10 @@ def decimate(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
     if n <= max_faces:
         return mesh
     v, f = fast_simplification.simplify(np.asarray(mesh.vertices, dtype=np.float32),
-                                        np.asarray(mesh.faces, dtype=np.int32), target_reduction=1.0 - max_faces / n)
+                                        np.asarray(mesh.faces, dtype=np.int32), target_count=max_faces,
+                                        preserve_border=True)
+    if len(f) > max_faces:   # mostly border (small or ragged pieces): the limit wins over the borders
+        v, f = fast_simplification.simplify(v, f, target_count=max_faces)
     return trimesh.Trimesh(vertices=v.astype(np.float64), faces=f.astype(np.int64), process=False)
 
 

@@ -191,8 +191,9 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
     sensor positions in the region frame and `origin_index` (N,) each point's (None: the nearest origin, see
     `geometry.freespace.ray_origins`); `free_space` is one of FREE_SPACE_MODES. The free space is computed
     once and given to both stages. The coarse stage's mesh is the 20 cm cells' `voxel_mesh`; the full stage's
-    is the decoded unsigned distance's marching cubes. Runs on the models' device. See `complete` for
-    `precision` and `max_faces`.
+    is the zero level of the decoded unsigned distance as one surface, its observed parts facing `origins`
+    (`hgca_core.meshing.udf_mesh`). Runs on the models' device. See `complete` for `precision`; `max_faces`
+    None or 0 keeps every triangle here.
 
     `fixed_cells` ((M, 3) 20 cm cells in this frame) join the initial state s0 exactly as observed cells do:
     `hgca drive` passes the cells its finished neighbours generated in a tile's overlap, so the joins agree.
@@ -235,6 +236,10 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
         s0 = unique_rows(np.concatenate([s0, fixed])) if len(fixed) else s0
     report("voxelise", 1, 1, f"{len(s0)} cells at 20 cm", 0)
     steps = t1 or models.coarse.cfg.steps
+    # where observed faces of the full stage's surface turn to; without origins a sensor 2 m above the ground
+    # at the region's centre (the box starts 1 m below the ground)
+    sensors = (np.asarray(origins, dtype=np.float64).reshape(-1, 3) if origins is not None and len(origins)
+               else np.array([[*(np.asarray(region.size[:2]) / 2), 3.0]]))
     results = []
     for i in range(samples):
         tag = f"sample {i + 1}/{samples}"
@@ -250,11 +255,12 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
                 c10, latents = upsample(models.fine, models.autoencoder, local, cells, region.grid_shape(FINE), t2,
                                         gen, lambda t, n: report("fine", t, n, tag, i), free, mask)
             report("mesh", 0, 1, tag, i)
-            mesh, cells10 = decode_mesh(models.autoencoder, c10, latents), c10.cpu().numpy()
+            mesh = decode_mesh(models.autoencoder, c10, latents, points=local, sensors=sensors)
+            cells10 = c10.cpu().numpy()
         else:
             report("mesh", 0, 1, tag, i)
             mesh = voxel_mesh(cells, COARSE)
-        if max_faces is not None and len(mesh.faces) > max_faces:
+        if max_faces and len(mesh.faces) > max_faces:
             from hgca_core.meshing import decimate
 
             report("mesh", 0, 1, f"{tag}: simplifying {len(mesh.faces)} faces", i)
@@ -281,13 +287,17 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
 
     `precision` is the GEMM precision of the sparse convs while sampling ('auto': bf16 where the hardware has
     it, see `hgca_core.nn.conv.resolve_precision`); a (seed, precision) pair names one result. `max_faces`
-    simplifies each mesh to at most that many triangles (`hgca_core.meshing.decimate`). The work itself is
-    `complete_local`'s, in the region frame; this wrapper moves points in and meshes out."""
+    simplifies each mesh to at most that many triangles (`hgca_core.meshing.decimate`; None: the default
+    `hgca_core.meshing.DEFAULT_MAX_FACES`, 0: every triangle). Each mesh carries per-vertex normals,
+    `observed_distance` and an observed / generated face `material` (`hgca_core.meshing.finish_mesh`). The work
+    itself is `complete_local`'s, in the region frame; this wrapper moves points in and meshes out."""
     models = load_models(stage, weights, fine_weights, device)   # both files are checked before any work
     if samples < 1:
         raise InputError(f"samples must be at least 1, got {samples}")
-    if max_faces is not None and max_faces < 1000:
-        raise InputError(f"max_faces must be at least 1000 (or None for no limit), got {max_faces}")
+    if max_faces is not None and max_faces != 0 and max_faces < 1000:
+        raise InputError(f"max_faces must be 0 (keep every triangle) or at least 1000, got {max_faces}")
+    from hgca_core.meshing import DEFAULT_MAX_FACES, finish_mesh
+
     pts = check_points(points)
     if region is None:
         region = default_region(pts, origins)
@@ -304,11 +314,12 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
     tree = cKDTree(pts[inside])
     results = []
     for r in complete_local(local, region, models, stage, samples, seed, t1, t2, progress, precision,
-                            max_faces, origins_local, origin_index, free_space):
+                            DEFAULT_MAX_FACES if max_faces is None else max_faces, origins_local, origin_index,
+                            free_space):
         mesh = r.mesh
         mesh.vertices = region.to_world(mesh.vertices)
         dist = tree.query(mesh.vertices, workers=-1)[0].astype(np.float32) if len(mesh.vertices) else np.zeros(0, np.float32)
-        mesh.vertex_attributes["observed_distance"] = dist
+        mesh = finish_mesh(mesh, dist)
         results.append(Completion(mesh=mesh, observed_distance=dist, coarse_cells=r.coarse_cells, region=region,
                                   seed=r.seed))
     return results

@@ -110,7 +110,8 @@ def test_full_stage_runs_the_fine_path(small_weights, scan, tmp_path):
     stages = {json.loads(line)["stage"] for line in res.stdout.splitlines()}
     assert {"coarse", "fine", "mesh", "done"} <= stages
     a = np.load(tmp_path / "full_s0.npz")
-    assert len(a["vertices"]) == len(a["observed_distance"])
+    assert len(a["vertices"]) == len(a["observed_distance"]) == len(a["normals"])
+    assert len(a["face_material"]) == len(a["faces"])
     if len(a["vertices"]):
         assert np.all(a["vertices"][:, 0] > 99.5) and np.all(a["vertices"][:, 0] < 106.5)
     missing = _run(scan, "-o", tmp_path / "m.ply", "--weights", small_weights, "--fine-weights", tmp_path / "nope.pt",
@@ -158,6 +159,12 @@ def test_max_faces_simplifies_each_mesh(small_weights, scan, tmp_path):
     bad = _run(scan, "-o", tmp_path / "c.npz", "--weights", small_weights, "--region", REGION, "--stage", "coarse",
                "--max-faces", "10")
     assert bad.returncode == 2 and "max_faces" in bad.stderr
+    every = _run(scan, "-o", tmp_path / "d.npz", "--weights", small_weights, "--region", REGION, "--progress", "none",
+                 "--stage", "coarse", "--max-faces", "0")     # 0: keep every triangle
+    assert every.returncode == 0, every.stderr[-2000:]
+    d = np.load(tmp_path / "d_s0.npz")
+    assert len(d["faces"]) == n and len(d["normals"]) == len(d["vertices"])
+    np.testing.assert_allclose(np.linalg.norm(d["normals"], axis=1), 1.0, atol=1e-5)
 
 
 def test_region_too_large_for_memory_is_refused_before_any_work(small_weights, scan):

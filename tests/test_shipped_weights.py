@@ -44,3 +44,18 @@ def test_shipped_weights_complete_the_example(example, stage, one_thread):
     assert np.median(d_in) < (0.10 if stage == "full" else 0.20), np.median(d_in)
     # ... and completed: a good share of the output lies away from every input point
     assert np.mean(res.observed_distance > 0.3) > 0.05
+    if stage == "full":
+        # one surface: vertical rays through observed road points meet the mesh once within 15 cm of the point
+        # (the earlier marching-cubes shell: twice, 5.8 cm apart), and the road faces up, towards the sensors
+        from hgca_core.metrics.flatness import Patches, ray_samples
+
+        local_pts = region.to_local(pts)
+        road = local_pts[local_pts[:, 2] < np.quantile(local_pts[:, 2], 0.2)][::50]
+        mesh = res.mesh.copy()
+        mesh.vertices = local
+        patches = Patches(road[:, :2] - 0.05, road[:, 2], size=0.1)
+        _, hits, first = ray_samples(mesh, patches, spacing=0.1)
+        assert np.mean(hits == 1) > 0.95, np.bincount(hits)
+        tri = mesh.ray.intersects_first(np.c_[road[:, :2], road[:, 2] + 0.3], np.tile([0.0, 0.0, -1.0], (len(road), 1)))
+        up = mesh.face_normals[tri[tri >= 0], 2]
+        assert np.mean(up > 0.5) > 0.95

@@ -28,7 +28,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "coarse: the 20 cm voxels only (faster)")
     p.add_argument("--device", type=device_arg, default="cpu", help="cpu, cuda or cuda:N")
     p.add_argument("--max-faces", type=int, default=None,
-                   help="simplify each mesh to at most this many triangles (a default region gives 5-7 M at 5 cm)")
+                   help="simplify each mesh to at most this many triangles (default 1,000,000; 0 keeps every "
+                        "triangle: a default region's full-stage mesh has ~2 M)")
     add_precision_argument(p)
     add_steps_arguments(p)
     p.add_argument("--weights", default=None, help="coarse weights file (default: the shipped ones)")
@@ -134,7 +135,9 @@ def _run(args: argparse.Namespace, progress) -> list[Path]:
         for i, (res, path) in enumerate(zip(results, paths)):
             progress("write", i, len(paths), path.name, i)
             if path.suffix.lower() == ".npz":
-                write_mesh_npz(path, res.mesh.vertices, res.mesh.faces, res.observed_distance, batch=batch)
+                write_mesh_npz(path, res.mesh.vertices, res.mesh.faces, res.observed_distance, batch=batch,
+                               normals=res.mesh.vertex_normals,
+                               face_material=res.mesh.face_attributes.get("material"))
             else:
                 write_mesh(path, res.mesh, batch=batch)
         batch.commit()

@@ -87,19 +87,26 @@ def _vertex_array(vertices: np.ndarray, attrs: Mapping[str, np.ndarray]) -> np.n
     return data
 
 
-def _write_ply(out: BinaryIO, vertex: np.ndarray, faces: np.ndarray | None = None) -> None:
+def _write_ply(out: BinaryIO, vertex: np.ndarray, faces: np.ndarray | None = None,
+               face_attrs: Mapping[str, np.ndarray] | None = None) -> None:
     """Binary little-endian PLY from whole arrays: header, then the rows as raw bytes (plyfile writes list
-    properties one face at a time, 20 s for the 7 M faces of a default-region mesh; this takes ~1 s)."""
+    properties one face at a time, 20 s for the 7 M faces of a default-region mesh; this takes ~1 s).
+    `face_attrs`: scalar face properties after `vertex_indices` (e.g. the observed / generated `material`)."""
     lines = ["ply", "format binary_little_endian 1.0", "comment written by hgca", f"element vertex {len(vertex)}"]
     lines += [f"property {_PLY_TYPES[vertex.dtype[n].str[1:]]} {n}" for n in vertex.dtype.names]
+    columns = {n: _ply_compatible(v) for n, v in (face_attrs or {}).items()}
     if faces is not None:
         lines += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+        lines += [f"property {_PLY_TYPES[c.dtype.str[1:]]} {n}" for n, c in columns.items()]
     out.write(("\n".join(lines + ["end_header"]) + "\n").encode("ascii"))
     out.write(vertex.tobytes())
     if faces is not None:
-        rows = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])   # packed: 13 bytes a face
+        rows = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,)),     # packed: 13 bytes a face + attrs
+                                           *[(n, c.dtype.str) for n, c in columns.items()]])
         rows["n"] = 3
         rows["v"] = faces
+        for n, c in columns.items():
+            rows[n] = c
         out.write(rows.tobytes())
 
 
@@ -121,9 +128,11 @@ def write_points(path: str | os.PathLike, points: np.ndarray, attributes: Mappin
 
 
 def write_mesh_npz(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
-                   observed_distance: np.ndarray, batch: AtomicBatch | None = None) -> str:
+                   observed_distance: np.ndarray, batch: AtomicBatch | None = None,
+                   normals: np.ndarray | None = None, face_material: np.ndarray | None = None) -> str:
     """The mesh layout of CONTRACTS.md: `vertices` (V,3) f32 relative to `offset` (3,) f64, `faces` (F,3) i32,
-    `observed_distance` (V,) f32. World coordinates are `vertices + offset`, computed in float64."""
+    `observed_distance` (V,) f32, and when given `normals` (V,3) f32 (unit per-vertex normals) and
+    `face_material` (F,) u8 (0 observed, 1 generated). World coordinates are `vertices + offset`, in float64."""
     path = os.fspath(path)
     _extension(path, (".npz",))
     world = np.asarray(vertices, dtype=np.float64)
@@ -140,6 +149,16 @@ def write_mesh_npz(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndar
     if d.shape != (len(v),):
         raise ValueError(f"observed_distance must be ({len(v)},), got {d.shape}")
     arrays = {"vertices": v, "offset": offset, "faces": f.astype(np.int32), "observed_distance": d}
+    if normals is not None:
+        n = np.asarray(normals, dtype=np.float32)
+        if n.shape != v.shape:
+            raise ValueError(f"normals must be ({len(v)}, 3), got {n.shape}")
+        arrays["normals"] = n
+    if face_material is not None:
+        m = np.asarray(face_material)
+        if m.shape != (len(f),):
+            raise ValueError(f"face_material must be ({len(f)},), got {m.shape}")
+        arrays["face_material"] = m.astype(np.uint8)
     return _save(path, lambda fh: np.savez(fh, **arrays), batch)
 
 
@@ -155,30 +174,69 @@ def _mesh_ply(mesh: "trimesh.Trimesh", out: BinaryIO) -> None:
         colors = np.asarray(mesh.visual.vertex_colors, dtype=np.uint8)
         for i, c in enumerate(("red", "green", "blue", "alpha")[: colors.shape[1]]):
             attrs.setdefault(c, colors[:, i])
-    _write_ply(out, _vertex_array(vertices, attrs), np.asarray(mesh.faces, dtype=np.int32))
+    faces = np.asarray(mesh.faces, dtype=np.int32)
+    face_attrs = {n: np.asarray(v) for n, v in mesh.face_attributes.items()
+                  if np.asarray(v).shape == (len(faces),) and np.asarray(v).dtype.kind in "biuf"}
+    _write_ply(out, _vertex_array(vertices, attrs), faces, face_attrs)
+
+
+# glTF base colours of the observed / generated faces (linear RGBA), the add-on's material colours
+MATERIALS = {"observed": (0.55, 0.57, 0.6, 1.0), "generated": (0.95, 0.45, 0.1, 1.0)}
+
+
+def mesh_parts(mesh: "trimesh.Trimesh") -> list[tuple[str, "trimesh.Trimesh"]]:
+    """(name, part) per material for glTF: the faces of each value of the face attribute `material` (0 observed,
+    1 generated) with a PBR material of that name, their vertices' normals and scalar attributes; one part
+    "mesh" when the mesh has no `material`."""
+    import trimesh
+    from trimesh.visual.material import PBRMaterial
+
+    faces = np.asarray(mesh.faces)
+    material = mesh.face_attributes.get("material")
+    if material is None or np.asarray(material).shape != (len(faces),):
+        return [("mesh", mesh)]
+    normals = np.asarray(mesh.vertex_normals)
+    parts = []
+    for value, name in enumerate(MATERIALS):
+        sel = np.asarray(material) == value
+        if not sel.any():
+            continue
+        used, f = np.unique(faces[sel], return_inverse=True)
+        part = trimesh.Trimesh(np.asarray(mesh.vertices)[used], f.reshape(-1, 3), vertex_normals=normals[used],
+                               process=False)
+        for key, values in mesh.vertex_attributes.items():
+            if np.asarray(values).shape == (len(mesh.vertices),) and key not in ("nx", "ny", "nz"):
+                part.vertex_attributes[key] = np.asarray(values)[used]
+        part.visual = trimesh.visual.TextureVisuals(material=PBRMaterial(name=name, baseColorFactor=MATERIALS[name],
+                                                                         metallicFactor=0.0, roughnessFactor=0.9))
+        parts.append((name, part))
+    return parts
 
 
 def _glb(mesh: "trimesh.Trimesh") -> bytes:
-    """GLB bytes; georeferenced meshes become float32 vertices near the origin under a node whose matrix
-    translates them by the float64 offset (glTF stores node matrices as JSON numbers, so they stay exact)."""
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    offset = local_offset(vertices)
-    if not offset.any():
-        return bytes(mesh.export(file_type="glb"))
+    """GLB bytes: one primitive per material (`mesh_parts`) with normals; georeferenced meshes become float32
+    vertices near the origin under nodes whose matrix translates them by the float64 offset (glTF stores node
+    matrices as JSON numbers, so they stay exact)."""
     import trimesh
 
-    local = mesh.copy()
-    local.vertices = vertices - offset
+    offset = local_offset(np.asarray(mesh.vertices, dtype=np.float64))
     transform = np.eye(4)
     transform[:3, 3] = offset
     scene = trimesh.Scene()
-    scene.add_geometry(local, node_name="hgca_mesh", transform=transform)
-    return bytes(scene.export(file_type="glb"))
+    for name, part in mesh_parts(mesh):
+        if offset.any():
+            part = part.copy()
+            part.vertices = np.asarray(part.vertices, dtype=np.float64) - offset
+        scene.add_geometry(part, geom_name=name, node_name=name if name != "mesh" else "hgca_mesh",
+                           transform=transform)
+    return bytes(scene.export(file_type="glb", include_normals=True))
 
 
 def write_mesh(path: str | os.PathLike, mesh: "trimesh.Trimesh", batch: AtomicBatch | None = None) -> str:
-    """Write a trimesh to `.ply` (with `observed_distance` and other scalar vertex attributes), `.obj`
-    (geometry only: OBJ has no per-vertex scalars) or `.glb` (custom attributes as `_name`)."""
+    """Write a trimesh to `.ply` (with `observed_distance`, normals `nx ny nz` and other scalar vertex
+    attributes, and scalar face attributes such as `material`), `.obj` (geometry only: OBJ has no per-vertex
+    scalars) or `.glb` (one primitive per material, see `mesh_parts`, with normals; custom vertex attributes
+    as `_name`)."""
     path = os.fspath(path)
     ext = _extension(path, (".ply", ".obj", ".glb"))
     if ext == ".ply":

@@ -33,6 +33,7 @@ import torch
 from torch import nn
 
 from hgca_core.geometry import coords as cs
+from hgca_core.geometry.keys import delta
 from hgca_core.models.config import Config
 from hgca_core.nn.sparse import SparseLinear, SparseTensor, SubMConv3d
 
@@ -275,20 +276,20 @@ class Autoencoder(nn.Module):
         off = o.float() / r
         w = (1 - off.abs()).prod(1)                                                             # (P,)
         lo = self.lin_o(off)                                                                    # (P, H)
-        gk = cs.pack(torch.cat([c4[:, :1].repeat_interleave(len(o), 0),
-                                (c4[:, None, 1:] * r + o[None]).reshape(-1, 3)], 1))           # (N P,)
+        # keys of r c + o: the packed key is linear in the coordinates, so one add per (cell, offset)
+        scaled = c4.clone()
+        scaled[:, 1:] *= r
+        gk = (cs.pack(scaled)[:, None] + delta(o)[None]).reshape(-1)                            # (N P,)
         keys, inv = torch.unique(gk, return_inverse=True)
         num = hp.new_zeros(len(keys))
-        den = hp.new_zeros(len(keys))
+        den = hp.new_zeros(len(keys)).index_add_(0, inv, w.repeat(len(c4)))
         per = max(1, chunk // len(o))
         for a in range(0, len(c4), per):
             x = torch.relu_(hp[a:a + per, None, :] + lo[None])
             for blk in self.blocks:
                 x = blk(x)
             d = torch.sigmoid(self.fc_out(torch.relu_(x))[..., 0])                            # (n, P)
-            i = inv[a * len(o):(a + per) * len(o)]
-            num.index_add_(0, i, (d * w).reshape(-1))
-            den.index_add_(0, i, w.repeat(len(d)))
+            num.index_add_(0, inv[a * len(o):(a + per) * len(o)], (d * w).reshape(-1))
         return cs.unpack(keys)[:, 1:], num / den * v
 
     def field(self, cells: torch.Tensor, latents: torch.Tensor) -> UdfField:

@@ -256,12 +256,13 @@ def upsample(model: CGCAKernel, autoencoder: Autoencoder, input_points_local: np
 
 
 def decode_mesh(autoencoder: Autoencoder, cells: torch.Tensor | np.ndarray, latents: torch.Tensor,
-                res: float = 0.05, level: float | None = None, tile: int = 32, chunk: int = 1 << 15,
-                min_faces: int = 16, project: int = 0) -> trimesh.Trimesh:
-    """Mesh (region frame, metres) of the unsigned distance decoded from 10 cm cells and latents: marching
-    cubes on a `res` grid around the cells (see `hgca_core.meshing.udf_mesh` for level / tile / project)."""
+                res: float = 0.05, chunk: int = 1 << 15, points: np.ndarray | None = None,
+                sensors: np.ndarray | None = None, **cleanup) -> trimesh.Trimesh:
+    """Mesh (region frame, metres) of the unsigned distance decoded from 10 cm cells and latents: its zero level
+    as one open surface from a `res` grid around the cells, cleaned and oriented towards `sensors` (see
+    `hgca_core.meshing.udf_mesh`, which also takes the `cleanup` keywords)."""
     from hgca_core.meshing import udf_mesh
 
     with torch.no_grad():
-        return udf_mesh(autoencoder, cells, latents, voxel=autoencoder.cfg.voxel, res=res, level=level,
-                        chunk=chunk, tile=tile, min_faces=min_faces, project=project)
+        return udf_mesh(autoencoder, cells, latents, voxel=autoencoder.cfg.voxel, res=res, chunk=chunk,
+                        points=points, sensors=sensors, **cleanup)

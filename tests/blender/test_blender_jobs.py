@@ -330,7 +330,8 @@ def test_full_stage_with_shipped_weights_inserts_the_implicit_mesh(addon) -> Non
             assert time.monotonic() < deadline
             time.sleep(0.05)
         assert job.state == "done", job.error
-        assert ("--max-faces" in job.cmd) == (stage == "full")
+        i = job.cmd.index("--max-faces")                   # always passed: 0 means every triangle
+        assert job.cmd[i + 1] == ("5000" if stage == "full" else "0")
         assert any(st.startswith("Fine") for st in stages) == (stage == "full"), stages
         after = snapshot()
         (coll,) = set(after["collections"]) - set(before["collections"])

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 from plyfile import PlyData
+from scipy.spatial import cKDTree
 
 from hgca_core.errors import InputError
 from hgca_core.io import read_scan, write_mesh, write_mesh_npz, write_points
@@ -115,3 +116,43 @@ def test_unwritable_output_is_input_error(tmp_path):
     blocker.write_text("x")
     with pytest.raises(InputError, match="cannot write"):
         write_points(blocker / "out.npz", np.zeros((2, 3)))
+
+
+def finished_mesh() -> trimesh.Trimesh:
+    """A mesh as the pipeline returns it: normals, observed_distance, observed / generated face material."""
+    from hgca_core.meshing import finish_mesh
+
+    mesh = trimesh.creation.icosphere(2)
+    return finish_mesh(mesh, np.where(mesh.vertices[:, 0] > 0, 0.0, 1.0).astype(np.float32))
+
+
+def test_mesh_normals_and_material_in_ply_npz_glb(tmp_path):
+    mesh = finished_mesh()
+    normals, material = np.asarray(mesh.vertex_normals), mesh.face_attributes["material"]
+    assert set(np.unique(material)) == {0, 1}
+    ply = PlyData.read(write_mesh(tmp_path / "m.ply", mesh))
+    v = ply["vertex"].data
+    np.testing.assert_allclose(np.column_stack([v["nx"], v["ny"], v["nz"]]), normals, atol=1e-6)
+    np.testing.assert_array_equal(ply["face"].data["material"], material)
+    np.testing.assert_array_equal(np.vstack(ply["face"].data["vertex_indices"]), mesh.faces)
+    path = write_mesh_npz(tmp_path / "m.npz", mesh.vertices, mesh.faces, mesh.vertex_attributes["observed_distance"],
+                          normals=normals, face_material=material)
+    with np.load(path) as z:
+        assert z["normals"].dtype == np.float32 and z["face_material"].dtype == np.uint8
+        np.testing.assert_allclose(z["normals"], normals, atol=1e-6)
+        np.testing.assert_array_equal(z["face_material"], material)
+    with pytest.raises(ValueError, match="face_material"):
+        write_mesh_npz(tmp_path / "x.npz", mesh.vertices, mesh.faces, mesh.vertex_attributes["observed_distance"],
+                       face_material=material[:-1])
+    scene = trimesh.load(write_mesh(tmp_path / "m.glb", mesh), process=False)
+    parts = {g.visual.material.name: g for g in scene.geometry.values()}
+    assert set(parts) == {"observed", "generated"}
+    assert sum(len(g.faces) for g in parts.values()) == len(mesh.faces)
+    for name, value in (("observed", 0), ("generated", 1)):
+        g = parts[name]
+        assert len(g.faces) == int((material == value).sum())
+        d = g.vertex_attributes["_observed_distance"].ravel()
+        assert np.all(d <= 0.15) if value == 0 else np.any(d > 0.15)
+        # normals travel: every part vertex's normal is the mesh's normal at that position
+        i = cKDTree(mesh.vertices).query(g.vertices)[1]
+        np.testing.assert_allclose(g.vertex_normals, normals[i], atol=1e-5)

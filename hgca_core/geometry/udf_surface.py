@@ -1,0 +1,193 @@
+"""One open surface from samples of an unsigned distance field on a regular grid.
+
+Marching cubes needs a sign change, which an unsigned distance never has: cutting it at a level above zero gives a
+closed shell of two sheets around every surface (the old fine-stage meshes: two layers 5.8 cm apart on the road).
+Here the zero level itself is extracted, as one sheet:
+
+1. Gradient directions at grid points near the surface (MeshUDF, Guillard et al., ECCV 2022: the gradients at two
+   points on opposite sides of a surface point in opposite directions). Taken from the grid samples themselves by
+   *upwind* differences: along each axis the larger of the two neighbours lies on the far side of the surface,
+   so (max(d+, d-) - d) / h is |n_a| exactly for a plane (a central difference across the surface is not), with
+   the sign of (d+ - d-). No decoder gradients are needed, so this costs no network evaluation.
+2. An axis edge (i, j) crosses the surface where the two gradient directions disagree (cosine < MAX_DOT) and the
+   distances are small enough for the surface to lie between them (d_i + d_j <= `max_sum` h; a plane crossing
+   gives h |n_a|). The crossing point interpolates the pseudo-signed values d_i and -d_j (exact for a plane).
+   MeshUDF assigns pseudo-signs per cube and runs marching cubes on each; two cubes sharing a face can then
+   disagree about its edges (cracks, which MeshUDF later patches). Deciding per *edge* makes the decision one
+   for all the cubes around it.
+3. A dual surface (surface nets): one vertex per cube with a crossing edge, at the mean of its crossing points,
+   and one quad per crossing edge joining the four cubes around it. Every crossing edge gives exactly one quad
+   and every cube one vertex, so neighbouring pieces share their vertices: no cracks, no double layers, and no
+   case tables (which would need consistent signs per cube, the thing a UDF lacks).
+
+The quads' winding is arbitrary at this point (an unsigned field has no front side); `mesh_clean.orient` makes it
+consistent and picks the side the sensor saw. The same family as DualMesh-UDF (Zhang et al., ICCV 2023: dual
+contouring of UDFs), without its octree and QEF vertices: sharp corners are cut by up to ~1 cm at 5 cm.
+
+DCUDF (Hou et al., 2023) gets one layer differently: marching cubes at a small level r gives the double cover (the
+boundary of the r-offset volume), an optimisation with decoder gradients pulls it onto the zero level, and a
+min-cut separates the two layers. It avoids non-manifold spots, but the optimisation runs many decoder passes over
+all vertices; the per-edge test here needs none beyond the grid samples. Known limits, measured on the synthetic
+test scenes (benchmarks/results/mesh_quality.md): where the decoded field misses a surface (a kerb face, a car's
+underside) the mesh has a slit; where the zero level grazes a grid plane (flat facades), it switches between two
+cube layers, leaving mm-scale facets and a few non-manifold edges.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Crossing test thresholds, in grid steps h. A plane crossing an edge has d_i + d_j = h |n_a| <= h; the learned
+# decoder's distances bottom out at ~1.5 mm rather than 0 and its slope is not exactly 1, so allow some slack.
+MAX_SUM = 1.2
+# Only points closer than this (grid steps) can be the end of a crossing edge (d_i < MAX_SUM h, with margin).
+NEAR = 1.5
+# Gradient directions count as opposed below this cosine: 0 would do for a plane, but at a concave corner (road
+# meeting a kerb face or a car's side) the two ends of a crossing edge see different surfaces, 90 degrees apart.
+MAX_DOT = 0.3
+
+
+@dataclass
+class DualSurface:
+    """A surface-nets mesh in grid units: vertices (V, 3) float64, faces (F, 3) int64 (winding arbitrary)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+
+
+class GridIndex:
+    """O(1) lookup of integer grid points: per (x, y) column a dense run over its z range.
+
+    Street scenes are thin shells, so the runs are short (a few cells on the ground, a few metres on facades);
+    the table is a few times the number of points, and a lookup is three gathers instead of a binary search.
+    """
+
+    def __init__(self, g: np.ndarray) -> None:
+        g = np.asarray(g, dtype=np.int64).reshape(-1, 3)
+        self.lo = g.min(0) if len(g) else np.zeros(3, dtype=np.int64)
+        d = g - self.lo
+        self.nx, self.ny = (int(d[:, 0].max()) + 1, int(d[:, 1].max()) + 1) if len(g) else (1, 1)
+        col = d[:, 0] * self.ny + d[:, 1]
+        zlo = np.full(self.nx * self.ny, np.iinfo(np.int64).max, dtype=np.int64)
+        zhi = np.full(self.nx * self.ny, -1, dtype=np.int64)
+        step = col[1:] - col[:-1]
+        if len(g) and np.all(step >= 0) and np.all((step > 0) | (d[1:, 2] > d[:-1, 2])):
+            first = np.flatnonzero(np.r_[True, step > 0])         # sorted (x, y, z), as the decoder returns them
+            last = np.r_[first[1:], len(g)] - 1
+            zlo[col[first]], zhi[col[first]] = d[first, 2], d[last, 2]
+        else:
+            np.minimum.at(zlo, col, d[:, 2])
+            np.maximum.at(zhi, col, d[:, 2])
+        span = np.where(zhi >= 0, zhi - np.minimum(zlo, zhi) + 1, 0)
+        self.base = np.cumsum(span) - span
+        self.zlo, self.span = np.where(zhi >= 0, zlo, 0), span
+        self.table = np.full(int(span.sum()), -1, dtype=np.int64)
+        self.table[self.base[col] + d[:, 2] - self.zlo[col]] = np.arange(len(g))
+
+    def find(self, q: np.ndarray) -> np.ndarray:
+        """Index of each query point (n, 3) among the indexed points, -1 where absent."""
+        d = np.asarray(q, dtype=np.int64) - self.lo
+        ok = (d[:, 0] >= 0) & (d[:, 0] < self.nx) & (d[:, 1] >= 0) & (d[:, 1] < self.ny)
+        return self._at(np.where(ok, d[:, 0] * self.ny + d[:, 1], 0), d[:, 2], ok)
+
+    def _at(self, c: np.ndarray, dz: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        z = dz - self.zlo[c]
+        ok = ok & (z >= 0) & (z < self.span[c])
+        return np.where(ok, self.table[np.where(ok, self.base[c] + z, 0)], -1)
+
+    def neighbours(self, g: np.ndarray) -> np.ndarray:
+        """(n, 3, 2) indices of the +1 and -1 neighbours along each axis of grid points g (n, 3), -1 where absent."""
+        d = np.asarray(g, dtype=np.int64) - self.lo
+        col = d[:, 0] * self.ny + d[:, 1]
+        out = np.empty((len(d), 3, 2), dtype=np.int64)
+        yes = np.ones(len(d), dtype=bool)
+        for k, s in enumerate((1, -1)):
+            x_ok = (d[:, 0] + s >= 0) & (d[:, 0] + s < self.nx)
+            y_ok = (d[:, 1] + s >= 0) & (d[:, 1] + s < self.ny)
+            out[:, 0, k] = self._at(np.where(x_ok, col + s * self.ny, 0), d[:, 2], x_ok)
+            out[:, 1, k] = self._at(np.where(y_ok, col + s, 0), d[:, 2], y_ok)
+            out[:, 2, k] = self._at(col, d[:, 2] + s, yes)
+        return out
+
+
+def upwind_gradients(vals: np.ndarray, idx: np.ndarray, nb: np.ndarray, h: float, fill: float) -> np.ndarray:
+    """(n, 3) gradient estimates of the distance at grid points `idx` with neighbours `nb` (n, 3, 2) from
+    `GridIndex.neighbours` (module docstring, step 1); `fill` is the value of grid points without a sample."""
+    v = np.where(nb >= 0, vals[np.maximum(nb, 0)], np.float32(fill))
+    vp, vm = v[:, :, 0], v[:, :, 1]
+    return np.sign(vp - vm) * (np.maximum(vp, vm) - vals[idx][:, None]) / np.float32(h)
+
+
+def crossing_edges(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_sum: float = MAX_SUM,
+                   max_dot: float = MAX_DOT, index: GridIndex | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Axis edges of the grid that the zero level crosses.
+
+    g (G, 3) int grid indices, vals (G,) distances (same unit as h). Returns (start point index into g (E,),
+    axis (E,), crossing parameter t in [0, 1] from the start (E,)).
+    """
+    index = GridIndex(g) if index is None else index
+    near = np.flatnonzero(vals < NEAR * h)
+    nb = index.neighbours(g[near])
+    grad = upwind_gradients(vals, near, nb, h, fill)
+    norm = np.sqrt(np.einsum("ij,ij->i", grad, grad))
+    unit = grad / np.maximum(norm, 1e-12)[:, None]
+    pos = np.full(len(g), -1, dtype=np.int64)
+    pos[near] = np.arange(len(near))
+    starts, axes, ts = [], [], []
+    for a in range(3):
+        j = nb[:, a, 0]
+        i_n = np.flatnonzero(j >= 0)
+        j_n = pos[j[i_n]]
+        ok = j_n >= 0
+        i_n, j_n = i_n[ok], j_n[ok]
+        di, dj = vals[near[i_n]], vals[near[j_n]]
+        cross = ((np.einsum("ij,ij->i", unit[i_n], unit[j_n]) < max_dot) & (di + dj <= max_sum * h)
+                 & (norm[i_n] > 0) & (norm[j_n] > 0))
+        i_n, di, dj = i_n[cross], di[cross], dj[cross]
+        starts.append(near[i_n])
+        axes.append(np.full(len(i_n), a, dtype=np.int8))
+        ts.append(di / np.maximum(di + dj, 1e-12))
+    return np.concatenate(starts), np.concatenate(axes), np.concatenate(ts).astype(np.float64)
+
+
+def dual_surface(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_sum: float = MAX_SUM,
+                 max_dot: float = MAX_DOT) -> DualSurface:
+    """Surface nets over the crossing edges (module docstring, step 3), in grid units."""
+    g = np.asarray(g, dtype=np.int64).reshape(-1, 3)
+    vals = np.asarray(vals, dtype=np.float32).reshape(-1)
+    index = GridIndex(g)
+    start, axis, t = crossing_edges(g, vals, h, fill, max_sum, max_dot, index)
+    if len(start) == 0:
+        return DualSurface(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
+    p0 = g[start]
+    point = p0.astype(np.float64)
+    rows = np.arange(len(start))
+    point[rows, axis] += t
+    # the four cubes (by min corner) around each edge, counter-clockwise seen from +axis
+    b, c = (axis + 1) % 3, (axis + 2) % 3
+    corners = np.repeat(p0[:, None, :], 4, axis=1)
+    for k, (u, v) in enumerate(((0, 0), (1, 0), (1, 1), (0, 1))):
+        corners[rows, k, b] -= u
+        corners[rows, k, c] -= v
+    corners = corners.reshape(-1, 3)
+    # a cube's id: its min corner's index among the grid points, or a new one past them
+    cid = index.find(corners)
+    missing = cid < 0
+    if missing.any():
+        _, extra = np.unique(corners[missing], axis=0, return_inverse=True)
+        cid[missing] = len(g) + extra.reshape(-1)
+    used, inv = np.unique(cid, return_inverse=True)
+    inv = inv.reshape(-1)
+    counts = np.bincount(inv, minlength=len(used)).astype(np.float64)
+    verts = np.stack([np.bincount(inv, weights=np.repeat(point[:, a], 4), minlength=len(used))
+                      for a in range(3)], 1) / counts[:, None]
+    quads = inv.reshape(-1, 4)
+    # split each quad along its shorter diagonal
+    d02 = ((verts[quads[:, 0]] - verts[quads[:, 2]]) ** 2).sum(1)
+    d13 = ((verts[quads[:, 1]] - verts[quads[:, 3]]) ** 2).sum(1)
+    short02 = (d02 <= d13)[:, None, None]
+    tri = np.where(short02, np.stack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]], 1),
+                   np.stack([quads[:, [0, 1, 3]], quads[:, [1, 2, 3]]], 1)).reshape(-1, 3)
+    return DualSurface(verts, tri)
