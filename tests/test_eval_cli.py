@@ -121,3 +121,16 @@ def test_eval_full_stage_without_fine_weights_is_a_clear_error(small_split, tmp_
            "--stage", "full", "--methods", "hgca-full", "--fine-weights", str(tmp_path / "none.pt")]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert res.returncode == 2 and "none.pt" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_eval_weights_flags_choose_the_model_files():
+    """--weights / --noplanner-weights put the named files in the hgca / gca rows (a run's checkpoint scored
+    against the shipped model); unnamed, the shipped ones."""
+    from hgca_core.commands.eval import load_method_models
+    from hgca_core.models.weights import shipped
+
+    swapped = load_method_models(["gca", "hgca"], None, weights=str(shipped("coarse-noplanner")),
+                                 noplanner_weights=str(shipped("coarse")))
+    assert not swapped["hgca"].coarse.cfg.use_planner and swapped["gca"].coarse.cfg.use_planner
+    default = load_method_models(["gca", "hgca"], None)
+    assert default["hgca"].coarse.cfg.use_planner and not default["gca"].coarse.cfg.use_planner

@@ -17,6 +17,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", default="test", choices=("val", "test"))
     p.add_argument("--stage", default="coarse", choices=("coarse", "full"),
                    help="full adds the fine stage's rows (hGCA 10 cm voxels and implicit mesh; needs fine weights)")
+    p.add_argument("--weights", default=None, help="hGCA coarse weights or checkpoint (default: the shipped coarse.pt)")
+    p.add_argument("--noplanner-weights", default=None,
+                   help="GCA (no planner) weights or checkpoint (default: the shipped coarse_noplanner.pt)")
     p.add_argument("--fine-weights", default=None, help="fine-stage weights (default: the shipped fine.pt)")
     p.add_argument("--t2", type=steps_arg, default=None, help="fine steps (default from the weights)")
     add_precision_argument(p)
@@ -52,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"unknown methods {sorted(unknown)}; choose from {', '.join(METHODS)}")
     files = split_files(args.data, args.split)[: args.count]
     gemm_dtype = resolve_precision(args.precision)
-    models = load_method_models(methods, args.fine_weights)
+    models = load_method_models(methods, args.fine_weights, args.weights, args.noplanner_weights)
     rows_of = {m: [m] for m in methods}
     rows_of["hgca-full"] = ["hgca-10cm", "hgca-implicit"]
     results: dict[str, list[dict]] = {r: [] for m in methods for r in rows_of[m]}
@@ -79,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
         out = Path(args.out)
         out.write_text(json.dumps({"split": args.split, "files": [p.name for p in files], "rows": rows,
                                    "samples": args.samples, "t1": args.t1, "free_space": args.free_space,
+                                   "weights": {"hgca": args.weights or "shipped", "gca": args.noplanner_weights
+                                               or "shipped", "fine": args.fine_weights or "shipped"},
                                    "precision": precision_name(gemm_dtype)}, indent=1))
         out.with_suffix(".md").write_text(table + "\n")
         if out.resolve().parent == WEIGHTS_DIR:  # results beside the weights go on the card
@@ -88,17 +93,19 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def load_method_models(methods: list[str], fine_weights: str | None) -> dict:
-    """`pipeline.Models` per model-based method: gca = the no-planner weights, hgca / hgca-full = the shipped
-    planner weights (with the fine stage when hgca-full is asked for), loaded once for the whole split."""
+def load_method_models(methods: list[str], fine_weights: str | None, weights: str | None = None,
+                       noplanner_weights: str | None = None) -> dict:
+    """`pipeline.Models` per model-based method: gca = the no-planner weights, hgca / hgca-full = the planner
+    weights (with the fine stage when hgca-full is asked for), shipped unless named, loaded once for the split."""
     from hgca_core.models.weights import shipped
     from hgca_core.pipeline import load_models
 
     models = {}
     if "gca" in methods:
-        models["gca"] = load_models("coarse", shipped("coarse-noplanner"))
+        models["gca"] = load_models("coarse", noplanner_weights or shipped("coarse-noplanner"))
     if "hgca" in methods or "hgca-full" in methods:
-        models["hgca"] = load_models("full" if "hgca-full" in methods else "coarse", shipped("coarse"), fine_weights)
+        models["hgca"] = load_models("full" if "hgca-full" in methods else "coarse", weights or shipped("coarse"),
+                                     fine_weights)
     return models
 
 

@@ -12,6 +12,17 @@ from pathlib import Path
 STAGES = ("coarse", "coarse-noplanner", "autoencoder", "fine")
 
 
+def _share(text: str) -> float:
+    """A share in [0, 1] (argparse type)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be between 0 and 1, got {value}")
+    return value
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("stage", choices=STAGES, help="which model to train (coarse-noplanner is the planner ablation)")
     p.add_argument("--data", default="data/synth", help="dataset folder with train/ and val/ splits (hgca synth --split)")
@@ -22,6 +33,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch", type=int, default=2,
                    help="chains per step (per rank under torchrun; the paper uses 6 for coarse, 3 for fine)")
     p.add_argument("--buffer", type=int, default=8, help="persistent chains kept (per rank)")
+    p.add_argument("--focus", type=_share, default=0.5, metavar="SHARE",
+                   help="coarse: share of training crops drawn around cells the input misses 3 m or more above "
+                        "the ground (facades up high, tree crowns); 0 draws every crop uniformly (default 0.5)")
     p.add_argument("--crop", type=int, default=None,
                    help="training crop in the stage's cells (coarse: 20 cm, default 64; fine: 10 cm, default 64)")
     p.add_argument("--channels", default=None, help="coarse U-Net widths, e.g. 16,32,48,64,96")
@@ -84,7 +98,7 @@ def build_task(args: argparse.Namespace, ckpt: Path):
             cfg = GCAConfig(use_planner=args.stage == "coarse", free_space=free)
         if args.channels and not saved and not init:
             cfg.channels = tuple(int(c) for c in args.channels.split(","))
-        return CoarseTask(args.data, cfg, crop=args.crop or 64)
+        return CoarseTask(args.data, cfg, crop=args.crop or 64, focus_share=args.focus)
     if args.stage == "autoencoder":
         from hgca_core.models.autoencoder import AutoencoderConfig
         from hgca_core.training.fine import AutoencoderTask

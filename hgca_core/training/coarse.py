@@ -18,7 +18,7 @@ from hgca_core.models.gca import GCAConfig, GCAKernel, sample
 from hgca_core.models.infusion import alpha
 from hgca_core.models.planner import rough_target
 from hgca_core.training.buffer import Chain
-from hgca_core.training.data import coarse_pair, crop_flip, free_cells, load_arrays, split_files
+from hgca_core.training.data import coarse_pair, crop_flip, focus_cells, free_cells, load_arrays, split_files
 
 
 def batched(sets: list[torch.Tensor]) -> torch.Tensor:
@@ -67,24 +67,31 @@ class CoarseTask:
     crop: int | None = 96
     val_count: int = 4      # val IoU of one 64-cell crop swings by +-0.1 between scenes: average several
     name: str = "coarse"
+    focus_share: float = 0.0  # share of training crops drawn around missed cells up high (`data.focus_cells`)
 
     def __post_init__(self) -> None:
         self.train_files = split_files(self.data_dir, "train")
+
+    def recipe(self) -> dict:
+        """The training settings a session records beside its steps (the model card shows them)."""
+        return {"crop": self.crop, "focus_share": self.focus_share}
 
     def build(self) -> CoarseLoss:
         return CoarseLoss(self.cfg)
 
     def new_example(self, rng: np.random.Generator) -> Chain:
         path = self.train_files[int(rng.integers(len(self.train_files)))]
-        (s0_t, gt_t), grid, extra = self.example(path, [], rng)
+        (s0_t, gt_t), grid, extra = self.example(path, [], rng, self.focus_share)
         return Chain(s0=s0_t, gt=gt_t, state=s0_t.clone(), t=0, grid=grid, extra=extra)
 
-    def example(self, path: str | Path, more: list[np.ndarray], rng: np.random.Generator
+    def example(self, path: str | Path, more: list[np.ndarray], rng: np.random.Generator, focus_share: float = 0.0
                 ) -> tuple[list[torch.Tensor], tuple[int, int, int], dict | None]:
-        """([s0, gt, *more] cut by one random crop, the crop's grid, {"free": its free space} or None)."""
+        """([s0, gt, *more] cut by one random crop, the crop's grid, {"free": its free space} or None); with
+        `focus_share` > 0 that share of crops is centred near missed cells up high (validation uses none)."""
         s0, gt, full = coarse_pair(path)
         sets = [s0, gt, *more] + ([free_cells(path)] if self.cfg.free_space else [])
-        cut, grid = crop_flip(sets, full, self.crop, rng)
+        focus = focus_cells(s0, gt) if focus_share > 0 else None
+        cut, grid = crop_flip(sets, full, self.crop, rng, focus, focus_share)
         if not self.cfg.free_space:
             return cut, grid, None
         return cut[:-1], grid, {"free": fs.from_cells(cut[-1], grid)[0]}

@@ -11,7 +11,7 @@ import torch
 
 from hgca_core.errors import InputError
 from hgca_core.geometry.freespace import observed_empty
-from hgca_core.geometry.keys import unique_rows
+from hgca_core.geometry.keys import pack, unique_rows
 from hgca_core.geometry.voxel import COARSE, FINE, grid_shape, point_cells, voxelize
 from hgca_core.io.atomic import atomic_write
 
@@ -114,19 +114,47 @@ class CropSpec:
         return p.astype(np.float32), keep
 
 
-def draw_crop(grid: tuple[int, int, int], crop: int | None, rng: np.random.Generator) -> CropSpec:
-    """A random crop (the whole grid when crop is None or too large) and random flips."""
+FOCUS_HEIGHT = 15  # cells (3 m at 20 cm) above a column's lowest true cell: facades up high and tree crowns
+
+
+def focus_cells(s0: np.ndarray, gt: np.ndarray, height: int = FOCUS_HEIGHT) -> np.ndarray:
+    """True cells the input misses that lie `height` cells or more above the lowest true cell of their x/y
+    column: where a street scan is blind (above the scanner's field of view, the crowns) and where the model
+    under-extrapolates real scans most, so crops drawn around them put the loss where the error is."""
+    gt = np.asarray(gt, dtype=np.int64).reshape(-1, 3)
+    if not len(gt):
+        return gt
+    missing = gt[~np.isin(pack(gt), pack(np.asarray(s0, dtype=np.int64).reshape(-1, 3)))]
+    cols, inv = np.unique(gt[:, :2], axis=0, return_inverse=True)
+    low = np.full(len(cols), np.iinfo(np.int64).max)
+    np.minimum.at(low, inv.reshape(-1), gt[:, 2])
+    at = np.searchsorted(pack(np.c_[cols, np.zeros(len(cols), np.int64)]),
+                         pack(np.c_[missing[:, :2], np.zeros(len(missing), np.int64)]))
+    return missing[missing[:, 2] >= low[at] + height]
+
+
+def draw_crop(grid: tuple[int, int, int], crop: int | None, rng: np.random.Generator,
+              focus: np.ndarray | None = None, focus_share: float = 0.0) -> CropSpec:
+    """A random crop (the whole grid when crop is None or too large) and random flips.
+
+    With `focus` cells and probability `focus_share`, the crop is drawn among those that contain a focus cell
+    picked at random (uniform offset around it), otherwise uniformly over the grid."""
     if crop is None or crop >= min(grid[0], grid[1]):
         ox = oy = 0
         out = grid
     else:
-        ox, oy = (int(rng.integers(0, g - crop + 1)) for g in grid[:2])
+        if focus is not None and len(focus) and rng.random() < focus_share:
+            c = focus[int(rng.integers(len(focus)))]
+            ox, oy = (int(np.clip(c[i] - rng.integers(0, crop), 0, grid[i] - crop)) for i in (0, 1))
+        else:
+            ox, oy = (int(rng.integers(0, g - crop + 1)) for g in grid[:2])
         out = (crop, crop, grid[2])
     return CropSpec(ox, oy, bool(rng.random() < 0.5), bool(rng.random() < 0.5), out)
 
 
 def crop_flip(sets: list[np.ndarray], grid: tuple[int, int, int], crop: int | None,
-              rng: np.random.Generator) -> tuple[list[torch.Tensor], tuple[int, int, int]]:
+              rng: np.random.Generator, focus: np.ndarray | None = None,
+              focus_share: float = 0.0) -> tuple[list[torch.Tensor], tuple[int, int, int]]:
     """Cut the same random x/y window from every cell set and flip it at random; returns tensors and the grid."""
-    spec = draw_crop(grid, crop, rng)
+    spec = draw_crop(grid, crop, rng, focus, focus_share)
     return [torch.from_numpy(spec.cells(s)) for s in sets], spec.grid

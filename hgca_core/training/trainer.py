@@ -280,7 +280,8 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
                               "wall_s": round(time.time() - session_start, 1), "world_size": world,
                               "device": dev.type, "device_name": device_name(dev), "cpu": cpu_name(),
                               "threads": torch.get_num_threads(),
-                              "train_samples": [Path(f).name for f in getattr(task, "train_files", [])]})
+                              "train_samples": [Path(f).name for f in getattr(task, "train_files", [])],
+                              "recipe": dict(getattr(task, "recipe", lambda: {})())})
     checkpoint()
     if rank == 0:
         atomic_write(out / "history.json", lambda f: f.write(json.dumps(state["history"], indent=1).encode()))
