@@ -36,6 +36,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--focus", type=_share, default=0.5, metavar="SHARE",
                    help="coarse: share of training crops drawn around cells the input misses 3 m or more above "
                         "the ground (facades up high, tree crowns); 0 draws every crop uniformly (default 0.5)")
+    p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
+                   help="GEMM precision of the sparse convs' forward and backward passes (bf16: float32 "
+                        "accumulation, weights and optimiser; see benchmarks/results/train_precision.md)")
     p.add_argument("--crop", type=int, default=None,
                    help="training crop in the stage's cells (coarse: 20 cm, default 64; fine: 10 cm, default 64)")
     p.add_argument("--channels", default=None, help="coarse U-Net widths, e.g. 16,32,48,64,96")
@@ -139,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
     if args.minutes > 0 or args.max_steps:
         state = train(task, out, args.minutes, resume=args.resume, batch=args.batch, buffer_size=args.buffer,
                       val_every_min=args.val_every, max_steps=args.max_steps, progress=not args.no_progress,
-                      device=args.device, init_from=args.init_from)
+                      device=args.device, init_from=args.init_from, precision=args.precision)
         last_val = next((h for h in reversed(state["history"]) if h["kind"] == "val"), {})
         print(json.dumps({"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1), **last_val}))
     if args.export:

@@ -14,8 +14,10 @@ Two ways to run a `KernelMap`, both in a fixed order, so the result does not dep
 
 Inference may run the GEMMs in bfloat16 (`gemm_precision`): inputs and weights are rounded to bf16, products
 accumulate in float32 inside the GEMM, outputs and everything between convolutions stay float32. On a CPU with
-AVX512-BF16 that makes the finest-level convs ~2.8x faster at ~0.3% relative error per conv. Training never
-takes this path: a conv whose inputs need gradients ignores the setting.
+AVX512-BF16 that makes the finest-level convs ~2.8x faster at ~0.3% relative error per conv. Training takes
+its own setting (`training_precision`, `hgca train --precision bf16`): the forward and both backward GEMMs in
+bf16 with float32 accumulation inside each GEMM, the sums across chunks, the weights, their gradients and the
+optimiser state in float32 (mixed precision as `torch.autocast` does it, for our custom op).
 """
 from __future__ import annotations
 
@@ -73,6 +75,20 @@ def gemm_precision(dtype: torch.dtype | None) -> Iterator[None]:
         _gemm_dtype = saved
 
 
+_train_dtype: torch.dtype | None = None
+
+
+@contextmanager
+def training_precision(dtype: torch.dtype | None) -> Iterator[None]:
+    """Within the block, convolutions that need gradients run their forward and backward GEMMs in `dtype`."""
+    global _train_dtype
+    saved, _train_dtype = _train_dtype, dtype
+    try:
+        yield
+    finally:
+        _train_dtype = saved
+
+
 PRECISIONS = ("auto", "fp32", "bf16")
 
 
@@ -128,12 +144,18 @@ def table_gemm(feats: torch.Tensor, weight: torch.Tensor, table: torch.Tensor,
     return out
 
 
-def table_weight_grad(feats: torch.Tensor, grad_out: torch.Tensor, table: torch.Tensor, kvol: int) -> torch.Tensor:
-    """grad_W[k] = sum_o feats[table[o, k]].T @ grad_out[o], chunk by chunk, as (K, cin, cout)."""
+def table_weight_grad(feats: torch.Tensor, grad_out: torch.Tensor, table: torch.Tensor, kvol: int,
+                      dtype: torch.dtype | None = None) -> torch.Tensor:
+    """grad_W[k] = sum_o feats[table[o, k]].T @ grad_out[o], chunk by chunk, as (K, cin, cout); GEMMs in `dtype`
+    (default: the features'), the sum over chunks in the features' dtype."""
     cin, cout = feats.shape[1], grad_out.shape[1]
+    dt = dtype or feats.dtype
     grad = feats.new_zeros((kvol * cin, cout))
-    for r0, r1, block in _table_blocks(feats, table, feats.dtype):
-        grad.addmm_(block.T, grad_out[r0:r1])
+    for r0, r1, block in _table_blocks(feats, table, dt):
+        if dt == grad.dtype:
+            grad.addmm_(block.T, grad_out[r0:r1])
+        else:
+            grad += torch.mm(block.T, grad_out[r0:r1].to(dt)).to(grad.dtype)
     return grad.view(kvol, cin, cout)
 
 
@@ -166,46 +188,53 @@ def gemm_forward(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap,
 
 
 def gemm_backward(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap, grad_out: torch.Tensor,
-                  need_feats: bool, need_weight: bool) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-    """grad_in[i] += grad_out[o] @ W[k].T and grad_W[k] = sum feats[i].T @ grad_out[o] over pairs."""
+                  need_feats: bool, need_weight: bool, dtype: torch.dtype | None = None
+                  ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """grad_in[i] += grad_out[o] @ W[k].T and grad_W[k] = sum feats[i].T @ grad_out[o] over pairs; GEMMs in
+    `dtype` (default: the features'), sums and gradients in the features' dtype."""
     kvol, cin, cout = weight.shape
     grad_out = grad_out.contiguous()
     grad_in = grad_w = None
     if kvol > 1 and kmap.symmetric and kmap.density >= TABLE_MIN_DENSITY:
         table = kmap.table
         if need_feats:  # adjoint of a submanifold map: table[i, j] = o pairs (i -> o) under offset K-1-j
-            grad_in = table_gemm(grad_out, weight.flip(0).transpose(1, 2).contiguous(), table)
+            grad_in = table_gemm(grad_out, weight.flip(0).transpose(1, 2).contiguous(), table, dtype)
         if need_weight:
-            grad_w = table_weight_grad(feats, grad_out, table, kvol)
+            grad_w = table_weight_grad(feats, grad_out, table, kvol, dtype)
         return grad_in, grad_w
+    dt = dtype or feats.dtype
+    f_dt, go_dt, w_dt = feats.to(dt), grad_out.to(dt), weight.to(dt)
     if need_feats:
         if kmap.identity is not None:
-            grad_in = _mm(grad_out, weight[kmap.identity].T)
+            grad_in = _mm(go_dt, w_dt[kmap.identity].T).to(feats.dtype)
         else:
             grad_in = feats.new_zeros((kmap.n_in, cin))
     if need_weight:
         grad_w = torch.zeros_like(weight)
         if kmap.identity is not None:
-            torch.mm(feats.T, grad_out, out=grad_w[kmap.identity])
-    wt = weight.transpose(1, 2)
+            grad_w[kmap.identity] = torch.mm(f_dt.T, go_dt)
+    wt = w_dt.transpose(1, 2)
     chunks = kmap.chunks(_rows(cin, cout))
     if chunks:
         rows = max(r1 - r0 for r0, r1, _ in chunks)
-        gobuf = feats.new_empty((rows, cout))
-        fibuf = feats.new_empty((rows, cin)) if need_weight else None
-        pbuf = feats.new_empty((rows, cin)) if need_feats else None
+        gobuf = go_dt.new_empty((rows, cout))
+        fibuf = f_dt.new_empty((rows, cin)) if need_weight else None
+        pbuf = go_dt.new_empty((rows, cin)) if need_feats else None
     for r0, r1, pieces in chunks:
         n = r1 - r0
-        go = torch.index_select(grad_out, 0, kmap.out_idx[r0:r1], out=gobuf[:n])
-        fi = torch.index_select(feats, 0, kmap.in_idx[r0:r1], out=fibuf[:n]) if need_weight else None
+        go = torch.index_select(go_dt, 0, kmap.out_idx[r0:r1], out=gobuf[:n])
+        fi = torch.index_select(f_dt, 0, kmap.in_idx[r0:r1], out=fibuf[:n]) if need_weight else None
         prod = pbuf[:n] if need_feats else None
         for k, a, b in pieces:
             if need_weight:
-                grad_w[k].addmm_(fi[a:b].T, go[a:b])
+                if dt == grad_w.dtype:
+                    grad_w[k].addmm_(fi[a:b].T, go[a:b])
+                else:
+                    grad_w[k] += torch.mm(fi[a:b].T, go[a:b]).to(grad_w.dtype)
             if need_feats:
                 _mm(go[a:b], wt[k], out=prod[a:b])
         if need_feats:
-            grad_in.index_add_(0, kmap.in_idx[r0:r1], prod)
+            grad_in.index_add_(0, kmap.in_idx[r0:r1], prod.to(grad_in.dtype))
     return grad_in, grad_w
 
 
@@ -218,7 +247,7 @@ class SparseConvFunction(torch.autograd.Function):
         feats = feats.contiguous()
         weight = weight.contiguous()
         ctx.save_for_backward(feats, weight)
-        ctx.kmap = kmap
+        ctx.kmap, ctx.dtype = kmap, dtype
         return gemm_forward(feats, weight, kmap, dtype)
 
     @staticmethod
@@ -226,12 +255,12 @@ class SparseConvFunction(torch.autograd.Function):
     def backward(ctx, grad_out: torch.Tensor):
         feats, weight = ctx.saved_tensors
         gi, gw = gemm_backward(feats, weight, ctx.kmap, grad_out, ctx.needs_input_grad[0],
-                               ctx.needs_input_grad[1])
+                               ctx.needs_input_grad[1], ctx.dtype)
         return gi, gw, None, None
 
 
 def conv_gemm(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap) -> torch.Tensor:
-    """The one entry point every sparse conv layer calls: differentiable, in full precision when gradients are
-    needed (training), else in the `gemm_precision` of the enclosing block."""
+    """The one entry point every sparse conv layer calls: differentiable; GEMMs in the `training_precision` of
+    the enclosing block when gradients are needed (training; default full), else in its `gemm_precision`."""
     grads = torch.is_grad_enabled() and (feats.requires_grad or weight.requires_grad)
-    return SparseConvFunction.apply(feats, weight, kmap, None if grads else _gemm_dtype)
+    return SparseConvFunction.apply(feats, weight, kmap, _train_dtype if grads else _gemm_dtype)

@@ -52,7 +52,7 @@ def _section(path: Path) -> str:
         hardware = s.get("device_name") or s.get("cpu")   # runs before device_name was recorded kept the CPU's
         lines.append(f"  - session ended {s['ended']}: {s['steps']} steps in {s['wall_s']} s, device {s['device']}"
                      f"{' (' + hardware + ')' if hardware else ''}, {s['threads']} thread(s), "
-                     f"world size {s['world_size']}"
+                     f"world size {s['world_size']}, {s.get('precision', 'fp32')} GEMMs"
                      + "".join(f", {k.replace('_', ' ')} {v}" for k, v in s.get("recipe", {}).items()))
     vals = [h for h in meta.get("history_tail", []) if h.get("kind") == "val"]
     trains = [h for h in meta.get("history_tail", []) if h.get("kind") == "train"]

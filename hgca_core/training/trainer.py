@@ -27,9 +27,11 @@ import torch.distributed as dist
 from torch import nn
 from tqdm import tqdm
 
+from hgca_core.errors import InputError
 from hgca_core.hardware import cpu_name, device_name, resolve_device
 from hgca_core.io.atomic import atomic_write
 from hgca_core.models.weights import load_file, save_file
+from hgca_core.nn.conv import training_precision
 from hgca_core.training.buffer import Chain, ChainBuffer
 
 
@@ -151,7 +153,7 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
           buffer_size: int = 8, lr: float = 5e-4, clip: float = 0.5, seed: int = 0,
           val_every_min: float = 10.0, ckpt_every_min: float = 5.0, max_steps: int | None = None,
           progress: bool = True, ema_decay: float = 0.999, device: str = "cpu",
-          init_from: str | os.PathLike | None = None) -> dict:
+          init_from: str | os.PathLike | None = None, precision: str = "fp32") -> dict:
     """Train `task` for `minutes` of wall time (or `max_steps`), resuming from out_dir/ckpt.pt if asked.
 
     `device` 'cuda' trains on the GPU (each torchrun rank on its own, cuda:LOCAL_RANK): the model, its optimiser
@@ -160,8 +162,14 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
     and chains, so a resumed run continues every rank where it stopped: one process resumed gives bit for bit
     the run that never stopped. Validation runs on rank 0 on the CPU (it meshes and measures with numpy / scipy).
 
+    `precision` 'bf16' runs the sparse convs' forward and backward GEMMs in bfloat16 (float32 accumulation,
+    weights, gradients and optimiser state; `nn.conv.training_precision`); validation stays float32.
+
     `init_from` (weights or a checkpoint of the task's kind) initialises a run that does not resume a checkpoint
     (`weights.load_into`: new free-space inputs start at zero); the run's notes record it."""
+    if precision not in ("fp32", "bf16"):
+        raise InputError(f"training precision must be fp32 or bf16, not {precision!r}")
+    train_dtype = torch.bfloat16 if precision == "bf16" else None
     rank, world, dev = _dist(device)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -250,9 +258,10 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
             t0 = time.time()
             idx = buffer.take(batch)
             chains = [buffer.chains[i] for i in idx]
-            loss, stats, new_states = ddp(chains)
-            optim.zero_grad(set_to_none=True)
-            loss.backward()
+            with training_precision(train_dtype):
+                loss, stats, new_states = ddp(chains)
+                optim.zero_grad(set_to_none=True)
+                loss.backward()
             torch.nn.utils.clip_grad_norm_(module.parameters(), clip)
             optim.step()
             ema.update(module)
@@ -279,7 +288,7 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
     state["sessions"].append({"ended": time.strftime("%Y-%m-%d %H:%M:%S"), "steps": steps_this_session,
                               "wall_s": round(time.time() - session_start, 1), "world_size": world,
                               "device": dev.type, "device_name": device_name(dev), "cpu": cpu_name(),
-                              "threads": torch.get_num_threads(),
+                              "threads": torch.get_num_threads(), "precision": precision,
                               "train_samples": [Path(f).name for f in getattr(task, "train_files", [])],
                               "recipe": dict(getattr(task, "recipe", lambda: {})())})
     checkpoint()

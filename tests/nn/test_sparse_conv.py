@@ -323,3 +323,35 @@ def test_bf16_gemms_for_inference_only(gen: torch.Generator, path: str) -> None:
     assert [precision_name(resolve_precision(n)) for n in ("fp32", "bf16")] == ["fp32", "bf16"]
     with pytest.raises(ValueError, match="precision"):
         resolve_precision("fp8")
+
+
+def test_bf16_training_gemms(gen: torch.Generator, path: str) -> None:
+    """training_precision(bf16): forward and both backward GEMMs in bf16, so outputs and gradients differ from
+    float32 by bf16 rounding only; gradients and weights stay float32; outside the block training is exact."""
+    from hgca_core.nn.conv import training_precision
+
+    coords = random_coords(gen, 1, 20, 0.3)
+    feats = torch.randn(len(coords), 16, generator=gen)
+    layers = torch.nn.ModuleList([SubMConv3d(16, 16), SparseConv3d(16, 24), SparseConvTranspose3d(24, 16)])
+
+    def grads() -> tuple[torch.Tensor, list[torch.Tensor], torch.Tensor]:
+        layers.zero_grad(set_to_none=True)
+        f = feats.clone().requires_grad_(True)
+        x = SparseTensor(coords, f)
+        out = layers[2](layers[1](layers[0](x)), x).feats
+        (out ** 2).sum().backward()
+        return out.detach(), [p.grad.clone() for p in layers.parameters() if p.grad is not None], f.grad.clone()
+
+    ref_out, ref_w, ref_in = grads()
+    with training_precision(torch.bfloat16):
+        out, gw, gin = grads()
+    again = grads()
+    assert torch.equal(again[0], ref_out) and torch.equal(again[2], ref_in)       # the block ends cleanly
+    assert not torch.equal(out, ref_out) and not torch.equal(gin, ref_in)          # the bf16 path ran
+    assert out.dtype == gin.dtype == torch.float32 and all(g.dtype == torch.float32 for g in gw)
+
+    def rel(a: torch.Tensor, b: torch.Tensor) -> float:
+        return float((a - b).norm() / b.norm())
+
+    assert rel(out, ref_out) < 0.01 and rel(gin, ref_in) < 0.02
+    assert len(gw) == len(ref_w) and max(rel(a, b) for a, b in zip(gw, ref_w)) < 0.02
