@@ -61,32 +61,28 @@ TABLE_MIN_DENSITY = 0.6
 TABLE_CHUNK_ELEMENTS = 1 << 22
 
 
-_gemm_dtype: torch.dtype | None = None
+# GEMM dtype of the convolutions that need no gradients (inference) and of those that do (training); None: as
+# the features. Set for a block by `gemm_precision` / `training_precision`.
+_GEMM_DTYPE: dict[bool, torch.dtype | None] = {False: None, True: None}
 
 
 @contextmanager
-def gemm_precision(dtype: torch.dtype | None) -> Iterator[None]:
+def _gemm_dtype_scope(training: bool, dtype: torch.dtype | None) -> Iterator[None]:
+    saved, _GEMM_DTYPE[training] = _GEMM_DTYPE[training], dtype
+    try:
+        yield
+    finally:
+        _GEMM_DTYPE[training] = saved
+
+
+def gemm_precision(dtype: torch.dtype | None):
     """Within the block, convolutions that need no gradients run their GEMMs in `dtype` (None: as the features)."""
-    global _gemm_dtype
-    saved, _gemm_dtype = _gemm_dtype, dtype
-    try:
-        yield
-    finally:
-        _gemm_dtype = saved
+    return _gemm_dtype_scope(False, dtype)
 
 
-_train_dtype: torch.dtype | None = None
-
-
-@contextmanager
-def training_precision(dtype: torch.dtype | None) -> Iterator[None]:
+def training_precision(dtype: torch.dtype | None):
     """Within the block, convolutions that need gradients run their forward and backward GEMMs in `dtype`."""
-    global _train_dtype
-    saved, _train_dtype = _train_dtype, dtype
-    try:
-        yield
-    finally:
-        _train_dtype = saved
+    return _gemm_dtype_scope(True, dtype)
 
 
 PRECISIONS = ("auto", "fp32", "bf16")
@@ -263,4 +259,4 @@ def conv_gemm(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap) -> tor
     """The one entry point every sparse conv layer calls: differentiable; GEMMs in the `training_precision` of
     the enclosing block when gradients are needed (training; default full), else in its `gemm_precision`."""
     grads = torch.is_grad_enabled() and (feats.requires_grad or weight.requires_grad)
-    return SparseConvFunction.apply(feats, weight, kmap, _train_dtype if grads else _gemm_dtype)
+    return SparseConvFunction.apply(feats, weight, kmap, _GEMM_DTYPE[grads])
