@@ -11,7 +11,8 @@ import importlib
 from types import ModuleType
 
 # Registration order: properties before the panels that draw them, preferences before operators use them.
-_MODULES = ("properties", "preferences", "jobs", "operators_import", "operators_complete", "panels")
+_MODULES = ("properties", "preferences", "jobs", "operators_import", "operators_complete", "operators_drive",
+            "panels")
 
 
 def _modules() -> list[ModuleType]:

@@ -1,13 +1,22 @@
-"""Drive jobs: `hgca drive` on scan files, its tiles turned into one collection, one object per tile per sample.
+"""Drive jobs: `hgca drive` on a whole drive, its tiles shown as boxes and turned into one collection, one object per
+tile per sample, as they finish.
 
-The core writes every tile's own part (cut at the overlap midlines) to DIR/tiles/<i>_s<k>.npz, so the objects
-tile the drive without doubled geometry. DIR is the user's: cancelling a job stops the core, and the tiles
-it finished stay there, so the same job started again resumes (`hgca drive` skips finished tiles).
+The core plans the tiles (`hgca drive --plan-only --json`, and the `plan` record of a run: the same planner),
+so the add-on only draws the regions it gets. It writes every tile's own part (cut at the overlap midlines) to
+DIR/tiles/<i>_s<k>.npz and says so in a `tile` record (`state` done, or cached for a tile an earlier run
+finished): the add-on adds that tile's objects at once, so the objects tile the drive without doubled geometry
+and a cancelled job keeps what it finished. DIR is the user's: cancelling stops the core (drive.json says
+"interrupted"), the finished tiles stay there, and the same job started again resumes.
+
+Inputs are scan files (batch: `--drive`) or the panel's source objects: each object goes to the core as one
+.npz in world coordinates (float64: the scene's georeference origin + Blender coordinates) with its sensor
+origins and, for an imported sequence, `scan_index` / `origin_index`, so the core splits it into its scans.
 """
 from __future__ import annotations
 
 import json
 import math
+import shutil
 import tempfile
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -15,12 +24,16 @@ from pathlib import Path
 from typing import Any
 
 import bpy
+import numpy as np
 
-from . import georef, mesh_build
-from .core import CoreError, Job, check_python, core_command
+from . import georef, jobs, mesh_build, region, sources
+from .core import CoreError, Job, check_python, core_command, run_core_json
 
 # Share of the progress bar: reading the scans, the tiles, merging the samples.
 WEIGHTS = {"read": 0.05, "tile": 0.9, "merge": 0.05}
+PLAN_ROLE = "drive_plan"         # ROLE_KEY of the collection holding the planned tiles' boxes
+PLAN_TIMEOUT_S = 1800
+RAY_ATTRIBUTES = ("scan_index", "origin_index")   # point attributes the core uses to split scans and cast rays
 
 
 @dataclass
@@ -49,10 +62,7 @@ def drive_args(params: DriveParams) -> list[str]:
     """The `hgca drive` command line (docs/CONTRACTS.md, "Drive CLI"), meshes as .npz for the add-on."""
     args = ["drive", *params.scans, "--out", params.out_dir, "--samples", str(int(params.samples)),
             "--seed", str(int(params.seed)), "--stage", params.stage, "--device", params.device,
-            "--workers", str(int(params.workers)), "--size", repr(float(params.tile_size)),
-            "--overlap", repr(float(params.overlap)), "--mesh-format", "npz", "--progress", "jsonl"]
-    if params.poses:
-        args += ["--poses", params.poses]
+            "--workers", str(int(params.workers)), *_plan_args(params), "--mesh-format", "npz", "--progress", "jsonl"]
     if int(params.t1):
         args += ["--t1", str(int(params.t1))]
     if int(params.max_faces):
@@ -60,18 +70,187 @@ def drive_args(params: DriveParams) -> list[str]:
     return args + list(params.extra_args)
 
 
+def _plan_args(params: DriveParams) -> list[str]:
+    args = ["--size", repr(float(params.tile_size)), "--overlap", repr(float(params.overlap))]
+    return args + (["--poses", params.poses] if params.poses else [])
+
+
+# -- inputs from the scene ---------------------------------------------------------------------------
+
+def write_object_scans(scene: bpy.types.Scene, objects: list[bpy.types.Object], folder: Path) -> list[str]:
+    """Each source object as `folder/scan_NNN.npz` for the core, objects in name order (a sequence import is one
+    object whose `scan_index` keeps its frames' order): world points (float64), world sensor origins, and the
+    point attributes the core splits and casts rays by. An object without sensor origins is refused: a drive
+    follows them."""
+    paths = []
+    for i, obj in enumerate(sorted(objects, key=lambda o: o.name)):
+        origins = sources.world_origins([obj])
+        if origins is None:
+            raise CoreError(f"{obj.name!r} has no sensor origins: a drive follows the sensor, so import the scans "
+                            "with their poses (or a sequence folder) through File > Import > LiDAR Scan (hgca)")
+        arrays = {"points": georef.to_world(scene, sources.world_points([obj])),
+                  "origins": georef.to_world(scene, origins)}
+        if obj.type == "MESH":
+            for name in RAY_ATTRIBUTES:
+                attr = obj.data.attributes.get(name)
+                if attr is not None and attr.domain == "POINT" and attr.data_type == "INT":
+                    values = np.empty(len(obj.data.vertices), dtype=np.int32)
+                    attr.data.foreach_get("value", values)
+                    arrays[name] = values
+        path = folder / f"scan_{i:03d}.npz"
+        np.savez(path, **arrays)
+        paths.append(str(path))
+    return paths
+
+
+# -- the plan: boxes along the trajectory ---------------------------------------------------------------
+
+def plan_drive(params: DriveParams) -> dict[str, Any]:
+    """The core's tiles for these scans: `hgca drive SCANS --plan-only --json` (nothing is written)."""
+    check_python(params.python)
+    plan = run_core_json(params.python, ["drive", *params.scans, *_plan_args(params), "--plan-only", "--json"],
+                         timeout=PLAN_TIMEOUT_S)
+    if not isinstance(plan.get("tiles"), list):
+        raise CoreError(f"hgca drive --plan-only answered without tiles: {str(plan)[:200]}")
+    return plan
+
+
+def show_plan(scene: bpy.types.Scene, plan: dict[str, Any]) -> bpy.types.Collection:
+    """The planned tiles as wireframe boxes (never rendered, never a source) in a collection of their own, in
+    Blender coordinates; replaces the boxes an earlier plan of this scene drew (only those: the add-on's own)."""
+    remove_plan(scene)
+    created = mesh_build.Created()
+    try:
+        collection = bpy.data.collections.new("hGCA tile boxes")
+        created.collections.append(collection)
+        collection[mesh_build.ROLE_KEY] = PLAN_ROLE
+        for tile in plan["tiles"]:
+            values = tuple(float(v) for v in tile["region"])
+            if len(values) != 7 or not all(math.isfinite(v) for v in values):
+                raise CoreError(f"the core planned a tile with a bad region: {tile['region']!r}")
+            box = region.create_region_box(collection, georef.region_to_scene(scene, values),
+                                           name=f"hGCA tile {int(tile['index'])}")
+            created.objects.append(box)
+            created.meshes.append(box.data)
+            box["hgca_tile"] = int(tile["index"])
+        scene.collection.children.link(collection)
+    except Exception:
+        created.rollback()
+        raise
+    return collection
+
+
+def remove_plan(scene: bpy.types.Scene) -> None:
+    """Remove the tile boxes the add-on drew in `scene` (collections marked PLAN_ROLE, their boxes, meshes)."""
+    for coll in list(scene.collection.children):
+        if coll.get(mesh_build.ROLE_KEY) != PLAN_ROLE:
+            continue
+        for obj in list(coll.objects):
+            mesh = obj.data if obj.get(mesh_build.ROLE_KEY) == "region" else None
+            bpy.data.objects.remove(obj, do_unlink=True)
+            if mesh is not None and mesh.users == 0:
+                bpy.data.meshes.remove(mesh)
+        bpy.data.collections.remove(coll)
+
+
+# -- the results: one collection, objects added tile by tile ---------------------------------------------
+
+class DriveResults:
+    """The drive's collection in its scene (made at the first finished tile), one object per tile per sample
+    ("<run> tile i sample k", custom properties hgca_tile / hgca_sample); only sample 0 shows."""
+
+    def __init__(self, scene: bpy.types.Scene, run_name: str) -> None:
+        self.scene_name = scene.name
+        self.run_name = run_name
+        self.collection_name = ""
+        self.material_name = ""
+        self.tiles: set[int] = set()
+
+    def add(self, index: int, paths: list[Path]) -> None:
+        """Tile `index`'s objects from its sample files; every file is read first, and a failure adds nothing."""
+        if index in self.tiles:
+            return
+        scene = bpy.data.scenes.get(self.scene_name)
+        if scene is None:
+            raise CoreError(f"scene {self.scene_name!r} no longer exists")
+        arrays = [mesh_build.read_result(p) for p in paths]
+        origin = georef.scene_origin(scene)
+        created = mesh_build.Created()
+        try:
+            collection = bpy.data.collections.get(self.collection_name) if self.collection_name else None
+            if collection is None:
+                collection = bpy.data.collections.new(self.run_name)
+                created.collections.append(collection)
+                scene.collection.children.link(collection)
+            material = bpy.data.materials.get(self.material_name) if self.material_name else None
+            if material is None:
+                material = mesh_build.observed_material(f"{self.run_name} observed/generated")
+                created.materials.append(material)
+            hidden = []
+            for k, arr in enumerate(arrays):
+                obj = mesh_build.result_object(f"{self.run_name} tile {index} sample {k}", arr, material, created,
+                                               origin)
+                obj["hgca_tile"], obj["hgca_sample"] = index, k
+                collection.objects.link(obj)
+                if k:
+                    hidden.append(obj)
+            mesh_build.hide_in_scene(scene, hidden)
+        except Exception:
+            created.rollback()
+            raise
+        self.collection_name, self.material_name = collection.name, material.name
+        self.tiles.add(index)
+
+
+def finished_tiles(folder: Path) -> list[int]:
+    """The tiles drive.json lists as done (their files are written before drive.json says so)."""
+    try:
+        doc = json.loads((folder / "drive.json").read_text())
+        return [int(t["index"]) for t in doc["tiles"] if t.get("status") == "done"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+
+
 class DriveJob(Job):
-    """A drive whose tiles become one collection in its scene."""
+    """A drive whose planned tiles appear as boxes and whose finished tiles become objects in one collection."""
 
     def __init__(self, params: DriveParams, workdir: Path, cmd: list[str]) -> None:
         self.params = params
         self.scene_name = params.scene_name
         self.run_name = params.run_name or f"hGCA drive {datetime.now():%Y-%m-%d %H:%M:%S}"
-        self.collection_name = ""
         self.tiles = 0
+        self.tile_states: dict[int, str] = {}
+        self.plan_collection = ""
+        scene = bpy.data.scenes[params.scene_name]
+        self.results = DriveResults(scene, self.run_name)
         super().__init__(cmd, workdir)
 
+    @property
+    def collection_name(self) -> str:
+        return self.results.collection_name
+
+    def tile_paths(self, index: int) -> list[Path]:
+        return [Path(self.params.out_dir) / "tiles" / f"{index}_s{k}.npz" for k in range(int(self.params.samples))]
+
     def on_progress(self, stage: str, event: dict[str, Any]) -> None:
+        try:
+            self._on_record(stage, event)
+        except Exception as exc:  # a tile that cannot be loaded ends the job; the tiles loaded so far stay
+            if self._stop():
+                self._fail(f"could not load the results: {exc}")
+
+    def _on_record(self, stage: str, event: dict[str, Any]) -> None:
+        if stage == "plan" and isinstance(event.get("plan"), dict):
+            scene = bpy.data.scenes.get(self.scene_name)
+            if scene is not None:
+                self.plan_collection = show_plan(scene, event["plan"]).name
+            return
+        tile = event.get("tile")
+        if stage == "tile" and isinstance(tile, int) and tile >= 0:
+            state = str(event.get("state") or "")
+            self.tile_states[tile] = state
+            if state in ("done", "cached"):
+                self.results.add(tile, self.tile_paths(tile))
         if stage not in WEIGHTS:
             return
         step, total = event.get("step"), event.get("total")
@@ -84,63 +263,86 @@ class DriveJob(Job):
             self.progress = max(self.progress, min(value, 1.0))
         if stage == "tile":
             self.tiles = int(total)
-        self.status = f"{stage.capitalize()} {step}/{total}" + (f": {event['message']}" if event.get("message") else "")
+            self.status = f"Tiles {step}/{total} done" + (f": {event['message']}" if event.get("message") else "")
+        else:
+            self.status = f"{stage.capitalize()} {step}/{total}" + (f": {event['message']}" if event.get("message")
+                                                                      else "")
+
+    def _collect_finished(self) -> None:
+        """Objects for every tile drive.json lists as done that has none yet (finished since the last record)."""
+        for index in finished_tiles(Path(self.params.out_dir)):
+            self.results.add(index, self.tile_paths(index))
 
     def on_success(self, outputs: list[Path]) -> None:
-        scene = bpy.data.scenes.get(self.scene_name)
-        if scene is None:
-            raise CoreError(f"scene {self.scene_name!r} no longer exists")
-        folder = Path(self.params.out_dir)
-        doc = json.loads((folder / "drive.json").read_text())
-        tiles = [[folder / o for o in t["outputs"]] for t in doc["tiles"]]
-        self.collection_name = build_drive_results(scene, tiles, self.run_name).name
+        self._collect_finished()
+        if not self.results.collection_name:
+            raise CoreError("the drive finished without tiles")
+        jobs.undo_push(f"hGCA: {self.run_name}")
 
     def success_status(self) -> str:
         return f"Done: {self.tiles} tiles x {self.params.samples} sample(s) in '{self.collection_name}'"
 
+    def cancel(self) -> None:
+        """Stop the core (its drive.json then says "interrupted"); the tiles it finished stay, as objects here
+        and in DIR, where the same job started again resumes."""
+        if not self._stop():
+            return
+        self.state = "cancelled"
+        try:
+            self._collect_finished()
+        except Exception as exc:  # noqa: BLE001  (what was loaded stays; say why the rest is missing)
+            self.status = f"Cancelled; some finished tiles could not be loaded: {exc}"
+        else:
+            kept = len(self.results.tiles)
+            self.status = (f"Cancelled: {kept} finished tile(s) kept" +
+                           (f" in '{self.collection_name}'" if kept else "") + f"; they stay in {self.params.out_dir}")
+        self.publish()
 
-def build_drive_results(scene: bpy.types.Scene, tiles: list[list[Path]], run_name: str) -> bpy.types.Collection:
-    """A collection `run_name` with one mesh object per tile per sample ("<run> tile i sample k"); only sample 0
-    visible. Every file is read and checked first; on any failure everything made here is removed."""
-    arrays = [[mesh_build.read_result(p) for p in paths] for paths in tiles]
-    origin = georef.scene_origin(scene)
-    created = mesh_build.Created()
-    try:
-        collection = bpy.data.collections.new(run_name)
-        created.collections.append(collection)
-        material = mesh_build.observed_material(f"{run_name} observed/generated")
-        created.materials.append(material)
-        hidden = []
-        for i, samples in enumerate(arrays):
-            for k, arr in enumerate(samples):
-                obj = mesh_build.result_object(f"{run_name} tile {i} sample {k}", arr, material, created, origin)
-                obj["hgca_tile"], obj["hgca_sample"] = i, k
-                collection.objects.link(obj)
-                if k:
-                    hidden.append(obj)
-        scene.collection.children.link(collection)
-        mesh_build.hide_in_scene(scene, hidden)
-    except Exception:
-        created.rollback()
-        raise
-    return collection
+    def publish(self) -> None:
+        jobs.publish_state(self)
 
 
-def start_drive_job(params: DriveParams) -> DriveJob:
-    """Launch `hgca drive`; CoreError (nothing started) for bad parameters or a missing interpreter."""
+def start_drive_job(params: DriveParams, objects: list[bpy.types.Object] | None = None) -> DriveJob:
+    """Launch `hgca drive` on `params.scans`, or on `objects` (the panel's sources, written to the job's temporary
+    folder), and register it for its scene; CoreError (nothing started) for bad parameters, a missing
+    interpreter, sources without sensor origins, or a job already running there."""
     if not params.scene_name:
         scene = bpy.context.scene
         params.scene_name = scene.name if scene is not None else ""
-    if bpy.data.scenes.get(params.scene_name) is None:
+    scene = bpy.data.scenes.get(params.scene_name)
+    if scene is None:
         raise CoreError(f"no scene named {params.scene_name!r}")
+    if jobs.active_job(params.scene_name) is not None:
+        raise CoreError(f"a job is already running in scene {params.scene_name!r}")
     check_python(params.python)
-    if not params.scans:
-        raise CoreError("a drive needs scan files")
     if not 1 <= int(params.samples) <= 8:
         raise CoreError(f"sample count must be 1..8, got {params.samples}")
-    # the core runs in a temporary folder: every path it gets is absolute
-    params.out_dir = str(Path(params.out_dir).resolve())
-    params.scans = [str(Path(s).resolve()) for s in params.scans]
-    params.poses = str(Path(params.poses).resolve()) if params.poses else None
+    if not params.out_dir:
+        raise CoreError("a drive needs a folder for its tiles")
     workdir = Path(tempfile.mkdtemp(prefix="hgca_drive_job_"))
-    return DriveJob(params, workdir, core_command(params.python, drive_args(params)))
+    try:
+        if objects is not None:
+            params.scans = write_object_scans(scene, objects, workdir)
+        if not params.scans:
+            raise CoreError("a drive needs scans")
+        # the core runs in the temporary folder: every path it gets is absolute
+        params.out_dir = str(Path(params.out_dir).resolve())
+        params.scans = [str(Path(s).resolve()) for s in params.scans]
+        params.poses = str(Path(params.poses).resolve()) if params.poses else None
+        job = DriveJob(params, workdir, core_command(params.python, drive_args(params)))
+    except Exception:
+        shutil.rmtree(workdir, ignore_errors=True)
+        raise
+    jobs.ACTIVE[params.scene_name] = job
+    job.publish()
+    return job
+
+
+def plan_objects(scene: bpy.types.Scene, params: DriveParams, objects: list[bpy.types.Object]) -> bpy.types.Collection:
+    """Ask the core where the tiles of a drive through `objects` go and show them as boxes (writes nothing else)."""
+    folder = Path(tempfile.mkdtemp(prefix="hgca_drive_plan_"))
+    try:
+        params.scans = write_object_scans(scene, objects, folder)
+        return show_plan(scene, plan_drive(params))
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)

@@ -139,26 +139,31 @@ class CompletionJob(Job):
             raise CoreError(f"scene {self.scene_name!r} no longer exists")
         collection = mesh_build.build_results(scene, outputs, self.run_name)
         self.collection_name = collection.name
-        _undo_push(f"hGCA: {self.run_name}")
+        undo_push(f"hGCA: {self.run_name}")
 
     def success_status(self) -> str:
         n = len(self.outputs)
         return f"Done: {n} sample{'s' if n != 1 else ''} in '{self.collection_name}'"
 
     def publish(self) -> None:
-        scene = self._scene()
-        if scene is None or not hasattr(scene, "hgca"):
-            return
-        props = scene.hgca
-        if abs(props.progress - self.progress) > 1e-6:
-            props.progress = self.progress
-        if props.status != self.status:
-            props.status = self.status[:1000]
-        props.status_is_error = self.state == "error"
-        _redraw_view3d()
+        publish_state(self)
 
 
-def _undo_push(message: str) -> None:
+def publish_state(job: Job) -> None:
+    """Show a job's progress and status in its scene's panel (`scene.hgca`); completion and drive jobs alike."""
+    scene = bpy.data.scenes.get(job.scene_name)
+    if scene is None or not hasattr(scene, "hgca"):
+        return
+    props = scene.hgca
+    if abs(props.progress - job.progress) > 1e-6:
+        props.progress = job.progress
+    if props.status != job.status:
+        props.status = job.status[:1000]
+    props.status_is_error = job.state == "error"
+    _redraw_view3d()
+
+
+def undo_push(message: str) -> None:
     """Record the results as an undo step: they are built by a timer, outside any operator."""
     if bpy.app.background:
         return
@@ -182,11 +187,11 @@ def _redraw_view3d() -> None:
                 area.tag_redraw()
 
 
-# Active jobs, one per scene (by name); the UI timer polls these.
-ACTIVE: dict[str, CompletionJob] = {}
+# Active jobs (completions and drives), one per scene (by name); the UI timer polls these.
+ACTIVE: dict[str, Job] = {}
 
 
-def active_job(scene_name: str) -> CompletionJob | None:
+def active_job(scene_name: str) -> Job | None:
     job = ACTIVE.get(scene_name)
     return job if job is not None and job.running else None
 
@@ -202,7 +207,7 @@ def start_job(params: CompletionParams) -> CompletionJob:
     if bpy.data.scenes.get(params.scene_name) is None:
         raise CoreError(f"no scene named {params.scene_name!r}")
     if active_job(params.scene_name) is not None:
-        raise CoreError(f"a completion is already running in scene {params.scene_name!r}")
+        raise CoreError(f"a job is already running in scene {params.scene_name!r}")
     check_python(params.python)
     pts = validate_params(params)
     workdir = Path(tempfile.mkdtemp(prefix="hgca_job_"))
@@ -227,7 +232,7 @@ def poll_all() -> bool:
             any_running = True
         else:
             if job.state == "error":
-                print(f"hGCA: completion failed: {job.error}", file=sys.stderr)
+                print(f"hGCA: job failed: {job.error}", file=sys.stderr)
             del ACTIVE[name]
     return any_running
 

@@ -71,6 +71,34 @@ class HGCA_PT_advanced(_SidebarTab, bpy.types.Panel):
         row.prop(props, "t2")
 
 
+class HGCA_PT_drive(_SidebarTab, bpy.types.Panel):
+    """Complete along drive: tiles along the sources' sensor path, kept in a folder, resumable."""
+
+    bl_label = "Complete Along Drive"
+    bl_parent_id = "HGCA_PT_main"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context: bpy.types.Context) -> None:
+        layout = self.layout
+        layout.use_property_split = True
+        layout.use_property_decorate = False
+        props = context.scene.hgca
+        layout.prop(props, "drive_dir")
+        layout.prop(props, "drive_tile_size")
+        layout.prop(props, "drive_overlap")
+        layout.prop(props, "drive_workers")
+        job = jobs.active_job(context.scene.name)
+        row = layout.row(align=True)
+        row.enabled = job is None
+        row.operator("hgca.drive_plan", icon="CUBE")
+        row.operator("hgca.drive", icon="PLAY")
+        states = getattr(job, "tile_states", None)
+        if states:
+            counts = {s: sum(v == s for v in states.values()) for s in ("done", "cached", "running", "queued")}
+            layout.label(text=", ".join(f"{n} {s}" for s, n in counts.items() if n) + f" of {len(states)} tiles",
+                         icon="INFO")
+
+
 class HGCA_PT_job(_SidebarTab, bpy.types.Panel):
     bl_label = "Job"
     bl_parent_id = "HGCA_PT_main"
@@ -94,7 +122,7 @@ class HGCA_PT_job(_SidebarTab, bpy.types.Panel):
                 layout.label(text=props.status, icon="ERROR" if props.status_is_error else "INFO")
 
 
-CLASSES = (HGCA_PT_main, HGCA_PT_advanced, HGCA_PT_job)
+CLASSES = (HGCA_PT_main, HGCA_PT_advanced, HGCA_PT_drive, HGCA_PT_job)
 
 
 register, unregister = bpy.utils.register_classes_factory(CLASSES)

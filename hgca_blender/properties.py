@@ -58,6 +58,16 @@ class HGCA_PG_scene(bpy.types.PropertyGroup):
                            description="Simplify each completed mesh to at most this many triangles "
                                        "(0: keep all; a full-stage region gives 5-7 million)")
 
+    drive_dir: StringProperty(name="Drive Folder", subtype="DIR_PATH", default="",
+                              description="Folder the drive's tiles are kept in (running again resumes; empty: "
+                                          "hgca_drive beside the saved .blend, else in the temporary folder)")
+    drive_tile_size: FloatProperty(name="Tile Size", default=38.4, min=4.0, soft_max=80.0, unit="LENGTH",
+                                   description="Side of each square tile along the trajectory")
+    drive_overlap: FloatProperty(name="Overlap", default=6.4, min=0.5, soft_max=20.0, unit="LENGTH",
+                                 description="Overlap of consecutive tiles (the seams are conditioned across it)")
+    drive_workers: IntProperty(name="Workers", default=1, min=1, soft_max=16,
+                               description="Tiles at once (more than 1 runs them on a local Ray: needs hgca[ray])")
+
     progress: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")
     status: StringProperty(name="Status", default="")
     status_is_error: BoolProperty(name="Error", default=False)

@@ -11,13 +11,27 @@ This module imports nothing heavy: the CLI installs it before importing anything
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
-from typing import Any
+from typing import Any, Callable, Iterator
 
 EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}
 _COMMAND = {"name": ""}
+_LAST_WORDS: list[Callable[[int], None]] = []   # see `last_words`
+
+
+@contextlib.contextmanager
+def last_words(fn: Callable[[int], None]) -> Iterator[None]:
+    """While the block runs, `fn(signum)` is called when the handler ends the process (after the temp files are
+    gone, before the exit): `hgca drive` marks its drive.json interrupted there, so a folder a signal stopped
+    does not read as still running. `fn` must be quick and must not raise (what it raises is ignored)."""
+    _LAST_WORDS.append(fn)
+    try:
+        yield
+    finally:
+        _LAST_WORDS.remove(fn)
 
 
 def _handler(signum: int, _frame: Any) -> None:
@@ -26,6 +40,11 @@ def _handler(signum: int, _frame: Any) -> None:
         return
     if atomic is not None:
         atomic.discard_pending()
+    for fn in reversed(_LAST_WORDS):
+        try:
+            fn(signum)
+        except BaseException:  # noqa: BLE001  (the process ends either way; its outputs must not)
+            pass
     what = "interrupted" if signum == signal.SIGINT else "terminated"
     name = f"hgca {_COMMAND['name']}".strip()
     try:

@@ -79,6 +79,7 @@ class LocalCompletion:
     coarse_cells: np.ndarray           # (M, 3) int64, 20 cm cells (s^T1)
     fine_cells: np.ndarray | None      # (N, 3) int64, 10 cm cells (x^T2) of the full stage, else None
     seed: int
+    free_cells: int | None = None      # 20 cm cells seen empty that the run used (None: no free space)
 
 
 @dataclass
@@ -268,7 +269,8 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
         if len(mesh.faces) == 0:  # inputs too small to complete were refused above: this is the model's doing
             warnings.warn(HgcaWarning(f"{tag} is an empty mesh: the model made no surface from {len(s0)} input "
                                       "cells (untrained or mismatched weights?)"), stacklevel=2)
-        results.append(LocalCompletion(mesh=mesh, coarse_cells=cells, fine_cells=cells10, seed=seed + i))
+        results.append(LocalCompletion(mesh=mesh, coarse_cells=cells, fine_cells=cells10, seed=seed + i,
+                                       free_cells=None if free_np is None else int(free_np.sum())))
         report("mesh", 1, 1, tag, i)
     return results
 

@@ -56,6 +56,12 @@ class Progress:
                 self._bar.set_postfix_str(message)
             self._bar.refresh()
 
+    def record(self, stage: str, step: int, total: int, message: str = "", **fields) -> None:
+        """A JSON-lines record with fields of its own besides the common ones (`hgca drive`'s `plan` and `tile`
+        records, docs/CONTRACTS.md); nothing in the other modes, whose callers show these their own way."""
+        if self.mode == "jsonl":
+            self._emit({"stage": stage, "step": step, "total": total, "message": message, **fields})
+
     def done(self, outputs: list[str]) -> None:
         self.close()
         if self.mode == "jsonl":

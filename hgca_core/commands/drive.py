@@ -1,31 +1,43 @@
-"""`hgca drive SCAN... --poses P --out DIR`: a whole drive, tile by tile along its trajectory (`hgca_core.drive`).
+"""`hgca drive SCAN... --poses P --out DIR` (or a sequence folder): a whole drive, tile by tile along its
+trajectory (`hgca_core.drive`).
 
 Writes DIR/tiles/<i>_s<k>.ply, DIR/drive_s<k>.ply (one merged mesh per sample) and DIR/drive.json. Running
 the same command again resumes: finished tiles are kept. `--workers N` runs tiles in parallel on a Ray started
-in this process; `--address ray://host:port` on an existing cluster.
+in this process; `--address ray://host:port` on an existing cluster. `--plan-only` prints where the tiles go
+(the Blender add-on draws them) and writes nothing.
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 
 from hgca_core.commands.complete import add_precision_argument
+from hgca_core.errors import InputError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scans", nargs="+", help="scan files in trajectory order (any format `hgca complete` reads)")
-    p.add_argument("--out", "-o", required=True, metavar="DIR", help="drive folder (created; re-running resumes)")
+    p.add_argument("scans", nargs="+", help="scan files in trajectory order (any format `hgca complete` reads), or "
+                   "one sequence folder (KITTI, Argoverse 2 log, nuScenes sweeps)")
+    p.add_argument("--out", "-o", metavar="DIR", help="drive folder (created; re-running resumes)")
     p.add_argument("--poses", help="JSON with a sensor->world 4x4 pose per scan (see docs/CONTRACTS.md)")
+    p.add_argument("--frames", default=None, metavar="START:STOP[:STEP]",
+                   help="frames of a sequence folder (default: all of them)")
     p.add_argument("--format", dest="fmt", help="force the scan format instead of guessing from the extension")
     p.add_argument("--size", type=float, default=38.4, help="tile side in metres (default 38.4, the paper's region)")
     p.add_argument("--overlap", type=float, default=6.4, help="overlap of consecutive tiles in metres (default 6.4)")
     p.add_argument("--scans-per-tile", type=int, default=5, help="each tile is completed from its N nearest scans")
+    p.add_argument("--plan-only", action="store_true",
+                   help="print the tiles (regions along the trajectory, their scans) and stop; writes nothing")
+    p.add_argument("--json", action="store_true", help="--plan-only: print the plan as one JSON object")
     p.add_argument("--samples", type=int, default=1, help="number of completions k (one merged mesh each)")
     p.add_argument("--seed", type=int, default=0, help="sample k of tile i uses seed + i * samples + k")
     p.add_argument("--stage", choices=("coarse", "full"), default="full", help="as `hgca complete --stage`")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--max-faces", type=int, default=None, help="simplify each tile's mesh to at most N triangles")
     add_precision_argument(p)
+    p.add_argument("--free-space", choices=("auto", "feature", "mask", "off"), default="auto",
+                   help="observed free space from each scan's rays, as `hgca complete --free-space`")
     p.add_argument("--t1", type=int, default=None, help="coarse steps T1 (default from the weights)")
     p.add_argument("--t2", type=int, default=None, help="fine steps T2 (default from the weights)")
     p.add_argument("--weights", default=None, help="coarse weights file (default: the shipped ones)")
@@ -43,13 +55,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.plan_only:
+        return _plan_only(args)
+    if not args.out:
+        raise InputError("--out DIR is required (the drive folder), except with --plan-only")
     from hgca_core.progress import Progress
     from hgca_core.tiling.run import drive
 
     progress = Progress(args.progress if args.progress != "bar" else "none", samples=args.samples)
     bar = None
 
-    def on_tile(done: int, total: int, index: int) -> None:
+    def on_tile(done: int, total: int, index: int, state: str) -> None:
         nonlocal bar
         if args.progress == "bar":
             if bar is None:
@@ -58,7 +74,10 @@ def run(args: argparse.Namespace) -> int:
                 bar = tqdm(total=total, initial=done, desc="tiles", unit="tile", file=sys.stderr, smoothing=0.1)
             else:
                 bar.update(done - bar.n)
-        progress("tile", done, total, f"tile {index} done" if index >= 0 else f"{done} of {total} already done")
+        progress.record("tile", done, total, f"tile {index} {state}", tile=index, state=state)
+
+    def on_plan(plan: dict) -> None:
+        progress.record("plan", 0, len(plan["tiles"]), f"{len(plan['tiles'])} tiles", plan=plan)
 
     try:
         doc = drive(args.scans, args.out, poses=args.poses, fmt=args.fmt, size=args.size, overlap=args.overlap,
@@ -67,8 +86,8 @@ def run(args: argparse.Namespace) -> int:
                     precision=args.precision, max_faces=args.max_faces, device=args.device, workers=args.workers,
                     address=args.address, threads=args.threads,
                     tile_memory=args.tile_memory * 2**30 if args.tile_memory else None, seams=args.seams,
-                    mesh_format=args.mesh_format,
-                    report=progress, on_tile=on_tile)
+                    mesh_format=args.mesh_format, frames=args.frames, free_space=args.free_space,
+                    report=progress, on_tile=on_tile, on_plan=on_plan)
     except Exception as exc:
         progress.error(str(exc))
         raise
@@ -80,4 +99,21 @@ def run(args: argparse.Namespace) -> int:
         t = doc["timings"]
         print(f"{len(doc['tiles'])} tiles ({t['tiles_computed']} computed in {t['tiles_s']:.1f} s), "
               f"merged in {t['merge_s']:.1f} s: {', '.join(doc['outputs'])}", file=sys.stderr)
+    return 0
+
+
+def _plan_only(args: argparse.Namespace) -> int:
+    """Read the scans, place the tiles, print them (`run.plan_drive`; the add-on's boxes come from here)."""
+    from hgca_core.tiling.inputs import read_drive_inputs
+    from hgca_core.tiling.run import plan_drive
+
+    scans = read_drive_inputs(args.scans, args.poses, args.fmt, args.frames)
+    _, _, plan = plan_drive(scans, args.size, args.overlap, args.scans_per_tile)
+    if args.json:
+        print(json.dumps(plan))
+        return 0
+    print(f"{len(plan['tiles'])} tiles along {plan['length']:.1f} m ({len(scans)} scans)")
+    for t in plan["tiles"]:
+        print(f"tile {t['index']} (phase {t['phase']}): --region={','.join(repr(v) for v in t['region'])} "
+              f"scans {t['scans']}")
     return 0

@@ -10,6 +10,7 @@ Ctrl-C loses at most the tiles in flight.
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import time
 from pathlib import Path
@@ -20,30 +21,30 @@ import numpy as np
 from hgca_core.errors import InputError
 from hgca_core.geometry.region import DEFAULT_SIZE, Region
 from hgca_core.tiling.merge import merge_sample, write_piece
-from hgca_core.tiling.plan import MIN_OVERLAP, neighbours, plan_tiles, tile_region
+from hgca_core.tiling.inputs import DriveScan, read_drive_inputs
+from hgca_core.tiling.plan import MIN_OVERLAP, TilePlan, neighbours, plan_tiles, tile_region
 from hgca_core.tiling.store import DriveStore
-from hgca_core.tiling.tile import Settings, TileJob, cells_of, file_digest, points_digest, weight_files
+from hgca_core.tiling.tile import Settings, TileJob, cells_of, file_digest, weight_files
 
 MESH_FORMATS = ("ply", "glb", "obj", "npz")
 Report = Callable[[str, int, int, str, int], None]   # (stage, step, total, message, sample): pipeline.ProgressFn
 
 
-def read_drive_scans(paths: Sequence[str | os.PathLike], poses: str | os.PathLike | None, fmt: str | None,
-                     report: Report) -> tuple[list[np.ndarray], np.ndarray]:
-    """Each scan's float64 world points and its sensor position (the mean of its origins), one file at a time
-    through `hgca_core.io.read_scans` (same formats, pose matching and checks as `hgca complete`)."""
-    from hgca_core.io import read_scans
-
-    points, positions = [], []
-    for i, p in enumerate(paths):
-        scan = read_scans([p], poses=poses, fmt=fmt)
-        if scan.origins is None or not len(scan.origins):
-            raise InputError("a drive needs each scan's sensor position: this scan has no origin; give --poses "
-                             "(sensor->world per scan)", os.fspath(p))
-        points.append(scan.points)
-        positions.append(scan.origins.mean(axis=0))
-        report("read", i + 1, len(paths), os.path.basename(os.fspath(p)), 0)
-    return points, np.array(positions)
+def plan_drive(scans: list[DriveScan], size: float = DEFAULT_SIZE[0], overlap: float = MIN_OVERLAP,
+               scans_per_tile: int = 5) -> tuple[list[TilePlan], list[Region], dict]:
+    """The tiles of a drive (`plan.plan_tiles` on the scans' sensor positions), each placed on its own ground,
+    and the plan as JSON (`plan_document`): what `hgca drive --plan-only --json` prints and a run reports."""
+    positions = np.array([s.position for s in scans])
+    plans = plan_tiles(positions, size, overlap, scans_per_tile)
+    tile_size = (float(size), float(size), DEFAULT_SIZE[2])
+    regions = [tile_region(t, np.concatenate([scans[i].points for i in t.scans]), tile_size) for t in plans]
+    doc = {"size": list(tile_size), "overlap": overlap, "stride": size - overlap, "scans_per_tile": scans_per_tile,
+           "length": _path_length(positions), "trajectory": positions.tolist(),
+           "scans": [{"name": s.name, "position": s.position.tolist(), "points": int(len(s.points)),
+                      "origins": int(len(s.origins))} for s in scans],
+           "tiles": [{"index": t.index, "phase": t.phase, "arc": round(t.arc, 3), "region": list(r.as_tuple()),
+                      "scans": list(t.scans)} for t, r in zip(plans, regions)]}
+    return plans, regions, doc
 
 
 def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str | os.PathLike | None = None,
@@ -52,27 +53,33 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
           t2: int | None = None, weights: str | None = None, fine_weights: str | None = None,
           precision: str = "auto", max_faces: int | None = None, device: str = "cpu", workers: int = 1,
           address: str | None = None, threads: int | None = None, tile_memory: float | None = None,
-          seams: bool = True, mesh_format: str = "ply",
-          report: Report | None = None, on_tile: Callable[[int, int, int], None] | None = None) -> dict:
-    """Complete the drive seen by `scans` (in trajectory order) into DIR=`out`; returns drive.json's content.
+          seams: bool = True, mesh_format: str = "ply", frames: str | None = None, free_space: str = "auto",
+          report: Report | None = None, on_tile: Callable[[int, int, int, str], None] | None = None,
+          on_plan: Callable[[dict], None] | None = None) -> dict:
+    """Complete the drive seen by `scans` (scan files in trajectory order, or one sequence folder with `frames`)
+    into DIR=`out`; returns drive.json's content.
 
     Tiles are `size` m squares (8 m high) along the sensor positions, `overlap` m apart; each is completed from
-    its `scans_per_tile` nearest scans, sample k of tile i with seed + i * samples + k. With `seams`, odd tiles
-    run second with their finished neighbours' coarse cells in their initial state. `workers` > 1 or an
-    `address` runs tiles on Ray, each declaring `tile_memory` bytes (default: `pipeline.memory_need` of a tile) so
-    no node takes more tiles at once than fit. `report(stage, step, total, message, sample)` hears of reading and
-    merging;
-    `on_tile(done, total, index)` of each finished tile (done counts resumed tiles too).
+    its `scans_per_tile` nearest scans with their rays (`free_space` as `hgca complete --free-space`), sample k
+    of tile i with seed + i * samples + k. With `seams`, odd tiles run second with their finished neighbours'
+    coarse cells in their initial state. `workers` > 1 or an `address` runs tiles on Ray, each declaring
+    `tile_memory` bytes (default: `pipeline.memory_need` of a tile) so no node takes more tiles at once than
+    fit. `report(stage, step, total, message, sample)` hears of reading and merging; `on_plan(plan)` gets
+    `plan_document` once the tiles are placed; `on_tile(done, total, index, state)` hears of each tile: state
+    "cached" (finished by an earlier run) or "queued" for every tile first, then "running" (in-process runs
+    only) and "done"; `done` counts finished tiles, resumed ones too. Only one run writes DIR at a time
+    (`DriveStore.lock`); a signal that ends the `hgca` CLI leaves drive.json "interrupted".
     """
-    from hgca_core.pipeline import check_memory, load_models, memory_need
+    from hgca_core.interrupt import last_words
+    from hgca_core.pipeline import FREE_SPACE_MODES, check_memory, load_models, memory_need
 
     t_start = time.perf_counter()
     say = report or (lambda *a: None)
-    paths = [os.fspath(p) for p in scans]
-    if not paths:
-        raise InputError("no scan files given")
+    tell = on_tile or (lambda *a: None)
     if mesh_format not in MESH_FORMATS:
         raise InputError(f"mesh format must be one of {', '.join(MESH_FORMATS)}, not {mesh_format!r}")
+    if free_space not in FREE_SPACE_MODES:
+        raise InputError(f"free space must be one of {', '.join(FREE_SPACE_MODES)}, not {free_space!r}")
     if samples < 1:
         raise InputError(f"samples must be at least 1, got {samples}")
     if workers < 1:
@@ -81,40 +88,113 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
         from hgca_core.tiling.runners import require_ray
 
         require_ray()
+    paths = [os.fspath(p) for p in scans]
+    if not paths:
+        raise InputError("no scan files given")
     store = DriveStore(out)
+    store.check()
     ext = "." + mesh_format
     _check_outputs(paths, poses, store)
     threads = threads or max(1, (os.cpu_count() or 1) // workers)
-    settings = Settings(stage, samples, seed, t1, t2, precision, max_faces, weights, fine_weights, device, threads)
+    settings = Settings(stage=stage, samples=samples, seed=seed, t1=t1, t2=t2, precision=precision,
+                        max_faces=max_faces, weights=weights, fine_weights=fine_weights, device=device,
+                        threads=threads, free_space=free_space)
     load_models(stage, weights, fine_weights, device)              # bad weights fail before reading a scan
     digests = tuple(file_digest(p) for p in weight_files(stage, weights, fine_weights))
 
-    points, positions = read_drive_scans(paths, poses, fmt, say)
+    inputs = read_drive_inputs(paths, poses, fmt, frames, say)
     t_read = time.perf_counter()
-    plans = plan_tiles(positions, size, overlap, scans_per_tile)
-    tile_size = (float(size), float(size), DEFAULT_SIZE[2])
-    regions = [tile_region(t, np.concatenate([points[i] for i in t.scans]), tile_size) for t in plans]
+    plans, regions, plan_doc = plan_drive(inputs, size, overlap, scans_per_tile)
+    tile_size = tuple(plan_doc["size"])
     memory = tile_memory or memory_need(regions[0])
     if workers == 1 and not address:
         check_memory(regions[0])                                  # on Ray, each node is checked instead
-    scan_digests = [points_digest(p) for p in points]
+    scan_digests = [s.digest() for s in inputs]
     jobs = _jobs(plans, regions, scan_digests, seed, samples, settings, digests, seams)
 
     store.prepare()
+    doc: dict = {}
+    try:
+        with last_words(lambda signum: _stopped(store, doc, signum)):
+            run_no = _start_manifest(store, doc, inputs, plans, jobs, plan_doc, settings, digests, samples, ext,
+                                     {"engine": "ray" if (workers > 1 or address) else "local", "workers": workers,
+                                      "threads": threads, "address": address, "tile_memory": memory,
+                                      "seams": seams, "mesh_format": mesh_format,
+                                      "read_s": round(t_read - t_start, 3)})
+            store.write_manifest(doc)
+            if on_plan:
+                on_plan(plan_doc)
+
+            finished = sum(t["status"] == "done" for t in doc["tiles"])
+            for t, job in zip(doc["tiles"], jobs):            # a resumed run re-exports missing tile meshes
+                if t["status"] == "done" and not all((store.root / o).is_file() for o in t["outputs"]):
+                    _export_tile(store, store.load(job.key), regions, ext)
+            for t in doc["tiles"]:
+                tell(finished, len(jobs), t["index"], "cached" if t["status"] == "done" else "queued")
+            pending = _pending(jobs, doc["tiles"], store)
+            t_tiles = time.perf_counter()
+
+            def on_result(result: dict) -> None:
+                nonlocal finished
+                store.save(result)
+                faces = _export_tile(store, result, regions, ext)
+                finished += 1
+                doc["tiles"][result["index"]].update({
+                    "status": "done", "seconds": result["seconds"], "run": run_no, "started": result["started"],
+                    "finished": result["finished"], "worker": result["worker"], "peak_rss": result["peak_rss"],
+                    "faces": faces, "fixed_cells": [s["fixed_cells"] for s in result["samples"]],
+                    "free_cells": [s.get("free_cells") for s in result["samples"]]})
+                store.write_manifest(doc)
+                tell(finished, len(jobs), result["index"], "done")
+
+            runner = None
+            try:
+                if pending:
+                    runner = _runner(workers, threads, address, memory)
+                    doc["timings"]["engine_start_s"] = round(time.perf_counter() - t_tiles, 3)
+                    runner.run(pending, inputs, on_result, lambda i: tell(finished, len(jobs), i, "running"))
+            except BaseException as exc:
+                doc["status"] = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+                doc["error"] = f"{type(exc).__name__}: {exc}"
+                store.write_manifest(doc)
+                raise
+            finally:
+                if runner is not None and hasattr(runner, "close"):
+                    runner.close()
+            t_merge = time.perf_counter()
+            doc["outputs"] = _merge(store, jobs, regions, samples, ext, say)
+            t_end = time.perf_counter()
+            computed = [t for t in doc["tiles"] if t.get("run") == run_no]
+            doc["timings"].update({
+                "tiles_s": round(t_merge - t_tiles, 3), "merge_s": round(t_end - t_merge, 3),
+                "total_s": round(t_end - t_start, 3), "tiles_computed": len(computed),
+                "tiles_per_min": round(60 * len(computed) / max(t_merge - t_tiles, 1e-9), 3)})
+            doc["status"] = "complete"
+            store.write_manifest(doc)
+            return {"format": 1, **doc}
+    finally:
+        store.unlock()
+
+
+def _start_manifest(store: DriveStore, doc: dict, inputs: list[DriveScan], plans: list[TilePlan],
+                    jobs: list[TileJob], plan_doc: dict, settings: Settings, digests: tuple[str, ...], samples: int,
+                    ext: str, run: dict) -> int:
+    """Fill `doc` (drive.json) for a new run: the plan, scans and tiles, finished ones marked done with what the
+    run that made them recorded; returns this run's number."""
     previous = store.read_manifest() or {}
     run_no = int(previous.get("runs", 0)) + 1
     old_tiles = {t.get("key"): t for t in previous.get("tiles", []) if isinstance(t, dict)}
-    doc = {"status": "running", "runs": run_no, "pid": os.getpid(), "host": socket.gethostname(),
-           "engine": "ray" if (workers > 1 or address) else "local",
-           "workers": workers, "threads": threads, "address": address, "tile_memory": memory,
-           "settings": {**settings.keyed(), "weights": [str(p) for p in weight_files(stage, weights, fine_weights)],
-                        "weights_sha256": list(digests), "device": device},
-           "plan": {"size": list(tile_size), "overlap": overlap, "stride": size - overlap,
-                    "scans_per_tile": scans_per_tile, "seams": seams, "length": float(_path_length(positions)),
-                    "mesh_format": mesh_format},
-           "scans": [{"file": p, "position": positions[i].tolist(), "points": int(len(points[i])),
-                      "sha256": scan_digests[i]} for i, p in enumerate(paths)],
-           "tiles": [], "outputs": [], "timings": {"read_s": round(t_read - t_start, 3)}}
+    kept = ("seconds", "worker", "run", "peak_rss", "faces", "started", "finished", "fixed_cells", "free_cells")
+    files = weight_files(settings.stage, settings.weights, settings.fine_weights)
+    doc.update({"status": "running", "runs": run_no, "pid": os.getpid(), "host": socket.gethostname(),
+                **{k: run[k] for k in ("engine", "workers", "threads", "address", "tile_memory")},
+                "settings": {**settings.keyed(), "weights": [str(p) for p in files], "weights_sha256": list(digests),
+                             "device": settings.device},
+                "plan": {**{k: plan_doc[k] for k in ("size", "overlap", "stride", "scans_per_tile", "length")},
+                         "seams": run["seams"], "mesh_format": run["mesh_format"]},
+                "scans": [{"file": s.name, "position": s.position.tolist(), "points": int(len(s.points)),
+                           "origins": int(len(s.origins)), "sha256": s.digest()} for s in inputs],
+                "tiles": [], "outputs": [], "timings": {"read_s": run["read_s"]}})
     for t, job in zip(plans, jobs):
         done = store.has(job.key)
         entry = {"index": t.index, "phase": t.phase, "arc": round(t.arc, 3), "region": list(job.region),
@@ -123,60 +203,18 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
                  "status": "done" if done else "pending",
                  "outputs": [str(store.tile_mesh(t.index, k, ext).relative_to(store.root)) for k in range(samples)]}
         if done:
-            entry.update({k: v for k, v in old_tiles.get(job.key, {}).items() if k in ("seconds", "worker", "run",
-                                                                                     "peak_rss", "faces", "started",
-                                                                                     "finished", "fixed_cells")})
+            entry.update({k: v for k, v in old_tiles.get(job.key, {}).items() if k in kept})
             entry.setdefault("run", None)
         doc["tiles"].append(entry)
-    store.write_manifest(doc)
+    return run_no
 
-    finished = sum(t["status"] == "done" for t in doc["tiles"])
-    for t, job in zip(doc["tiles"], jobs):                         # a resumed run re-exports missing tile meshes
-        if t["status"] == "done" and not all((store.root / o).is_file() for o in t["outputs"]):
-            _export_tile(store, store.load(job.key), regions, ext)
-    if on_tile:
-        on_tile(finished, len(jobs), -1)
-    pending = _pending(jobs, doc["tiles"], store)
-    t_tiles = time.perf_counter()
 
-    def on_result(result: dict) -> None:
-        nonlocal finished
-        store.save(result)
-        faces = _export_tile(store, result, regions, ext)
-        finished += 1
-        doc["tiles"][result["index"]].update({"status": "done", "seconds": result["seconds"], "run": run_no,
-                                              "started": result["started"], "finished": result["finished"],
-                                              "worker": result["worker"], "peak_rss": result["peak_rss"],
-                                              "faces": faces,
-                                              "fixed_cells": [s["fixed_cells"] for s in result["samples"]]})
+def _stopped(store: DriveStore, doc: dict, signum: int) -> None:
+    """The CLI's last words on a signal: drive.json says the run was interrupted (tiles in flight stay pending)."""
+    if doc.get("status") == "running":
+        doc["status"] = "interrupted"
+        doc["error"] = f"stopped by {signal.Signals(signum).name}"
         store.write_manifest(doc)
-        if on_tile:
-            on_tile(finished, len(jobs), result["index"])
-
-    runner = None
-    try:
-        if pending:
-            runner = _runner(workers, threads, address, memory)
-            doc["timings"]["engine_start_s"] = round(time.perf_counter() - t_tiles, 3)
-            runner.run(pending, points, on_result)
-    except BaseException as exc:
-        doc["status"] = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
-        doc["error"] = f"{type(exc).__name__}: {exc}"
-        store.write_manifest(doc)
-        raise
-    finally:
-        if runner is not None and hasattr(runner, "close"):
-            runner.close()
-    t_merge = time.perf_counter()
-    doc["outputs"] = _merge(store, jobs, regions, samples, ext, say)
-    t_end = time.perf_counter()
-    computed = [t for t in doc["tiles"] if t.get("run") == run_no]
-    doc["timings"].update({"tiles_s": round(t_merge - t_tiles, 3), "merge_s": round(t_end - t_merge, 3),
-                           "total_s": round(t_end - t_start, 3), "tiles_computed": len(computed),
-                           "tiles_per_min": round(60 * len(computed) / max(t_merge - t_tiles, 1e-9), 3)})
-    doc["status"] = "complete"
-    store.write_manifest(doc)
-    return {"format": 1, **doc}
 
 
 def _jobs(plans, regions, scan_digests, seed, samples, settings, digests, seams) -> list[TileJob]:
@@ -237,6 +275,7 @@ def _merge(store: DriveStore, jobs: list[TileJob], regions: list[Region], sample
 
 
 def _path_length(positions: np.ndarray) -> float:
+    """Length in metres of the path through the sensor positions (x/y)."""
     return float(np.linalg.norm(np.diff(positions[:, :2], axis=0), axis=1).sum()) if len(positions) > 1 else 0.0
 
 

@@ -41,9 +41,12 @@ class LocalRunner:
 
     name = "local"
 
-    def run(self, pending: list[Pending], scans: list[np.ndarray], on_result: Callable[[dict], None]) -> None:
+    def run(self, pending: list[Pending], scans: list, on_result: Callable[[dict], None],
+            on_start: Callable[[int], None] | None = None) -> None:
         made: dict[int, NeighbourCells] = {}
         for p in pending:
+            if on_start:
+                on_start(p.job.index)
             cells = {**p.ready_cells, **made}
             neighbours = [cells[j] for j in p.conditioned_on]
             result = complete_tile(p.job, [scans[i] for i in p.job.scans], neighbours)
@@ -52,7 +55,7 @@ class LocalRunner:
 
 
 def tile_task(job: TileJob, n_scans: int, *inputs) -> tuple[dict, NeighbourCells]:
-    """The Ray task: `inputs` are the tile's scans then its neighbours' cells (top-level arguments, so Ray
+    """The Ray task: `inputs` are the tile's `DriveScan`s then its neighbours' cells (top-level arguments, so Ray
     resolves their ObjectRefs, waiting for the phase-one tasks that make them). Returns the result and, as a
     second object for the phase-two tasks that depend on it, the cells alone."""
     result = complete_tile(job, list(inputs[:n_scans]), list(inputs[n_scans:]))
@@ -106,7 +109,9 @@ class RayRunner:
             raise InputError(f"a tile needs about {memory / 2**30:.1f} GiB, the largest Ray node offers "
                              f"{largest / 2**30:.1f} GiB: use smaller tiles (--size) or bigger nodes")
 
-    def run(self, pending: list[Pending], scans: list[np.ndarray], on_result: Callable[[dict], None]) -> None:
+    def run(self, pending: list[Pending], scans: list, on_result: Callable[[dict], None],
+            on_start: Callable[[int], None] | None = None) -> None:
+        """`scans`: the drive's `inputs.DriveScan`s; `on_start` is not called (Ray decides when a task starts)."""
         ray = self.ray
         task = ray.remote(tile_task).options(num_cpus=self.threads, memory=int(self.memory), num_returns=2,
                                              max_retries=MAX_RETRIES, retry_exceptions=False)

@@ -6,6 +6,8 @@
     DIR/tiles/<i>_s<k>.ply   tile i, sample k: the part of it the tile owns (exported from the cache entry)
     DIR/drive_s<k>.ply       the merged drive, sample k
     DIR/drive.json           the plan, scans, tiles (regions, seeds, keys, status, timings, worker) and status
+    DIR/.lock                held (an OS file lock) by the one run writing the folder; the OS drops the lock
+                             when that process ends in any way, so a crashed run never leaves it stuck
 
 Meshes are in world coordinates; the writers keep georeferenced ones exact (`hgca_core.io.georef`).
 """
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 from pathlib import Path
 
 import numpy as np
@@ -30,19 +33,53 @@ class DriveStore:
         self.root = Path(root)
         self.cache = self.root / "cache"
         self.tiles = self.root / "tiles"
+        self._lock_fd: int | None = None
 
-    def prepare(self) -> None:
-        """Create the folders; remove temp files a killed run left in them (only our own `.*.tmp`)."""
+    def check(self) -> None:
+        """Refuse an --out that cannot be a drive folder, before anything is read or written."""
         if self.root.exists() and not self.root.is_dir():
             raise InputError("output exists and is not a folder", str(self.root))
+
+    def prepare(self) -> None:
+        """Create the folders, take the folder's lock (`lock`), then remove the temp files a killed run left in
+        them (only our own `.*.tmp`: no other run can be writing them now)."""
+        self.check()
         for d in (self.root, self.cache, self.tiles):
             try:
                 d.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
                 raise InputError(f"cannot create output folder ({exc.strerror})", str(d)) from None
+        self.lock()
         for d in (self.root, self.cache, self.tiles):
             for tmp in d.glob(".*.tmp"):
                 tmp.unlink(missing_ok=True)
+
+    def lock(self) -> None:
+        """Hold DIR/.lock for this process, or refuse (InputError, exit 2) while another run holds it. An OS lock
+        (flock; msvcrt on Windows), not a pid file: it goes with its process, however that ends, and a pid
+        that was reused cannot fake it. The file says who holds it, for the message."""
+        if self._lock_fd is not None:
+            return
+        path = self.root / ".lock"
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as exc:
+            raise InputError(f"cannot create the drive's lock file ({exc.strerror})", str(path)) from None
+        if not _try_lock(fd):
+            try:
+                holder = os.read(fd, 200).decode(errors="replace").strip() or "another process"
+            finally:
+                os.close(fd)
+            raise InputError(f"another hgca drive is writing this folder ({holder}): wait for it to end or stop "
+                             "it, or choose another --out", str(self.root))
+        os.ftruncate(fd, 0)
+        os.write(fd, f"pid {os.getpid()} on {socket.gethostname()}".encode())
+        self._lock_fd = fd
+
+    def unlock(self) -> None:
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)            # closing the descriptor drops the lock
+            self._lock_fd = None
 
     def entry(self, key: str) -> Path:
         return self.cache / f"{key}.npz"
@@ -61,7 +98,8 @@ class DriveStore:
         for k, s in enumerate(result["samples"]):
             for name in ("vertices", "faces", "observed_distance", "cells"):
                 arrays[f"s{k}_{name}"] = s[name]
-            meta["samples"].append({"seed": s["seed"], "fixed_cells": s["fixed_cells"]})
+            meta["samples"].append({"seed": s["seed"], "fixed_cells": s["fixed_cells"],
+                                   "free_cells": s.get("free_cells")})
         arrays["meta"] = np.array(json.dumps(meta))
         atomic_write(path, lambda f: np.savez(f, **arrays))
         return path
@@ -106,3 +144,22 @@ class DriveStore:
     def write_manifest(self, doc: dict) -> None:
         text = json.dumps({"format": FORMAT, **doc}, indent=1)
         atomic_write(self.manifest, lambda f: f.write(text.encode()))
+
+
+def _try_lock(fd: int) -> bool:
+    """Take an exclusive lock on the open file without waiting; False when another process holds it."""
+    try:
+        import fcntl
+    except ImportError:                                    # Windows
+        import msvcrt
+
+        try:
+            msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)
+        except OSError:
+            return False
+        return True
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        return False
+    return True

@@ -24,7 +24,7 @@ from hgca_core.errors import InputError
 from hgca_core.geometry.region import Region
 from hgca_core.geometry.voxel import COARSE, cell_centers, voxelize
 
-KEY_VERSION = 2   # bump when the same key would give different content (a change to this algorithm)
+KEY_VERSION = 3   # bump when the same key would give different content (a change to this algorithm)
 
 
 @dataclass(frozen=True)
@@ -43,6 +43,7 @@ class Settings:
     fine_weights: str | None = None
     device: str = "cpu"
     threads: int = 1
+    free_space: str = "auto"       # as `hgca complete --free-space`: the scans' rays travel with them
 
     def keyed(self) -> dict:
         d = asdict(self)
@@ -59,7 +60,7 @@ class TileJob:
     index: int
     region: tuple[float, ...]          # Region.as_tuple(): cx, cy, cz, sx, sy, sz, yaw_deg
     scans: tuple[int, ...]
-    scan_digests: tuple[str, ...]
+    scan_digests: tuple[str, ...]     # `DriveScan.digest`: points, origins and rays
     seed: int                          # sample k uses seed + k
     settings: Settings
     weights: tuple[str, ...]           # sha256 of the weights files the stage loads
@@ -102,11 +103,6 @@ def _digest(path: str, mtime: int, size: int) -> str:
     return h.hexdigest()
 
 
-def points_digest(points: np.ndarray) -> str:
-    """sha256 of a scan's float64 world points (after its pose): the content a tile sees, whatever the format."""
-    return hashlib.sha256(np.ascontiguousarray(points, dtype=np.float64).tobytes()).hexdigest()
-
-
 def transfer_cells(cells: np.ndarray, source: Region, target: Region) -> np.ndarray:
     """20 cm cells of `source`'s frame -> the 20 cm cells of `target`'s frame their centres fall in (only those
     inside `target`'s grid, i.e. in the overlap). One cell each: consecutive tiles' grids differ by a fraction of
@@ -119,12 +115,12 @@ def transfer_cells(cells: np.ndarray, source: Region, target: Region) -> np.ndar
     return voxelize(target.to_local(source.to_world(cell_centers(c, COARSE))), COARSE, target.size)
 
 
-def complete_tile(job: TileJob, scans: list[np.ndarray], neighbour_cells: list[tuple[tuple, list[np.ndarray]]]
-                  ) -> dict:
-    """Complete one tile. `scans`: the tile's scans, (N_i, 3) float64 world points each; `neighbour_cells`:
-    (region tuple, [coarse cells of sample k]) of each finished neighbour. Returns the tile's result: per sample
-    the mesh in the tile's region frame (float32 vertices: exact to micrometres in a 40 m box; the region's
-    float64 `to_world` places them), observed_distance, the coarse cells and the fixed cells it was given."""
+def complete_tile(job: TileJob, scans: list, neighbour_cells: list[tuple[tuple, list[np.ndarray]]]) -> dict:
+    """Complete one tile. `scans`: the tile's `inputs.DriveScan`s (float64 world points, origins, rays);
+    `neighbour_cells`: (region tuple, [coarse cells of sample k]) of each finished neighbour. Returns the tile's
+    result: per sample the mesh in the tile's region frame (float32 vertices: exact to micrometres in a 40 m
+    box; the region's float64 `to_world` places them), observed_distance, the coarse cells, the fixed cells it
+    was given and the seen-empty cells its free space had (None: no free space)."""
     import torch
     from scipy.spatial import cKDTree
 
@@ -138,9 +134,11 @@ def complete_tile(job: TileJob, scans: list[np.ndarray], neighbour_cells: list[t
                              f"{want[:12]} there) on {socket.gethostname()}", str(path))
     torch.set_num_threads(max(1, s.threads))
     region = Region.from_tuple(job.region)
-    points = np.concatenate([np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in scans])
-    local = region.to_local(points)
-    local = local[region.contains_local(local)]
+    first = np.cumsum([0] + [len(sc.origins) for sc in scans[:-1]])
+    everything = region.to_local(np.concatenate([np.asarray(sc.points, dtype=np.float64) for sc in scans]))
+    origins = region.to_local(np.concatenate([np.asarray(sc.origins, dtype=np.float64) for sc in scans]))
+    rays = np.concatenate([sc.origin_index.astype(np.int64) + f for sc, f in zip(scans, first)])
+    local = everything[region.contains_local(everything)]
     models = load_models(s.stage, s.weights, s.fine_weights, s.device)
     # a tile that sees (almost) nothing gets no mesh, where `hgca complete` would refuse the region
     tree = cKDTree(local) if len(voxelize(local, COARSE, region.size)) >= MIN_INPUT_CELLS else None
@@ -151,13 +149,15 @@ def complete_tile(job: TileJob, scans: list[np.ndarray], neighbour_cells: list[t
         if tree is None:
             samples.append(_empty(job.seed + k, len(fixed)))
             continue
-        r = complete_local(local, region, models, s.stage, 1, job.seed + k, s.t1, s.t2, None, s.precision,
-                           s.max_faces, fixed_cells=fixed)[0]
+        # every point, not only the box's: a ray to a hit outside the tile still crosses it (complete_local crops)
+        r = complete_local(everything, region, models, s.stage, 1, job.seed + k, s.t1, s.t2, None, s.precision,
+                           s.max_faces, origins=origins, origin_index=rays, free_space=s.free_space,
+                           fixed_cells=fixed)[0]
         v = np.asarray(r.mesh.vertices, dtype=np.float64)
         dist = tree.query(v, workers=1)[0].astype(np.float32) if len(v) else np.zeros(0, np.float32)
         samples.append({"vertices": v.astype(np.float32), "faces": np.asarray(r.mesh.faces, dtype=np.int32),
                         "observed_distance": dist, "cells": r.coarse_cells.astype(np.int16), "seed": r.seed,
-                        "fixed_cells": int(len(np.unique(fixed, axis=0)))})
+                        "fixed_cells": int(len(np.unique(fixed, axis=0))), "free_cells": r.free_cells})
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     return {"index": job.index, "key": job.key, "samples": samples, "points": int(len(local)),
             "seconds": round(time.perf_counter() - start, 3), "started": started, "finished": time.time(),
@@ -168,7 +168,7 @@ def _empty(seed: int, fixed: int) -> dict:
     """A tile whose box holds too few input points: no mesh (its neighbours cover what can be covered)."""
     return {"vertices": np.zeros((0, 3), np.float32), "faces": np.zeros((0, 3), np.int32),
             "observed_distance": np.zeros(0, np.float32), "cells": np.zeros((0, 3), np.int16), "seed": seed,
-            "fixed_cells": fixed}
+            "fixed_cells": fixed, "free_cells": None}
 
 
 def cells_of(result: dict) -> list[np.ndarray]:

@@ -62,3 +62,32 @@ def write_drive(folder: Path, length: float = 40.0, spacing: float = 4.0, slope:
         pose[:3, 3] = pos + off
         poses.append(pose)
     return save_scans(folder, scans, poses)
+
+
+# A KITTI-like velodyne -> camera 0 transform (x forward, y left, z up -> x right, y down, z forward, an offset)
+KITTI_TR = np.array([[0.0, -1.0, 0.0, -0.004], [0.0, 0.0, -1.0, -0.076], [1.0, 0.0, 0.0, -0.27], [0, 0, 0, 1.0]])
+
+
+def write_kitti(folder: Path, length: float = 24.0, spacing: float = 4.0, seed: int = 0,
+                radius: float = 14.0) -> list[np.ndarray]:
+    """The street of `write_drive` as a KITTI odometry sequence folder (velodyne/NNNNNN.bin float32 x, y, z, i in
+    the sensor frame; poses.txt: camera-0 poses P_i = Tr V_i Tr^-1; calib.txt `Tr:`); returns the velodyne->world
+    poses V_i the reader must recover."""
+    rng = np.random.default_rng(seed)
+    surface = street_surface(length, 0.0, rng)
+    (folder / "velodyne").mkdir(parents=True)
+    poses, lines = [], []
+    for i, x in enumerate(np.arange(0.0, length + 1e-9, spacing)):
+        v = np.eye(4)
+        yaw = 0.02 * i
+        v[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+        v[:3, 3] = [x, 0.3 * np.sin(x / 9.0), 2.0]
+        near = surface[np.linalg.norm(surface[:, :2] - v[:2, 3], axis=1) < radius]
+        local = (near - v[:3, 3]) @ v[:3, :3]
+        np.c_[local, rng.random(len(local))].astype("<f4").tofile(folder / "velodyne" / f"{i:06d}.bin")
+        p = KITTI_TR @ v @ np.linalg.inv(KITTI_TR)
+        lines.append(" ".join(f"{c:.12e}" for c in p[:3].reshape(-1)))
+        poses.append(v)
+    (folder / "poses.txt").write_text("\n".join(lines) + "\n")
+    (folder / "calib.txt").write_text("Tr: " + " ".join(f"{c:.12e}" for c in KITTI_TR[:3].reshape(-1)) + "\n")
+    return poses

@@ -166,6 +166,7 @@ def test_resume_after_being_killed_halfway(tmp_path, drive_weights):
             for t in first["tiles"] if t["status"] == "done"}
     n = len(first["tiles"])
     assert 2 <= len(kept) < n == 7
+    assert (out / ".lock").is_file(), "the killed run's lock file stays; its lock went with the process"
     rerun = _cli(*args)
     _, err = rerun.communicate(timeout=300)
     assert rerun.returncode == 0, err[-2000:]
@@ -248,6 +249,8 @@ def test_sigterm_on_ray_stops_ray_and_exits_143(flat_drive, drive_weights, tmp_p
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 143 and "hgca drive: terminated (SIGTERM)" in err, err[-2000:]
+    doc = json.loads((tmp_path / "d" / "drive.json").read_text())
+    assert doc["status"] == "interrupted" and "SIGTERM" in doc["error"], "not left 'running'"
     time.sleep(2)
     left = [p for p in psutil.process_iter(["name", "cmdline", "create_time"]) if p.info["create_time"] >= start
             and any(n in " ".join(p.info["cmdline"] or []) for n in ("raylet", "gcs_server", "ray::"))]
