@@ -276,3 +276,17 @@ def test_grid_index_finds_exactly_the_indexed_points():
             step = np.zeros(3, int)
             step[a] = s
             np.testing.assert_array_equal(nb[:, a, k], [table.get(tuple(p + step), -1) for p in g[:200]])
+
+
+def test_speck_hanging_on_a_zero_area_face_is_dropped():
+    """A small piece joined to a large one only through a zero-area face (a collapsed quad half) floats free once
+    that face goes: it is a fragment and must go too (it used to survive, counted as part of the large piece)."""
+    from hgca_core.geometry.mesh_clean import clean_surface
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0],     # a 1 m^2 square
+                  [1, 0.5, 0],                                    # on the square's edge 1-2: (1, 2, 4) is flat
+                  [1.03, 0.25, 0]], dtype=np.float64)             # a 75 cm^2 speck on the far side
+    f = np.array([[0, 1, 2], [0, 2, 3], [2, 1, 4], [1, 5, 4]])
+    out_v, out_f = clean_surface(v, f, min_area=0.05, pinhole_edges=0)
+    assert len(out_f) == 2
+    assert np.allclose(np.sort(out_v[np.unique(out_f)], axis=0), np.sort(v[:4], axis=0))

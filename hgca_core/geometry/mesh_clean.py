@@ -85,7 +85,7 @@ def _manifold_pairs(faces: np.ndarray, n_vertices: int, edges: tuple | None = No
 
 def orient(vertices: np.ndarray, faces: np.ndarray, prior: np.ndarray | None = None,
            seed: np.ndarray | None = None, normals: np.ndarray | None = None, edges: tuple | None = None,
-           pieces: tuple[int, np.ndarray] | None = None) -> np.ndarray:
+           pieces: tuple[int, np.ndarray] | None = None, pairs: tuple | None = None) -> np.ndarray:
     """Faces turned so that their normals follow `prior` where it is trusted (`seed`) and are consistent with their
     neighbours elsewhere.
 
@@ -94,8 +94,8 @@ def orient(vertices: np.ndarray, faces: np.ndarray, prior: np.ndarray | None = N
     from all seeds at once, gives every face the winding of the seed nearest to it (in steps); flips are
     accumulated by pointer doubling (O(F log depth), no Python loop over faces). A connected piece without seeds
     gets a consistent winding, turned as a whole to agree with `prior` (face-count weighted).
-    normals / edges / pieces: `face_normals(...)[0]`, `edge_faces(...)` and `face_pieces(...)` of these faces,
-    if already known.
+    normals / edges / pieces / pairs: `face_normals(...)[0]`, `edge_faces(...)`, `face_pieces(...)` and the
+    manifold face pairs (fa, fb) of these faces, if already known.
     """
     faces = np.asarray(faces, dtype=np.int64)
     nf = len(faces)
@@ -103,7 +103,7 @@ def orient(vertices: np.ndarray, faces: np.ndarray, prior: np.ndarray | None = N
         return faces
     prior = np.zeros((nf, 3)) if prior is None else np.asarray(prior, dtype=np.float64)
     seed = np.zeros(nf, dtype=bool) if seed is None else np.asarray(seed, dtype=bool)
-    fa, fb, _ = _manifold_pairs(faces, len(vertices), edges)
+    fa, fb = _manifold_pairs(faces, len(vertices), edges)[:2] if pairs is None else pairs
     n = face_normals(vertices, faces)[0] if normals is None else normals
     agree = np.einsum("ij,ij->i", n, prior) >= 0
     n_comp, label = face_pieces(nf, fa, fb) if pieces is None else pieces
@@ -246,10 +246,14 @@ def clean_surface(vertices: np.ndarray, faces: np.ndarray, min_area: float = 0.0
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
     edges = edge_faces(f, len(v))
     fa, fb, _ = _manifold_pairs(f, len(v), edges)
-    n_comp, label = face_pieces(len(f), fa, fb)
     v32 = v.astype(np.float32)                                 # normals and centres: float32 is plenty, and faster
     fn, area = face_normals(v32, f)
-    keep = (np.bincount(label, weights=area, minlength=n_comp)[label] >= min_area) & (area > 0)
+    # pieces joined through faces of non-zero area only: then the faces kept are whole pieces, whose labels
+    # survive the compaction below (no second connected-components pass)
+    flat = area > 0
+    joined = flat[fa] & flat[fb]
+    n_comp, label = face_pieces(len(f), fa[joined], fb[joined])
+    keep = (np.bincount(label, weights=area, minlength=n_comp)[label] >= min_area) & flat
     if not keep.all():                                        # drop the specks, carrying every structure along
         v, f, used = compact(v, f, keep)
         v32 = v32[used]
@@ -263,7 +267,9 @@ def clean_surface(vertices: np.ndarray, faces: np.ndarray, min_area: float = 0.0
         pair = keep[fa] & keep[fb]
         fa, fb = new_id[fa[pair]], new_id[fb[pair]]
         fn = fn[keep]
-        n_comp, label = face_pieces(len(f), fa, fb)      # a dropped zero-area face may have split a piece
+        kept = np.zeros(n_comp, dtype=bool)
+        kept[label[keep]] = True
+        n_comp, label = int(kept.sum()), (np.cumsum(kept) - 1)[label[keep]]
     else:
         used = np.arange(len(v))
     def centre(sel: np.ndarray) -> np.ndarray:
@@ -296,7 +302,7 @@ def clean_surface(vertices: np.ndarray, faces: np.ndarray, min_area: float = 0.0
         mid = np.stack([np.bincount(label[rest], weights=c[:, a], minlength=n_comp) for a in range(3)], 1) / count
         prior[rest] = unit(c - mid[label[rest]])
         prior[rest, 2] += 1e-3
-    out = orient(v, f, prior, seed, normals=fn, edges=edges, pieces=(n_comp, label))
+    out = orient(v, f, prior, seed, normals=fn, edges=edges, pieces=(n_comp, label), pairs=(fa, fb))
     if pinhole_edges >= 3:
         out = fill_pinholes(v, out, pinhole_edges, reversed_edges(edges, out[:, 0] != f[:, 0]))
     return v, out

@@ -38,6 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hgca_core.geometry.keys import pack
+
 # Crossing test thresholds, in grid steps h. A plane crossing an edge has d_i + d_j = h |n_a| <= h; the learned
 # decoder's distances bottom out at ~1.5 mm rather than 0 and its slope is not exactly 1, so allow some slack.
 MAX_SUM = 1.2
@@ -46,6 +48,15 @@ NEAR = 1.5
 # Gradient directions count as opposed below this cosine: 0 would do for a plane, but at a concave corner (road
 # meeting a kerb face or a car's side) the two ends of a crossing edge see different surfaces, 90 degrees apart.
 MAX_DOT = 0.3
+
+# Corner offsets (subtracted from an edge's start) of the four cubes around an edge along each axis a, in the
+# order (0, 0), (1, 0), (1, 1), (0, 1) over the axes (a + 1, a + 2): counter-clockwise seen from +a
+_CUBES = np.zeros((3, 4, 3), dtype=np.int64)
+for _a in range(3):
+    for _k, (_u, _v) in enumerate(((0, 0), (1, 0), (1, 1), (0, 1))):
+        _CUBES[_a, _k, (_a + 1) % 3], _CUBES[_a, _k, (_a + 2) % 3] = _u, _v
+# The two triangles of a quad (0 1 2 3) split along 0-2 (row 0) or along 1-3 (row 1)
+_SPLITS = np.array([[0, 1, 2, 0, 2, 3], [0, 1, 3, 1, 2, 3]], dtype=np.int64)
 
 
 @dataclass
@@ -96,13 +107,14 @@ class GridIndex:
         ok = ok & (z >= 0) & (z < self.span[c])
         return np.where(ok, self.table[np.where(ok, self.base[c] + z, 0)], -1)
 
-    def neighbours(self, g: np.ndarray) -> np.ndarray:
-        """(n, 3, 2) indices of the +1 and -1 neighbours along each axis of grid points g (n, 3), -1 where absent."""
+    def neighbours(self, g: np.ndarray, signs: tuple[int, ...] = (1, -1)) -> np.ndarray:
+        """(n, 3, len(signs)) indices of the neighbours g + s e_axis of grid points g (n, 3) for each s in `signs`
+        (default: the +1 and the -1 neighbour), -1 where absent."""
         d = np.asarray(g, dtype=np.int64) - self.lo
         col = d[:, 0] * self.ny + d[:, 1]
-        out = np.empty((len(d), 3, 2), dtype=np.int64)
+        out = np.empty((len(d), 3, len(signs)), dtype=np.int64)
         yes = np.ones(len(d), dtype=bool)
-        for k, s in enumerate((1, -1)):
+        for k, s in enumerate(signs):
             x_ok = (d[:, 0] + s >= 0) & (d[:, 0] + s < self.nx)
             y_ok = (d[:, 1] + s >= 0) & (d[:, 1] + s < self.ny)
             out[:, 0, k] = self._at(np.where(x_ok, col + s * self.ny, 0), d[:, 2], x_ok)
@@ -126,13 +138,19 @@ def crossing_edges(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_s
 
     g (G, 3) int grid indices, vals (G,) distances (same unit as h). Returns (start point index into g (E,),
     axis (E,), crossing parameter t in [0, 1] from the start (E,)).
+
+    Only points with d <= max_sum h can end a crossing edge (d_i + d_j <= max_sum h bounds each end).
     """
     index = GridIndex(g) if index is None else index
-    near = np.flatnonzero(vals < NEAR * h)
+    lim = np.float32(max_sum * h)
+    near = np.flatnonzero(vals <= lim)
+    if len(near) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros(0)
     nb = index.neighbours(g[near])
     grad = upwind_gradients(vals, near, nb, h, fill)
     norm = np.sqrt(np.einsum("ij,ij->i", grad, grad))
     unit = grad / np.maximum(norm, 1e-12)[:, None]
+    good = norm > 0
     pos = np.full(len(g), -1, dtype=np.int64)
     pos[near] = np.arange(len(near))
     starts, axes, ts = [], [], []
@@ -140,15 +158,13 @@ def crossing_edges(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_s
         j = nb[:, a, 0]
         i_n = np.flatnonzero(j >= 0)
         j_n = pos[j[i_n]]
-        ok = j_n >= 0
-        i_n, j_n = i_n[ok], j_n[ok]
-        di, dj = vals[near[i_n]], vals[near[j_n]]
-        cross = ((np.einsum("ij,ij->i", unit[i_n], unit[j_n]) < max_dot) & (di + dj <= max_sum * h)
-                 & (norm[i_n] > 0) & (norm[j_n] > 0))
-        i_n, di, dj = i_n[cross], di[cross], dj[cross]
-        starts.append(near[i_n])
-        axes.append(np.full(len(i_n), a, dtype=np.int8))
-        ts.append(di / np.maximum(di + dj, 1e-12))
+        di, dj = vals[near[i_n]], vals[j[i_n]]
+        ok = (j_n >= 0) & (di + dj <= lim)                 # the distance test first: it is the cheap one
+        i_n, j_n, di, dj = i_n[ok], j_n[ok], di[ok], dj[ok]
+        cross = (np.einsum("ij,ij->i", unit[i_n], unit[j_n]) < max_dot) & good[i_n] & good[j_n]
+        starts.append(near[i_n[cross]])
+        axes.append(np.full(int(cross.sum()), a, dtype=np.int8))
+        ts.append(di[cross] / np.maximum(di[cross] + dj[cross], 1e-12))
     return np.concatenate(starts), np.concatenate(axes), np.concatenate(ts).astype(np.float64)
 
 
@@ -166,20 +182,20 @@ def dual_surface(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_sum
     rows = np.arange(len(start))
     point[rows, axis] += t
     # the four cubes (by min corner) around each edge, counter-clockwise seen from +axis
-    b, c = (axis + 1) % 3, (axis + 2) % 3
-    corners = np.repeat(p0[:, None, :], 4, axis=1)
-    for k, (u, v) in enumerate(((0, 0), (1, 0), (1, 1), (0, 1))):
-        corners[rows, k, b] -= u
-        corners[rows, k, c] -= v
-    corners = corners.reshape(-1, 3)
+    corners = (p0[:, None, :] - _CUBES[axis]).reshape(-1, 3)
     # a cube's id: its min corner's index among the grid points, or a new one past them
     cid = index.find(corners)
     missing = cid < 0
+    n_ids = len(g)
     if missing.any():
-        _, extra = np.unique(corners[missing], axis=0, return_inverse=True)
+        uk, extra = np.unique(pack(corners[missing]), return_inverse=True)   # keys sort like the rows
         cid[missing] = len(g) + extra.reshape(-1)
-    used, inv = np.unique(cid, return_inverse=True)
-    inv = inv.reshape(-1)
+        n_ids += len(uk)
+    # the cubes in use, numbered in the order of their ids (np.unique's order, by a mask instead of a sort)
+    mask = np.zeros(n_ids, dtype=bool)
+    mask[cid] = True
+    inv = (np.cumsum(mask) - 1)[cid]
+    used = np.flatnonzero(mask)
     counts = np.bincount(inv, minlength=len(used)).astype(np.float64)
     verts = np.stack([np.bincount(inv, weights=np.repeat(point[:, a], 4), minlength=len(used))
                       for a in range(3)], 1) / counts[:, None]
@@ -187,7 +203,5 @@ def dual_surface(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_sum
     # split each quad along its shorter diagonal
     d02 = ((verts[quads[:, 0]] - verts[quads[:, 2]]) ** 2).sum(1)
     d13 = ((verts[quads[:, 1]] - verts[quads[:, 3]]) ** 2).sum(1)
-    short02 = (d02 <= d13)[:, None, None]
-    tri = np.where(short02, np.stack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]], 1),
-                   np.stack([quads[:, [0, 1, 3]], quads[:, [1, 2, 3]]], 1)).reshape(-1, 3)
+    tri = np.take_along_axis(quads, _SPLITS[(d02 > d13).astype(np.int64)], axis=1).reshape(-1, 3)
     return DualSurface(verts, tri)
