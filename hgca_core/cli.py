@@ -10,6 +10,7 @@ if __name__ == "__main__":  # `python -m hgca_core.cli`: take over Ctrl-C before
 
 import argparse
 import importlib
+import os
 import sys
 import warnings
 
@@ -50,8 +51,18 @@ def _load(name: str, argv: list[str]):
     return importlib.import_module(f"hgca_core.commands.{name.replace('-', '_')}") if argv[:1] == [name] else None
 
 
+# OpenMP threads that busy-wait between parallel regions steal the cores of every other process: on a shared
+# 2-core machine (or beside Blender) a 2-thread decode took 21.7 s busy-waiting, 5.1 s with PASSIVE
+# (benchmarks/results/mesh_quality.md). The variable is read once, when torch loads its OpenMP runtime, so it is
+# set before any command imports torch; a value the user set wins.
+OMP_DEFAULTS = {"OMP_WAIT_POLICY": "PASSIVE"}
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    if "torch" not in sys.modules:
+        for key, value in OMP_DEFAULTS.items():
+            os.environ.setdefault(key, value)
     previous = interrupt.install(argv[0] if argv[:1] and argv[0] in COMMANDS else "")
     try:
         return _main(argv)
