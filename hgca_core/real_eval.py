@@ -229,9 +229,10 @@ def format_tables(results: dict) -> str:
     cfg = results["config"]
     lines = ["# Completion of real scans, scored without ground truth", "",
              f"k = {cfg['samples']} samples for GCA / hGCA coarse, k = {cfg['full_samples']} for hGCA full "
-             f"(seeds {cfg['seed']}..); values are mean [min–max] over the samples. Full stage run on the whole "
-             f"input and at cut(s) {', '.join(f'{c:g} m' for c in cfg['full_cuts'])} only (CPU time); "
-             f"{cfg['threads']} thread(s), precision {cfg['precision']}. Cells are 20 cm, in the default region. "
+             f"(seeds {cfg['seed']}..); values are mean [min–max] over the samples. "
+             + (f"Full stage run on the whole input and at cut(s) {', '.join(f'{c:g} m' for c in cfg['full_cuts'])}"
+                " only (CPU time); " if "hgca-full" in cfg.get("methods", ()) else "")
+             + f"{cfg['threads']} thread(s), precision {cfg['precision']}. Cells are 20 cm, in the default region. "
              "Seconds are wall time on a 2-core machine shared with other jobs (only a rough guide; hGCA "
              "coarse samples that came out of a full-stage run have no time of their own).",
              "", "## Observed free space (whole input)", "",
@@ -271,11 +272,12 @@ def format_tables(results: dict) -> str:
                      f"{fs['empty_cells']:,} | {fs['seconds']:.2f} |")
     lines += ["", f"Paper's Waymo protocol (ReSim and IoU against the other scans of a drive): "
               f"{results['waymo_protocol']['reason']}.", ""]
+    asked = set(results.get("config", {}).get("methods", METHODS))
     missing = [f"{NAMES[m]} at {name} {'whole input' if case == 'full' else case.replace('cut_', '') + ' m cut'}"
                for name, res in results["inputs"].items() for case, e in res["cases"].items()
-               for m in METHODS if m not in e["rows"] and (m != "hgca-full" or case == "full")]
+               for m in METHODS if m in asked and m not in e["rows"] and (m != "hgca-full" or case == "full")]
     if missing:
-        lines += ["Not run (CPU time on the shared machine): " + "; ".join(missing) + ".", ""]
+        lines += ["Asked for but not run (the full stage runs only at --full-cuts): " + "; ".join(missing) + ".", ""]
     pngs = [e["rendering"]["file"] for r in results["inputs"].values() for e in r["cases"].values()
             if "rendering" in e]
     if pngs:
