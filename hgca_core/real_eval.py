@@ -67,7 +67,8 @@ class Runner:
 
         return hgca_core.complete(pts, region=self.region, origins=self.origins, samples=samples, seed=seed,
                                   stage=stage, t1=self.args.t1, t2=self.args.t2, weights=weights,
-                                  fine_weights=self.args.fine_weights, precision=self.args.precision)
+                                  fine_weights=self.args.fine_weights, precision=self.args.precision,
+                                  free_space=getattr(self.args, "free_space", "auto"))
 
     def cells(self, method: str, pts: np.ndarray, full: bool) -> dict[str, Any]:
         """{method row: (list of cell sets, seconds per completion, sample-0 mesh or None)}."""
@@ -232,7 +233,8 @@ def format_tables(results: dict) -> str:
              f"(seeds {cfg['seed']}..); values are mean [min–max] over the samples. "
              + (f"Full stage run on the whole input and at cut(s) {', '.join(f'{c:g} m' for c in cfg['full_cuts'])}"
                 " only (CPU time); " if "hgca-full" in cfg.get("methods", ()) else "")
-             + f"{cfg['threads']} thread(s), precision {cfg['precision']}. Cells are 20 cm, in the default region. "
+             + f"{cfg['threads']} thread(s), precision {cfg['precision']}, free space {cfg.get('free_space', 'auto')}. "
+             "Cells are 20 cm, in the default region. "
              "Seconds are wall time on a 2-core machine shared with other jobs (only a rough guide; hGCA "
              "coarse samples that came out of a full-stage run have no time of their own).",
              "", "## Observed free space (whole input)", "",

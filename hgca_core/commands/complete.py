@@ -35,10 +35,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weights", default=None, help="coarse weights file (default: the shipped ones)")
     p.add_argument("--fine-weights", default=None, help="fine weights file (default: the shipped ones)")
     p.add_argument("--progress", choices=("bar", "jsonl", "none"), default="bar")
+    add_free_space_argument(p)
+
+
+def add_free_space_argument(p: argparse.ArgumentParser, what: str = "") -> None:
+    """`--free-space`, shared by complete, drive, eval and eval-real. The choices are
+    `hgca_core.pipeline.FREE_SPACE_MODES`, spelt out so that parsing arguments does not import torch."""
     p.add_argument("--free-space", choices=("auto", "feature", "mask", "off"), default="auto",
-                   help="observed free space (what the sensor saw through; needs sensor origins): feature = give it "
-                        "to weights trained with it; mask = also never output a seen-empty cell; off = neither; "
-                        "auto (default) = feature where the weights take it (the shipped ones do not)")
+                   help=f"observed free space{what}: what the sensor saw through (needs sensor origins). feature = "
+                        "give it to weights trained with it; mask = also never output a seen-empty cell; off = "
+                        "neither; auto (default) = feature where the weights take it (the shipped coarse.pt does) "
+                        "and the scans have sensor origins")
 
 
 def add_precision_argument(p: argparse.ArgumentParser) -> None:

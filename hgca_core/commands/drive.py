@@ -12,7 +12,7 @@ import argparse
 import json
 import sys
 
-from hgca_core.commands.complete import add_precision_argument
+from hgca_core.commands.complete import add_free_space_argument, add_precision_argument
 from hgca_core.errors import InputError
 
 
@@ -36,8 +36,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--max-faces", type=int, default=None, help="simplify each tile's mesh to at most N triangles")
     add_precision_argument(p)
-    p.add_argument("--free-space", choices=("auto", "feature", "mask", "off"), default="auto",
-                   help="observed free space from each scan's rays, as `hgca complete --free-space`")
+    add_free_space_argument(p, " from each scan's rays")
     p.add_argument("--t1", type=int, default=None, help="coarse steps T1 (default from the weights)")
     p.add_argument("--t2", type=int, default=None, help="fine steps T2 (default from the weights)")
     p.add_argument("--weights", default=None, help="coarse weights file (default: the shipped ones)")

@@ -11,7 +11,7 @@ DEFAULT_METHODS = ("input", "poisson", "gca", "hgca")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from hgca_core.commands.complete import add_precision_argument, steps_arg
+    from hgca_core.commands.complete import add_free_space_argument, add_precision_argument, steps_arg
 
     p.add_argument("--data", default="data/synth", help="dataset folder (hgca synth --split test)")
     p.add_argument("--split", default="test", choices=("val", "test"))
@@ -29,9 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"comma list of {', '.join(METHODS)} (default: the coarse ones, plus hgca-full with --stage full)")
     p.add_argument("--t1", type=steps_arg, default=None, help="coarse steps (default from the weights)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--free-space", choices=("auto", "feature", "mask", "off"), default="auto",
-                   help="observed free space of each sample's input rays for the model rows (as `hgca complete "
-                        "--free-space`); compare runs to ablate it")
+    add_free_space_argument(p, " for the model rows (compare runs to ablate it)")
     p.add_argument("--out", default=None, help="write the rows as JSON and the table as .md next to it")
     p.add_argument("--reuse", nargs="+", default=None, metavar="JSON",
                    help="copy rows of earlier `--out` files on the same samples (e.g. the slow Poisson baseline) "

@@ -13,6 +13,7 @@ import json
 import time
 from pathlib import Path
 
+from hgca_core.commands.complete import add_free_space_argument, add_precision_argument
 from hgca_core.real_eval import METHODS
 
 DEFAULT_REAL = "../shared/fixtures/real"
@@ -46,7 +47,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weights", default=None, help="hGCA coarse weights (default: shipped)")
     p.add_argument("--noplanner-weights", default=None, help="GCA weights without planner (default: shipped)")
     p.add_argument("--fine-weights", default=None, help="fine weights (default: shipped)")
-    p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto")
+    add_precision_argument(p)
+    add_free_space_argument(p, " for the model rows (compare runs to ablate it)")
     p.add_argument("--no-render", action="store_true", help="skip the PNG renderings")
     p.add_argument("--resume", action="store_true",
                    help="keep the cases an earlier run with the same sampling settings wrote to --out (a later "
@@ -99,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     items = inputs_of(args)
     config = {"methods": methods, "cuts": cuts, "full_cuts": full_cuts, "samples": args.samples,
               "full_samples": args.full_samples or args.samples, "seed": args.seed, "threads": args.threads,
-              "t1": args.t1, "t2": args.t2, "precision": args.precision}
+              "t1": args.t1, "t2": args.t2, "precision": args.precision, "free_space": args.free_space}
     results = {"config": config, "inputs": {}, "waymo_protocol": {"applicable": False, "reason": WAYMO_NA}}
     earlier = _earlier(out, config) if args.resume else {}
     total = time.time() - float(earlier.get("total_seconds") or 0.0)
@@ -121,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-RESUME_KEYS = ("samples", "full_samples", "seed", "t1", "t2", "precision")  # must match to resume
+RESUME_KEYS = ("samples", "full_samples", "seed", "t1", "t2", "precision", "free_space")  # must match to resume
 
 
 def _earlier(out: Path, config: dict) -> dict:
