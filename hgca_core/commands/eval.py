@@ -78,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"{name}: {r['seconds_per_completion']:.1f} s per completion{origin}")
     if args.out:
         out = Path(args.out)
-        out.write_text(json.dumps({"split": args.split, "files": [p.name for p in files], "rows": rows,
+        out.write_text(json.dumps({"data": str(args.data), "split": args.split, "files": [p.name for p in files],
+                                   "rows": rows,
                                    "samples": args.samples, "t1": args.t1, "free_space": args.free_space,
                                    "weights": {"hgca": args.weights or "shipped", "gca": args.noplanner_weights
                                                or "shipped", "fine": args.fine_weights or "shipped"},

@@ -95,14 +95,24 @@ def evaluate_sample(sample: Mapping[str, Any], meshes: Sequence[trimesh.Trimesh]
 
 
 def aggregate(results: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    """Dataset row: NaN-aware mean of each scalar metric over samples (NaN = not defined for a sample)."""
+    """Dataset row: NaN-aware mean of each scalar metric over samples (NaN = not defined for a sample), and
+    the per-scene values under `per_scene` so that tables can show the spread over scenes."""
     if not results:
         raise InputError("nothing to aggregate")
-    row: dict[str, Any] = {"k": int(min(r["k"] for r in results)), "n": len(results)}
+    row: dict[str, Any] = {"k": int(min(r["k"] for r in results)), "n": len(results), "per_scene": {}}
     for key in SCALAR_KEYS:
         v = np.array([r.get(key, np.nan) for r in results], dtype=np.float64)
         row[key] = float(np.nanmean(v)) if np.any(np.isfinite(v)) else float("nan")
+        row["per_scene"][key] = [float(x) for x in v]   # NaN survives json as NaN
     return row
+
+
+def spread(row: Mapping[str, Any], key: str) -> float:
+    """Sample standard deviation over scenes of one metric of a row (NaN without per-scene values or with
+    fewer than two defined ones)."""
+    v = np.array(row.get("per_scene", {}).get(key, []), dtype=np.float64)
+    v = v[np.isfinite(v)]
+    return float(np.std(v, ddof=1)) if len(v) > 1 else float("nan")
 
 
 def _fmt(value: Any, scale: float) -> str:
@@ -136,4 +146,18 @@ def format_table(rows: Mapping[str, Mapping[str, Any]]) -> str:
         lines.append("| " + " | ".join(cells) + " |")
     lines.append("")
     lines.append("CD and TMD x10 in metres (as in the paper), IoU in % at 20 cm over visible cells.")
+    spread_rows = {name: r for name, r in rows.items() if r.get("per_scene")}
+    if spread_rows:
+        keys = ["resim_min", "resim_avg", "tmd", "iou"] + (["street_cd_min", "street_cd_avg", "street_tmd"]
+                                                           if has_street else [])
+        scales = {"iou": 100}
+        lines += ["", "Spread over scenes: standard deviation of the per-scene values (same units; the mean is the "
+                  "table above).", "", lines[0].replace("Representation", "Scenes"), lines[1]]
+        for name, r in spread_rows.items():
+            single = int(r.get("k", 1)) <= 1
+            cells = [name, str(len(r["per_scene"].get("iou", [])))]
+            for key in keys:
+                hidden = single and key in ("resim_avg", "tmd", "street_cd_avg", "street_tmd")
+                cells.append("-" if hidden else _fmt(spread(r, key), scales.get(key, 10)))
+            lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)

@@ -97,3 +97,21 @@ def test_aggregate_ignores_undefined_values() -> None:
     agg = aggregate(rows)
     assert agg["resim_min"] == pytest.approx(0.3) and agg["iou"] == pytest.approx(0.5) and agg["n"] == 2
     assert np.isnan(agg["street_cd_min"])
+
+
+def test_table_shows_the_spread_over_scenes() -> None:
+    """The per-scene values travel with a row; the spread table gives their sample standard deviation in the
+    main table's units (IoU 50 and 70 % -> 14.14; ReSim 0.2 and 0.4 m -> 1.41 at the x10 scale)."""
+    scenes = [{"k": 3, "resim_min": 0.2, "resim_avg": 0.25, "tmd": 0.05, "iou": 0.5, "street_cd_min": 0.3,
+               "street_cd_avg": 0.35, "street_tmd": 0.02},
+              {"k": 3, "resim_min": 0.4, "resim_avg": 0.45, "tmd": 0.05, "iou": 0.7, "street_cd_min": np.nan,
+               "street_cd_avg": np.nan, "street_tmd": np.nan}]
+    row = aggregate(scenes)
+    assert row["per_scene"]["iou"] == [0.5, 0.7]
+    lines = format_table({"hGCA": {**row, "representation": "20cm^3"}}).splitlines()
+    at = lines.index(next(line for line in lines if line.startswith("Spread over scenes")))
+    assert lines[at + 2].startswith("| Method | Scenes | ReSim min")
+    # ReSim min, avg, TMD, IoU, then Street CD with one defined scene: no spread
+    assert lines[at + 4] == "| hGCA | 2 | 1.41 | 1.41 | 0.00 | 14.14 | - | - | - |"
+    reused = {k: v for k, v in row.items() if k != "per_scene"}      # rows of files from before: no spread table
+    assert not any(line.startswith("Spread") for line in format_table({"old": reused}).splitlines())
