@@ -13,7 +13,8 @@ from hgca_core.models import cgca, gca
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel
 from hgca_core.models.gca import GCAConfig, GCAKernel
-from hgca_core.pipeline import Models, complete_local, load_models
+from hgca_core.models.weights import shipped
+from hgca_core.pipeline import Models, complete_local, load_models, takes_free_space
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -73,10 +74,12 @@ def test_free_space_is_computed_once_from_every_ray_and_reaches_both_stages(scen
 
 
 def test_old_weights_give_the_old_result_unless_the_mask_is_asked_for(scene):
-    """The shipped weights take no free-space input: auto (the default) with or without origins and off are the
-    same chains, and nothing is computed for them; feature is refused, mask changes the result."""
+    """Weights without a free-space input (the shipped no-planner ablation): auto (the default) with or without
+    origins and off are the same chains, and nothing is computed for them; feature is refused, mask changes the
+    result."""
     local, origins, index, region = scene
-    models = load_models("coarse")
+    models = load_models("coarse", weights=shipped("coarse-noplanner"))
+    assert not takes_free_space(models)
     runs = {name: complete_local(local, region, models, samples=1, seed=3, precision="fp32", **kw)[0].coarse_cells
             for name, kw in {"plain": {}, "auto": dict(origins=origins, origin_index=index),
                              "off": dict(origins=origins, origin_index=index, free_space="off"),
@@ -89,6 +92,22 @@ def test_old_weights_give_the_old_result_unless_the_mask_is_asked_for(scene):
         complete_local(local, region, models, free_space="mask")
     with pytest.raises(InputError, match="free_space must be one of"):
         complete_local(local, region, models, origins=origins, free_space="maybe")
+
+
+def test_shipped_coarse_weights_read_the_free_space_by_default(scene):
+    """The shipped coarse.pt was trained with observed free space: auto uses it when the scans have origins (the
+    chain differs from off), and without origins it is all unknown (the chain equals off)."""
+    local, origins, index, region = scene
+    models = load_models("coarse")
+    assert takes_free_space(models)
+    kw = dict(samples=1, seed=3, precision="fp32")
+    auto = complete_local(local, region, models, origins=origins, origin_index=index, **kw)[0]
+    off = complete_local(local, region, models, origins=origins, origin_index=index, free_space="off", **kw)[0]
+    assert auto.free_cells and auto.free_cells > 0 and off.free_cells is None
+    assert not np.array_equal(auto.coarse_cells, off.coarse_cells)
+    with pytest.warns(UserWarning, match="no sensor origins"):
+        bare = complete_local(local, region, models, **kw)[0]
+    assert np.array_equal(bare.coarse_cells, off.coarse_cells)
 
 
 def test_the_mask_never_outputs_a_seen_empty_cell(scene):
@@ -123,6 +142,14 @@ def test_cli_free_space_option(tmp_path):
     np.savez(scan, points=s["input_points"].astype(np.float64), origins=s["input_origins"].astype(np.float64))
     args = ["complete", str(scan), "-o", str(tmp_path / "out.npz"), "--region", "3,3,1,6,6,4", "--progress", "none",
             "--t1", "2"]
-    assert main(args + ["--free-space", "feature"]) == 2               # shipped weights do not take it
+    noplanner = str(shipped("coarse-noplanner"))                        # trained without free space
+    assert main(args + ["--free-space", "feature", "--weights", noplanner]) == 2
     assert not list(tmp_path.glob("out_s*"))
+    bare = tmp_path / "bare.npz"                                        # no sensor origins: nothing to walk
+    np.savez(bare, points=s["input_points"].astype(np.float64))
+    assert main(["complete", str(bare)] + args[2:] + ["--free-space", "feature"]) == 2
+    assert not list(tmp_path.glob("out_s*"))
+    assert main(args + ["--free-space", "feature"]) == 0                # the shipped coarse.pt takes it
+    assert (tmp_path / "out_s0.npz").exists()
+    (tmp_path / "out_s0.npz").unlink()
     assert main(args + ["--free-space", "mask"]) == 0 and (tmp_path / "out_s0.npz").exists()

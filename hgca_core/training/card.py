@@ -13,10 +13,20 @@ from hgca_core.models.weights import WEIGHTS_DIR, load_file
 
 INTRO = """# hgca model card
 
-Weights trained by this project on its own procedural street scenes (`hgca_core/synth`: two styles, city
-and suburb; Waymo-like 64-beam LiDAR with 1 cm point noise and 0.02 deg pitch noise; 5 scans per sample).
-Training uses only the train split (seeds 0..99,999; each file below lists the samples it saw); validation
-uses seeds 1,000,000+; the evaluation below uses the test split (seeds 2,000,000+), which trains nothing.
+Weights trained by this project on its own procedural street scenes (`hgca_core/synth`), never on real scans.
+Each file below names its training data, one of two datasets:
+- `data/synth` (the first split): two styles, city and suburb; one Waymo-like 64-beam LiDAR with 1 cm point
+  noise and 0.02 deg pitch noise; 5 scans per sample. `coarse_noplanner.pt`, `autoencoder.pt` and `fine.pt`.
+- synth2 (generator 6, recipe `docs/data/synth2_recipe.json`): five sensor profiles with their real beam tables
+  and mounting (Velodyne HDL-64E as on KITTI, HDL-32E as on nuScenes, two stacked VLP-32C as on Argoverse 2,
+  the Waymo top LiDAR, Ouster OS1-128), 1 to 10 scans per sample, mounting height and pitch jitter, random and
+  range-dependent dropout, no return from glass and dark surfaces, range and ring-correlated noise, motion
+  distortion, pose noise and drift between scans; sloped, hilly and curved streets, more building, vegetation,
+  vehicle and street-furniture types. `coarse.pt`, warm-started from the first split's coarse weights, with the
+  observed free space (cells the input rays crossed) as a further input: `hgca complete` computes it from the
+  scans' sensor origins and gives the model an all-unknown grid where a scan has none.
+Training uses only the train split (seeds 0..999,999; each file below lists the samples it saw); validation
+uses seeds 1,000,000+; the evaluations below use the test split (seeds 2,000,000+), which trains nothing.
 The shipped weights are the exponential moving average of the training weights where the run kept one
 (decay 0.999). Stored as fp16, loaded as float32.
 
@@ -24,14 +34,17 @@ Stages: `coarse.pt` (GCA + BEV planner, 20 cm) and `coarse_noplanner.pt` (the ab
 input's 20 cm occupancy; `fine.pt` (cGCA at 10 cm with the local implicit autoencoder packed inside)
 upsamples it into a surface; `autoencoder.pt` is that autoencoder alone, the one `hgca train fine` reads.
 
-Reading the validation numbers: IoU is at the stage's resolution on fixed val crops (4 for the coarse stage).
+Reading the validation numbers: IoU is at the stage's resolution on fixed val crops of the file's own dataset
+(4 for the coarse stage, so they are not comparable between datasets, and noisy: +-0.07 between checks).
 The fine stage's and the autoencoder's `val_cd` (metres) is a Chamfer distance to the stored ground-truth surface
 samples, of which there is less than one per 10 cm cell: a dense sample of the true surface itself scores
 3.9 cm on such crops (measured on val seeds 1,000,002-3), so the 4.0-4.2 cm below sit near that floor.
 
 Intended use: completing street-level LiDAR (vehicle-mounted, 32-128 beams) into 20 cm geometry and 10 cm
 implicit surfaces. Limits: trained on synthetic content only, on 2 CPU cores, for far fewer steps than the
-paper (400k), so completions are rough; real scans (nuScenes, Waymo) are out of distribution.
+paper (400k), so completions are rough; on real scans (Argoverse 2, nuScenes: `benchmarks/results/real_scans*.md`)
+the coarse stage finds about a third of the real cells cut away 2 m above the ground, and 6-9 % of what it
+generates lies in space the input rays saw empty.
 """
 
 
@@ -85,7 +98,9 @@ def write_model_card(weights_dir: Path = WEIGHTS_DIR) -> Path:
         js = path.with_suffix(".json")
         if js.exists():
             info = json.loads(js.read_text())
-            parts.append(f"Scenes: {', '.join(info['files'])}; k = {info['samples']} samples; T1 = {info['t1'] or 'default'}.")
+            data = f"{info['data']}, {info['split']} split" if info.get("data") else f"{info.get('split')} split"
+            parts.append(f"Scenes ({data}): {', '.join(info['files'])}; k = {info['samples']} samples; "
+                         f"T1 = {info['t1'] or 'default'}; free space {info.get('free_space', 'auto')}.")
             for name, r in info["rows"].items():
                 sec = r.get("seconds_per_completion", r.get("seconds_per_scene"))
                 origin = f", row from the earlier run `{r['reused_from']}`" if r.get("reused_from") else ""
