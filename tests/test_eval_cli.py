@@ -102,7 +102,9 @@ def test_eval_scores_what_complete_ships(small_split):
     sample = load_sample(path)
     region = Region.from_tuple(sample["region"])
     world = region.to_world(np.asarray(sample["input_points"], dtype=np.float64))
-    shipped = hgca_core.complete(world, region=region, seed=3, t1=2, weights=shipped("coarse"), precision="fp32")[0]
+    origins = region.to_world(np.asarray(sample["input_origins"], dtype=np.float64))   # eval gives each ray's origin
+    shipped = hgca_core.complete(world, region=region, seed=3, t1=2, weights=shipped("coarse"), precision="fp32",
+                                 origins=origins, origin_index=np.asarray(sample["input_scan_index"]))[0]
     mesh = shipped.mesh.copy()
     mesh.vertices = region.to_local(mesh.vertices)
     want = evaluate_sample(sample, [mesh], [shipped.coarse_cells])

@@ -1,6 +1,7 @@
 """Observed free space as a model input (issue 13, item 3): the inputs are exactly the free set, old weights are
 unchanged, warm start keeps the old model until the new inputs are trained, and the mask forbids seen-empty cells."""
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from hgca_core.models import free as fs
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel, _gather, _table
 from hgca_core.models.gca import GCAConfig, GCAKernel
 from hgca_core.models.planner import PILLAR, Planner
-from hgca_core.models.weights import load_coarse, load_fine, load_into, save_weights, shipped
+from hgca_core.models.weights import load_coarse, load_file, load_fine, load_into, save_file, save_weights, shipped
 from hgca_core.nn.encoding import sinusoidal
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -116,18 +117,40 @@ def test_fine_kernel_feature_is_the_children_of_the_free_20cm_cells():
     torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-5)
 
 
-def test_shipped_weights_load_unchanged_without_the_feature():
+def _old_format_coarse(path: Path) -> Path:
+    """Coarse weights with the planner as written before the free-space field existed (no `free_space` key in
+    the config): the shipped coarse.pt's architecture without the feature, seeded random weights."""
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(load_coarse()[0].cfg, free_space=False)
+    save_weights(path, GCAKernel(cfg))
+    blob = load_file(path)
+    del blob["config"]["free_space"]
+    save_file(blob, path)
+    return path
+
+
+def test_old_weights_load_unchanged_without_the_feature(tmp_path):
     """Files written before the field existed are models without free space: same tensors, same input layout."""
-    for load, stage in ((lambda: load_coarse()[0], "coarse"), (lambda: load_fine()[0], "fine")):
+    old = _old_format_coarse(tmp_path / "old_coarse.pt")
+    for load, path in ((lambda: load_coarse(old)[0], old),
+                       (lambda: load_coarse(shipped("coarse-noplanner"))[0], shipped("coarse-noplanner")),
+                       (lambda: load_fine()[0], shipped("fine"))):
         model = load()
         assert model.cfg.free_space is False and model.free_columns() == {}
-        from hgca_core.models.weights import load_file
-
-        sd = load_file(shipped(stage))["state_dict"]
+        sd = load_file(path)["state_dict"]
         assert {k: tuple(v.shape) for k, v in sd.items()} == {k: tuple(v.shape) for k, v in model.state_dict().items()}
-    model = load_coarse()[0]
+    model = load_coarse(old)[0]
     assert model.unet.stem[0].weight.shape[1] == 2 + 2 * model.cfg.pe_freq * len(model.cfg.pe_axes)
     assert model.planner.unet.downs[0][0].in_channels == 32
+
+
+def test_shipped_coarse_weights_take_the_feature():
+    """The shipped coarse.pt was trained with free space: one more kernel input column, z_r more planner bins."""
+    model = load_coarse()[0]
+    assert model.cfg.free_space is True
+    assert model.unet.stem[0].weight.shape[1] == 3 + 2 * model.cfg.pe_freq * len(model.cfg.pe_axes)
+    assert model.planner.unet.downs[0][0].in_channels == 32 + model.cfg.z_r
+    assert set(model.free_columns()) == {"unet.stem.0.weight", "planner.unet.downs.0.0.weight"}
 
 
 def _coarse_inputs(grid=(30, 27, 40), seed=0):
@@ -138,10 +161,11 @@ def _coarse_inputs(grid=(30, 27, 40), seed=0):
     return s0, free, grid
 
 
-def test_warm_start_from_the_shipped_coarse_weights():
-    old = load_coarse()[0]
+def test_warm_start_from_coarse_weights_without_the_feature(tmp_path):
+    path = _old_format_coarse(tmp_path / "old_coarse.pt")
+    old = load_coarse(path)[0]
     new = GCAKernel(dataclasses.replace(old.cfg, free_space=True))
-    meta = load_into(new, shipped("coarse"))
+    meta = load_into(new, path)
     assert meta["widened"] == ["planner.unet.downs.0.0.weight", "unet.stem.0.weight"]
     new.eval()
     assert torch.count_nonzero(new.unet.stem[0].weight[:, 2]) == 0
