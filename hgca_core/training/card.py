@@ -106,6 +106,8 @@ def write_model_card(weights_dir: Path = WEIGHTS_DIR) -> Path:
                 origin = f", row from the earlier run `{r['reused_from']}`" if r.get("reused_from") else ""
                 parts.append(f"- {name}: {sec:.1f} s per completion (eval process, CPU){origin}")
             parts.append("")
+            for note in info.get("notes", []):   # provenance added to the results file by whoever ran it
+                parts += [note, ""]
     out = weights_dir / "MODEL_CARD.md"
     atomic_write(out, lambda f: f.write("\n".join(parts).encode()))
     return out

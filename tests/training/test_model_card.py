@@ -1,0 +1,32 @@
+"""The model card is rendered from the weights files and the eval results beside them, never typed."""
+import json
+
+import torch
+
+from hgca_core.models.gca import GCAConfig, GCAKernel
+from hgca_core.models.weights import save_weights
+from hgca_core.training.card import write_model_card
+
+
+def test_card_renders_weights_metadata_and_eval_provenance(tmp_path):
+    torch.manual_seed(0)
+    session = {"ended": "2026-11-23 10:45:24", "steps": 77, "wall_s": 12.5, "device": "cpu", "device_name": "EPYC",
+               "threads": 1, "world_size": 1, "precision": "bf16", "recipe": {"crop": 64, "focus_share": 0.5}}
+    meta = {"stage": "coarse", "data": "data/synth2", "crop": 64, "steps": 77, "train_wall_s": 12.5,
+            "sessions": [session], "notes": ["selected on validation"], "train_samples": ["sample_0000003.npz"],
+            "history_tail": [{"step": 77, "kind": "val", "val_iou": 0.5}]}
+    save_weights(tmp_path / "coarse.pt", GCAKernel(GCAConfig(channels=(8, 8, 16, 16, 16), free_space=True)), meta)
+    (tmp_path / "eval_test.md").write_text("| Method |\n|---|\n| hGCA |\n")
+    rows = {"hGCA coarse (planner)": {"k": 3, "seconds_per_completion": 12.5}}
+    (tmp_path / "eval_test.json").write_text(json.dumps({
+        "data": "data/synth2", "split": "test", "files": ["sample_2000000.npz"], "samples": 3, "t1": None,
+        "free_space": "off", "rows": rows, "notes": ["The GCA row is not like-for-like."]}))
+    card = write_model_card(tmp_path).read_text()
+    assert '"free_space": true' in card                                  # the file's own config
+    assert "training data: data/synth2 (train split): 1 samples, seeds 3-3" in card
+    assert "77 steps in 12.5 s, device cpu (EPYC), 1 thread(s), world size 1, bf16 GEMMs, crop 64, focus share 0.5" in card
+    assert "- note: selected on validation" in card and "step 77: val_iou 0.5000" in card
+    assert "Scenes (data/synth2, test split): sample_2000000.npz; k = 3 samples; T1 = default; free space off." in card
+    assert "- hGCA coarse (planner): 12.5 s per completion" in card
+    assert "The GCA row is not like-for-like." in card
+    assert "fine.pt" not in card.split("Card written")[1].split("## Evaluation")[0]   # only the files present
