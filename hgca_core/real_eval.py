@@ -61,18 +61,23 @@ class Runner:
         self.noplanner = args.noplanner_weights or str(shipped("coarse-noplanner"))
         self.k = args.samples
         self.kf = args.full_samples or args.samples
+        self.index: np.ndarray | None = None
 
     def _complete(self, pts: np.ndarray, samples: int, seed: int, stage: str, weights: str | None):
+        """`hgca_core.complete` of `pts`, each point's ray from its own sensor origin (`self.index`, set per case
+        by `cells`), as `hgca complete` does for the same scans."""
         import hgca_core
 
         return hgca_core.complete(pts, region=self.region, origins=self.origins, samples=samples, seed=seed,
                                   stage=stage, t1=self.args.t1, t2=self.args.t2, weights=weights,
                                   fine_weights=self.args.fine_weights, precision=self.args.precision,
-                                  free_space=getattr(self.args, "free_space", "auto"))
+                                  origin_index=self.index, free_space=getattr(self.args, "free_space", "auto"))
 
-    def cells(self, method: str, pts: np.ndarray, full: bool) -> dict[str, Any]:
-        """{method row: (list of cell sets, seconds per completion, sample-0 mesh or None)}."""
+    def cells(self, method: str, pts: np.ndarray, full: bool, index: np.ndarray | None = None) -> dict[str, Any]:
+        """{method row: (list of cell sets, seconds per completion, sample-0 mesh or None)}; `index` (N,): each
+        point's row in the origins (None: the nearest origin)."""
         args, region = self.args, self.region
+        self.index = index
         local = region.to_local(pts)
         inside = region.contains_local(local)
         t = time.time()
@@ -158,7 +163,7 @@ def evaluate_input(item: dict, methods: list[str], cuts: list[float], full_cuts:
         full = "hgca-full" in methods and (h is None or any(abs(h - c) < 1e-9 for c in full_cuts))
         meshes: dict[str, Any] = {}
         for method in dict.fromkeys("hgca" if m == "hgca-full" else m for m in methods):
-            rows = runner.cells(method, case_pts, full=full and method == "hgca")
+            rows = runner.cells(method, case_pts, full=full and method == "hgca", index=index[keep])
             for row, (cell_sets, seconds, mesh) in rows.items():
                 if row not in methods:
                     continue

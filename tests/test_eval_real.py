@@ -177,3 +177,31 @@ def test_eval_real_free_space_mask_reaches_the_model_rows(tmp_path, small_weight
     assert runs["off"]["empty_share"] > 0        # unmasked, this model grows into seen-empty space
     assert runs["mask"]["empty_share"] == 0 and runs["mask"]["generated"] > 0
     assert "free space mask" in out.with_suffix(".md").read_text()
+
+
+def test_eval_real_completes_with_each_points_own_sensor_origin(tmp_path, small_weights, monkeypatch):
+    """The completions see each point's ray from its own sensor (the reader's origin_index), as `hgca complete`
+    does, not the nearest origin: here every point belongs to the farther of two sensors."""
+    import hgca_core
+    from hgca_core.cli import main
+
+    s = tiny_sample(3)
+    pts = s["input_points"].astype(np.float64)
+    scan = tmp_path / "street.npz"
+    np.savez(scan, points=pts, origins=[[3.0, 3.0, 3.0], [3.0, 3.0, 40.0]],
+             origin_index=np.ones(len(pts), dtype=np.int64))
+    seen = []
+    real = hgca_core.complete
+
+    def spy(points, **kw):
+        seen.append((len(points), kw.get("origin_index")))
+        return real(points, **kw)
+
+    monkeypatch.setattr(hgca_core, "complete", spy)
+    out = tmp_path / "real.json"
+    assert main(["eval-real", str(scan), "--out", str(out), "--methods", "hgca", "--samples", "1", "--weights",
+                 str(small_weights), "--t1", "2", "--cuts", "1.0", "--threads", "1", "--no-render"]) == 0
+    assert len(seen) == 2                                        # the whole input and the cut
+    assert seen[0][0] == len(pts) and seen[1][0] < len(pts)
+    for n, index in seen:
+        assert index is not None and len(index) == n and (index == 1).all()
