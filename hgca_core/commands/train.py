@@ -53,7 +53,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="coarse / fine: start from these weights or checkpoint (its architecture; with --free-space, "
                         "weights trained without it gain zero-initialised free-space inputs); ignored by --resume "
                         "of an existing checkpoint")
-    p.add_argument("--export", action="store_true", help="after training, write hgca_core/weights/<stage>.pt")
+    p.add_argument("--export", nargs="?", const=True, default=None, metavar="PATH",
+                   help="after training, write the trained (EMA) weights with their training record: to PATH, or "
+                        "without PATH as the shipped hgca_core/weights/<stage>.pt and re-render the model card")
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -79,9 +81,11 @@ def _init_config(args: argparse.Namespace) -> dict | None:
 
 
 def build_task(args: argparse.Namespace, ckpt: Path):
-    """The task for the stage; a resumed run keeps the architecture it was started with, a run started
-    --init-from takes the file's architecture (with --free-space switched on when asked)."""
-    saved = _saved_config(ckpt) if args.resume else None
+    """The task for the stage; a resumed run (and an export without training) keeps the architecture the run
+    was started with, a run started --init-from takes the file's architecture (with --free-space switched on when
+    asked)."""
+    export_only = not args.minutes and not args.max_steps
+    saved = _saved_config(ckpt) if args.resume or export_only else None
     init = None if saved else _init_config(args)
     free = bool(getattr(args, "free_space", False))
     if args.stage.startswith("coarse"):
@@ -151,26 +155,29 @@ def run(args: argparse.Namespace) -> int:
 
 
 def export(args: argparse.Namespace, task, ckpt: Path) -> Path:
-    """Shipped weights from the run's checkpoint, with its training record as metadata, then the card."""
+    """Weights from the run's checkpoint, with its training record as metadata: to `--export PATH`, or as the
+    shipped file of the stage and then the card."""
+    from hgca_core.models.weights import WEIGHTS_DIR, shipped
     from hgca_core.training.card import write_model_card
 
+    target = Path(shipped(args.stage) if args.export is True else args.export)
     extra = {"stage": args.stage, "data": str(args.data)}
     if args.stage.startswith("coarse"):
-        from hgca_core.models.weights import load_file, save_weights, shipped, trained_weights
+        from hgca_core.models.weights import load_file, save_weights, trained_weights
         from hgca_core.training.trainer import run_record
 
         ck = load_file(ckpt)
         module = task.build()
         module.load_state_dict(trained_weights(ck))
-        dest = save_weights(shipped(args.stage), module.model, {**run_record(ck), **extra, "crop": task.crop})
+        dest = save_weights(target, module.model, {**run_record(ck), **extra, "crop": task.crop})
     elif args.stage == "autoencoder":
         from hgca_core.training.fine import export_autoencoder
 
-        dest = export_autoencoder(ckpt, meta=extra)
+        dest = export_autoencoder(ckpt, target, meta=extra)
     else:
-        from hgca_core.models.weights import shipped
         from hgca_core.training.fine import export_fine
 
-        dest = export_fine(ckpt, args.autoencoder or shipped("autoencoder"), meta=extra)
-    write_model_card()
+        dest = export_fine(ckpt, args.autoencoder or shipped("autoencoder"), target, meta=extra)
+    if Path(dest).resolve().parent == WEIGHTS_DIR.resolve():   # weights beside the card: the card follows them
+        write_model_card()
     return Path(dest)

@@ -15,7 +15,7 @@ from hgca_core.geometry.voxel import COARSE, grid_shape
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig
 from hgca_core.models.gca import GCAConfig, GCAKernel
-from hgca_core.models.weights import load_file, save_weights
+from hgca_core.models.weights import WEIGHTS_DIR, load_coarse, load_file, save_weights
 from hgca_core.training import data
 from hgca_core.training.coarse import CoarseTask
 from hgca_core.training.data import free_cells, free_path
@@ -94,6 +94,12 @@ def test_train_coarse_free_space_warm_starts_from_old_weights_and_resumes(datase
     ck2 = load_file(out / "ckpt.pt")
     assert ck2["state"]["step"] == 5 and ck2["config"]["free_space"] is True and len(ck2["state"]["sessions"]) == 2
     assert sum("initialised from" in n for n in ck2["state"]["notes"]) == 1
+    card = WEIGHTS_DIR / "MODEL_CARD.md"
+    card_before = card.read_bytes()
+    assert main(base + ["--minutes", "0", "--export", str(tmp_path / "exported.pt")]) == 0   # export only, elsewhere
+    model, meta = load_coarse(tmp_path / "exported.pt")
+    assert model.cfg.free_space is True and meta["steps"] == 5 and len(meta["sessions"]) == 2
+    assert meta["data"] == str(dataset) and card.read_bytes() == card_before             # the card is untouched
     capsys.readouterr()
     assert main(base[:2] + ["--data", str(dataset), "--out", str(tmp_path / "bad"), "--free-space", "--init-from",
                             str(tmp_path / "missing.pt"), "--max-steps", "1"]) == 2
