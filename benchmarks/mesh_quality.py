@@ -26,40 +26,37 @@ sys.path.insert(0, str(REPO / "tests"))
 
 from meshing_reference import shell_mesh  # noqa: E402
 
-from hgca_core.geometry import coords as cs  # noqa: E402
 from hgca_core.geometry import mesh_clean as mc  # noqa: E402
 from hgca_core.geometry.region import Region  # noqa: E402
-from hgca_core.geometry.voxel import COARSE, FINE, voxelize  # noqa: E402
 from hgca_core.meshing import DEFAULT_MAX_FACES, decimate, udf_grid, udf_mesh  # noqa: E402
 from hgca_core.metrics import flatness  # noqa: E402
 from hgca_core.metrics.surface import mesh_chamfer  # noqa: E402
-from hgca_core.models.cgca import upsample  # noqa: E402
-from hgca_core.models.weights import load_coarse, load_fine  # noqa: E402
-from hgca_core.models.gca import sample as gca_sample  # noqa: E402
-from hgca_core.nn.conv import gemm_precision, resolve_precision  # noqa: E402
+from hgca_core.models.weights import load_fine  # noqa: E402
+from hgca_core.pipeline import complete_local, load_models  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "mesh_quality"
+MODELS: dict = {}   # loaded once per run
 
 
-def fine_state(points: np.ndarray, region: Region, seed: int, cache: Path | None, name: str
+def fine_state(points: np.ndarray, region: Region, seed: int, cache: Path | None, name: str,
+               origins: np.ndarray | None = None, origin_index: np.ndarray | None = None
                ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(10 cm cells, latents) of one completion, as `hgca eval` makes them (seed + i chains), cached by name."""
+    """(10 cm cells, latents) of one completion as `hgca complete` / `hgca eval` make it (the product's
+    `pipeline.complete_local`, shipped weights, free space from the sensor origins, seed `seed`), cached by
+    name. points, origins: region frame."""
     path = cache / f"{name}_s{seed}.npz" if cache else None
     if path is not None and path.exists():
         z = np.load(path)
         return torch.from_numpy(z["cells10"]), torch.from_numpy(z["latents"])
-    coarse, _ = load_coarse()
-    fine, ae, _ = load_fine()
-    dtype = resolve_precision("auto", "cpu")
-    gen = torch.Generator().manual_seed(seed)
-    s0 = voxelize(points, COARSE, region.size)
-    with gemm_precision(dtype):
-        occ = gca_sample(coarse, cs.with_batch(torch.from_numpy(s0)), region.grid_shape(COARSE), coarse.cfg.steps, gen)
-        cells10, z = upsample(fine, ae, points, occ[:, 1:].numpy(), region.grid_shape(FINE), None, gen)
+    if "full" not in MODELS:
+        MODELS["full"] = load_models("full")
+    done = complete_local(points, region, MODELS["full"], "full", 1, seed, origins=origins,
+                          origin_index=origin_index)[0]
+    cells10, z = done.fine_cells, done.fine_latents
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(path, cells10=cells10.numpy(), latents=z.numpy())
-    return cells10, z
+        np.savez(path, cells10=cells10, latents=z)
+    return torch.from_numpy(cells10), torch.from_numpy(z)
 
 
 def mesh_stats(mesh: trimesh.Trimesh) -> dict:
@@ -109,7 +106,7 @@ def synthetic_scene(path: Path, samples: int, cache: Path | None, ae) -> tuple[d
     ref = {"input": pts, "gt": np.asarray(s["gt_surface"])}
     rows, befores, afters, first = [], [], [], None
     for i in range(samples):
-        cells10, z = fine_state(pts, region, i, cache, path.stem)
+        cells10, z = fine_state(pts, region, i, cache, path.stem, sensors, np.asarray(s["input_scan_index"]))
         m = mesh_both(ae, cells10, z, pts, sensors)
         befores.append(m["before"])
         afters.append(m["after"])
@@ -122,47 +119,36 @@ def synthetic_scene(path: Path, samples: int, cache: Path | None, ae) -> tuple[d
     return rows[0], befores, afters, {"sample": s, "first": first}
 
 
-def real_scene(name: str, points: np.ndarray, origins: np.ndarray, cache: Path | None, ae) -> dict:
+def real_scene(name: str, points: np.ndarray, origins: np.ndarray, index: np.ndarray, cache: Path | None,
+               ae) -> dict:
+    """One real input (world frame, each point's origin row in `index`) in its default region, as eval-real."""
     region = Region.around(points, sensor=origins[0])
     local = region.to_local(points)
-    local = local[region.contains_local(local)]
     sensors = region.to_local(origins)
-    cells10, z = fine_state(local, region, 0, cache, name)
-    m = mesh_both(ae, cells10, z, local, sensors)
-    patches = flatness.flat_patches_from_points(local, max_rms=0.03)
-    return {"scene": name, "timings": m["timings"], "ground": ground(m, patches, {"input": local}),
+    cells10, z = fine_state(local, region, 0, cache, name, sensors, index)
+    inside = local[region.contains_local(local)]
+    m = mesh_both(ae, cells10, z, inside, sensors)
+    patches = flatness.flat_patches_from_points(inside, max_rms=0.03)
+    return {"scene": name, "timings": m["timings"], "ground": ground(m, patches, {"input": inside}),
             "stats": {k: mesh_stats(m[k]) for k in ("before", "after", "light")},
             "chamfer_light_m": mesh_chamfer(m["light"], m["after"])}
 
 
-def real_inputs(root: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The nuScenes sweep and the two-sweep Argoverse 2 log of the shared real fixtures, world frame."""
-    from hgca_core.io import read_scan
+def real_inputs(root: Path) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(points, origins, each point's origin row) of the real fixtures `hgca eval-real` scores (its
+    DEFAULT_INPUTS: both Argoverse 2 logs and the nuScenes sweep), read by the product's readers, world frame."""
+    from hgca_core.commands.eval_real import DEFAULT_INPUTS
+    from hgca_core.geometry.freespace import ray_origins
+    from hgca_core.real_eval import read_input
 
     out = {}
-    nus = root / "nuscenes_lidar_top_1532402927647951.pcd.bin"
-    if nus.exists():
-        sc = read_scan(str(nus))
-        out["nuscenes"] = (sc.points, np.zeros((1, 3)) if sc.origins is None else np.asarray(sc.origins))
-    log = root / "av2" / "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
-    if log.exists():
-        import pyarrow.feather as pf
-        from scipy.spatial.transform import Rotation
-
-        poses = pf.read_table(log / "city_SE3_egovehicle.feather").to_pydict()
-        calib = pf.read_table(log / "calibration" / "egovehicle_SE3_sensor.feather").to_pydict()
-        up = calib["sensor_name"].index("up_lidar")
-        lidar = np.array([calib["tx_m"][up], calib["ty_m"][up], calib["tz_m"][up]])
-        ts = np.asarray(poses["timestamp_ns"])
-        pts, origins = [], []
-        for f in sorted((log / "sensors" / "lidar").glob("*.feather")):
-            t = pf.read_table(f).to_pydict()
-            i = int(np.argmin(np.abs(ts - int(f.stem))))
-            rot = Rotation.from_quat([poses[k][i] for k in ("qx", "qy", "qz", "qw")]).as_matrix()
-            tr = np.array([poses["tx_m"][i], poses["ty_m"][i], poses["tz_m"][i]])
-            pts.append(np.c_[t["x"], t["y"], t["z"]].astype(np.float64) @ rot.T + tr)
-            origins.append(tr + rot @ lidar)
-        out["argoverse2"] = (np.concatenate(pts), np.array(origins))
+    for name, rel, frames, calib in DEFAULT_INPUTS:
+        if not (root / rel).exists():
+            continue
+        scan = read_input({"path": str(root / rel), "frames": frames,
+                           "calibration": None if calib is None else str(root / calib)})
+        origins = np.asarray(scan.origins, dtype=np.float64)
+        out[name] = (scan.points, origins, ray_origins(origins, scan.attributes, scan.points))
     return out
 
 
@@ -235,8 +221,8 @@ def main(argv: list[str] | None = None) -> int:
             evals["before"].append(evaluate_sample(scene["sample"], befores))
             evals["after"].append(evaluate_sample(scene["sample"], afters))
         print(json.dumps(row, default=float), flush=True)
-    for name, (points, origins) in (real_inputs(Path(args.real)) if args.real else {}).items():
-        row = real_scene(name, points, origins, cache, ae)
+    for name, (points, origins, index) in (real_inputs(Path(args.real)) if args.real else {}).items():
+        row = real_scene(name, points, origins, index, cache, ae)
         result["real"].append(row)
         print(json.dumps(row, default=float), flush=True)
     if not args.skip_eval and evals["after"]:

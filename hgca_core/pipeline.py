@@ -80,6 +80,7 @@ class LocalCompletion:
     fine_cells: np.ndarray | None      # (N, 3) int64, 10 cm cells (x^T2) of the full stage, else None
     seed: int
     free_cells: int | None = None      # 20 cm cells seen empty that the run used (None: no free space)
+    fine_latents: np.ndarray | None = None   # (N, K) float32 latents of fine_cells (row-aligned), else None
 
 
 @dataclass
@@ -248,7 +249,7 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
         with gemm_precision(gemm_dtype):
             occ = gca_sample(models.coarse, cs.with_batch(torch.from_numpy(s0).to(device)), grid, steps, gen,
                              lambda t, n: report("planner" if t == 0 else "coarse", t, n, tag, i), free, mask)
-        cells, cells10 = occ[:, 1:].cpu().numpy(), None
+        cells, cells10, latents10 = occ[:, 1:].cpu().numpy(), None, None
         if stage == "full":
             from hgca_core.models.cgca import decode_mesh, upsample
 
@@ -257,7 +258,7 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
                                         gen, lambda t, n: report("fine", t, n, tag, i), free, mask)
             report("mesh", 0, 1, tag, i)
             mesh = decode_mesh(models.autoencoder, c10, latents, points=local, sensors=sensors)
-            cells10 = c10.cpu().numpy()
+            cells10, latents10 = c10.cpu().numpy(), latents.float().cpu().numpy()
         else:
             report("mesh", 0, 1, tag, i)
             mesh = voxel_mesh(cells, COARSE)
@@ -270,7 +271,8 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
             warnings.warn(HgcaWarning(f"{tag} is an empty mesh: the model made no surface from {len(s0)} input "
                                       "cells (untrained or mismatched weights?)"), stacklevel=2)
         results.append(LocalCompletion(mesh=mesh, coarse_cells=cells, fine_cells=cells10, seed=seed + i,
-                                       free_cells=None if free_np is None else int(free_np.sum())))
+                                       free_cells=None if free_np is None else int(free_np.sum()),
+                                       fine_latents=latents10))
         report("mesh", 1, 1, tag, i)
     return results
 

@@ -123,6 +123,17 @@ def test_the_mask_never_outputs_a_seen_empty_cell(scene):
     parents = on.fine_cells // 2
     parents = parents[(parents < free.shape).all(1)]
     assert free[tuple(parents.T)].sum() == 0
+    # the latents come back row-aligned with the fine cells: meshing them again gives the run's own mesh
+    assert on.fine_latents.shape == (len(on.fine_cells), models.autoencoder.cfg.latent)
+    again = cgca.decode_mesh(models.autoencoder, torch.from_numpy(on.fine_cells), torch.from_numpy(on.fine_latents),
+                             points=local[region.contains_local(local)], sensors=origins)
+    np.testing.assert_array_equal(again.faces, on.mesh.faces)
+    np.testing.assert_allclose(again.vertices, on.mesh.vertices, atol=1e-6)
+    shuffled = np.random.default_rng(0).permutation(len(on.fine_cells))
+    other = cgca.decode_mesh(models.autoencoder, torch.from_numpy(on.fine_cells),
+                             torch.from_numpy(on.fine_latents[shuffled]))
+    assert len(other.faces) != len(on.mesh.faces)                       # the pairing matters
+    assert off.fine_latents is not None and off.coarse_cells is not None
 
 
 def test_free_space_weights_without_origins_warn_that_it_is_unknown(scene):
