@@ -68,9 +68,12 @@ def flat_patches_from_labels(surface: np.ndarray, label: np.ndarray, ground_labe
 
 
 def flat_patches_from_points(points: np.ndarray, size: float = PATCH, min_points: int = 200,
-                             max_rms: float = 0.03, band: float = BAND) -> Patches:
+                             max_rms: float = 0.03, band: float = BAND, max_above: float = 0.02) -> Patches:
     """Without ground truth (real scans): patches where the lowest points (within `band` of the patch's 5th
-    height percentile) hold at least `min_points` and fit one plane to `max_rms`, i.e. flat ground."""
+    height percentile) hold at least `min_points` and fit one plane to `max_rms`, i.e. flat ground, and at most
+    a `max_above` share of all the patch's points lie more than `band` above that ground: the counterpart of the
+    labelled patches' "no object inside" (a parked car or a planter over flat ground is not a ground patch;
+    what the mesh does under it is not the road's flatness). max_above = 1 keeps every flat-bottomed patch."""
     p = np.asarray(points, dtype=np.float64)
     key = np.floor(p[:, :2] / size).astype(np.int64)
     uk, inv = np.unique(key, axis=0, return_inverse=True)
@@ -81,8 +84,9 @@ def flat_patches_from_points(points: np.ndarray, size: float = PATCH, min_points
     low = p[order[np.minimum(start + (0.05 * count).astype(np.int64), len(p) - 1)], 2]
     near = np.abs(p[:, 2] - low[inv]) < band
     rms, n = plane_rms(p[near], inv[near], len(uk))
-    ok = (n >= min_points) & (rms <= max_rms)
     height = np.bincount(inv[near], weights=p[near, 2], minlength=len(uk)) / np.maximum(n, 1)
+    above = np.bincount(inv, weights=p[:, 2] > height[inv] + band, minlength=len(uk)) / np.maximum(count, 1)
+    ok = (n >= min_points) & (rms <= max_rms) & (above <= max_above)
     return Patches(uk[ok].astype(np.float64) * size, height[ok], size)
 
 

@@ -37,7 +37,12 @@ def test_patches_skip_kerbs_and_objects():
     assert not any(c[0] == 2.0 for c in got)             # the kerb
     assert np.isclose(p.height[np.flatnonzero((p.corners == [4.0, 0.0]).all(1))[0]], 0.14)
     q = flat_patches_from_points(np.r_[road, car], min_points=100)
-    assert (0.0, 0.0) in {tuple(c) for c in q.corners}
+    got = {tuple(c) for c in q.corners}
+    assert (0.0, 0.0) in got and (4.0, 0.0) in got
+    assert (0.0, 2.0) not in got                         # the car stands on flat road: not a ground patch
+    assert not any(c[0] == 2.0 for c in got)             # the kerb: two planes
+    every = flat_patches_from_points(np.r_[road, car], min_points=100, max_above=1.0)
+    assert (0.0, 2.0) in {tuple(c) for c in every.corners}   # the flat bottom alone would take it
 
 
 def test_rays_count_layers_and_measure_flatness():
