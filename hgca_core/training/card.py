@@ -16,15 +16,16 @@ INTRO = """# hgca model card
 Weights trained by this project on its own procedural street scenes (`hgca_core/synth`), never on real scans.
 Each file below names its training data, one of two datasets:
 - `data/synth` (the first split): two styles, city and suburb; one Waymo-like 64-beam LiDAR with 1 cm point
-  noise and 0.02 deg pitch noise; 5 scans per sample. `coarse_noplanner.pt`, `autoencoder.pt` and `fine.pt`.
+  noise and 0.02 deg pitch noise; 5 scans per sample. Trained on it last: {synth1}.
 - synth2 (generator 6, recipe `docs/data/synth2_recipe.json`): five sensor profiles with their real beam tables
   and mounting (Velodyne HDL-64E as on KITTI, HDL-32E as on nuScenes, two stacked VLP-32C as on Argoverse 2,
   the Waymo top LiDAR, Ouster OS1-128), 1 to 10 scans per sample, mounting height and pitch jitter, random and
   range-dependent dropout, no return from glass and dark surfaces, range and ring-correlated noise, motion
   distortion, pose noise and drift between scans; sloped, hilly and curved streets, more building, vegetation,
-  vehicle and street-furniture types. `coarse.pt`, warm-started from the first split's coarse weights, with the
-  observed free space (cells the input rays crossed) as a further input: `hgca complete` computes it from the
-  scans' sensor origins and gives the model an all-unknown grid where a scan has none.
+  vehicle and street-furniture types. Trained on it last: {synth2} (each warm-started from its first-split
+  weights; see its notes).
+With the observed free space (cells the input rays crossed) as a further input: {free}. `hgca complete`
+computes it from the scans' sensor origins and gives the model an all-unknown grid where a scan has none.
 Training uses only the train split (seeds 0..999,999; each file below lists the samples it saw); validation
 uses seeds 1,000,000+; the evaluations below use the test split (seeds 2,000,000+), which trains nothing.
 The shipped weights are the exponential moving average of the training weights where the run kept one
@@ -89,9 +90,21 @@ def _samples(names: list[str] | None) -> str:
     return f": {len(seeds)} samples, seeds {seeds[0]}-{seeds[-1]}"
 
 
+def _by_dataset(paths: list[Path]) -> dict[str, str]:
+    """The INTRO's file lists, from each file's own metadata (its `data` folder and `free_space` config)."""
+    names: dict[str, list[str]] = {"synth1": [], "synth2": [], "free": []}
+    for path in paths:
+        blob = load_file(path)
+        names["synth2" if "synth2" in str(blob["meta"].get("data", "")) else "synth1"].append(f"`{path.name}`")
+        if blob.get("config", {}).get("free_space"):
+            names["free"].append(f"`{path.name}`")
+    return {k: ", ".join(v) or "none of the files here" for k, v in names.items()}
+
+
 def write_model_card(weights_dir: Path = WEIGHTS_DIR) -> Path:
-    parts = [INTRO, f"Card written with torch {torch.__version__} on {platform.machine()}.", ""]
-    for path in sorted(weights_dir.glob("*.pt")):
+    weights = sorted(weights_dir.glob("*.pt"))
+    parts = [INTRO.format(**_by_dataset(weights)), f"Card written with torch {torch.__version__} on {platform.machine()}.", ""]
+    for path in weights:
         parts += [_section(path), ""]
     for path in sorted(weights_dir.glob("eval_*.md")):
         parts += [f"## Evaluation: `{path.stem}`", "", path.read_text(), ""]

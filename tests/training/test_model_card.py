@@ -30,3 +30,7 @@ def test_card_renders_weights_metadata_and_eval_provenance(tmp_path):
     assert "- hGCA coarse (planner): 12.5 s per completion" in card
     assert "The GCA row is not like-for-like." in card
     assert "fine.pt" not in card.split("Card written")[1].split("## Evaluation")[0]   # only the files present
+    # the intro's dataset lists come from the files' metadata, not from typed text
+    assert "Trained on it last: `coarse.pt` (each warm-started" in card
+    assert "one Waymo-like" in card and "5 scans per sample. Trained on it last: none of the files here." in card
+    assert "a further input: `coarse.pt`." in card
