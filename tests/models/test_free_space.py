@@ -117,24 +117,33 @@ def test_fine_kernel_feature_is_the_children_of_the_free_20cm_cells():
     torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-5)
 
 
-def _old_format_coarse(path: Path) -> Path:
-    """Coarse weights with the planner as written before the free-space field existed (no `free_space` key in
-    the config): the shipped coarse.pt's architecture without the feature, seeded random weights."""
+def _old_format(path: Path, kind: str = "coarse") -> Path:
+    """Weights as written before the free-space field existed (no `free_space` key in the config): the shipped
+    file's architecture without the feature, seeded random weights. kind: coarse (with the planner),
+    coarse-noplanner, or fine (with the shipped autoencoder)."""
     torch.manual_seed(0)
-    cfg = dataclasses.replace(load_coarse()[0].cfg, free_space=False)
-    save_weights(path, GCAKernel(cfg))
+    if kind == "fine":
+        kernel, ae, _ = load_fine()
+        save_weights(path, CGCAKernel(dataclasses.replace(kernel.cfg, free_space=False)), autoencoder=ae)
+    else:
+        save_weights(path, GCAKernel(dataclasses.replace(load_coarse(shipped(kind))[0].cfg, free_space=False)))
     blob = load_file(path)
     del blob["config"]["free_space"]
     save_file(blob, path)
     return path
 
 
+def _old_format_coarse(path: Path) -> Path:
+    return _old_format(path, "coarse")
+
+
 def test_old_weights_load_unchanged_without_the_feature(tmp_path):
     """Files written before the field existed are models without free space: same tensors, same input layout."""
     old = _old_format_coarse(tmp_path / "old_coarse.pt")
-    for load, path in ((lambda: load_coarse(old)[0], old),
-                       (lambda: load_coarse(shipped("coarse-noplanner"))[0], shipped("coarse-noplanner")),
-                       (lambda: load_fine()[0], shipped("fine"))):
+    nop = _old_format(tmp_path / "old_noplanner.pt", "coarse-noplanner")
+    fine = _old_format(tmp_path / "old_fine.pt", "fine")
+    for load, path in ((lambda: load_coarse(old)[0], old), (lambda: load_coarse(nop)[0], nop),
+                       (lambda: load_fine(fine)[0], fine)):
         model = load()
         assert model.cfg.free_space is False and model.free_columns() == {}
         sd = load_file(path)["state_dict"]
