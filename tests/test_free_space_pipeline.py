@@ -1,5 +1,7 @@
 """Observed free space in the pipeline (`--free-space`): computed once per completion from every ray and handed to
 both stages, old weights unchanged by default, the mask never outputs a seen-empty cell, clear errors."""
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -13,7 +15,7 @@ from hgca_core.models import cgca, gca
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel
 from hgca_core.models.gca import GCAConfig, GCAKernel
-from hgca_core.models.weights import shipped
+from hgca_core.models.weights import save_weights, shipped
 from hgca_core.pipeline import Models, complete_local, load_models, takes_free_space
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -73,12 +75,24 @@ def test_free_space_is_computed_once_from_every_ray_and_reaches_both_stages(scen
     assert len(seen["coarse"]) == len(seen["fine"]) == 2
 
 
-def test_old_weights_give_the_old_result_unless_the_mask_is_asked_for(scene):
-    """Weights without a free-space input (the shipped no-planner ablation): auto (the default) with or without
-    origins and off are the same chains, and nothing is computed for them; feature is refused, mask changes the
-    result."""
+def _without_free_space(path):
+    """The shipped no-planner weights with their free-space input column cut out: trained weights of a model
+    without the feature, as every file written before it existed."""
+    model = load_models("coarse", weights=shipped("coarse-noplanner")).coarse
+    sd = model.state_dict()
+    for name, (dim, cols) in model.free_columns().items():
+        keep = torch.tensor([i for i in range(sd[name].shape[dim]) if i not in cols])
+        sd[name] = sd[name].index_select(dim, keep)
+    old = GCAKernel(dataclasses.replace(model.cfg, free_space=False))
+    old.load_state_dict(sd)
+    return save_weights(path, old)
+
+
+def test_old_weights_give_the_old_result_unless_the_mask_is_asked_for(scene, tmp_path):
+    """Weights without a free-space input: auto (the default) with or without origins and off are the same
+    chains, and nothing is computed for them; feature is refused, mask changes the result."""
     local, origins, index, region = scene
-    models = load_models("coarse", weights=shipped("coarse-noplanner"))
+    models = load_models("coarse", weights=_without_free_space(tmp_path / "old.pt"))
     assert not takes_free_space(models)
     runs = {name: complete_local(local, region, models, samples=1, seed=3, precision="fp32", **kw)[0].coarse_cells
             for name, kw in {"plain": {}, "auto": dict(origins=origins, origin_index=index),
@@ -153,8 +167,8 @@ def test_cli_free_space_option(tmp_path):
     np.savez(scan, points=s["input_points"].astype(np.float64), origins=s["input_origins"].astype(np.float64))
     args = ["complete", str(scan), "-o", str(tmp_path / "out.npz"), "--region", "3,3,1,6,6,4", "--progress", "none",
             "--t1", "2"]
-    noplanner = str(shipped("coarse-noplanner"))                        # trained without free space
-    assert main(args + ["--free-space", "feature", "--weights", noplanner]) == 2
+    noplanner = str(_without_free_space(tmp_path / "old.pt"))           # trained without free space
+    assert main(args + ["--free-space", "feature", "--weights", noplanner, "--stage", "coarse"]) == 2
     assert not list(tmp_path.glob("out_s*"))
     bare = tmp_path / "bare.npz"                                        # no sensor origins: nothing to walk
     np.savez(bare, points=s["input_points"].astype(np.float64))

@@ -44,7 +44,8 @@ def add_free_space_argument(p: argparse.ArgumentParser, what: str = "") -> None:
     p.add_argument("--free-space", choices=("auto", "feature", "mask", "off"), default="auto",
                    help=f"observed free space{what}: what the sensor saw through (needs sensor origins). feature = "
                         "give it to weights trained with it; mask = also never output a seen-empty cell; off = "
-                        "neither; auto (default) = feature where the weights take it (the shipped coarse.pt does) "
+                        "neither; auto (default) = feature where the weights take it (the shipped coarse.pt, "
+                        "coarse_noplanner.pt and fine.pt do) "
                         "and the scans have sensor origins")
 
 

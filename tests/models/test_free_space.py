@@ -195,10 +195,13 @@ def test_warm_start_from_coarse_weights_without_the_feature(tmp_path):
     torch.testing.assert_close(logits(new, torch.zeros_like(free)), ref, rtol=0, atol=1e-4)
 
 
-def test_warm_start_from_the_shipped_fine_weights():
-    old = load_fine()[0]
+def test_warm_start_of_fine_weights_without_the_feature(tmp_path):
+    """As the shipped fine.pt was made: fine weights written before the feature (the shipped architecture)
+    warm-start a model with it, which computes the same until its new column is trained."""
+    path = _old_format(tmp_path / "old_fine.pt", "fine")
+    old = load_fine(path)[0]
     new = CGCAKernel(dataclasses.replace(old.cfg, free_space=True))
-    assert load_into(new, shipped("fine"))["widened"] == ["proj.0.weight"]
+    assert load_into(new, path)["widened"] == ["proj.0.weight"]
     new.eval()
     grid = (40, 40, 30)
     g = torch.Generator().manual_seed(1)
