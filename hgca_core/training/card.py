@@ -39,7 +39,9 @@ Reading the validation numbers: IoU is at the stage's resolution on fixed val cr
 (4 for the coarse stage, so they are not comparable between datasets, and noisy: +-0.07 between checks).
 The fine stage's and the autoencoder's `val_cd` (metres) is a Chamfer distance to the stored ground-truth surface
 samples, of which there is less than one per 10 cm cell: a dense sample of the true surface itself scores
-3.9 cm on such crops (measured on val seeds 1,000,002-3), so the 4.0-4.2 cm below sit near that floor.
+3.9 cm on such crops of the first split (measured on its val seeds 1,000,002-3), so the autoencoder's 4.0-4.2 cm
+there sit near that floor; the fine stage's 4.9-5.1 cm are on synth2's val crops (the shipped fine.pt's data), where
+that floor was not measured, and the previous first-split fine.pt scores 5.46 cm on the same crops.
 
 Intended use: completing street-level LiDAR (vehicle-mounted, 32-128 beams) into 20 cm geometry and 10 cm
 implicit surfaces. Limits: trained on synthetic content only, on 2 CPU cores, for far fewer steps than the
