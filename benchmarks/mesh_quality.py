@@ -31,27 +31,22 @@ from hgca_core.geometry.region import Region  # noqa: E402
 from hgca_core.meshing import DEFAULT_MAX_FACES, decimate, udf_grid, udf_mesh  # noqa: E402
 from hgca_core.metrics import flatness  # noqa: E402
 from hgca_core.metrics.surface import mesh_chamfer  # noqa: E402
-from hgca_core.models.weights import load_fine  # noqa: E402
-from hgca_core.pipeline import complete_local, load_models  # noqa: E402
+from hgca_core.pipeline import Models, complete_local, load_models  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "mesh_quality"
-MODELS: dict = {}   # loaded once per run
 
 
-def fine_state(points: np.ndarray, region: Region, seed: int, cache: Path | None, name: str,
+def fine_state(models: Models, points: np.ndarray, region: Region, seed: int, cache: Path | None, name: str,
                origins: np.ndarray | None = None, origin_index: np.ndarray | None = None
                ) -> tuple[torch.Tensor, torch.Tensor]:
     """(10 cm cells, latents) of one completion as `hgca complete` / `hgca eval` make it (the product's
-    `pipeline.complete_local`, shipped weights, free space from the sensor origins, seed `seed`), cached by
-    name. points, origins: region frame."""
+    `pipeline.complete_local` with the full-stage `models`, free space from the sensor origins, seed `seed`),
+    cached by name. points, origins: region frame."""
     path = cache / f"{name}_s{seed}.npz" if cache else None
     if path is not None and path.exists():
         z = np.load(path)
         return torch.from_numpy(z["cells10"]), torch.from_numpy(z["latents"])
-    if "full" not in MODELS:
-        MODELS["full"] = load_models("full", None, MODELS.get("fine_weights"))
-    done = complete_local(points, region, MODELS["full"], "full", 1, seed, origins=origins,
-                          origin_index=origin_index)[0]
+    done = complete_local(points, region, models, "full", 1, seed, origins=origins, origin_index=origin_index)[0]
     cells10, z = done.fine_cells, done.fine_latents
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -95,7 +90,7 @@ def ground(meshes: dict, patches: flatness.Patches, ref: dict) -> dict:
             for k in ("before", "after", "light")}
 
 
-def synthetic_scene(path: Path, samples: int, cache: Path | None, ae) -> tuple[dict, list, list, dict]:
+def synthetic_scene(path: Path, samples: int, cache: Path | None, models: Models) -> tuple[dict, list, list, dict]:
     from hgca_core.synth.dataset import load_sample
 
     s = load_sample(path)
@@ -106,8 +101,9 @@ def synthetic_scene(path: Path, samples: int, cache: Path | None, ae) -> tuple[d
     ref = {"input": pts, "gt": np.asarray(s["gt_surface"])}
     rows, befores, afters, first = [], [], [], None
     for i in range(samples):
-        cells10, z = fine_state(pts, region, i, cache, path.stem, sensors, np.asarray(s["input_scan_index"]))
-        m = mesh_both(ae, cells10, z, pts, sensors)
+        cells10, z = fine_state(models, pts, region, i, cache, path.stem, sensors,
+                                np.asarray(s["input_scan_index"]))
+        m = mesh_both(models.autoencoder, cells10, z, pts, sensors)
         befores.append(m["before"])
         afters.append(m["after"])
         if i == 0:
@@ -120,14 +116,14 @@ def synthetic_scene(path: Path, samples: int, cache: Path | None, ae) -> tuple[d
 
 
 def real_scene(name: str, points: np.ndarray, origins: np.ndarray, index: np.ndarray, cache: Path | None,
-               ae) -> dict:
+               models: Models) -> dict:
     """One real input (world frame, each point's origin row in `index`) in its default region, as eval-real."""
     region = Region.around(points, sensor=origins[0])
     local = region.to_local(points)
     sensors = region.to_local(origins)
-    cells10, z = fine_state(local, region, 0, cache, name, sensors, index)
+    cells10, z = fine_state(models, local, region, 0, cache, name, sensors, index)
     inside = local[region.contains_local(local)]
-    m = mesh_both(ae, cells10, z, inside, sensors)
+    m = mesh_both(models.autoencoder, cells10, z, inside, sensors)
     patches = flatness.flat_patches_from_points(inside, max_rms=0.03)
     anyp = flatness.flat_patches_from_points(inside, max_rms=0.03, max_above=1.0)   # objects allowed (session 5)
     return {"scene": name, "timings": m["timings"], "ground": ground(m, patches, {"input": inside}),
@@ -137,21 +133,13 @@ def real_scene(name: str, points: np.ndarray, origins: np.ndarray, index: np.nda
 
 
 def real_inputs(root: Path) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """(points, origins, each point's origin row) of the real fixtures `hgca eval-real` scores (its
-    DEFAULT_INPUTS: both Argoverse 2 logs and the nuScenes sweep), read by the product's readers, world frame."""
-    from hgca_core.commands.eval_real import DEFAULT_INPUTS
-    from hgca_core.geometry.freespace import ray_origins
-    from hgca_core.real_eval import read_input
+    """(points, origins, each point's origin row) of the real fixtures `hgca eval-real` scores by default (both
+    Argoverse 2 logs and the nuScenes sweep, those present under `root`), world frame."""
+    from hgca_core.commands.eval_real import inputs_of
+    from hgca_core.real_eval import input_rays
 
-    out = {}
-    for name, rel, frames, calib in DEFAULT_INPUTS:
-        if not (root / rel).exists():
-            continue
-        scan = read_input({"path": str(root / rel), "frames": frames,
-                           "calibration": None if calib is None else str(root / calib)})
-        origins = np.asarray(scan.origins, dtype=np.float64)
-        out[name] = (scan.points, origins, ray_origins(origins, scan.attributes, scan.points))
-    return out
+    items = inputs_of(argparse.Namespace(inputs=[], real_dir=str(root)))
+    return {item["name"]: input_rays(item) for item in items if Path(item["path"]).exists()}
 
 
 def closeups(scene: dict, path: Path) -> None:
@@ -206,19 +194,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fine-weights", default=None, help="fine weights to measure (default: the shipped fine.pt)")
     p.add_argument("--out", default=str(OUT))
     args = p.parse_args(argv)
-    MODELS["fine_weights"] = args.fine_weights
     torch.set_num_threads(args.threads)
     from hgca_core.metrics.evaluate import aggregate, evaluate_sample, format_table
     from hgca_core.training.data import split_files
 
     cache = Path(args.cache) if args.cache else None
-    _, ae, _ = load_fine(args.fine_weights)
+    models = load_models("full", None, args.fine_weights)
+    ae = models.autoencoder
     udf_mesh(ae, torch.zeros((1, 3), dtype=torch.long), torch.zeros((1, ae.cfg.latent)))  # warm-up
     result: dict = {"scenes": [], "real": [], "threads": args.threads}
     evals: dict = {"before": [], "after": []}
     first_scene = None
     for path in split_files(args.data, "test")[: args.count]:
-        row, befores, afters, scene = synthetic_scene(Path(path), args.samples, cache, ae)
+        row, befores, afters, scene = synthetic_scene(Path(path), args.samples, cache, models)
         result["scenes"].append(row)
         first_scene = first_scene or scene
         if not args.skip_eval:
@@ -226,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
             evals["after"].append(evaluate_sample(scene["sample"], afters))
         print(json.dumps(row, default=float), flush=True)
     for name, (points, origins, index) in (real_inputs(Path(args.real)) if args.real else {}).items():
-        row = real_scene(name, points, origins, index, cache, ae)
+        row = real_scene(name, points, origins, index, cache, models)
         result["real"].append(row)
         print(json.dumps(row, default=float), flush=True)
     if not args.skip_eval and evals["after"]:

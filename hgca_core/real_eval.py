@@ -39,6 +39,14 @@ def read_input(item: dict):
     return read_scans([item["path"]])
 
 
+def input_rays(item: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points (N, 3), sensor origins (S, 3), each point's origin row (N,)) of one input, world frame: the rays
+    its observed free space is walked along."""
+    scan = read_input(item)
+    origins = np.asarray(scan.origins, dtype=np.float64)
+    return scan.points, origins, ray_origins(origins, scan.attributes, scan.points)
+
+
 def _mesh_cells(mesh, region: Region, seed: int) -> np.ndarray:
     """20 cm cells of a world-frame mesh's surface, in the region frame."""
     import trimesh
@@ -122,9 +130,7 @@ def evaluate_input(item: dict, methods: list[str], cuts: list[float], full_cuts:
     """All cases and methods of one input; writes its renderings beside `out`. Cases in `done` (an earlier
     run's result for this input, same settings) are kept, not recomputed; `saved(result)` is called after each
     case so an interrupted run loses at most one case."""
-    scan = read_input(item)
-    pts, origins = scan.points, scan.origins
-    index = ray_origins(origins, scan.attributes, pts)
+    pts, origins, index = input_rays(item)
     region = Region.around(pts, sensor=origins[0])
     local = region.to_local(pts)
     inside = region.contains_local(local)

@@ -51,8 +51,7 @@ generates lies in space the input rays saw empty.
 """
 
 
-def _section(path: Path) -> str:
-    blob = load_file(path)
+def _section(path: Path, blob: dict) -> str:
     meta, cfg = blob["meta"], blob.get("config", {})
     dicts = [blob.get("state_dict", {})] + ([blob["autoencoder"]["state_dict"]] if "autoencoder" in blob else [])
     n_params = sum(v.numel() for d in dicts for v in d.values())
@@ -92,11 +91,10 @@ def _samples(names: list[str] | None) -> str:
     return f": {len(seeds)} samples, seeds {seeds[0]}-{seeds[-1]}"
 
 
-def _by_dataset(paths: list[Path]) -> dict[str, str]:
+def _by_dataset(blobs: dict[Path, dict]) -> dict[str, str]:
     """The INTRO's file lists, from each file's own metadata (its `data` folder and `free_space` config)."""
     names: dict[str, list[str]] = {"synth1": [], "synth2": [], "free": []}
-    for path in paths:
-        blob = load_file(path)
+    for path, blob in blobs.items():
         names["synth2" if "synth2" in str(blob["meta"].get("data", "")) else "synth1"].append(f"`{path.name}`")
         if blob.get("config", {}).get("free_space"):
             names["free"].append(f"`{path.name}`")
@@ -104,10 +102,11 @@ def _by_dataset(paths: list[Path]) -> dict[str, str]:
 
 
 def write_model_card(weights_dir: Path = WEIGHTS_DIR) -> Path:
-    weights = sorted(weights_dir.glob("*.pt"))
-    parts = [INTRO.format(**_by_dataset(weights)), f"Card written with torch {torch.__version__} on {platform.machine()}.", ""]
-    for path in weights:
-        parts += [_section(path), ""]
+    blobs = {path: load_file(path) for path in sorted(weights_dir.glob("*.pt"))}   # each file read once
+    parts = [INTRO.format(**_by_dataset(blobs)),
+             f"Card written with torch {torch.__version__} on {platform.machine()}.", ""]
+    for path, blob in blobs.items():
+        parts += [_section(path, blob), ""]
     for path in sorted(weights_dir.glob("eval_*.md")):
         parts += [f"## Evaluation: `{path.stem}`", "", path.read_text(), ""]
         js = path.with_suffix(".json")

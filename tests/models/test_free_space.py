@@ -133,13 +133,9 @@ def _old_format(path: Path, kind: str = "coarse") -> Path:
     return path
 
 
-def _old_format_coarse(path: Path) -> Path:
-    return _old_format(path, "coarse")
-
-
 def test_old_weights_load_unchanged_without_the_feature(tmp_path):
     """Files written before the field existed are models without free space: same tensors, same input layout."""
-    old = _old_format_coarse(tmp_path / "old_coarse.pt")
+    old = _old_format(tmp_path / "old_coarse.pt")
     nop = _old_format(tmp_path / "old_noplanner.pt", "coarse-noplanner")
     fine = _old_format(tmp_path / "old_fine.pt", "fine")
     for load, path in ((lambda: load_coarse(old)[0], old), (lambda: load_coarse(nop)[0], nop),
@@ -171,7 +167,7 @@ def _coarse_inputs(grid=(30, 27, 40), seed=0):
 
 
 def test_warm_start_from_coarse_weights_without_the_feature(tmp_path):
-    path = _old_format_coarse(tmp_path / "old_coarse.pt")
+    path = _old_format(tmp_path / "old_coarse.pt")
     old = load_coarse(path)[0]
     new = GCAKernel(dataclasses.replace(old.cfg, free_space=True))
     meta = load_into(new, path)
