@@ -11,6 +11,7 @@ Writes benchmarks/results/mesh_quality.{md,json} and mesh_quality.png (close-ups
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import sys
@@ -67,11 +68,13 @@ def load_uptime() -> float:
 
 
 def mesh_both(ae, cells10, z, points, sensors) -> dict:
-    """Before / after meshes of one fine-stage result, with the after path's timings."""
+    """Before (shell) / one surface not faired / after (faired, the product's) / light (decimated) meshes of
+    one fine-stage result, with the after path's timings."""
     t = time.perf_counter()
     g, vals = udf_grid(ae, cells10, z)
     t_decode = time.perf_counter() - t
     before = shell_mesh(g, vals)
+    unfaired = udf_mesh(ae, cells10, z, voxel=ae.cfg.voxel, points=points, sensors=sensors, fair=False)
     timings: dict = {}
     t = time.perf_counter()
     after = udf_mesh(ae, cells10, z, voxel=ae.cfg.voxel, points=points, sensors=sensors, timings=timings)
@@ -82,15 +85,18 @@ def mesh_both(ae, cells10, z, points, sensors) -> dict:
     timings["meshing"] = t_mesh
     timings["decode_alone"] = t_decode
     timings["load"] = load_uptime()
-    return {"before": before, "after": after, "light": light, "timings": timings}
+    return {"before": before, "unfaired": unfaired, "after": after, "light": light, "timings": timings}
 
 
-def ground(meshes: dict, patches: flatness.Patches, ref: dict) -> dict:
-    return {k: flatness.ground_report(meshes[k], patches, ref if k == "after" else None)
-            for k in ("before", "after", "light")}
+MESHES = ("before", "unfaired", "after", "light")
 
 
-def synthetic_scene(path: Path, samples: int, cache: Path | None, models: Models) -> tuple[dict, list, list, dict]:
+def ground(meshes: dict, patches: flatness.Patches, ref: dict, truth: np.ndarray | None = None) -> dict:
+    return {k: flatness.ground_report(meshes[k], patches, ref if k == "after" else None, truth=truth)
+            for k in MESHES}
+
+
+def synthetic_scene(path: Path, samples: int, cache: Path | None, models: Models) -> tuple[dict, dict, dict]:
     from hgca_core.synth.dataset import load_sample
 
     s = load_sample(path)
@@ -99,20 +105,24 @@ def synthetic_scene(path: Path, samples: int, cache: Path | None, models: Models
     sensors = np.asarray(s["input_origins"], dtype=np.float64)
     patches = flatness.flat_patches_from_labels(s["gt_surface"], s["gt_surface_label"])
     ref = {"input": pts, "gt": np.asarray(s["gt_surface"])}
-    rows, befores, afters, first = [], [], [], None
+    rows, first = [], None
+    done: dict[str, list] = {"before": [], "unfaired": [], "after": []}
     for i in range(samples):
         cells10, z = fine_state(models, pts, region, i, cache, path.stem, sensors,
                                 np.asarray(s["input_scan_index"]))
         m = mesh_both(models.autoencoder, cells10, z, pts, sensors)
-        befores.append(m["before"])
-        afters.append(m["after"])
+        for k in done:   # bare copies, without the ray tests' BVHs
+            done[k].append(trimesh.Trimesh(m[k].vertices, m[k].faces, process=False))
+        if i > 0:
+            del m
+            gc.collect()
         if i == 0:
             first = m
-            row = {"scene": path.stem, "timings": m["timings"], "ground": ground(m, patches, ref),
-                   "stats": {k: mesh_stats(m[k]) for k in ("before", "after", "light")},
+            row = {"scene": path.stem, "timings": m["timings"], "ground": ground(m, patches, ref, ref["gt"]),
+                   "stats": {k: mesh_stats(m[k]) for k in MESHES},
                    "chamfer_light_m": mesh_chamfer(m["light"], m["after"])}
             rows.append(row)
-    return rows[0], befores, afters, {"sample": s, "first": first}
+    return rows[0], done, {"sample": s, "first": first}
 
 
 def real_scene(name: str, points: np.ndarray, origins: np.ndarray, index: np.ndarray, cache: Path | None,
@@ -128,7 +138,7 @@ def real_scene(name: str, points: np.ndarray, origins: np.ndarray, index: np.nda
     anyp = flatness.flat_patches_from_points(inside, max_rms=0.03, max_above=1.0)   # objects allowed (session 5)
     return {"scene": name, "timings": m["timings"], "ground": ground(m, patches, {"input": inside}),
             "ground_with_objects": flatness.ground_report(m["after"], anyp, {"input": inside}),
-            "stats": {k: mesh_stats(m[k]) for k in ("before", "after", "light")},
+            "stats": {k: mesh_stats(m[k]) for k in MESHES},
             "chamfer_light_m": mesh_chamfer(m["light"], m["after"])}
 
 
@@ -171,13 +181,14 @@ def closeups(scene: dict, path: Path) -> None:
     tiles = []
     for name, eye, target in views:
         row = [render_closeup(m[k], eye, target, size=(480, 320), light=np.array([0.9, 0.25, 0.35]))
-               for k in ("before", "light")]
+               for k in ("before", "unfaired", "light")]
         tiles.append(np.concatenate(row, 1))
     img = Image.fromarray(np.concatenate(tiles, 0))
     draw = ImageDraw.Draw(img)
     for r, (name, _, _) in enumerate(views):
         draw.text((6, 6 + 320 * r), f"{name}: before (3 cm shell)", fill=(200, 0, 0))
-        draw.text((486, 6 + 320 * r), f"{name}: after (one surface, <= 1 M triangles)", fill=(0, 120, 0))
+        draw.text((486, 6 + 320 * r), f"{name}: one surface, not faired", fill=(160, 90, 0))
+        draw.text((966, 6 + 320 * r), f"{name}: after (one surface, faired, <= 1 M triangles)", fill=(0, 120, 0))
     img.save(path)
 
 
@@ -203,15 +214,17 @@ def main(argv: list[str] | None = None) -> int:
     ae = models.autoencoder
     udf_mesh(ae, torch.zeros((1, 3), dtype=torch.long), torch.zeros((1, ae.cfg.latent)))  # warm-up
     result: dict = {"scenes": [], "real": [], "threads": args.threads}
-    evals: dict = {"before": [], "after": []}
+    evals: dict = {"before": [], "unfaired": [], "after": []}
     first_scene = None
     for path in split_files(args.data, "test")[: args.count]:
-        row, befores, afters, scene = synthetic_scene(Path(path), args.samples, cache, models)
+        row, meshes, scene = synthetic_scene(Path(path), args.samples, cache, models)
         result["scenes"].append(row)
         first_scene = first_scene or scene
         if not args.skip_eval:
-            evals["before"].append(evaluate_sample(scene["sample"], befores))
-            evals["after"].append(evaluate_sample(scene["sample"], afters))
+            for k in list(meshes):   # one kind at a time, freed after its scores (their ray BVHs are large)
+                evals[k].append(evaluate_sample(scene["sample"], meshes.pop(k)))
+        del meshes
+        gc.collect()   # trimesh's caches hold cycles (mesh <-> ray intersector): without this, > 20 GB by scene 4
         print(json.dumps(row, default=float), flush=True)
     for name, (points, origins, index) in (real_inputs(Path(args.real)) if args.real else {}).items():
         row = real_scene(name, points, origins, index, cache, models)
@@ -238,21 +251,26 @@ def report(result: dict, format_table) -> str:
              f"{torch.__version__} ({result['threads']} threads); load average (1 min) at each timing in the "
              f"last column: other jobs shared the cores, so times are upper bounds.", "",
              "| scene | mesh | one layer (%) | no layer (%) | 2+ layers (%) | ground RMS mesh (mm) | input (mm) | "
-             "GT (mm) | patches | triangles | non-manifold edges | boundary (m) | pieces | meshing (s) | load |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "GT (mm) | mesh to GT plane (mm) | patches | triangles | non-manifold edges | boundary (m) | pieces | "
+             "meshing (s) | load |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in result["scenes"] + result["real"]:
         t = row["timings"]
         g_after = row["ground"]["after"]
-        for k, label in (("before", "before: shell"), ("after", "after: one surface"),
+        for k, label in (("before", "before: shell"), ("unfaired", "one surface, not faired"),
+                         ("after", "after: one surface, faired"),
                          ("light", f"after, decimated to {DEFAULT_MAX_FACES:,}")):
+            if k not in row["ground"]:
+                continue
             g, st = row["ground"][k], row["stats"][k]
-            secs = (f"{t['decode'] + t['extract'] + t['clean']:.1f} (decode {t['decode']:.1f}, extract "
-                    f"{t['extract']:.1f}, clean {t['clean']:.1f})" if k == "after" else
+            secs = (f"{t['decode'] + t['extract'] + t['clean'] + t['fair']:.1f} (decode {t['decode']:.1f}, "
+                    f"extract {t['extract']:.1f}, clean {t['clean']:.1f}, fair {t['fair']:.1f})" if k == "after" else
                     f"+{t['decimate']:.1f} decimation" if k == "light" else "-")
             lines.append(f"| {row['scene']} | {label} | {100 * g['one_layer']:.1f} | {100 * g['no_layer']:.1f} | "
                          f"{100 * g['two_plus']:.1f} | {1000 * g['rms_mesh']:.1f} | "
                          f"{1000 * g_after.get('rms_input', float('nan')):.1f} | "
-                         f"{1000 * g_after.get('rms_gt', float('nan')):.1f} | {int(g['patches'])} | "
+                         f"{1000 * g_after.get('rms_gt', float('nan')):.1f} | "
+                         f"{1000 * g.get('rms_to_truth', float('nan')):.1f} | {int(g['patches'])} | "
                          f"{st['triangles']:,} | {st['nonmanifold_edges']:,} | {st['boundary_m']:.0f} | "
                          f"{st['pieces']} | {secs} | {t['load']:.1f} |")
     lines += ["", "Chamfer distance of the decimated mesh to the undecimated one (mean of both directions of the "
@@ -268,8 +286,10 @@ def report(result: dict, format_table) -> str:
                       f"{1000 * r['ground_with_objects']['rms_input']:.1f} mm)"
                       for r in result["real"] if "ground_with_objects" in r)]
     if "eval" in result:
-        rows = {"hGCA (implicit), before: shell": {**result["eval"]["before"], "representation": "implicit"},
-                "hGCA (implicit), after: one surface": {**result["eval"]["after"], "representation": "implicit"}}
+        names = {"before": "before: shell", "unfaired": "one surface, not faired",
+                 "after": "after: one surface, faired"}
+        rows = {f"hGCA (implicit), {names[k]}": {**v, "representation": "implicit"}
+                for k, v in result["eval"].items()}
         lines += ["", f"Implicit row of the paper's Table 1 on these {result['eval']['after']['n']} test scenes, "
                   f"k = {result['eval']['after']['k']} (same fine-stage results meshed both ways; undecimated):", "",
                   format_table(rows)]

@@ -126,8 +126,8 @@ def project_to_zero(field: UdfFn, points: np.ndarray, steps: int = 1, max_dist: 
 def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.Tensor | None = None,
              lower_corner: float | np.ndarray | None = None, voxel: float = 0.1, res: float = 0.05,
              chunk: int = 1 << 15, min_area: float = MIN_AREA, pinhole_edges: int = PINHOLE_EDGES,
-             points: np.ndarray | None = None,
-             sensors: np.ndarray | None = None, timings: dict | None = None) -> trimesh.Trimesh:
+             points: np.ndarray | None = None, sensors: np.ndarray | None = None, fair: bool = True,
+             timings: dict | None = None) -> trimesh.Trimesh:
     """One open surface at the zero level of the unsigned distance around occupied 10 cm cells (5 cm grid).
 
     decoder: an autoencoder (anything with `.field(cells, latents)`) or a function of (Q, 3) cell-frame points
@@ -141,7 +141,9 @@ def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.T
     points / sensors: input points and sensor positions (output frame): observed faces (`observed_vertices`)
       face the nearest sensor, and each connected piece follows its observed faces; pieces nobody saw face
       away from their own centre (outwards from what they enclose), or up. Without points: the latter.
-    timings: if given, filled with the wall seconds of each step (decode, extract, clean) and the CPU seconds
+    fair: near-horizontal surfaces are faired between the input points (`hgca_core.geometry.fairing`: the
+      generated ground between scan rings is flattened onto what the rings say); needs `points`.
+    timings: if given, filled with the wall seconds of each step (decode, extract, clean, fair) and the CPU seconds
       (`*_cpu`, all threads of this process: on a busy machine a fairer measure of the work).
     """
     import time
@@ -160,10 +162,19 @@ def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.T
     if points is not None and sensors is not None and len(points) and len(v):
         observed = observed_vertices(v, points, voxel)
     v, f = mc.clean_surface(v, f, min_area, observed, sensors, pinhole_edges)
+    t3, c3 = time.perf_counter(), time.process_time()
+    if fair and points is not None and len(points) and len(f):
+        from scipy.spatial import cKDTree
+
+        from hgca_core.geometry.fairing import ANCHOR_SCALE, fair_ground
+
+        near = cKDTree(np.asarray(points, dtype=np.float64)).query(v, distance_upper_bound=3 * ANCHOR_SCALE,
+                                                                   workers=-1)[0]
+        v = fair_ground(v, f, near)[0]
     if timings is not None:   # wall seconds, and CPU seconds of this process (all its threads)
-        t3, c3 = time.perf_counter(), time.process_time()
-        timings.update(decode=t1 - t0, extract=t2 - t1, clean=t3 - t2,
-                       decode_cpu=c1 - c0, extract_cpu=c2 - c1, clean_cpu=c3 - c2)
+        t4, c4 = time.perf_counter(), time.process_time()
+        timings.update(decode=t1 - t0, extract=t2 - t1, clean=t3 - t2, fair=t4 - t3,
+                       decode_cpu=c1 - c0, extract_cpu=c2 - c1, clean_cpu=c3 - c2, fair_cpu=c4 - c3)
     return trimesh.Trimesh(vertices=v, faces=f, process=False)
 
 

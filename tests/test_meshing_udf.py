@@ -124,6 +124,31 @@ def test_concave_and_convex_corners_of_a_kerb_close():
     assert np.abs(kerb(torch.from_numpy(m.vertices)).numpy()).max() < 0.025   # corners cut (or fin) by < 2.5 cm
 
 
+def test_ground_between_rings_is_faired_onto_the_rings():
+    """What the fine stage does on real roads, analytically: the field's ground is exact at three scan rings and
+    sits on terraces 3 cm above / below between them. udf_mesh with the input points flattens the terraces onto
+    the rings' height (hgca_core.geometry.fairing); fair=False keeps them."""
+    z0, rings = 0.512, np.array([0.55, 2.55, 4.55])
+
+    def height(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        far = (y[:, None] - torch.as_tensor(rings, dtype=y.dtype)).abs().min(1).values > 0.3
+        return z0 + torch.where(far, torch.where(x < 2.5, 0.03, -0.03), 0.0).to(y.dtype)
+
+    def terraces(q: torch.Tensor) -> torch.Tensor:
+        return (q[:, 2] - height(q[:, 0], q[:, 1])).abs().clamp(max=0.1)
+
+    cells = band_cells(terraces, 0, 52, hi_z=10)
+    x = np.arange(0.0, 5.1, 0.02)
+    points = np.stack(np.meshgrid(x, rings, [z0], indexing="ij"), -1).reshape(-1, 3)   # the rings' points
+    faired = udf_mesh(terraces, cells, points=points, sensors=np.array([[2.5, 2.5, 2.3]]))
+    plain = udf_mesh(terraces, cells, points=points, sensors=np.array([[2.5, 2.5, 2.3]]), fair=False)
+    inner = (np.abs(plain.vertices[:, :2] - 2.55) < 2.2).all(1)
+    assert np.sqrt(np.mean((plain.vertices[inner, 2] - z0) ** 2)) > 0.02
+    inner = (np.abs(faired.vertices[:, :2] - 2.55) < 2.2).all(1)
+    assert np.sqrt(np.mean((faired.vertices[inner, 2] - z0) ** 2)) < 0.006
+    assert np.array_equal(faired.faces, plain.faces)                   # only heights move
+
+
 def test_chunk_size_does_not_change_the_mesh():
     cells = band_cells(sphere_udf)
     a = udf_mesh(sphere_udf, cells)

@@ -143,11 +143,28 @@ def ray_samples(mesh: trimesh.Trimesh, patches: Patches, spacing: float = 0.1, b
     return pid, hits, first
 
 
+def patch_planes(points: np.ndarray, patches: Patches, band: float = BAND) -> np.ndarray:
+    """(P, 3) least-squares plane z = a x + b y + c of each patch's points within `band` of its height (NaN
+    rows for patches with fewer than 3 such points)."""
+    p = np.asarray(points, dtype=np.float64)
+    idx = patches.index(p)
+    keep = idx >= 0
+    keep[keep] &= np.abs(p[keep, 2] - patches.height[idx[keep]]) < band
+    out = np.full((len(patches.corners), 3), np.nan)
+    for k in np.unique(idx[keep]):
+        q = p[keep][idx[keep] == k]
+        if len(q) >= 3:
+            out[k] = np.linalg.lstsq(np.c_[q[:, :2], np.ones(len(q))], q[:, 2], rcond=None)[0]
+    return out
+
+
 def ground_report(mesh: trimesh.Trimesh, patches: Patches, reference: dict[str, np.ndarray] | None = None,
-                  spacing: float = 0.1, band: float = BAND) -> dict[str, float]:
+                  spacing: float = 0.1, band: float = BAND, truth: np.ndarray | None = None) -> dict[str, float]:
     """Share of vertical rays meeting exactly one surface (and none, two or more), and the mean over patches of
     the plane-fit RMS residual of the mesh's first hits; for each named point set in `reference` (e.g. the
-    input points, ground-truth samples) the same RMS on its points within `band` of each patch's height."""
+    input points, ground-truth samples) the same RMS on its points within `band` of each patch's height. With
+    `truth` (ground-truth surface samples), also the RMS height error of the first hits against the plane of
+    the truth's points in their patch (`rms_to_truth`): flat is not enough, it must also be where the road is."""
     pid, hits, first = ray_samples(mesh, patches, spacing, band)
     n_p = len(patches.corners)
     out = {"patches": float(n_p), "rays": float(len(pid)),
@@ -164,4 +181,9 @@ def ground_report(mesh: trimesh.Trimesh, patches: Patches, reference: dict[str, 
         keep[keep] &= np.abs(p[keep, 2] - patches.height[idx[keep]]) < band
         rms, n = plane_rms(p[keep], idx[keep], n_p)
         out[f"rms_{name}"] = float(np.nanmean(np.where(n >= 20, rms, np.nan))) if n_p else float("nan")
+    if truth is not None:
+        plane = patch_planes(truth, patches, band)[pid[ok]]
+        q = first[ok]
+        err = q[:, 2] - (plane[:, 0] * q[:, 0] + plane[:, 1] * q[:, 1] + plane[:, 2])
+        out["rms_to_truth"] = float(np.sqrt(np.nanmean(err ** 2))) if np.isfinite(err).any() else float("nan")
     return out

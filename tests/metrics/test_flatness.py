@@ -59,3 +59,17 @@ def test_rays_count_layers_and_measure_flatness():
     bumpy.vertices[:, 2] += 0.01 * np.sin(bumpy.vertices[:, 0] * 2 * np.pi / 0.5)   # 1 cm ripples, 0.5 m apart
     r = ground_report(bumpy, patches, {"flat": np.c_[np.random.default_rng(2).uniform(-1, 1, (500, 2)), np.zeros(500)]})
     assert 0.004 < r["rms_mesh"] < 0.0075 and r["rms_flat"] < 1e-9             # sin RMS: 1 cm / sqrt(2)
+
+
+def test_height_error_against_the_truth_plane():
+    """Flat is not enough: a perfectly flat mesh 2 cm above the true road has RMS 0 but error 2 cm."""
+    n = 41
+    x, y = np.meshgrid(np.linspace(0, 4, n), np.linspace(0, 4, n), indexing="ij")
+    i = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None]).ravel()
+    faces = np.r_[np.c_[i, i + n, i + 1], np.c_[i + 1, i + n, i + n + 1]]
+    truth = np.c_[x.ravel(), y.ravel(), 0.01 * x.ravel()]
+    patches = Patches(np.array([[0.0, 0.0], [2.0, 2.0]]), np.array([0.01, 0.03]))
+    for lift in (0.0, 0.02):
+        mesh = trimesh.Trimesh(truth + [0, 0, lift], faces, process=False)
+        r = ground_report(mesh, patches, truth=truth)
+        assert r["rms_mesh"] < 1e-6 and abs(r["rms_to_truth"] - lift) < 1e-6

@@ -1,0 +1,219 @@
+"""Ground fairing: near-horizontal surfaces made as flat as the input points say, between the points.
+
+Why: the fine stage puts the ground where the input's scan rings are to a few millimetres, but the ground it
+generates between the rings sits on terraces up to ~5-10 cm above or below them (a generated 10 cm cell does not
+know its sub-cell height; benchmarks/results/mesh_quality.md), which is what "scan-ring ripples" are on a road.
+The fairing treats the heights of near-horizontal vertices as a membrane anchored where input points are:
+
+    minimise  sum over edges (i, j) of (z_i - z_j - s . (p_i - p_j))^2  +  sum_i w_i (z_i - z0_i)^2,
+    w_i = anchor_weight * exp(-(d_i / anchor_scale)^2) + free_weight,
+
+over the heights z_i of "ground-like" vertices only: normals, averaged over `rings` rings of neighbours, within
+`tilt` degrees of vertical, not on a steep part at least `step` tall, in a connected region of at least
+`min_region` (a car roof, a bonnet keep their shape). Every other vertex (facades, kerb sides, car bodies) is
+fixed and bounds the membrane, so kerbs stay while the terraces' few-centimetre risers are smoothed away. d_i is
+the vertex's distance to the nearest input point: near a point the height is kept (the evidence), far from every
+point it follows the evidence around it. Without input (`distances` None) it is a plain low-pass.
+
+s is the local slope (`slopes`: planes per region and 8 m square, fitted mostly to the vertices at input points).
+A membrane on raw heights prefers level ground: where the neighbours lie on one side (the region's edge, holes) it
+would bend a sloped road by 10 cm on a 5 % slope; against the local slope, every plane is a fixed point and a
+crest of 200 m radius scanned every metre moves by < 5 mm (tests/geometry/test_fairing.py). No vertex moves
+more than `max_move` (one fine cell; on the AV2 log 7fab 0.2 % of the vertices reach it, on hole rims far from
+any point).
+
+Only heights move (the surfaces concerned are within `tilt` of horizontal), so no triangle flips. The system is
+the graph Laplacian plus a positive diagonal: symmetric positive definite, solved by Jacobi-preconditioned CG for
+the height change (relative tolerance 1e-3: 0.4 mm RMS from the converged solution on a default region).
+
+Defaults selected on synth2 val scenes (height error against the ground-truth road plane) and the AV2 log 7fab
+(flatness): benchmarks/results/mesh_quality.md.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import csr_matrix, diags
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse.linalg import cg
+
+from hgca_core.geometry.mesh_clean import face_normals
+
+TILT = 30.0            # degrees: surfaces flatter than this are ground-like
+NORMAL_RINGS = 3       # rings of neighbours the normals are averaged over before the tilt test (~15 cm at 5 cm)
+ANCHOR_SCALE = 0.02    # m: an input point holds a vertex within about this distance
+ANCHOR_WEIGHT = 10.0
+FREE_WEIGHT = 3e-4     # keeps vertices far from every point near their own height over ~60 edges (~2 m)
+TILE = 8.0             # m: the squares whose local planes give the slope the membrane keeps (see slopes)
+MAX_MOVE = 0.1         # m: no vertex moves farther than one fine cell (a rim or a lip far from every point)
+STEP = 0.08            # m: steep parts at least this tall (kerbs, walls, car sides) bound the membrane
+STEEP = 45.0           # degrees: faces steeper than this make up steps
+MIN_REGION = 8.0       # m^2: connected ground-like regions smaller than this (a car roof, a bonnet) keep their shape
+
+
+@dataclass
+class FairingReport:
+    """What the fairing did: vertices moved (ground-like), largest and RMS height change (m), CG iterations."""
+
+    ground: int
+    max_move: float
+    rms_move: float
+    iterations: int
+
+
+def adjacency(faces: np.ndarray, n_vertices: int) -> csr_matrix:
+    """(V, V) 0/1 symmetric matrix of the mesh's edges, from the sorted unique directed edge keys (several times
+    faster than summing a COO matrix's duplicates)."""
+    f = np.asarray(faces, dtype=np.int64)
+    a, b = f.reshape(-1), f[:, [1, 2, 0]].reshape(-1)
+    key = np.unique(np.concatenate([a * n_vertices + b, b * n_vertices + a]))
+    rows, cols = np.divmod(key, n_vertices)
+    indptr = np.zeros(n_vertices + 1, dtype=np.int64)
+    np.cumsum(np.bincount(rows, minlength=n_vertices), out=indptr[1:])
+    return csr_matrix((np.ones(len(cols), dtype=np.float32), cols, indptr), shape=(n_vertices, n_vertices))
+
+
+def ground_like(normals: np.ndarray, adj: csr_matrix, tilt: float = TILT, rings: int = NORMAL_RINGS) -> np.ndarray:
+    """(V,) bool: the vertex normal (area-weighted, unnormalised is fine), averaged over `rings` rings of
+    neighbours, is within `tilt` of vertical (either way up: orientation does not matter for a height)."""
+    n = normals
+    for _ in range(rings):
+        n = n + adj @ n
+    return np.abs(n[:, 2]) > np.cos(np.radians(tilt)) * np.maximum(np.linalg.norm(n, axis=1), 1e-12)
+
+
+def _vertex_sums(faces: np.ndarray, n_vertices: int, values: np.ndarray) -> np.ndarray:
+    """Per-vertex sums (V, C) of per-face values (F, C) over each vertex's faces."""
+    return np.stack([sum(np.bincount(faces[:, k], weights=values[:, c], minlength=n_vertices) for k in range(3))
+                     for c in range(values.shape[1])], 1)
+
+
+def tall_steps(face_normals: np.ndarray, faces: np.ndarray, z: np.ndarray, adj: csr_matrix,
+               steep: float = STEEP, step: float = STEP) -> np.ndarray:
+    """(V,) bool: vertices of steep faces (more than `steep` degrees from horizontal) whose connected steep part
+    rises at least `step`: a kerb, a wall, a car's side; not the few-centimetre risers between terraces."""
+    v_steep = np.zeros(len(z), dtype=bool)
+    v_steep[faces[np.abs(face_normals[:, 2]) < np.cos(np.radians(steep))].reshape(-1)] = True
+    idx = np.flatnonzero(v_steep)
+    if len(idx) == 0:
+        return v_steep
+    n, label = connected_components(adj[idx][:, idx], directed=False)
+    lo = np.full(n, np.inf)
+    hi = np.full(n, -np.inf)
+    np.minimum.at(lo, label, z[idx])
+    np.maximum.at(hi, label, z[idx])
+    v_steep[idx] = (hi - lo)[label] >= step
+    return v_steep
+
+
+def slopes(vertices: np.ndarray, label: np.ndarray, weight: np.ndarray, tile: float = TILE) -> np.ndarray:
+    """(N, 2) slope (dz/dx, dz/dy) at each of N labelled vertices (`label` >= 0: its ground region): weighted
+    least-squares planes per region and `tile` x `tile` square, their slopes blended bilinearly between square
+    centres within the region. Exact for any plane; a kerb between two regions does not tilt either's planes.
+    `weight`: how much each vertex is trusted (the fairing gives vertices at input points ~1000 times the weight
+    of the others, so where the rings are, they alone set the slope and the terraces between them do not)."""
+    p = np.asarray(vertices, dtype=np.float64)
+    t = np.floor(p[:, :2] / tile).astype(np.int64) + (1 << 20)          # squares, made non-negative
+
+    def pack(lab: np.ndarray, tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
+        return (lab.astype(np.int64) << 42) | (tx << 21) | ty
+
+    key, inv = np.unique(pack(label, t[:, 0], t[:, 1]), return_inverse=True)
+    inv = inv.reshape(-1)
+    m = len(key)
+    w = np.asarray(weight, dtype=np.float64)
+    cnt = np.bincount(inv, weights=w, minlength=m)
+    mean = np.stack([np.bincount(inv, weights=w * p[:, a], minlength=m) for a in range(3)], 1) / cnt[:, None]
+    d = p - mean[inv]
+
+    def s(x: np.ndarray) -> np.ndarray:
+        return np.bincount(inv, weights=w * x, minlength=m)
+
+    sxx, sxy, syy = s(d[:, 0] ** 2), s(d[:, 0] * d[:, 1]), s(d[:, 1] ** 2)
+    sxz, syz = s(d[:, 0] * d[:, 2]), s(d[:, 1] * d[:, 2])
+    det = sxx * syy - sxy ** 2
+    # trusted squares: not degenerate, and spread (standard deviation) at least 1/16 of a square both ways: a
+    # sliver along the region's edge would tilt its neighbours
+    ok = (det > 1e-6 * np.maximum(sxx * syy, 1e-30)) & (np.minimum(sxx, syy) >= (tile / 16) ** 2 * cnt)
+    grad = np.where(ok[:, None], np.c_[sxz * syy - syz * sxy, syz * sxx - sxz * sxy] / np.where(ok, det, 1)[:, None],
+                    0.0)
+    # bilinear blend over the (up to) four squares of the same region nearest to each vertex, each also weighted
+    # by its total weight
+    u = p[:, :2] / tile - 0.5
+    base = np.floor(u).astype(np.int64)
+    frac = u - base
+    base += 1 << 20
+    num = np.zeros((len(p), 2))
+    den = np.zeros(len(p))
+    for dx in (0, 1):
+        for dy in (0, 1):
+            k = pack(label, base[:, 0] + dx, base[:, 1] + dy)
+            j = np.searchsorted(key, k).clip(max=m - 1)
+            wt = np.where((key[j] == k) & ok[j], np.abs(1 - dx - frac[:, 0]) * np.abs(1 - dy - frac[:, 1]) * cnt[j],
+                          0.0)
+            num += wt[:, None] * grad[j]
+            den += wt
+    return np.where(den[:, None] > 0, num / np.maximum(den, 1e-300)[:, None], 0.0)    # none trusted: level
+
+
+def _regions(adj: csr_matrix, mask: np.ndarray, vertex_area: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(region label of each `mask` vertex (N,), area of its region (N,)): connected parts of the mask."""
+    idx = np.flatnonzero(mask)
+    n, label = connected_components(adj[idx][:, idx], directed=False)
+    return label, np.bincount(label, weights=vertex_area[idx], minlength=n)[label]
+
+
+def fair_ground(vertices: np.ndarray, faces: np.ndarray, distances: np.ndarray | None = None,
+                tilt: float = TILT, rings: int = NORMAL_RINGS, anchor_scale: float = ANCHOR_SCALE,
+                anchor_weight: float = ANCHOR_WEIGHT, free_weight: float = FREE_WEIGHT,
+                min_region: float = MIN_REGION, step: float = STEP, tile: float = TILE, max_move: float = MAX_MOVE,
+                tol: float = 1e-3, max_iter: int = 500) -> tuple[np.ndarray, FairingReport]:
+    """(vertices with the heights of ground-like vertices faired, report); see the module docstring.
+
+    distances: (V,) each vertex's distance to the nearest input point (m), or None for no evidence.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    out = v.copy()
+    if len(f) == 0:
+        return out, FairingReport(0, 0.0, 0.0, 0)
+    if free_weight <= 0:
+        raise ValueError(f"free_weight must be positive (it keeps the system definite), got {free_weight}")
+    adj = adjacency(f, len(v))
+    fn, area = face_normals(v.astype(np.float32), f)
+    sums = _vertex_sums(f, len(v), np.c_[fn * area[:, None], area / 3])   # area-weighted normals, vertex areas
+    g = ground_like(sums[:, :3], adj, tilt, rings) & ~tall_steps(fn, f, v[:, 2], adj, step=step)
+    label, region_area = _regions(adj, g, sums[:, 3])
+    big = region_area >= min_region
+    g[np.flatnonzero(g)[~big]] = False
+    n = int(g.sum())
+    if n == 0:
+        return out, FairingReport(0, 0.0, 0.0, 0)
+    # Solved for the height change dz: A dz = r with A = diag(deg + w) - L_gg and r the neighbours' pull
+    # sum_j (z_j - z_i - s_i . (p_j - p_i)) against the local slope s_i (fixed neighbours included: they bound
+    # the membrane). The data terms vanish at dz = 0, so a relative tolerance means "this much of the initial
+    # imbalance left", whatever the heights' magnitude.
+    deg = np.diff(adj.indptr).astype(np.float64)[g]
+    pull = (adj @ v)[g] - deg[:, None] * v[g]                          # sum_j (p_j - p_i), x y z
+    w = np.full(n, free_weight)
+    if distances is not None:
+        w += anchor_weight * np.exp(-np.square(np.asarray(distances, dtype=np.float64)[g] / anchor_scale))
+    r = pull[:, 2] - np.einsum("ij,ij->i", slopes(v[g], label[big], w, tile), pull[:, :2])
+    diag = (deg + w).astype(np.float32)
+    system = (diags(diag) - adj[g][:, g]).tocsr()                       # float32: half the memory traffic
+    dz, iterations = _cg(system, r.astype(np.float32), 1.0 / diag, tol, max_iter)
+    dz = np.clip(dz, -max_move, max_move)
+    out[g, 2] += dz
+    return out, FairingReport(n, float(np.abs(dz).max()), float(np.sqrt(np.mean(dz ** 2))), iterations)
+
+
+def _cg(a, b: np.ndarray, inv_diag: np.ndarray, tol: float, max_iter: int) -> tuple[np.ndarray, int]:
+    """Jacobi-preconditioned CG; returns (solution, iterations)."""
+    count = [0]
+
+    def step(_: np.ndarray) -> None:
+        count[0] += 1
+
+    x, _ = cg(a, b, rtol=tol, maxiter=max_iter, M=diags(inv_diag), callback=step)
+    return x, count[0]
