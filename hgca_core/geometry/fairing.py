@@ -39,6 +39,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import cg
 
 from hgca_core.geometry.mesh_clean import face_normals
+from hgca_core.geometry.planes import fit_planes
 
 TILT = 30.0            # degrees: surfaces flatter than this are ground-like
 NORMAL_RINGS = 3       # rings of neighbours the normals are averaged over before the tilt test (~15 cm at 5 cm)
@@ -122,22 +123,12 @@ def slopes(vertices: np.ndarray, label: np.ndarray, weight: np.ndarray, tile: fl
     key, inv = np.unique(pack(label, t[:, 0], t[:, 1]), return_inverse=True)
     inv = inv.reshape(-1)
     m = len(key)
-    w = np.asarray(weight, dtype=np.float64)
-    cnt = np.bincount(inv, weights=w, minlength=m)
-    mean = np.stack([np.bincount(inv, weights=w * p[:, a], minlength=m) for a in range(3)], 1) / cnt[:, None]
-    d = p - mean[inv]
-
-    def s(x: np.ndarray) -> np.ndarray:
-        return np.bincount(inv, weights=w * x, minlength=m)
-
-    sxx, sxy, syy = s(d[:, 0] ** 2), s(d[:, 0] * d[:, 1]), s(d[:, 1] ** 2)
-    sxz, syz = s(d[:, 0] * d[:, 2]), s(d[:, 1] * d[:, 2])
-    det = sxx * syy - sxy ** 2
+    fit = fit_planes(p, inv, m, weight)
+    cnt, grad = fit.weight, fit.slope
     # trusted squares: not degenerate, and spread (standard deviation) at least 1/16 of a square both ways: a
     # sliver along the region's edge would tilt its neighbours
-    ok = (det > 1e-6 * np.maximum(sxx * syy, 1e-30)) & (np.minimum(sxx, syy) >= (tile / 16) ** 2 * cnt)
-    grad = np.where(ok[:, None], np.c_[sxz * syy - syz * sxy, syz * sxx - sxz * sxy] / np.where(ok, det, 1)[:, None],
-                    0.0)
+    spread = np.minimum(fit.sxx, fit.syy) >= (tile / 16) ** 2 * cnt
+    ok = (fit.det > 1e-6 * np.maximum(fit.sxx * fit.syy, 1e-30)) & spread
     # bilinear blend over the (up to) four squares of the same region nearest to each vertex, each also weighted
     # by its total weight
     u = p[:, :2] / tile - 0.5

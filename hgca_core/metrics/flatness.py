@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from hgca_core.geometry.planes import fit_planes
+
 PATCH = 2.0     # metres, patch edge
 BAND = 0.15     # metres above / below the ground height that count as "the ground"
 
@@ -92,26 +94,12 @@ def flat_patches_from_points(points: np.ndarray, size: float = PATCH, min_points
 
 def plane_rms(points: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray]:
     """(RMS residual to the least-squares plane z = a x + b y + c of each group, points per group); NaN for
-    groups with fewer than 3 points. Vectorised through per-group normal equations (centred coordinates)."""
-    p = np.asarray(points, dtype=np.float64)
-    g = np.asarray(group)
-    n = np.bincount(g, minlength=n_groups).astype(np.float64)
-    mean = np.stack([np.bincount(g, weights=p[:, a], minlength=n_groups) for a in range(3)], 1) / np.maximum(n, 1)[:, None]
-    q = p - mean[g]
-    x, y, z = q[:, 0], q[:, 1], q[:, 2]
-
-    def s(w: np.ndarray) -> np.ndarray:
-        return np.bincount(g, weights=w, minlength=n_groups)
-
-    sxx, sxy, syy, sxz, syz, szz = s(x * x), s(x * y), s(y * y), s(x * z), s(y * z), s(z * z)
-    det = sxx * syy - sxy * sxy
-    good = (n >= 3) & (det > 1e-12)
-    a = np.where(good, (sxz * syy - syz * sxy) / np.where(good, det, 1), 0)
-    b = np.where(good, (syz * sxx - sxz * sxy) / np.where(good, det, 1), 0)
-    # residual sum of squares of z - a x - b y (centred)
-    rss = szz - 2 * a * sxz - 2 * b * syz + a * a * sxx + 2 * a * b * sxy + b * b * syy
-    rms = np.sqrt(np.maximum(rss, 0) / np.maximum(n, 1))
-    return np.where(good, rms, np.nan), n.astype(np.int64)
+    groups with fewer than 3 points or collinear ones (`hgca_core.geometry.planes`)."""
+    fit = fit_planes(points, group, n_groups)
+    n = fit.weight
+    good = (n >= 3) & (fit.det > 1e-12)
+    rms = np.sqrt(fit.rss / np.maximum(n, 1))
+    return np.where(good, rms, np.nan), np.round(n).astype(np.int64)
 
 
 def ray_samples(mesh: trimesh.Trimesh, patches: Patches, spacing: float = 0.1, band: float = BAND
@@ -145,17 +133,16 @@ def ray_samples(mesh: trimesh.Trimesh, patches: Patches, spacing: float = 0.1, b
 
 def patch_planes(points: np.ndarray, patches: Patches, band: float = BAND) -> np.ndarray:
     """(P, 3) least-squares plane z = a x + b y + c of each patch's points within `band` of its height (NaN
-    rows for patches with fewer than 3 such points)."""
+    rows for patches with fewer than 3 such points or collinear ones)."""
     p = np.asarray(points, dtype=np.float64)
     idx = patches.index(p)
     keep = idx >= 0
     keep[keep] &= np.abs(p[keep, 2] - patches.height[idx[keep]]) < band
-    out = np.full((len(patches.corners), 3), np.nan)
-    for k in np.unique(idx[keep]):
-        q = p[keep][idx[keep] == k]
-        if len(q) >= 3:
-            out[k] = np.linalg.lstsq(np.c_[q[:, :2], np.ones(len(q))], q[:, 2], rcond=None)[0]
-    return out
+    n_p = len(patches.corners)
+    fit = fit_planes(p[keep], idx[keep], n_p)
+    c = fit.centroid[:, 2] - np.einsum("ij,ij->i", fit.slope, fit.centroid[:, :2])
+    good = (fit.weight >= 3) & (fit.det > 1e-12)
+    return np.where(good[:, None], np.c_[fit.slope, c], np.nan)
 
 
 def ground_report(mesh: trimesh.Trimesh, patches: Patches, reference: dict[str, np.ndarray] | None = None,
