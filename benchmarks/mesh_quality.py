@@ -105,7 +105,8 @@ def synthetic_scene(path: Path, samples: int, cache: Path | None, models: Models
     sensors = np.asarray(s["input_origins"], dtype=np.float64)
     patches = flatness.flat_patches_from_labels(s["gt_surface"], s["gt_surface_label"])
     ref = {"input": pts, "gt": np.asarray(s["gt_surface"])}
-    rows, first = [], None
+    row: dict = {}
+    first = None
     done: dict[str, list] = {"before": [], "unfaired": [], "after": []}
     for i in range(samples):
         cells10, z = fine_state(models, pts, region, i, cache, path.stem, sensors,
@@ -113,16 +114,15 @@ def synthetic_scene(path: Path, samples: int, cache: Path | None, models: Models
         m = mesh_both(models.autoencoder, cells10, z, pts, sensors)
         for k in done:   # bare copies, without the ray tests' BVHs
             done[k].append(trimesh.Trimesh(m[k].vertices, m[k].faces, process=False))
-        if i > 0:
-            del m
-            gc.collect()
         if i == 0:
             first = m
             row = {"scene": path.stem, "timings": m["timings"], "ground": ground(m, patches, ref, ref["gt"]),
                    "stats": {k: mesh_stats(m[k]) for k in MESHES},
                    "chamfer_light_m": mesh_chamfer(m["light"], m["after"])}
-            rows.append(row)
-    return rows[0], done, {"sample": s, "first": first}
+        else:
+            del m
+            gc.collect()
+    return row, done, {"sample": s, "first": first}
 
 
 def real_scene(name: str, points: np.ndarray, origins: np.ndarray, index: np.ndarray, cache: Path | None,
@@ -260,8 +260,6 @@ def report(result: dict, format_table) -> str:
         for k, label in (("before", "before: shell"), ("unfaired", "one surface, not faired"),
                          ("after", "after: one surface, faired"),
                          ("light", f"after, decimated to {DEFAULT_MAX_FACES:,}")):
-            if k not in row["ground"]:
-                continue
             g, st = row["ground"][k], row["stats"][k]
             secs = (f"{t['decode'] + t['extract'] + t['clean'] + t['fair']:.1f} (decode {t['decode']:.1f}, "
                     f"extract {t['extract']:.1f}, clean {t['clean']:.1f}, fair {t['fair']:.1f})" if k == "after" else

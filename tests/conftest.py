@@ -1,6 +1,7 @@
 """Shared fixtures: a tiny dataset on disk and the real fixture folder (see hgca_testdata for both)."""
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -8,6 +9,12 @@ import pytest
 import torch
 
 from hgca_testdata import require_real, tiny_sample
+
+# A suite started in the background of a script (`cmd &`, nohup) inherits SIGINT ignored, and so would every CLI
+# the tests start: `hgca` keeps an ignored SIGINT ignored (as Python does), and the tests that Ctrl-C it would
+# wait in vain. A Python-level handler here is reset to the default in each child at exec.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session")

@@ -38,7 +38,8 @@ from scipy.sparse import csr_matrix, diags
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import cg
 
-from hgca_core.geometry.mesh_clean import face_normals
+from hgca_core.geometry.keys import pack
+from hgca_core.geometry.mesh_clean import face_normals, vertex_sums
 from hgca_core.geometry.planes import fit_planes
 
 TILT = 30.0            # degrees: surfaces flatter than this are ground-like
@@ -84,10 +85,11 @@ def ground_like(normals: np.ndarray, adj: csr_matrix, tilt: float = TILT, rings:
     return np.abs(n[:, 2]) > np.cos(np.radians(tilt)) * np.maximum(np.linalg.norm(n, axis=1), 1e-12)
 
 
-def _vertex_sums(faces: np.ndarray, n_vertices: int, values: np.ndarray) -> np.ndarray:
-    """Per-vertex sums (V, C) of per-face values (F, C) over each vertex's faces."""
-    return np.stack([sum(np.bincount(faces[:, k], weights=values[:, c], minlength=n_vertices) for k in range(3))
-                     for c in range(values.shape[1])], 1)
+def _components(adj: csr_matrix, idx: np.ndarray) -> tuple[int, np.ndarray, csr_matrix]:
+    """(count, label of each vertex in `idx`, the edges among them) of the connected parts of a vertex subset."""
+    sub = adj[idx][:, idx]
+    n, label = connected_components(sub, directed=False)
+    return n, label, sub
 
 
 def tall_steps(face_normals: np.ndarray, faces: np.ndarray, z: np.ndarray, adj: csr_matrix,
@@ -99,7 +101,7 @@ def tall_steps(face_normals: np.ndarray, faces: np.ndarray, z: np.ndarray, adj: 
     idx = np.flatnonzero(v_steep)
     if len(idx) == 0:
         return v_steep
-    n, label = connected_components(adj[idx][:, idx], directed=False)
+    n, label, _ = _components(adj, idx)
     lo = np.full(n, np.inf)
     hi = np.full(n, -np.inf)
     np.minimum.at(lo, label, z[idx])
@@ -115,12 +117,13 @@ def slopes(vertices: np.ndarray, label: np.ndarray, weight: np.ndarray, tile: fl
     `weight`: how much each vertex is trusted (the fairing gives vertices at input points ~1000 times the weight
     of the others, so where the rings are, they alone set the slope and the terraces between them do not)."""
     p = np.asarray(vertices, dtype=np.float64)
-    t = np.floor(p[:, :2] / tile).astype(np.int64) + (1 << 20)          # squares, made non-negative
+    region = np.unique(label, return_inverse=True)[1].reshape(-1)       # 0..R-1: fits in a key's z field
+    t = np.floor(p[:, :2] / tile).astype(np.int64)                     # squares
 
-    def pack(lab: np.ndarray, tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
-        return (lab.astype(np.int64) << 42) | (tx << 21) | ty
+    def square_keys(tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
+        return pack(np.c_[tx, ty, region])
 
-    key, inv = np.unique(pack(label, t[:, 0], t[:, 1]), return_inverse=True)
+    key, inv = np.unique(square_keys(t[:, 0], t[:, 1]), return_inverse=True)
     inv = inv.reshape(-1)
     m = len(key)
     fit = fit_planes(p, inv, m, weight)
@@ -134,25 +137,17 @@ def slopes(vertices: np.ndarray, label: np.ndarray, weight: np.ndarray, tile: fl
     u = p[:, :2] / tile - 0.5
     base = np.floor(u).astype(np.int64)
     frac = u - base
-    base += 1 << 20
     num = np.zeros((len(p), 2))
     den = np.zeros(len(p))
     for dx in (0, 1):
         for dy in (0, 1):
-            k = pack(label, base[:, 0] + dx, base[:, 1] + dy)
+            k = square_keys(base[:, 0] + dx, base[:, 1] + dy)
             j = np.searchsorted(key, k).clip(max=m - 1)
             wt = np.where((key[j] == k) & ok[j], np.abs(1 - dx - frac[:, 0]) * np.abs(1 - dy - frac[:, 1]) * cnt[j],
                           0.0)
             num += wt[:, None] * grad[j]
             den += wt
     return np.where(den[:, None] > 0, num / np.maximum(den, 1e-300)[:, None], 0.0)    # none trusted: level
-
-
-def _regions(adj: csr_matrix, mask: np.ndarray, vertex_area: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(region label of each `mask` vertex (N,), area of its region (N,)): connected parts of the mask."""
-    idx = np.flatnonzero(mask)
-    n, label = connected_components(adj[idx][:, idx], directed=False)
-    return label, np.bincount(label, weights=vertex_area[idx], minlength=n)[label]
 
 
 def fair_ground(vertices: np.ndarray, faces: np.ndarray, distances: np.ndarray | None = None,
@@ -173,11 +168,12 @@ def fair_ground(vertices: np.ndarray, faces: np.ndarray, distances: np.ndarray |
         raise ValueError(f"free_weight must be positive (it keeps the system definite), got {free_weight}")
     adj = adjacency(f, len(v))
     fn, area = face_normals(v.astype(np.float32), f)
-    sums = _vertex_sums(f, len(v), np.c_[fn * area[:, None], area / 3])   # area-weighted normals, vertex areas
+    sums = vertex_sums(f, len(v), np.c_[fn * area[:, None], area / 3])    # area-weighted normals, vertex areas
     g = ground_like(sums[:, :3], adj, tilt, rings) & ~tall_steps(fn, f, v[:, 2], adj, step=step)
-    label, region_area = _regions(adj, g, sums[:, 3])
-    big = region_area >= min_region
-    g[np.flatnonzero(g)[~big]] = False
+    idx = np.flatnonzero(g)
+    n_regions, label, sub = _components(adj, idx)                       # connected ground regions
+    big = np.bincount(label, weights=sums[idx, 3], minlength=n_regions)[label] >= min_region
+    g[idx[~big]] = False
     n = int(g.sum())
     if n == 0:
         return out, FairingReport(0, 0.0, 0.0, 0)
@@ -192,7 +188,7 @@ def fair_ground(vertices: np.ndarray, faces: np.ndarray, distances: np.ndarray |
         w += anchor_weight * np.exp(-np.square(np.asarray(distances, dtype=np.float64)[g] / anchor_scale))
     r = pull[:, 2] - np.einsum("ij,ij->i", slopes(v[g], label[big], w, tile), pull[:, :2])
     diag = (deg + w).astype(np.float32)
-    system = (diags(diag) - adj[g][:, g]).tocsr()                       # float32: half the memory traffic
+    system = (diags(diag) - sub[big][:, big]).tocsr()                   # float32: half the memory traffic
     dz, iterations = _cg(system, r.astype(np.float32), 1.0 / diag, tol, max_iter)
     dz = np.clip(dz, -max_move, max_move)
     out[g, 2] += dz

@@ -26,14 +26,16 @@ def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, n
     return n, 0.5 * area2
 
 
+def vertex_sums(faces: np.ndarray, n_vertices: int, values: np.ndarray) -> np.ndarray:
+    """Per-vertex sums (V, C) of per-face values (F, C) over each vertex's faces."""
+    return np.stack([sum(np.bincount(faces[:, k], weights=values[:, c], minlength=n_vertices) for k in range(3))
+                     for c in range(values.shape[1])], 1)
+
+
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted mean of the adjacent faces' normals, unit length (V, 3) float32; (0, 0, 1) where undefined."""
     n, area = face_normals(vertices, faces)
-    out = np.zeros((len(vertices), 3))
-    w = n * area[:, None]
-    for k in range(3):
-        for a in range(3):
-            out[:, a] += np.bincount(faces[:, k], weights=w[:, a], minlength=len(vertices))
+    out = vertex_sums(faces, len(vertices), n * area[:, None])
     norm = np.linalg.norm(out, axis=1)
     out = np.where(norm[:, None] > 0, out / np.maximum(norm, 1e-300)[:, None], np.array([0.0, 0.0, 1.0]))
     return out.astype(np.float32)

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from hgca_core.geometry.planes import fit_planes
+from hgca_core.geometry.planes import Planes, fit_planes
 
 PATCH = 2.0     # metres, patch edge
 BAND = 0.15     # metres above / below the ground height that count as "the ground"
@@ -96,10 +96,13 @@ def plane_rms(points: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[np.
     """(RMS residual to the least-squares plane z = a x + b y + c of each group, points per group); NaN for
     groups with fewer than 3 points or collinear ones (`hgca_core.geometry.planes`)."""
     fit = fit_planes(points, group, n_groups)
-    n = fit.weight
-    good = (n >= 3) & (fit.det > 1e-12)
-    rms = np.sqrt(fit.rss / np.maximum(n, 1))
-    return np.where(good, rms, np.nan), np.round(n).astype(np.int64)
+    rms = np.sqrt(fit.rss / np.maximum(fit.weight, 1))
+    return np.where(_defined(fit), rms, np.nan), np.round(fit.weight).astype(np.int64)
+
+
+def _defined(fit: Planes) -> np.ndarray:
+    """(G,) bool: the group's plane is defined (at least 3 points, not collinear)."""
+    return (fit.weight >= 3) & (fit.det > 1e-12)
 
 
 def ray_samples(mesh: trimesh.Trimesh, patches: Patches, spacing: float = 0.1, band: float = BAND
@@ -131,18 +134,15 @@ def ray_samples(mesh: trimesh.Trimesh, patches: Patches, spacing: float = 0.1, b
     return pid, hits, first
 
 
-def patch_planes(points: np.ndarray, patches: Patches, band: float = BAND) -> np.ndarray:
-    """(P, 3) least-squares plane z = a x + b y + c of each patch's points within `band` of its height (NaN
-    rows for patches with fewer than 3 such points or collinear ones)."""
+def patch_planes(points: np.ndarray, patches: Patches, band: float = BAND) -> tuple[Planes, np.ndarray]:
+    """(least-squares plane of each patch's points within `band` of its height, (P,) bool: the plane is defined,
+    i.e. at least 3 such points, not collinear)."""
     p = np.asarray(points, dtype=np.float64)
     idx = patches.index(p)
     keep = idx >= 0
     keep[keep] &= np.abs(p[keep, 2] - patches.height[idx[keep]]) < band
-    n_p = len(patches.corners)
-    fit = fit_planes(p[keep], idx[keep], n_p)
-    c = fit.centroid[:, 2] - np.einsum("ij,ij->i", fit.slope, fit.centroid[:, :2])
-    good = (fit.weight >= 3) & (fit.det > 1e-12)
-    return np.where(good[:, None], np.c_[fit.slope, c], np.nan)
+    fit = fit_planes(p[keep], idx[keep], len(patches.corners))
+    return fit, _defined(fit)
 
 
 def ground_report(mesh: trimesh.Trimesh, patches: Patches, reference: dict[str, np.ndarray] | None = None,
@@ -169,8 +169,8 @@ def ground_report(mesh: trimesh.Trimesh, patches: Patches, reference: dict[str, 
         rms, n = plane_rms(p[keep], idx[keep], n_p)
         out[f"rms_{name}"] = float(np.nanmean(np.where(n >= 20, rms, np.nan))) if n_p else float("nan")
     if truth is not None:
-        plane = patch_planes(truth, patches, band)[pid[ok]]
-        q = first[ok]
-        err = q[:, 2] - (plane[:, 0] * q[:, 0] + plane[:, 1] * q[:, 1] + plane[:, 2])
+        plane, defined = patch_planes(truth, patches, band)
+        q, at = first[ok], pid[ok]
+        err = np.where(defined[at], q[:, 2] - plane.height(at, q), np.nan)
         out["rms_to_truth"] = float(np.sqrt(np.nanmean(err ** 2))) if np.isfinite(err).any() else float("nan")
     return out
