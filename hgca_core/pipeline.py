@@ -33,12 +33,13 @@ if TYPE_CHECKING:
     from hgca_core.models.gca import GCAKernel
 
 ProgressFn = Callable[[str, int, int, str, int], None]  # (stage, step, total, message, sample index)
-# Observed free space (`--free-space`): auto = feature where the weights take it (nothing otherwise); feature = the
-# input of the networks trained with it; mask = that input where taken, and seen-empty cells forbidden in every
-# sampled state; off = neither (networks trained with it see "unknown" everywhere). The mask is not the default:
-# grazing rays cross the top of ground cells between LiDAR rings, so "seen empty" holds true surface cells (1.2 %
-# of the ground-truth cells of 4 synthetic test samples, 61 % of those road or sidewalk), and masking cost the
-# shipped coarse model 1.1 to 2.0 IoU points on each of them (mean 69.2 -> 67.7 %; docs/CONTRACTS.md).
+# Observed free space (`--free-space`): feature = the input of the networks trained with it; mask = that input where
+# taken, and the free space's core (seen-empty cells whose six neighbours are seen empty too,
+# `geometry.freespace.confident`) forbidden in every sampled state; auto = mask for weights trained with the
+# feature (the shipped ones), nothing for weights without it (their results stay those of before); off = neither
+# (networks trained with it see "unknown" everywhere). The core, not the whole free space: grazing rays cross the
+# top of ground cells between LiDAR rings, so the free space's rim holds true surface
+# (benchmarks/results/freespace_floor.md); forbidding the core changed no val score (62.02 -> 62.03 % IoU).
 FREE_SPACE_MODES = ("auto", "feature", "mask", "off")
 # Peak memory of a full-stage completion, linear in the region's area: benchmarks/results/completion_full_cpu
 # measured 2.90 GiB at 40 x 40 m and 5.31 GiB at 40 x 120 m (0.81 MB per m^2 on top of ~1.7 GiB). With margin,
@@ -150,18 +151,18 @@ def takes_free_space(models: Models) -> bool:
 
 
 def observed_free(local: np.ndarray, region: Region, models: Models, mode: str, origins: np.ndarray | None,
-                  origin_index: np.ndarray | None) -> tuple[np.ndarray | None, bool, str]:
-    """(seen-empty 20 cm cells as a dense (X, Y, Z) bool grid or None, mask them?, a note for the progress line)
-    for `mode` (FREE_SPACE_MODES). Asked for explicitly (feature, mask) without sensor origins, or as a feature
-    the weights do not take, it is an `InputError`; auto without origins gives None and, when the weights take
-    the feature, a warning that it is all unknown."""
-    from hgca_core.geometry.freespace import observed_empty
+                  origin_index: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None, str]:
+    """(seen-empty 20 cm cells as a dense (X, Y, Z) bool grid or None, the cells to forbid or None, a note for the
+    progress line) for `mode` (FREE_SPACE_MODES). Asked for explicitly (feature, mask) without sensor origins, or
+    as a feature the weights do not take, it is an `InputError`; auto without origins gives None and, when the
+    weights take the feature, a warning that it is all unknown."""
+    from hgca_core.geometry.freespace import confident, observed_empty
 
     if mode not in FREE_SPACE_MODES:
         raise InputError(f"free_space must be one of {', '.join(FREE_SPACE_MODES)}, not {mode!r}")
     takes = takes_free_space(models)
     if mode == "off" or (mode == "auto" and not takes):
-        return None, False, "off" if mode == "off" else "not an input of these weights"
+        return None, None, "off" if mode == "off" else "not an input of these weights"
     if mode == "feature" and not takes:
         raise InputError("--free-space feature: these weights were trained without observed free space as an "
                          "input (use --free-space mask to forbid seen-empty cells, or weights trained with "
@@ -173,11 +174,13 @@ def observed_free(local: np.ndarray, region: Region, models: Models, mode: str, 
         if takes:
             warnings.warn(HgcaWarning("no sensor origins: observed free space is unknown, so the weights' free-space "
                                       "input is all 'unknown' and nothing is masked"), stacklevel=3)
-        return None, False, "unknown (no sensor origins)"
+        return None, None, "unknown (no sensor origins)"
     free = observed_empty(local, origins, origin_index, region.grid_shape(COARSE))
-    mask = mode == "mask"
-    use = "input" if takes else ""
-    return free, mask, " + ".join(x for x in (use, "mask" if mask else "") if x) + f": {int(free.sum())} cells"
+    forbid = confident(free) if mode in ("mask", "auto") else None    # auto gets here for free-space weights
+    note = "input" if takes else ""
+    if forbid is not None:
+        note += f"{' + ' if note else ''}mask of its core ({int(forbid.sum())} cells)"
+    return free, forbid, f"{note}: {int(free.sum())} cells"
 
 
 def complete_local(local: np.ndarray, region: Region, models: Models, stage: str = "coarse", samples: int = 1,
@@ -224,8 +227,9 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
         from hgca_core.geometry.freespace import ray_origins
 
         origin_index = ray_origins(np.asarray(origins), {}, everything)
-    free_np, mask, note = observed_free(everything, region, models, free_space, origins, origin_index)
+    free_np, forbid_np, note = observed_free(everything, region, models, free_space, origins, origin_index)
     free = None if free_np is None else torch.from_numpy(free_np)[None].to(device)
+    forbid = None if forbid_np is None else torch.from_numpy(forbid_np)[None].to(device)
     report("free space", 1, 1, note, 0)
     s0 = voxelize(local, COARSE, region.size)
     grid = region.grid_shape(COARSE)
@@ -248,14 +252,14 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
         gen = torch.Generator(device=device).manual_seed(seed + i)
         with gemm_precision(gemm_dtype):
             occ = gca_sample(models.coarse, cs.with_batch(torch.from_numpy(s0).to(device)), grid, steps, gen,
-                             lambda t, n: report("planner" if t == 0 else "coarse", t, n, tag, i), free, mask)
+                             lambda t, n: report("planner" if t == 0 else "coarse", t, n, tag, i), free, forbid)
         cells, cells10, latents10 = occ[:, 1:].cpu().numpy(), None, None
         if stage == "full":
             from hgca_core.models.cgca import decode_mesh, upsample
 
             with gemm_precision(gemm_dtype):
                 c10, latents = upsample(models.fine, models.autoencoder, local, cells, region.grid_shape(FINE), t2,
-                                        gen, lambda t, n: report("fine", t, n, tag, i), free, mask)
+                                        gen, lambda t, n: report("fine", t, n, tag, i), free, forbid)
             report("mesh", 0, 1, tag, i)
             mesh = decode_mesh(models.autoencoder, c10, latents, points=local, sensors=sensors)
             cells10, latents10 = c10.cpu().numpy(), latents.float().cpu().numpy()

@@ -158,8 +158,9 @@ def test_resume_keeps_cases_only_in_the_same_region(tmp_path):
 
 
 def test_eval_real_free_space_mask_reaches_the_model_rows(tmp_path, small_weights):
-    """`--free-space mask` goes to every completion: no generated cell lies where the input rays passed, and the
-    setting is recorded (a run with another setting is not resumed from it)."""
+    """`--free-space mask` goes to every completion: no generated cell lies in the core of the space the input
+    rays passed (fewer in its rim than unmasked), and the setting is recorded (a run with another setting is not
+    resumed from it)."""
     s = tiny_sample(3)
     scan = tmp_path / "street.npz"
     np.savez(scan, points=s["input_points"].astype(np.float64), origins=[[3.0, 3.0, 3.0]])
@@ -174,8 +175,9 @@ def test_eval_real_free_space_mask_reaches_the_model_rows(tmp_path, small_weight
         doc = json.loads(out.read_text())
         assert doc["config"]["free_space"] == mode
         runs[mode] = doc["inputs"]["street"]["cases"]["full"]["rows"]["hgca"]["per_sample"][0]
-    assert runs["off"]["empty_share"] > 0        # unmasked, this model grows into seen-empty space
-    assert runs["mask"]["empty_share"] == 0 and runs["mask"]["generated"] > 0
+    assert runs["off"]["core_share"] > 0         # unmasked, this model grows deep into seen-empty space
+    assert runs["mask"]["core_share"] == 0 and runs["mask"]["generated"] > 0
+    assert runs["mask"]["in_empty"] < runs["off"]["in_empty"]
     assert "free space mask" in out.with_suffix(".md").read_text()
 
 

@@ -1,5 +1,6 @@
 """Observed free space in the pipeline (`--free-space`): computed once per completion from every ray and handed to
-both stages, old weights unchanged by default, the mask never outputs a seen-empty cell, clear errors."""
+both stages, old weights unchanged by default, the mask never outputs a cell of the free space's core, clear
+errors."""
 import dataclasses
 
 import numpy as np
@@ -88,10 +89,12 @@ def _without_free_space(path):
     return save_weights(path, old)
 
 
-def test_old_weights_give_the_old_result_unless_the_mask_is_asked_for(scene, tmp_path):
+def test_old_weights_give_the_old_result_unless_the_mask_is_asked_for(scene, tmp_path, monkeypatch):
     """Weights without a free-space input: auto (the default) with or without origins and off are the same
-    chains, and nothing is computed for them; feature is refused, mask changes the result."""
+    chains, and nothing is computed for them; feature is refused, mask changes the result (here with a core that
+    is the whole free space: this model grows only in its rim)."""
     local, origins, index, region = scene
+    monkeypatch.setattr(freespace, "confident", lambda free: free)
     models = load_models("coarse", weights=_without_free_space(tmp_path / "old.pt"))
     assert not takes_free_space(models)
     runs = {name: complete_local(local, region, models, samples=1, seed=3, precision="fp32", **kw)[0].coarse_cells
@@ -108,29 +111,44 @@ def test_old_weights_give_the_old_result_unless_the_mask_is_asked_for(scene, tmp
         complete_local(local, region, models, origins=origins, free_space="maybe")
 
 
-def test_shipped_coarse_weights_read_the_free_space_by_default(scene):
+def test_shipped_coarse_weights_read_the_free_space_by_default(scene, monkeypatch):
     """The shipped coarse.pt was trained with observed free space: auto uses it when the scans have origins (the
-    chain differs from off), and without origins it is all unknown (the chain equals off)."""
+    chain differs from off) and masks its core (the chain is mask's; with a core as large as the free space, no
+    seen-empty cell is output), and without origins it is all unknown (the chain equals off)."""
     local, origins, index, region = scene
     models = load_models("coarse")
     assert takes_free_space(models)
     kw = dict(samples=1, seed=3, precision="fp32")
     auto = complete_local(local, region, models, origins=origins, origin_index=index, **kw)[0]
     off = complete_local(local, region, models, origins=origins, origin_index=index, free_space="off", **kw)[0]
+    mask = complete_local(local, region, models, origins=origins, origin_index=index, free_space="mask", **kw)[0]
     assert auto.free_cells and auto.free_cells > 0 and off.free_cells is None
     assert not np.array_equal(auto.coarse_cells, off.coarse_cells)
+    assert np.array_equal(auto.coarse_cells, mask.coarse_cells)
+    free = freespace.observed_empty(local, origins, index, region.grid_shape(COARSE))
+    monkeypatch.setattr(freespace, "confident", lambda grid: grid)
+    strict = complete_local(local, region, models, origins=origins, origin_index=index, **kw)[0]
+    assert free[tuple(auto.coarse_cells.T)].sum() > 0 and free[tuple(strict.coarse_cells.T)].sum() == 0
+    monkeypatch.undo()
     with pytest.warns(UserWarning, match="no sensor origins"):
         bare = complete_local(local, region, models, **kw)[0]
     assert np.array_equal(bare.coarse_cells, off.coarse_cells)
 
 
-def test_the_mask_never_outputs_a_seen_empty_cell(scene):
+def test_the_mask_never_outputs_a_cell_of_the_free_space_core(scene, monkeypatch):
+    """The mask forbids the free space's core (`freespace.confident`) in both stages and leaves its rim, where
+    true surface lies under grazing rays: the shipped model grows 13 cells into this scene's rim, none into its
+    core; given a core that is the whole free space, nothing seen empty is output."""
     local, origins, index, region = scene
     free = freespace.observed_empty(local, origins, index, region.grid_shape(COARSE))
+    core = freespace.confident(free)
     models = load_models("full")                                        # the shipped coarse and fine weights
     kw = dict(origins=origins, origin_index=index, samples=1, seed=0, precision="fp32")
     off = complete_local(local, region, models, "full", free_space="off", **kw)[0]
     assert free[tuple(off.coarse_cells.T)].sum() > 0                    # unmasked, the model does grow there
+    rim = complete_local(local, region, models, "full", free_space="mask", **kw)[0]
+    assert free[tuple(rim.coarse_cells.T)].sum() > 0 and core[tuple(rim.coarse_cells.T)].sum() == 0
+    monkeypatch.setattr(freespace, "confident", lambda grid: grid)
     on = complete_local(local, region, models, "full", free_space="mask", **kw)[0]
     assert len(on.coarse_cells) and len(on.fine_cells)
     assert free[tuple(on.coarse_cells.T)].sum() == 0

@@ -43,10 +43,11 @@ def add_free_space_argument(p: argparse.ArgumentParser, what: str = "") -> None:
     `hgca_core.pipeline.FREE_SPACE_MODES`, spelt out so that parsing arguments does not import torch."""
     p.add_argument("--free-space", choices=("auto", "feature", "mask", "off"), default="auto",
                    help=f"observed free space{what}: what the sensor saw through (needs sensor origins). feature = "
-                        "give it to weights trained with it; mask = also never output a seen-empty cell; off = "
-                        "neither; auto (default) = feature where the weights take it (the shipped coarse.pt, "
-                        "coarse_noplanner.pt and fine.pt do) "
-                        "and the scans have sensor origins")
+                        "give it to weights trained with it; mask = also never output a cell deep in it (seen-empty "
+                        "cells whose six neighbours are seen empty); off = "
+                        "neither; auto (default) = mask where the weights take the feature (the shipped coarse.pt, "
+                        "coarse_noplanner.pt and fine.pt do) and the scans have sensor origins, nothing for "
+                        "weights without it")
 
 
 def add_precision_argument(p: argparse.ArgumentParser) -> None:

@@ -43,6 +43,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="training crop in the stage's cells (coarse: 20 cm, default 64; fine: 10 cm, default 64)")
     p.add_argument("--channels", default=None, help="coarse U-Net widths, e.g. 16,32,48,64,96")
     p.add_argument("--autoencoder", default=None, help="fine: autoencoder weights (default: the shipped ones)")
+    p.add_argument("--lr", type=float, default=None,
+                   help="Adam learning rate (default 5e-4; with --resume: the run's own, or this one from now on)")
     p.add_argument("--val-every", type=float, default=10.0, help="minutes between validation runs")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (1 is fastest on a busy machine)")
     p.add_argument("--device", default="cpu",
@@ -146,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
     if args.minutes > 0 or args.max_steps:
         state = train(task, out, args.minutes, resume=args.resume, batch=args.batch, buffer_size=args.buffer,
                       val_every_min=args.val_every, max_steps=args.max_steps, progress=not args.no_progress,
-                      device=args.device, init_from=args.init_from, precision=args.precision)
+                      device=args.device, init_from=args.init_from, precision=args.precision, lr=args.lr)
         last_val = next((h for h in reversed(state["history"]) if h["kind"] == "val"), {})
         print(json.dumps({"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1), **last_val}))
     if args.export:

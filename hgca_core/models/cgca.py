@@ -22,8 +22,9 @@ x^0 = union(cells of the input points at 10 cm, with latents encoded from the ra
 upsample2(coarse cells) with zero latents), as in the paper.
 
 Observed free space (beyond the paper; `free_space`): one more input column, last, "in free" = the 10 cm cell lies
-in a 20 cm cell the sensor's rays crossed (`hgca_core.models.free`); `sample(mask=True)` forbids those cells in
-every sampled state. Without it the model is exactly the one before the field existed.
+in a 20 cm cell the sensor's rays crossed (`hgca_core.models.free`); `sample(forbid=...)` drops given cells
+(the children of the free space's core) from every sampled state. Without it the model is exactly the one before
+the field existed.
 """
 from __future__ import annotations
 
@@ -179,12 +180,13 @@ class CGCAKernel(nn.Module):
 @torch.no_grad()
 def sample(model: CGCAKernel, x0: torch.Tensor, z0: torch.Tensor, grid: tuple[int, int, int], steps: int,
            generator: torch.Generator, progress: Callable[[int, int], None] | None = None,
-           free: torch.Tensor | None = None, mask: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+           free: torch.Tensor | None = None, forbid: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Run the chain from x^0 for `steps` transitions; the last one by maximum likelihood.
 
     x0: (N, 4) batched cells, z0: (N, K). Returns the final (cells (M, 4), latents (M, K)). All randomness comes
     from `generator`, so a seed names one result. free: (B, *grid) bool seen-empty 10 cm cells (the model's input
-    when it has free_space); mask: also drop them from every sampled state (the same random draws either way).
+    when it has free_space); forbid: (B, *grid) bool 10 cm cells dropped from every sampled state (the same random
+    draws either way).
     """
     model.eval()
     state, z = x0, z0
@@ -193,13 +195,13 @@ def sample(model: CGCAKernel, x0: torch.Tensor, z0: torch.Tensor, grid: tuple[in
         logits, mu = model(nbhd, state, z, x0, z0, grid, free)
         if t == steps - 1:
             keep = logits > 0
-            if mask:
-                keep &= ~fs.at(free, nbhd)
+            if forbid is not None:
+                keep &= ~fs.at(forbid, nbhd)
             state, z = nbhd[keep], mu[keep]
         else:
             keep = torch.rand(logits.shape, generator=generator, device=logits.device) < torch.sigmoid(logits)
-            if mask:
-                keep &= ~fs.at(free, nbhd)
+            if forbid is not None:
+                keep &= ~fs.at(forbid, nbhd)
             state, z = nbhd[keep], mu[keep]   # latent noise only for the cells kept (~1/5 of N(x))
             z = z + model.cfg.sigma * torch.randn(z.shape, generator=generator, device=z.device)
         if progress is not None:
@@ -241,17 +243,20 @@ def initial_state(autoencoder: Autoencoder, points_local: np.ndarray | torch.Ten
 def upsample(model: CGCAKernel, autoencoder: Autoencoder, input_points_local: np.ndarray | torch.Tensor,
              coarse_cells: np.ndarray | torch.Tensor, grid10: tuple[int, int, int], steps: int | None,
              generator: torch.Generator, progress: Callable[[int, int], None] | None = None,
-             free20: torch.Tensor | None = None, mask: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+             free20: torch.Tensor | None = None, forbid20: torch.Tensor | None = None
+             ) -> tuple[torch.Tensor, torch.Tensor]:
     """The fine stage of one sample: x^0 from the input and the coarse cells, then T2 cGCA steps.
 
     input_points_local: (P, 3) region-frame points (metres); coarse_cells: (M, 3) int 20 cm cells (s^T1);
     grid10: the 10 cm grid shape (Region.grid_shape(0.1)); free20: (1, X, Y, Z) bool seen-empty 20 cm cells or
-    None, given to the model as 10 cm cells (and forbidden with `mask`). Returns (cells (N, 3) int64, latents
+    None, given to the model as 10 cm cells; forbid20: the 20 cm cells whose 10 cm children are never output
+    (`--free-space mask`), or None. Returns (cells (N, 3) int64, latents
     (N, K) float32) on the model's device, for `decode_mesh`.
     """
     x0, z0 = initial_state(autoencoder, input_points_local, coarse_cells, grid10)
-    free = fs.upsample(free20, tuple(grid10)) if free20 is not None and (mask or model.cfg.free_space) else None
-    cells, z = sample(model, x0, z0, tuple(grid10), steps or model.cfg.steps, generator, progress, free, mask)
+    free = fs.upsample(free20, tuple(grid10)) if free20 is not None and model.cfg.free_space else None
+    forbid = fs.upsample(forbid20, tuple(grid10)) if forbid20 is not None else None
+    cells, z = sample(model, x0, z0, tuple(grid10), steps or model.cfg.steps, generator, progress, free, forbid)
     return cells[:, 1:], z
 
 

@@ -7,7 +7,8 @@ the per-step lookup a gather (31 ms of CPU for a million cells, against 96 ms fo
 free cells; measured on one thread) and a training crop's grid is small (64 x 64 x 40 = 164 kB).
 
 The three readings of it:
-- `at`: the per-cell "seen empty" input column of the GCA / cGCA kernels (and the hard mask of `--free-space mask`);
+- `at`: the per-cell "seen empty" input column of the GCA / cGCA kernels (and, on the free space's core, the hard
+  mask of `--free-space mask`);
 - `pillar_fractions`: per BEV pillar, the share of its cells seen empty in each of the planner's height bins;
 - `upsample`: the 20 cm grid as 10 cm cells (a 10 cm cell is seen empty when its 20 cm parent is).
 """

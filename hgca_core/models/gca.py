@@ -9,8 +9,9 @@ features are de-normalised per BEV pillar by SPADE (gamma, beta) maps computed o
 Observed free space (beyond the paper; `free_space`): the kernel input becomes [in s^t, in s^0, in free] + PE,
 where "free" are the cells the sensor's rays crossed (`hgca_core.models.free`), and the planner sees per pillar
 the share of its cells seen empty per height bin. Without it (the default, and every file written before the
-field existed) the model and its results are exactly those of before. `sample(mask=True)` also forbids
-seen-empty cells in every sampled state, whatever the model learnt.
+field existed) the model and its results are exactly those of before. `sample(forbid=...)` also drops
+the given cells (the free space's core, `geometry.freespace.confident`) from every sampled state, whatever the
+model learnt.
 """
 from __future__ import annotations
 
@@ -110,12 +111,12 @@ class GCAKernel(nn.Module):
 @torch.no_grad()
 def sample(model: GCAKernel, s0: torch.Tensor, grid: tuple[int, int, int], steps: int,
            generator: torch.Generator, progress: Callable[[int, int], None] | None = None,
-           free: torch.Tensor | None = None, mask: bool = False) -> torch.Tensor:
+           free: torch.Tensor | None = None, forbid: torch.Tensor | None = None) -> torch.Tensor:
     """Run the Markov chain from s^0 for `steps` transitions (Eq. 1); the last one by maximum likelihood.
 
     s0: (N, 4) coordinates of one or more samples (batch column). Returns the final occupied set.
-    free: (B, *grid) bool seen-empty cells, the model's input when it has free_space; mask: also drop them from
-    every sampled state (the random draws are the same with or without the mask).
+    free: (B, *grid) bool seen-empty cells, the model's input when it has free_space; forbid: (B, *grid) bool cells
+    dropped from every sampled state (`--free-space mask`; the random draws are the same with or without it).
     """
     model.eval()
     batch = int(s0[:, 0].max().item()) + 1 if len(s0) else 1
@@ -130,8 +131,8 @@ def sample(model: GCAKernel, s0: torch.Tensor, grid: tuple[int, int, int], steps
             keep = prob > 0.5
         else:
             keep = torch.rand(prob.shape, generator=generator, device=prob.device) < prob
-        if mask:
-            keep &= ~fs.at(free, nbhd)
+        if forbid is not None:
+            keep &= ~fs.at(forbid, nbhd)
         state = nbhd[keep]
         if progress is not None:
             progress(t + 1, steps)

@@ -25,7 +25,9 @@ Each file below names its training data, one of two datasets:
   vehicle and street-furniture types. Trained on it last: {synth2} (each warm-started from its first-split
   weights; see its notes).
 With the observed free space (cells the input rays crossed) as a further input: {free}. `hgca complete`
-computes it from the scans' sensor origins and gives the model an all-unknown grid where a scan has none.
+computes it from the scans' sensor origins and gives the model an all-unknown grid where a scan has none; by
+default (`--free-space auto`, from session 9) it never outputs a cell in the core of that space (seen-empty cells
+whose six neighbours are seen empty too).
 Training uses only the train split (seeds 0..999,999; each file below lists the samples it saw); validation
 uses seeds 1,000,000+; the evaluations below use the test split (seeds 2,000,000+), which trains nothing.
 The shipped weights are the exponential moving average of the training weights where the run kept one
@@ -46,8 +48,9 @@ that floor was not measured, and the previous first-split fine.pt scores 5.46 cm
 Intended use: completing street-level LiDAR (vehicle-mounted, 32-128 beams) into 20 cm geometry and 10 cm
 implicit surfaces. Limits: trained on synthetic content only, on 2 CPU cores, for far fewer steps than the
 paper (400k), so completions are rough; on real scans (Argoverse 2, nuScenes: `benchmarks/results/real_scans*.md`)
-the coarse stage finds about a third of the real cells cut away 2 m above the ground, and 6-9 % of what it
-generates lies in space the input rays saw empty.
+the coarse stage finds about a third of the real cells cut away 2 m above the ground, and 6-10 % of what it
+generates lies in space the input rays saw empty, none in that space's core (the ground truth of simulated
+single sweeps of these sensors scores 3.7-5.7 % by the first count: `benchmarks/results/freespace_floor.md`).
 """
 
 
@@ -68,6 +71,7 @@ def _section(path: Path, blob: dict) -> str:
         lines.append(f"  - session ended {s['ended']}: {s['steps']} steps in {s['wall_s']} s, device {s['device']}"
                      f"{' (' + hardware + ')' if hardware else ''}, {s['threads']} thread(s), "
                      f"world size {s['world_size']}, {s.get('precision', 'fp32')} GEMMs"
+                     + (f", learning rate {s['lr']:g}" if "lr" in s else "")
                      + "".join(f", {k.replace('_', ' ')} {v}" for k, v in s.get("recipe", {}).items()))
     vals = [h for h in meta.get("history_tail", []) if h.get("kind") == "val"]
     trains = [h for h in meta.get("history_tail", []) if h.get("kind") == "train"]

@@ -34,6 +34,8 @@ from hgca_core.models.weights import load_file, save_file
 from hgca_core.nn.conv import training_precision
 from hgca_core.training.buffer import Chain, ChainBuffer
 
+LR = 5e-4  # Adam's learning rate unless a run is given another (`hgca train --lr`)
+
 
 class Task(Protocol):
     name: str
@@ -150,7 +152,7 @@ def _gather(obj: dict, rank: int, world: int) -> list[dict] | None:
 
 
 def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False, batch: int = 2,
-          buffer_size: int = 8, lr: float = 5e-4, clip: float = 0.5, seed: int = 0,
+          buffer_size: int = 8, lr: float | None = None, clip: float = 0.5, seed: int = 0,
           val_every_min: float = 10.0, ckpt_every_min: float = 5.0, max_steps: int | None = None,
           progress: bool = True, ema_decay: float = 0.999, device: str = "cpu",
           init_from: str | os.PathLike | None = None, precision: str = "fp32") -> dict:
@@ -165,6 +167,9 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
     `precision` 'bf16' runs the sparse convs' forward and backward GEMMs in bfloat16 (float32 accumulation,
     weights, gradients and optimiser state; `nn.conv.training_precision`); validation stays float32.
 
+    `lr`: Adam's learning rate (None: LR, or the resumed checkpoint's own); given on a resume it replaces the
+    checkpoint's from this step on (an annealing phase), which the run's notes record.
+
     `init_from` (weights or a checkpoint of the task's kind) initialises a run that does not resume a checkpoint
     (`weights.load_into`: new free-space inputs start at zero); the run's notes record it."""
     if precision not in ("fp32", "bf16"):
@@ -176,7 +181,7 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
     ckpt_path = out / "ckpt.pt"
     torch.manual_seed(seed + rank)            # seeds the CPU generator and every GPU's
     module = task.build().to(dev)
-    optim = torch.optim.Adam(module.parameters(), lr=lr)
+    optim = torch.optim.Adam(module.parameters(), lr=LR if lr is None else lr)
     buffer = ChainBuffer(buffer_size, task.new_example, task.cfg.steps, np.random.default_rng(seed + 7919 * rank), dev)
     state = {"step": 0, "elapsed_s": 0.0, "history": [], "sessions": []}
     ema_state = None
@@ -185,6 +190,11 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
         module.load_state_dict(ck["model"])
         optim.load_state_dict(ck["optim"])     # moves its state to the parameters' device
         state = ck["state"]
+        was = optim.param_groups[0]["lr"]
+        if lr is not None and lr != was:
+            for group in optim.param_groups:
+                group["lr"] = lr
+            state.setdefault("notes", []).append(f"learning rate {lr:g} from step {state['step']:,} on (was {was:g})")
         ranks = ck["ranks"] if "ranks" in ck else [{"rng": {"torch": ck["torch_rng"]}, "buffer": ck.get("buffer")}]
         if rank < len(ranks):
             if ranks[rank].get("buffer") is not None:
@@ -289,6 +299,7 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
                               "wall_s": round(time.time() - session_start, 1), "world_size": world,
                               "device": dev.type, "device_name": device_name(dev), "cpu": cpu_name(),
                               "threads": torch.get_num_threads(), "precision": precision,
+                              "lr": optim.param_groups[0]["lr"],
                               "train_samples": [Path(f).name for f in getattr(task, "train_files", [])],
                               "recipe": dict(getattr(task, "recipe", lambda: {})())})
     checkpoint()

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hgca_core.errors import InputError
-from hgca_core.geometry.freespace import STOP_SHORT, observed_empty, ray_origins
+from hgca_core.geometry.freespace import STOP_SHORT, confident, observed_empty, ray_origins
 from hgca_core.geometry.voxel import COARSE, voxelize
 
 V, S = 0.2, 0.05  # cell size, shift: cell c spans [c V - S, c V + V - S)
@@ -102,6 +102,45 @@ def test_stop_short_keeps_the_last_cells_before_a_hit():
     x = lambda g: np.flatnonzero(g[:, 2, 2])  # noqa: E731
     assert x(near).max() == 48  # up to the cells next to the hit's cell (50)
     assert x(far).max() == 40   # 8.0 m: cell floor(8.05 / 0.2) = 40
+
+
+def naive_core(free: np.ndarray) -> np.ndarray:
+    out = np.zeros_like(free)
+    for c in np.argwhere(free):
+        nbrs = [c + d for d in np.vstack([np.eye(3, dtype=int), -np.eye(3, dtype=int)])]
+        out[tuple(c)] = all(np.all((n >= 0) & (n < free.shape)) and free[tuple(n)] for n in nbrs)
+    return out
+
+
+def test_core_is_the_free_cells_with_six_free_neighbours():
+    rng = np.random.default_rng(0)
+    free = rng.random((9, 8, 7)) < 0.8
+    free[2:7, 2:7, 1:6] = True
+    core = confident(free)
+    np.testing.assert_array_equal(core, naive_core(free))
+    assert core[3:6, 3:6, 2:5].all() and 27 <= core.sum() < free.sum()
+    assert not core[0].any() and not core[:, :, -1].any()     # beyond the grid is unknown
+
+
+def test_grazing_rays_put_ground_in_the_free_space_but_not_in_its_core():
+    """One ring scan of flat ground from 1.8 m: rays to the far rings pass a few cm over the ground between the
+    rings, so true ground cells are 'seen empty' (the rim), while the core holds none of them."""
+    shape = (200, 200, 20)
+    ground_z = 1.0
+    origin = np.array([[20.0, 20.0, ground_z + 1.8]])
+    az = np.radians(np.arange(0.0, 360.0, 0.4))
+    ranges = np.array([4.0, 6.0, 9.0, 13.0, 18.0])           # ring spacing growing with range, as a LiDAR's
+    r, a = np.meshgrid(ranges, az)
+    pts = np.c_[20.0 + (r * np.cos(a)).ravel(), 20.0 + (r * np.sin(a)).ravel(), np.full(r.size, ground_z)]
+    free = observed_empty(pts, origin, None, shape)
+    core = confident(free)
+    gz = int(np.floor((ground_z + S) / V))                     # the ground cells' layer
+    ground = np.zeros(shape, dtype=bool)
+    yy, xx = np.meshgrid(np.arange(shape[1]), np.arange(shape[0]))
+    ground[:, :, gz] = np.hypot(xx * V - 20.0, yy * V - 20.0) < 18.0
+    assert (free & ground).sum() > 100                         # the rim holds true surface
+    assert (core & ground).sum() == 0
+    assert core.sum() > 1000                                   # the air near the sensor, which all rings' rays cross
 
 
 def test_ray_origins():

@@ -73,6 +73,20 @@ def test_budgeted_training_checkpoints_and_resumes_exactly(tiny_dataset, tmp_pat
                                       for k, v in model.state_dict().items())
 
 
+def test_a_resumed_run_takes_a_new_learning_rate_and_records_it(tiny_dataset, tmp_path):
+    """`--lr` on a resume replaces the checkpoint's rate from that step on (the run's notes and the session say
+    so); without it the run keeps its own."""
+    out = tmp_path / "run"
+    train(_task(tiny_dataset), out, minutes=5, max_steps=2, batch=2, buffer_size=3, progress=False, lr=3e-4)
+    s = train(_task(tiny_dataset), out, minutes=5, max_steps=1, resume=True, batch=2, buffer_size=3, progress=False)
+    assert load_file(out / "ckpt.pt")["optim"]["param_groups"][0]["lr"] == 3e-4 and not s.get("notes")
+    s = train(_task(tiny_dataset), out, minutes=5, max_steps=1, resume=True, batch=2, buffer_size=3, progress=False,
+              lr=1e-4)
+    assert load_file(out / "ckpt.pt")["optim"]["param_groups"][0]["lr"] == 1e-4
+    assert s["notes"] == ["learning rate 0.0001 from step 3 on (was 0.0003)"]
+    assert [ses["lr"] for ses in s["sessions"]] == [3e-4, 3e-4, 1e-4]
+
+
 def test_run_record_names_the_device_used(tiny_dataset, tmp_path):
     from hgca_core.hardware import cpu_name
 
