@@ -20,24 +20,15 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 
 from hgca_core.geometry.freespace import confident, dense, observed_empty  # noqa: E402
-from hgca_core.geometry.region import GROUND_STEP, Region  # noqa: E402
+from hgca_core.geometry.region import Region, ground_at  # noqa: E402
 from hgca_core.geometry.voxel import COARSE, cell_centers, voxelize  # noqa: E402
 from hgca_core.synth.dataset import draw_recipe, load_sample  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "freespace_floor"
 
 
-def ground_at(sample: dict, xy: np.ndarray) -> np.ndarray:
-    """Region-frame ground height at region x, y (the sample's ground grid, nearest node)."""
-    g = np.asarray(sample["ground_height"], np.float64)
-    ij = np.clip(np.round(np.asarray(xy) / GROUND_STEP).astype(int), 0, np.array(g.shape) - 1)
-    return g[ij[:, 0], ij[:, 1]]
-
-
-def floor(sample: dict, single: bool, cut: float | None = None) -> dict:
-    """Shares of the ground truth's unseen cells in the free space and its core, for all scans or the first.
-    With `cut`: the input cut `cut` m above the ground and the unseen truth above the cut, against the free space
-    of the whole input (as the real benchmark's height cuts)."""
+def grids(sample: dict, single: bool) -> dict:
+    """The scene's region, its input (all scans or the first), that input's free space and core, and the truth."""
     region = Region.from_tuple(sample["region"])
     shape = region.grid_shape(COARSE)
     pts = np.asarray(sample["input_points"], np.float64)
@@ -45,15 +36,23 @@ def floor(sample: dict, single: bool, cut: float | None = None) -> dict:
     if single:
         pts, idx = pts[idx == 0], idx[idx == 0]
     free = observed_empty(pts, np.asarray(sample["input_origins"], np.float64), idx, shape)
-    core = confident(free)
-    truth = dense(np.asarray(sample["gt_occ20"], np.int64), shape)
+    return {"region": region, "points": pts, "free": free, "core": confident(free),
+            "truth": dense(np.asarray(sample["gt_occ20"], np.int64), shape)}
+
+
+def floor(sample: dict, g: dict, cut: float | None = None) -> dict:
+    """Shares of the truth's cells that the input `g` misses in its free space and its core. With `cut`: the input
+    cut `cut` m above the ground and the truth it misses above the cut, against the free space of the whole input
+    `g` (as the real benchmark's height cuts)."""
+    region, pts, free, core = g["region"], g["points"], g["free"], g["core"]
+    shape = free.shape
     if cut is not None:
-        pts = pts[pts[:, 2] < ground_at(sample, pts[:, :2]) + cut]
-    unseen = truth & ~dense(voxelize(pts, COARSE, region.size), shape)
+        pts = pts[pts[:, 2] < ground_at(sample["ground_height"], pts[:, :2]) + cut]
+    unseen = g["truth"] & ~dense(voxelize(pts, COARSE, region.size), shape)
     if cut is not None:
         c = np.argwhere(unseen)
         centre = cell_centers(c, COARSE)
-        low = c[centre[:, 2] < ground_at(sample, centre[:, :2]) + cut]
+        low = c[centre[:, 2] < ground_at(sample["ground_height"], centre[:, :2]) + cut]
         unseen[low[:, 0], low[:, 1], low[:, 2]] = False
     n = int(unseen.sum())
     return {"unseen_truth": n, "free_cells": int(free.sum()), "core_cells": int(core.sum()),
@@ -62,20 +61,16 @@ def floor(sample: dict, single: bool, cut: float | None = None) -> dict:
             "in_core_pct": 100 * float((unseen & core).sum()) / max(n, 1)}
 
 
-def section(sample: dict, png: Path) -> None:
-    """x-z section through the first sweep's sensor: free space, its core, the ground truth, and truth in free."""
+def section(sample: dict, g: dict, png: Path) -> None:
+    """x-z section through the first sweep's sensor (`g`: its grids): free space, its core, the ground truth, and
+    truth in free."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    region = Region.from_tuple(sample["region"])
-    shape = region.grid_shape(COARSE)
-    idx = np.asarray(sample["input_scan_index"], np.int64)
-    pts = np.asarray(sample["input_points"], np.float64)[idx == 0]
+    free, core, truth = g["free"], g["core"], g["truth"]
+    shape = free.shape
     org = np.asarray(sample["input_origins"], np.float64)
-    free = observed_empty(pts, org, idx[idx == 0], shape)
-    core = confident(free)
-    truth = dense(np.asarray(sample["gt_occ20"], np.int64), shape)
     y = int(np.clip(np.floor((org[0, 1] + 0.05) / COARSE), 0, shape[1] - 1))
     img = np.ones((*free[:, y].shape, 3))
     img[free[:, y]] = (0.75, 0.85, 1.0)
@@ -107,15 +102,17 @@ def main() -> int:
         return 2
     t0 = time.time()
     rows = []
+    out = Path(args.out)
     for f in files:
         seed = int(f.stem.split("_")[1])
         s = load_sample(f)
-        profile, scans = draw_recipe(seed)
+        profile, _ = draw_recipe(seed)
+        first = grids(s, True)
         rows.append({"scene": f.name, "profile": profile, "scans": int(len(s["input_origins"])),
-                     "all": floor(s, False), "first": floor(s, True), "first_cut2": floor(s, True, 2.0)})
+                     "all": floor(s, grids(s, False)), "first": floor(s, first), "first_cut2": floor(s, first, 2.0)})
         print(f.name, profile, rows[-1]["first"]["in_free_pct"], rows[-1]["first"]["in_core_pct"], flush=True)
-    out = Path(args.out)
-    section(load_sample(files[0]), out.with_suffix(".png"))
+        if f == files[0]:
+            section(s, first, out.with_suffix(".png"))
     lines = ["# Ground truth in the observed free space", "",
              f"Synthetic val scenes of `{args.data}` ({len(files)}): the ground-truth 20 cm cells that the input does "
              "not hold (what a perfect completion would generate), and the share of them that the real-scan "

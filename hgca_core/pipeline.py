@@ -165,8 +165,8 @@ def observed_free(local: np.ndarray, region: Region, models: Models, mode: str, 
         return None, None, "off" if mode == "off" else "not an input of these weights"
     if mode == "feature" and not takes:
         raise InputError("--free-space feature: these weights were trained without observed free space as an "
-                         "input (use --free-space mask to forbid seen-empty cells, or weights trained with "
-                         "`hgca train --free-space`)")
+                         "input (use --free-space mask to forbid the core of the seen-empty space, or weights "
+                         "trained with `hgca train --free-space`)")
     if origins is None or len(origins) == 0:
         if mode != "auto":
             raise InputError(f"--free-space {mode} needs the sensor origins of the scans (poses or origins in "

@@ -129,7 +129,6 @@ def test_shipped_coarse_weights_read_the_free_space_by_default(scene, monkeypatc
     monkeypatch.setattr(freespace, "confident", lambda grid: grid)
     strict = complete_local(local, region, models, origins=origins, origin_index=index, **kw)[0]
     assert free[tuple(auto.coarse_cells.T)].sum() > 0 and free[tuple(strict.coarse_cells.T)].sum() == 0
-    monkeypatch.undo()
     with pytest.warns(UserWarning, match="no sensor origins"):
         bare = complete_local(local, region, models, **kw)[0]
     assert np.array_equal(bare.coarse_cells, off.coarse_cells)

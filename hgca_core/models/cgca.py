@@ -193,16 +193,15 @@ def sample(model: CGCAKernel, x0: torch.Tensor, z0: torch.Tensor, grid: tuple[in
     for t in range(steps):
         nbhd = model.neighbourhood(state, grid)
         logits, mu = model(nbhd, state, z, x0, z0, grid, free)
-        if t == steps - 1:
+        last = t == steps - 1
+        if last:
             keep = logits > 0
-            if forbid is not None:
-                keep &= ~fs.at(forbid, nbhd)
-            state, z = nbhd[keep], mu[keep]
         else:
             keep = torch.rand(logits.shape, generator=generator, device=logits.device) < torch.sigmoid(logits)
-            if forbid is not None:
-                keep &= ~fs.at(forbid, nbhd)
-            state, z = nbhd[keep], mu[keep]   # latent noise only for the cells kept (~1/5 of N(x))
+        if forbid is not None:
+            keep &= ~fs.at(forbid, nbhd)
+        state, z = nbhd[keep], mu[keep]
+        if not last:   # latent noise only for the cells kept (~1/5 of N(x))
             z = z + model.cfg.sigma * torch.randn(z.shape, generator=generator, device=z.device)
         if progress is not None:
             progress(t + 1, steps)
