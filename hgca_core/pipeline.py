@@ -82,6 +82,7 @@ class LocalCompletion:
     seed: int
     free_cells: int | None = None      # 20 cm cells seen empty that the run used (None: no free space)
     fine_latents: np.ndarray | None = None   # (N, K) float32 latents of fine_cells (row-aligned), else None
+    observed_distance: np.ndarray | None = None   # (V,) float32: each mesh vertex's distance to the input (m)
 
 
 @dataclass
@@ -246,6 +247,7 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
     # at the region's centre (the box starts 1 m below the ground)
     sensors = (np.asarray(origins, dtype=np.float64).reshape(-1, 3) if origins is not None and len(origins)
                else np.array([[*(np.asarray(region.size[:2]) / 2), 3.0]]))
+    tree = cKDTree(local)     # the input points, for the fairing's anchors and each vertex's observed_distance
     results = []
     for i in range(samples):
         tag = f"sample {i + 1}/{samples}"
@@ -261,7 +263,7 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
                 c10, latents = upsample(models.fine, models.autoencoder, local, cells, region.grid_shape(FINE), t2,
                                         gen, lambda t, n: report("fine", t, n, tag, i), free, forbid)
             report("mesh", 0, 1, tag, i)
-            mesh = decode_mesh(models.autoencoder, c10, latents, points=local, sensors=sensors)
+            mesh = decode_mesh(models.autoencoder, c10, latents, points=local, sensors=sensors, tree=tree)
             cells10, latents10 = c10.cpu().numpy(), latents.float().cpu().numpy()
         else:
             report("mesh", 0, 1, tag, i)
@@ -274,9 +276,10 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
         if len(mesh.faces) == 0:  # inputs too small to complete were refused above: this is the model's doing
             warnings.warn(HgcaWarning(f"{tag} is an empty mesh: the model made no surface from {len(s0)} input "
                                       "cells (untrained or mismatched weights?)"), stacklevel=2)
+        dist = tree.query(mesh.vertices, workers=torch.get_num_threads())[0] if len(mesh.vertices) else np.zeros(0)
         results.append(LocalCompletion(mesh=mesh, coarse_cells=cells, fine_cells=cells10, seed=seed + i,
                                        free_cells=None if free_np is None else int(free_np.sum()),
-                                       fine_latents=latents10))
+                                       fine_latents=latents10, observed_distance=dist.astype(np.float32)))
         report("mesh", 1, 1, tag, i)
     return results
 
@@ -319,15 +322,13 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
     if origin_index is not None and len(origin_index) != len(pts):
         raise InputError(f"origin_index has {len(origin_index)} entries for {len(pts)} points")
     origins_local = None if origins is None or len(origins) == 0 else region.to_local(np.asarray(origins, np.float64))
-    tree = cKDTree(pts[inside])
     results = []
     for r in complete_local(local, region, models, stage, samples, seed, t1, t2, progress, precision,
                             DEFAULT_MAX_FACES if max_faces is None else max_faces, origins_local, origin_index,
                             free_space):
         mesh = r.mesh
         mesh.vertices = region.to_world(mesh.vertices)
-        dist = tree.query(mesh.vertices, workers=-1)[0].astype(np.float32) if len(mesh.vertices) else np.zeros(0, np.float32)
-        mesh = finish_mesh(mesh, dist)
-        results.append(Completion(mesh=mesh, observed_distance=dist, coarse_cells=r.coarse_cells, region=region,
-                                  seed=r.seed))
+        mesh = finish_mesh(mesh, r.observed_distance)
+        results.append(Completion(mesh=mesh, observed_distance=r.observed_distance, coarse_cells=r.coarse_cells,
+                                  region=region, seed=r.seed))
     return results

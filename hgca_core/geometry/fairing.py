@@ -39,7 +39,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import cg
 
 from hgca_core.geometry.keys import pack
-from hgca_core.geometry.mesh_clean import face_normals, vertex_sums
+from hgca_core.geometry.mesh_clean import adjacency, face_normals, vertex_sums
 from hgca_core.geometry.planes import fit_planes
 
 TILT = 30.0            # degrees: surfaces flatter than this are ground-like
@@ -62,18 +62,6 @@ class FairingReport:
     max_move: float
     rms_move: float
     iterations: int
-
-
-def adjacency(faces: np.ndarray, n_vertices: int) -> csr_matrix:
-    """(V, V) 0/1 symmetric matrix of the mesh's edges, from the sorted unique directed edge keys (several times
-    faster than summing a COO matrix's duplicates)."""
-    f = np.asarray(faces, dtype=np.int64)
-    a, b = f.reshape(-1), f[:, [1, 2, 0]].reshape(-1)
-    key = np.unique(np.concatenate([a * n_vertices + b, b * n_vertices + a]))
-    rows, cols = np.divmod(key, n_vertices)
-    indptr = np.zeros(n_vertices + 1, dtype=np.int64)
-    np.cumsum(np.bincount(rows, minlength=n_vertices), out=indptr[1:])
-    return csr_matrix((np.ones(len(cols), dtype=np.float32), cols, indptr), shape=(n_vertices, n_vertices))
 
 
 def ground_like(normals: np.ndarray, adj: csr_matrix, tilt: float = TILT, rings: int = NORMAL_RINGS) -> np.ndarray:

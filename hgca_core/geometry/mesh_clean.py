@@ -7,7 +7,7 @@ exactly two faces.
 from __future__ import annotations
 
 import numpy as np
-from scipy.sparse import coo_matrix
+from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 
@@ -155,14 +155,23 @@ def face_pieces(n_faces: int, fa: np.ndarray, fb: np.ndarray) -> tuple[int, np.n
                                 directed=False)
 
 
+def adjacency(faces: np.ndarray, n_vertices: int) -> csr_matrix:
+    """(V, V) 0/1 symmetric matrix of the mesh's edges, from the sorted unique directed edge keys (several times
+    faster than summing a COO matrix's duplicates)."""
+    f = np.asarray(faces, dtype=np.int64)
+    a, b = f.reshape(-1), f[:, [1, 2, 0]].reshape(-1)
+    key = np.unique(np.concatenate([a * n_vertices + b, b * n_vertices + a]))
+    rows, cols = np.divmod(key, n_vertices)
+    indptr = np.zeros(n_vertices + 1, dtype=np.int64)
+    np.cumsum(np.bincount(rows, minlength=n_vertices), out=indptr[1:])
+    return csr_matrix((np.ones(len(cols), dtype=np.float32), cols, indptr), shape=(n_vertices, n_vertices))
+
+
 def components(faces: np.ndarray, n_vertices: int) -> tuple[int, np.ndarray]:
     """(count, label per face) of the pieces connected through shared vertices."""
     if len(faces) == 0:
         return 0, np.zeros(0, dtype=np.int64)
-    rows = np.r_[faces[:, 0], faces[:, 1]]
-    cols = np.r_[faces[:, 1], faces[:, 2]]
-    graph = coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n_vertices, n_vertices))
-    n, label = connected_components(graph, directed=False)
+    n, label = connected_components(adjacency(faces, n_vertices), directed=False)
     used, face_label = np.unique(label[faces[:, 0]], return_inverse=True)
     return len(used), face_label.reshape(-1)
 

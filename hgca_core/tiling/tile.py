@@ -122,7 +122,6 @@ def complete_tile(job: TileJob, scans: list, neighbour_cells: list[tuple[tuple, 
     box; the region's float64 `to_world` places them), observed_distance, the coarse cells, the fixed cells it
     was given and the seen-empty cells its free space had (None: no free space)."""
     import torch
-    from scipy.spatial import cKDTree
 
     from hgca_core.pipeline import MIN_INPUT_CELLS, complete_local, load_models
 
@@ -141,22 +140,20 @@ def complete_tile(job: TileJob, scans: list, neighbour_cells: list[tuple[tuple, 
     local = everything[region.contains_local(everything)]
     models = load_models(s.stage, s.weights, s.fine_weights, s.device)
     # a tile that sees (almost) nothing gets no mesh, where `hgca complete` would refuse the region
-    tree = cKDTree(local) if len(voxelize(local, COARSE, region.size)) >= MIN_INPUT_CELLS else None
+    enough = len(voxelize(local, COARSE, region.size)) >= MIN_INPUT_CELLS
     samples = []
     for k in range(s.samples):
         fixed = [transfer_cells(cells[k], Region.from_tuple(reg), region) for reg, cells in neighbour_cells]
         fixed = np.concatenate(fixed) if fixed else np.zeros((0, 3), np.int64)
-        if tree is None:
+        if not enough:
             samples.append(_empty(job.seed + k, len(fixed)))
             continue
         # every point, not only the box's: a ray to a hit outside the tile still crosses it (complete_local crops)
         r = complete_local(everything, region, models, s.stage, 1, job.seed + k, s.t1, s.t2, None, s.precision,
                            s.max_faces, origins=origins, origin_index=rays, free_space=s.free_space,
                            fixed_cells=fixed)[0]
-        v = np.asarray(r.mesh.vertices, dtype=np.float64)
-        dist = tree.query(v, workers=1)[0].astype(np.float32) if len(v) else np.zeros(0, np.float32)
-        samples.append({"vertices": v.astype(np.float32), "faces": np.asarray(r.mesh.faces, dtype=np.int32),
-                        "observed_distance": dist, "cells": r.coarse_cells.astype(np.int16), "seed": r.seed,
+        samples.append({"vertices": np.asarray(r.mesh.vertices, dtype=np.float32),
+                        "faces": np.asarray(r.mesh.faces, dtype=np.int32), "observed_distance": r.observed_distance, "cells": r.coarse_cells.astype(np.int16), "seed": r.seed,
                         "fixed_cells": int(len(np.unique(fixed, axis=0))), "free_cells": r.free_cells})
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     return {"index": job.index, "key": job.key, "samples": samples, "points": int(len(local)),

@@ -3,7 +3,8 @@ domes and steep surfaces keep their shape."""
 import numpy as np
 import pytest
 
-from hgca_core.geometry.fairing import adjacency, fair_ground
+from hgca_core.geometry.fairing import fair_ground
+from hgca_core.geometry.mesh_clean import adjacency
 
 H = 0.05   # grid spacing of the test meshes, like the 5 cm extraction grid
 
