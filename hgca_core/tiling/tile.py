@@ -153,7 +153,8 @@ def complete_tile(job: TileJob, scans: list, neighbour_cells: list[tuple[tuple, 
                            s.max_faces, origins=origins, origin_index=rays, free_space=s.free_space,
                            fixed_cells=fixed)[0]
         samples.append({"vertices": np.asarray(r.mesh.vertices, dtype=np.float32),
-                        "faces": np.asarray(r.mesh.faces, dtype=np.int32), "observed_distance": r.observed_distance, "cells": r.coarse_cells.astype(np.int16), "seed": r.seed,
+                        "faces": np.asarray(r.mesh.faces, dtype=np.int32), "observed_distance": r.observed_distance,
+                        "cells": r.coarse_cells.astype(np.int16), "seed": r.seed,
                         "fixed_cells": int(len(np.unique(fixed, axis=0))), "free_cells": r.free_cells})
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     return {"index": job.index, "key": job.key, "samples": samples, "points": int(len(local)),
