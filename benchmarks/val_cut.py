@@ -1,0 +1,60 @@
+"""The real-scan protocol on synthetic val sweeps (run by hand): `python benchmarks/val_cut.py --weights W --out F`.
+
+Why: the val IoU chooses coarse checkpoints on the uncut multi-scan input, and missed that a candidate grew twice as
+much above a height cut, much of it in space the sensor saw empty (benchmarks/results/synth2_val_cut_38088.md). This
+scores val scenes the way `hgca eval-real` scores the real logs, so a checkpoint can be checked for it before the
+real logs (which are few) are spent: the first sweep of each of the first `--count` val scenes is written as an NPZ
+scan with its sensor origin (the `hgca read` layout), then `hgca eval-real` completes and scores them (coarse stage,
+k = `--samples`, cut heights `--cuts`). Writes F (.json) and the table beside it (.md).
+"""
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def write_first_sweeps(data: Path, count: int, folder: Path) -> list[Path]:
+    """The first sweep (scan index 0) of the first `count` val scenes as NPZ scans with their sensor origin."""
+    from hgca_core.training.data import split_files
+
+    out = []
+    for path in split_files(str(data), "val")[:count]:
+        with np.load(path, allow_pickle=False) as z:
+            first = np.asarray(z["input_scan_index"]) == 0
+            points = np.asarray(z["input_points"], dtype=np.float64)[first]
+            origin = np.asarray(z["input_origins"], dtype=np.float64)[:1]
+        target = folder / f"{Path(path).stem}_sweep0.npz"
+        np.savez(target, points=points, origins=origin, origin_index=np.zeros(len(points), np.int64))
+        out.append(target)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", default=str(REPO / "data" / "synth2"), help="dataset folder with a val split")
+    p.add_argument("--count", type=int, default=4, help="val scenes")
+    p.add_argument("--weights", default=None, help="coarse weights (default: the shipped coarse.pt)")
+    p.add_argument("--samples", type=int, default=3)
+    p.add_argument("--cuts", default="2.0")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--out", required=True, help="results JSON (the table goes to .md beside it)")
+    args = p.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        scans = write_first_sweeps(Path(args.data), args.count, Path(tmp))
+        cmd = [sys.executable, "-c", "import sys; from hgca_core.cli import main; sys.exit(main())", "eval-real",
+               "--threads", str(args.threads), "--methods", "hgca", "--samples", str(args.samples),
+               "--cuts", args.cuts, "--no-render", "--out", args.out, *map(str, scans)]
+        if args.weights:
+            cmd[cmd.index("--out"):cmd.index("--out")] = ["--weights", args.weights]
+        return subprocess.run(cmd, check=False).returncode
+
+
+if __name__ == "__main__":
+    sys.exit(main())
