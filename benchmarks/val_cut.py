@@ -48,11 +48,11 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         scans = write_first_sweeps(Path(args.data), args.count, Path(tmp))
+        # a process of its own, as `hgca eval-real` runs: the CLI sets torch's OpenMP policy before torch loads
         cmd = [sys.executable, "-c", "import sys; from hgca_core.cli import main; sys.exit(main())", "eval-real",
                "--threads", str(args.threads), "--methods", "hgca", "--samples", str(args.samples),
-               "--cuts", args.cuts, "--no-render", "--out", args.out, *map(str, scans)]
-        if args.weights:
-            cmd[cmd.index("--out"):cmd.index("--out")] = ["--weights", args.weights]
+               "--cuts", args.cuts, "--no-render", *(["--weights", args.weights] if args.weights else []),
+               "--out", args.out, *map(str, scans)]
         return subprocess.run(cmd, check=False).returncode
 
 
