@@ -36,6 +36,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--focus", type=_share, default=0.5, metavar="SHARE",
                    help="coarse: share of training crops drawn around cells the input misses 3 m or more above "
                         "the ground (facades up high, tree crowns); 0 draws every crop uniformly (default 0.5)")
+    p.add_argument("--free-weight", type=float, default=0.0, metavar="W",
+                   help="coarse with --free-space: the loss on cells the input rays saw empty (and the ground truth "
+                        "leaves empty) weighs 1 + W, against growth into observed free space (default 0)")
     p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
                    help="GEMM precision of the sparse convs' forward and backward passes (bf16: float32 "
                         "accumulation, weights and optimiser; see benchmarks/results/train_precision.md)")
@@ -107,7 +110,16 @@ def build_task(args: argparse.Namespace, ckpt: Path):
             cfg = GCAConfig(use_planner=args.stage == "coarse", free_space=free)
         if args.channels and not saved and not init:
             cfg.channels = tuple(int(c) for c in args.channels.split(","))
-        return CoarseTask(args.data, cfg, crop=args.crop or 64, focus_share=args.focus)
+        free_weight = float(getattr(args, "free_weight", 0.0) or 0.0)
+        if free_weight and not cfg.free_space:
+            from hgca_core.errors import InputError
+
+            raise InputError("--free-weight needs the free space: add --free-space (or train from weights with it)")
+        if free_weight < 0:
+            from hgca_core.errors import InputError
+
+            raise InputError(f"--free-weight must be 0 or more, got {free_weight}")
+        return CoarseTask(args.data, cfg, crop=args.crop or 64, focus_share=args.focus, free_weight=free_weight)
     if args.stage == "autoencoder":
         from hgca_core.models.autoencoder import AutoencoderConfig
         from hgca_core.training.fine import AutoencoderTask

@@ -130,3 +130,55 @@ def test_fine_stage_trains_with_free_space(dataset, tmp_path):
     assert state["step"] == 2 and 0.0 <= state["history"][-1]["val_iou"] <= 1.0
     ck = load_file(tmp_path / "fine" / "ckpt.pt")
     assert ck["model"]["model.proj.0.weight"].shape[1] == 2 + 8 + 2 + 1
+
+
+def test_free_weight_weighs_the_loss_on_seen_empty_negatives(dataset, capsys):
+    """`--free-weight W`: a neighbourhood cell the rays saw through and the ground truth leaves empty weighs
+    1 + W in the kernel's BCE; a seen-empty cell the ground truth fills, and every other cell, weigh 1."""
+    from hgca_core.training.coarse import CoarseLoss
+
+    cfg = GCAConfig(**SMALL, steps=3, free_space=True)
+    task = CoarseTask(str(dataset), cfg, crop=16, free_weight=5.0)
+    chains = [task.new_example(np.random.default_rng(s)) for s in (1, 2)]
+    free0 = chains[0].extra["free"]
+    filled = torch.nonzero(free0)[:3]
+    chains[0].gt = torch.cat([chains[0].gt, filled])                    # seen empty, yet in the ground truth
+    for ch in chains:                                                  # chains that grew into the free space
+        ch.state = torch.cat([ch.state, torch.nonzero(ch.extra["free"])[::7]])
+    torch.manual_seed(0)
+    plain = CoarseLoss(cfg)
+    weighted = CoarseLoss(cfg, free_weight=5.0)
+    weighted.load_state_dict(plain.state_dict())
+    seen_logits = []
+    real_forward = GCAKernel.forward
+
+    def recording(self, nbhd, *a, **k):
+        out = real_forward(self, nbhd, *a, **k)
+        seen_logits.append((nbhd, out.detach()))
+        return out
+
+    GCAKernel.forward = recording
+    try:
+        _, s_plain, _ = plain(chains)
+        _, s_weighted, _ = weighted(chains)
+    finally:
+        GCAKernel.forward = real_forward
+    nbhd, logits = seen_logits[1]
+    assert torch.equal(nbhd, seen_logits[0][0])
+    gts = [{tuple(c) for c in ch.gt.tolist()} for ch in chains]
+    frees = [ch.extra["free"] for ch in chains]
+    target = torch.tensor([tuple(r[1:]) in gts[r[0]] for r in nbhd.tolist()], dtype=torch.float32)
+    seen = torch.tensor([bool(frees[r[0]][r[1], r[2], r[3]]) and tuple(r[1:]) not in gts[r[0]]
+                         for r in nbhd.tolist()])
+    assert 0 < seen.sum() < len(seen)
+    gt_free = [bool(frees[r[0]][r[1], r[2], r[3]]) and tuple(r[1:]) in gts[r[0]] for r in nbhd.tolist()]
+    assert any(gt_free)                                                 # the filled seen-empty cells were scored
+    p = torch.sigmoid(logits.double())
+    bce = -(target * torch.log(p) + (1 - target) * torch.log(1 - p))
+    assert s_plain["loss_gca"] == pytest.approx(float(bce.mean()), rel=1e-5)
+    assert s_weighted["loss_gca"] == pytest.approx(float(((1 + 5.0 * seen) * bce).mean()), rel=1e-5)
+    assert s_weighted["seen_empty"] == pytest.approx(float(seen.float().mean()))
+    assert task.recipe()["free_weight"] == 5.0
+    capsys.readouterr()
+    assert main(["train", "coarse", "--data", str(dataset), "--free-weight", "2", "--max-steps", "1"]) == 2
+    assert "--free-space" in capsys.readouterr().err                    # nothing to weigh without the free space
