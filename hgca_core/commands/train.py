@@ -39,6 +39,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--free-weight", type=float, default=0.0, metavar="W",
                    help="coarse with --free-space: the loss on cells the input rays saw empty (and the ground truth "
                         "leaves empty) weighs 1 + W, against growth into observed free space (default 0)")
+    p.add_argument("--cut", type=_share, default=0.0, metavar="SHARE",
+                   help="coarse: share of training inputs cut 1.5-3 m above the ground (a uniform crop, the free "
+                        "space above the cut unknown), as hgca eval-real cuts real scans (default 0)")
     p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
                    help="GEMM precision of the sparse convs' forward and backward passes (bf16: float32 "
                         "accumulation, weights and optimiser; see benchmarks/results/train_precision.md)")
@@ -119,7 +122,8 @@ def build_task(args: argparse.Namespace, ckpt: Path):
             from hgca_core.errors import InputError
 
             raise InputError(f"--free-weight must be 0 or more, got {free_weight}")
-        return CoarseTask(args.data, cfg, crop=args.crop or 64, focus_share=args.focus, free_weight=free_weight)
+        return CoarseTask(args.data, cfg, crop=args.crop or 64, focus_share=args.focus, free_weight=free_weight,
+                          cut_share=getattr(args, "cut", 0.0))
     if args.stage == "autoencoder":
         from hgca_core.models.autoencoder import AutoencoderConfig
         from hgca_core.training.fine import AutoencoderTask

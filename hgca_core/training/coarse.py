@@ -13,12 +13,28 @@ from torch import nn
 import torch.nn.functional as F
 
 from hgca_core.geometry import coords as cs
+from hgca_core.geometry.region import BELOW_GROUND
+from hgca_core.geometry.voxel import COARSE
 from hgca_core.models import free as fs
 from hgca_core.models.gca import GCAConfig, GCAKernel, sample
 from hgca_core.models.infusion import alpha
 from hgca_core.models.planner import rough_target
 from hgca_core.training.buffer import Chain
 from hgca_core.training.data import coarse_pair, crop_flip, focus_cells, free_cells, load_arrays, split_files
+
+
+CUT_HEIGHTS = (1.5, 3.0)  # m above the ground: `hgca eval-real` cuts real scans at 1.5 and 2 m
+
+
+def height_cut(s0: np.ndarray, free: np.ndarray | None, height: float) -> tuple[np.ndarray, np.ndarray | None]:
+    """An input cut `height` m above the region's ground (`BELOW_GROUND` in the region frame), as `hgca eval-real`
+    cuts real scans to measure extrapolation: input cells whose bottom is at or above the cut go, and so does
+    the seen-empty mark of the cells there (the rays to the cut-away points are gone; the rays to the kept
+    points stay below the cut but for the few between it and a sensor mounted higher, which are left unknown).
+    Trained on, it shows the model what a street holds above what the sensor saw, at its true rate."""
+    top = int(np.ceil((BELOW_GROUND + height) / COARSE - 1e-9))   # first cell layer at or above the cut
+    s0 = s0[s0[:, 2] < top]
+    return s0, None if free is None else free[free[:, 2] < top]
 
 
 def batched(sets: list[torch.Tensor]) -> torch.Tensor:
@@ -78,28 +94,36 @@ class CoarseTask:
     name: str = "coarse"
     focus_share: float = 0.0  # share of training crops drawn around missed cells up high (`data.focus_cells`)
     free_weight: float = 0.0  # extra weight of the loss on negatives seen empty (`CoarseLoss`; needs free_space)
+    cut_share: float = 0.0    # share of training inputs cut at a random height (`height_cut`), as eval-real cuts
 
     def __post_init__(self) -> None:
         self.train_files = split_files(self.data_dir, "train")
 
     def recipe(self) -> dict:
         """The training settings a session records beside its steps (the model card shows them)."""
-        return {"crop": self.crop, "focus_share": self.focus_share, "free_weight": self.free_weight}
+        return {"crop": self.crop, "focus_share": self.focus_share, "free_weight": self.free_weight,
+                "cut_share": self.cut_share}
 
     def build(self) -> CoarseLoss:
         return CoarseLoss(self.cfg, self.free_weight)
 
     def new_example(self, rng: np.random.Generator) -> Chain:
         path = self.train_files[int(rng.integers(len(self.train_files)))]
-        (s0_t, gt_t), grid, extra = self.example(path, [], rng, self.focus_share)
+        cut = CUT_HEIGHTS[0] + rng.random() * (CUT_HEIGHTS[1] - CUT_HEIGHTS[0]) if rng.random() < self.cut_share \
+            else None   # a cut input's crop is drawn uniformly: what lies above a cut is the street's base rate
+        (s0_t, gt_t), grid, extra = self.example(path, [], rng, self.focus_share if cut is None else 0.0, cut)
         return Chain(s0=s0_t, gt=gt_t, state=s0_t.clone(), t=0, grid=grid, extra=extra)
 
-    def example(self, path: str | Path, more: list[np.ndarray], rng: np.random.Generator, focus_share: float = 0.0
-                ) -> tuple[list[torch.Tensor], tuple[int, int, int], dict | None]:
+    def example(self, path: str | Path, more: list[np.ndarray], rng: np.random.Generator, focus_share: float = 0.0,
+                cut: float | None = None) -> tuple[list[torch.Tensor], tuple[int, int, int], dict | None]:
         """([s0, gt, *more] cut by one random crop, the crop's grid, {"free": its free space} or None); with
-        `focus_share` > 0 that share of crops is centred near missed cells up high (validation uses none)."""
+        `focus_share` > 0 that share of crops is centred near missed cells up high (validation uses none); with
+        `cut` (metres above the ground) the input is cut there first (`height_cut`)."""
         s0, gt, full = coarse_pair(path)
-        sets = [s0, gt, *more] + ([free_cells(path)] if self.cfg.free_space else [])
+        free = free_cells(path) if self.cfg.free_space else None
+        if cut is not None:
+            s0, free = height_cut(s0, free, cut)
+        sets = [s0, gt, *more] + ([free] if free is not None else [])
         focus = focus_cells(s0, gt) if focus_share > 0 else None
         cut, grid = crop_flip(sets, full, self.crop, rng, focus, focus_share)
         if not self.cfg.free_space:

@@ -182,3 +182,35 @@ def test_free_weight_weighs_the_loss_on_seen_empty_negatives(dataset, capsys):
     capsys.readouterr()
     assert main(["train", "coarse", "--data", str(dataset), "--free-weight", "2", "--max-steps", "1"]) == 2
     assert "--free-space" in capsys.readouterr().err                    # nothing to weigh without the free space
+
+
+def test_height_cut_inputs_match_eval_reals_cut(dataset, monkeypatch):
+    """`--cut`: a training input cut h m above the ground holds the cells of the input points below the cut (as
+    `hgca eval-real` cuts a real scan), and the layer the cut crosses whole; its free space above the cut is
+    unknown."""
+    from hgca_core.geometry.region import BELOW_GROUND
+    from hgca_core.geometry.voxel import voxelize
+    from hgca_core.training import coarse
+    from hgca_core.training.coarse import height_cut
+
+    path = sorted((dataset / "train").glob("sample_*.npz"))[0]
+    s = np.load(path)
+    pts, size = s["input_points"], s["region"][3:6]
+    s0, free = voxelize(pts, COARSE, size), free_cells(path)
+    for h in (0.65, 0.75, 0.95):                                       # the tiny samples' input ends at 2.2 m
+        cut_s0, cut_free = height_cut(s0, free, h)
+        layer = int((BELOW_GROUND + h) / COARSE)                        # the cell layer the cut crosses
+        below = {tuple(c) for c in voxelize(pts[pts[:, 2] < BELOW_GROUND + h], COARSE, size).tolist()}
+        kept = {tuple(c) for c in cut_s0.tolist()}
+        assert below <= kept and all(c[2] == layer for c in kept - below)
+        assert len(cut_s0) < len(s0) and cut_s0[:, 2].max() == layer
+        assert np.array_equal(cut_free, free[free[:, 2] <= layer]) and len(cut_free) < len(free)
+    monkeypatch.setattr(coarse, "CUT_HEIGHTS", (0.5, 0.9))
+    task = CoarseTask(str(dataset), GCAConfig(**SMALL, steps=3, free_space=True), crop=16, focus_share=1.0,
+                      cut_share=1.0)
+    for seed in range(4):
+        ch = task.new_example(np.random.default_rng(seed))
+        limit = int(np.ceil((BELOW_GROUND + 0.9) / COARSE))
+        assert ch.s0[:, 2].max() < limit and not ch.extra["free"][..., limit:].any()
+        assert ch.gt[:, 2].max() >= limit                               # what lies above is still to be made
+    assert task.recipe()["cut_share"] == 1.0
