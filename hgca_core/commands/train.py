@@ -25,7 +25,8 @@ def _share(text: str) -> float:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("stage", choices=STAGES, help="which model to train (coarse-noplanner is the planner ablation)")
-    p.add_argument("--data", default="data/synth", help="dataset folder with train/ and val/ splits (hgca synth --split)")
+    p.add_argument("--data", default="data/synth",
+                   help="dataset folder with train/ and val/ splits (hgca synth --split)")
     p.add_argument("--out", default=None, help="run folder (default runs/<stage>)")
     p.add_argument("--minutes", type=float, default=10.0, help="wall-time budget of this session (0: only --export)")
     p.add_argument("--max-steps", type=int, default=None, help="stop after this many steps (tests)")

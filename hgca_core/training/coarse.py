@@ -38,7 +38,9 @@ def height_cut(s0: np.ndarray, free: np.ndarray | None, height: float) -> tuple[
 
 
 def batched(sets: list[torch.Tensor]) -> torch.Tensor:
-    return torch.cat([cs.with_batch(s, b) for b, s in enumerate(sets)]) if sets else torch.zeros((0, 4), dtype=torch.long)
+    if not sets:
+        return torch.zeros((0, 4), dtype=torch.long)
+    return torch.cat([cs.with_batch(s, b) for b, s in enumerate(sets)])
 
 
 class CoarseLoss(nn.Module):
