@@ -114,17 +114,13 @@ def build_task(args: argparse.Namespace, ckpt: Path):
             cfg = GCAConfig(use_planner=args.stage == "coarse", free_space=free)
         if args.channels and not saved and not init:
             cfg.channels = tuple(int(c) for c in args.channels.split(","))
-        free_weight = float(getattr(args, "free_weight", 0.0) or 0.0)
-        if free_weight and not cfg.free_space:
+        if args.free_weight < 0 or (args.free_weight and not cfg.free_space):
             from hgca_core.errors import InputError
 
-            raise InputError("--free-weight needs the free space: add --free-space (or train from weights with it)")
-        if free_weight < 0:
-            from hgca_core.errors import InputError
-
-            raise InputError(f"--free-weight must be 0 or more, got {free_weight}")
-        return CoarseTask(args.data, cfg, crop=args.crop or 64, focus_share=args.focus, free_weight=free_weight,
-                          cut_share=getattr(args, "cut", 0.0))
+            raise InputError(f"--free-weight must be 0 or more, got {args.free_weight}" if args.free_weight < 0
+                             else "--free-weight needs the free space: add --free-space (or weights with it)")
+        return CoarseTask(args.data, cfg, crop=args.crop or 64, focus_share=args.focus,
+                          free_weight=args.free_weight, cut_share=args.cut)
     if args.stage == "autoencoder":
         from hgca_core.models.autoencoder import AutoencoderConfig
         from hgca_core.training.fine import AutoencoderTask

@@ -111,8 +111,9 @@ class CoarseTask:
 
     def new_example(self, rng: np.random.Generator) -> Chain:
         path = self.train_files[int(rng.integers(len(self.train_files)))]
-        cut = CUT_HEIGHTS[0] + rng.random() * (CUT_HEIGHTS[1] - CUT_HEIGHTS[0]) if rng.random() < self.cut_share \
-            else None   # a cut input's crop is drawn uniformly: what lies above a cut is the street's base rate
+        cut = None      # without cuts the random stream is the one runs before `cut_share` drew
+        if self.cut_share and rng.random() < self.cut_share:
+            cut = CUT_HEIGHTS[0] + rng.random() * (CUT_HEIGHTS[1] - CUT_HEIGHTS[0])   # its crop is drawn uniformly
         (s0_t, gt_t), grid, extra = self.example(path, [], rng, self.focus_share if cut is None else 0.0, cut)
         return Chain(s0=s0_t, gt=gt_t, state=s0_t.clone(), t=0, grid=grid, extra=extra)
 

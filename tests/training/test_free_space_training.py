@@ -182,6 +182,9 @@ def test_free_weight_weighs_the_loss_on_seen_empty_negatives(dataset, capsys):
     capsys.readouterr()
     assert main(["train", "coarse", "--data", str(dataset), "--free-weight", "2", "--max-steps", "1"]) == 2
     assert "--free-space" in capsys.readouterr().err                    # nothing to weigh without the free space
+    assert main(["train", "coarse", "--data", str(dataset), "--free-space", "--free-weight", "-1",
+                 "--max-steps", "1"]) == 2
+    assert "0 or more" in capsys.readouterr().err
 
 
 def test_height_cut_inputs_match_eval_reals_cut(dataset, monkeypatch):
