@@ -65,9 +65,9 @@ class CoarseLoss(nn.Module):
         if self.free_weight and free is not None:
             # growth into what the rays saw through is the error real scans punish most (10-15 % of generated
             # cells): its negatives weigh 1 + free_weight; a seen-empty cell that the ground truth fills keeps 1
-            seen = fs.at(free, nbhd) & (target == 0)
-            weight = 1.0 + self.free_weight * seen.float()
-            stats["seen_empty"] = float(seen.float().mean())
+            seen = (fs.at(free, nbhd) & (target == 0)).float()
+            weight = 1.0 + self.free_weight * seen
+            stats["seen_empty"] = float(seen.mean())
         loss_gca = F.binary_cross_entropy_with_logits(logits, target, weight=weight)
         loss = loss_gca
         stats["loss_gca"] = float(loss_gca.detach())
@@ -111,21 +111,21 @@ class CoarseTask:
 
     def new_example(self, rng: np.random.Generator) -> Chain:
         path = self.train_files[int(rng.integers(len(self.train_files)))]
-        cut = None      # without cuts the random stream is the one runs before `cut_share` drew
+        height = None   # without cuts the random stream is the one runs before `cut_share` drew
         if self.cut_share and rng.random() < self.cut_share:
-            cut = CUT_HEIGHTS[0] + rng.random() * (CUT_HEIGHTS[1] - CUT_HEIGHTS[0])   # its crop is drawn uniformly
-        (s0_t, gt_t), grid, extra = self.example(path, [], rng, self.focus_share if cut is None else 0.0, cut)
+            height = CUT_HEIGHTS[0] + rng.random() * (CUT_HEIGHTS[1] - CUT_HEIGHTS[0])   # its crop is drawn uniformly
+        (s0_t, gt_t), grid, extra = self.example(path, [], rng, self.focus_share if height is None else 0.0, height)
         return Chain(s0=s0_t, gt=gt_t, state=s0_t.clone(), t=0, grid=grid, extra=extra)
 
     def example(self, path: str | Path, more: list[np.ndarray], rng: np.random.Generator, focus_share: float = 0.0,
-                cut: float | None = None) -> tuple[list[torch.Tensor], tuple[int, int, int], dict | None]:
+                cut_height: float | None = None) -> tuple[list[torch.Tensor], tuple[int, int, int], dict | None]:
         """([s0, gt, *more] cut by one random crop, the crop's grid, {"free": its free space} or None); with
         `focus_share` > 0 that share of crops is centred near missed cells up high (validation uses none); with
-        `cut` (metres above the ground) the input is cut there first (`height_cut`)."""
+        `cut_height` (metres above the ground) the input is cut there first (`height_cut`)."""
         s0, gt, full = coarse_pair(path)
         free = free_cells(path) if self.cfg.free_space else None
-        if cut is not None:
-            s0, free = height_cut(s0, free, cut)
+        if cut_height is not None:
+            s0, free = height_cut(s0, free, cut_height)
         sets = [s0, gt, *more] + ([free] if free is not None else [])
         focus = focus_cells(s0, gt) if focus_share > 0 else None
         cut, grid = crop_flip(sets, full, self.crop, rng, focus, focus_share)

@@ -132,7 +132,7 @@ def test_fine_stage_trains_with_free_space(dataset, tmp_path):
     assert ck["model"]["model.proj.0.weight"].shape[1] == 2 + 8 + 2 + 1
 
 
-def test_free_weight_weighs_the_loss_on_seen_empty_negatives(dataset, capsys):
+def test_free_weight_weighs_the_loss_on_seen_empty_negatives(dataset, capsys, monkeypatch):
     """`--free-weight W`: a neighbourhood cell the rays saw through and the ground truth leaves empty weighs
     1 + W in the kernel's BCE; a seen-empty cell the ground truth fills, and every other cell, weigh 1."""
     from hgca_core.training.coarse import CoarseLoss
@@ -157,12 +157,10 @@ def test_free_weight_weighs_the_loss_on_seen_empty_negatives(dataset, capsys):
         seen_logits.append((nbhd, out.detach()))
         return out
 
-    GCAKernel.forward = recording
-    try:
-        _, s_plain, _ = plain(chains)
-        _, s_weighted, _ = weighted(chains)
-    finally:
-        GCAKernel.forward = real_forward
+    monkeypatch.setattr(GCAKernel, "forward", recording)
+    _, s_plain, _ = plain(chains)
+    _, s_weighted, _ = weighted(chains)
+    monkeypatch.undo()
     nbhd, logits = seen_logits[1]
     assert torch.equal(nbhd, seen_logits[0][0])
     gts = [{tuple(c) for c in ch.gt.tolist()} for ch in chains]
