@@ -22,6 +22,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     what.add_argument("--split", choices=("train", "val", "test"),
                       help="build a dataset split (seeds: train i, val 1,000,000 + i, test 2,000,000 + i)")
     p.add_argument("--count", type=int, help="samples in the split (with --split)")
+    p.add_argument("--first", type=int, default=0, metavar="I",
+                   help="with --split: start at the split's I-th seed (a folder of new scenes beside an older "
+                        "dataset, so the two share no seed; default 0)")
     p.add_argument("--scans", type=int, help="input scans per sample: the ego scan + others (default: the seed "
                    "draws 1 to 10)")
     p.add_argument("--profile", choices=sorted(PROFILES),
@@ -42,8 +45,8 @@ def run(args: argparse.Namespace) -> int:
         if args.profile is not None:
             raise InputError("--profile applies to --seed only; a split draws each sample's profile from its seed")
         return _split(args)
-    if args.count is not None:
-        raise InputError("--count goes with --split, not --seed")
+    if args.count is not None or args.first:
+        raise InputError("--count and --first go with --split, not --seed")
     if args.seed < 0:
         raise InputError(f"--seed must be non-negative, got {args.seed}")
     from hgca_core.synth.dataset import DEFAULT_QUALITY, QUICK_QUALITY, simulate
@@ -69,6 +72,11 @@ def run(args: argparse.Namespace) -> int:
 def _split(args: argparse.Namespace) -> int:
     if args.count is None or args.count < 1:
         raise InputError("--split needs --count N (N >= 1)")
+    from hgca_core.synth.dataset import SPLIT_SPAN
+
+    if not 0 <= args.first <= SPLIT_SPAN - args.count:
+        raise InputError(f"--first {args.first} with --count {args.count} leaves the split's seeds "
+                         f"(0..{SPLIT_SPAN - 1}: the next split's start there)")
     if args.style is not None:
         raise InputError("--style applies to --seed only; a split mixes styles by seed")
     if args.workers < 1:
@@ -77,6 +85,6 @@ def _split(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     paths = build_split(args.out, args.split, args.count, n_scans=args.scans, workers=args.workers,
-                        quality=QUICK_QUALITY if args.quick else DEFAULT_QUALITY)
+                        quality=QUICK_QUALITY if args.quick else DEFAULT_QUALITY, first=args.first)
     print(f"{args.split}: {len(paths)} samples in {args.out}/{args.split} ({time.perf_counter() - t0:.1f} s)")
     return 0

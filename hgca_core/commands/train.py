@@ -25,8 +25,9 @@ def _share(text: str) -> float:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("stage", choices=STAGES, help="which model to train (coarse-noplanner is the planner ablation)")
-    p.add_argument("--data", default="data/synth",
-                   help="dataset folder with train/ and val/ splits (hgca synth --split)")
+    p.add_argument("--data", default=["data/synth"], nargs="+", metavar="DIR",
+                   help="dataset folder with train/ and val/ splits (hgca synth --split); several folders: train on "
+                        "the union of their train splits, validate on the first one's val split")
     p.add_argument("--out", default=None, help="run folder (default runs/<stage>)")
     p.add_argument("--minutes", type=float, default=10.0, help="wall-time budget of this session (0: only --export)")
     p.add_argument("--max-steps", type=int, default=None, help="stop after this many steps (tests)")
@@ -176,7 +177,7 @@ def export(args: argparse.Namespace, task, ckpt: Path) -> Path:
     from hgca_core.training.card import write_model_card
 
     target = Path(shipped(args.stage) if args.export is True else args.export)
-    extra = {"stage": args.stage, "data": str(args.data)}
+    extra = {"stage": args.stage, "data": " + ".join(map(str, args.data))}
     if args.stage.startswith("coarse"):
         from hgca_core.models.weights import load_file, save_weights, trained_weights
         from hgca_core.training.trainer import run_record

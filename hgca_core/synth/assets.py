@@ -213,6 +213,32 @@ def garage(b: MeshBuilder, rng: np.random.Generator, width: float, depth: float)
         b.gable([-0.2, -0.2, h], [width + 0.2, depth + 0.2], rng.uniform(0.8, 1.6), BUILDING, 1)
 
 
+def low_shop(b: MeshBuilder, rng: np.random.Generator, width: float, depth: float) -> float:
+    """Single-storey shop, 3.2-5 m: a flat roof behind a parapet, a glass front with a door, often a sign
+    board or an awning. Returns its height (walls that end low are what real streets mostly hold)."""
+    h = rng.uniform(3.2, 5.0)
+    b.box([0, 0, 0], [width, depth, h], BUILDING, skip=("-z",))
+    parapet = rng.uniform(0.2, 0.9)
+    if rng.random() < 0.7:  # parapet around the roof's front and sides
+        for lo, hi in (([0, 0], [width, 0.25]), ([0, 0], [0.25, depth]), ([width - 0.25, 0], [width, depth])):
+            b.box([lo[0], lo[1], h - OVERLAP], [hi[0], hi[1], h + parapet], BUILDING, skip=())
+    if rng.random() < 0.8:  # shop windows, a door gap
+        door = rng.uniform(0.5, max(0.6, width - 1.8))
+        with b.material(WINDOW):
+            for xa, xb in ((0.3, door), (door + 1.1, width - 0.3)):
+                if xb - xa > 0.5:
+                    b.quad([[xa, -0.02, 0.4], [xb, -0.02, 0.4], [xb, -0.02, h - 0.9], [xa, -0.02, h - 0.9]], BUILDING)
+    if rng.random() < 0.5:  # sign board over the front
+        b.box([0.4, -0.2, h - 0.8], [width - 0.4, OVERLAP, h - 0.15], BUILDING, skip=())
+    elif rng.random() < 0.6:  # awning sloping down towards the street
+        out, zt = rng.uniform(1.0, 2.0), h - rng.uniform(0.6, 1.0)
+        zb = zt - rng.uniform(0.3, 0.6)
+        corners = np.array([[x, y, z + dz] for dz in (0.0, 0.08) for y, z in ((-out, zb), (OVERLAP, zt))
+                            for x in (0.3, width - 0.3)])
+        b.hexahedron(corners, BUILDING, skip=())
+    return h
+
+
 def simple_block(b: MeshBuilder, rng: np.random.Generator, width: float, depth: float, height: float) -> None:
     """Plain building for rows far from the street (few faces: seen only by wide regions)."""
     b.box([0, 0, 0], [width, depth, height], BUILDING)
@@ -238,9 +264,10 @@ def row_house(b: MeshBuilder, rng: np.random.Generator, width: float, depth: flo
         b.box([width * 0.3, -0.9, 0.0], [width * 0.3 + 1.2, OVERLAP, 0.45], BUILDING)
 
 
-def warehouse(b: MeshBuilder, rng: np.random.Generator, width: float, depth: float) -> None:
+def warehouse(b: MeshBuilder, rng: np.random.Generator, width: float, depth: float,
+              heights: tuple[float, float] = (6.0, 9.5)) -> None:
     """Long low hall: a plain (often dark) cladding wall with recessed roller doors and a strip of windows."""
-    h = rng.uniform(6.0, 9.5)
+    h = rng.uniform(*heights)
     doors = []
     x = rng.uniform(1.5, 4.0)
     while x + 4.5 < width - 1.0:

@@ -205,3 +205,74 @@ def town_rows(b: MeshBuilder, rng: np.random.Generator, S: Street) -> dict:
                 x += w
         _back_row(b, rng, S, s, y_front + 22.0, lambda w: rng.uniform(6.0, 14.0))
     return {"terraces": terraces}
+
+
+def _shop_units(b: MeshBuilder, rng: np.random.Generator, S: Street, s: int, x0: float, x1: float, ly: float) -> None:
+    """A row of single-storey shop units (5-12 m each) standing `ly` behind the sidewalk, flush or stepped."""
+    x = x0
+    while x < x1 - 3.0:
+        w = min(rng.uniform(5.0, 12.0), x1 - x)
+        lot = Lot(S, s, x, x + w)
+        step = rng.uniform(0.0, 0.8) if rng.random() < 0.3 else 0.0
+        with b.material(DARK if rng.random() < 0.1 else DEFAULT_MATERIAL):
+            with b.placed(*lot.at(0.0, ly + step, foot=(0, 0, w, 12.0))):
+                A.low_shop(b, rng, w + A.OVERLAP, rng.uniform(9.0, 14.0))
+        x += w
+
+
+def _car_rows(b: MeshBuilder, rng: np.random.Generator, lot: Lot, ly0: float, ly1: float) -> int:
+    """Cars parked nose-in in rows across a parking lot between ly0 and ly1 (5.5 m rows, 7 m aisles)."""
+    cars, ly = 0, ly0 + 2.6
+    while ly + 2.5 < ly1:
+        for lx in np.arange(1.6, lot.width - 1.4, 2.6):
+            if rng.random() < 0.55:
+                yaw = np.pi / 2 + (0.0 if rng.random() < 0.5 else np.pi) + np.radians(rng.normal(0.0, 3.0))
+                with b.placed(*lot.at(lx, ly, yaw, foot=(-1.0, -2.3, 1.0, 2.3), tilt=True)):
+                    V.vehicle(b, rng, V.pick_shape(rng, big=False))
+                cars += 1
+        ly += 12.5
+    return cars
+
+
+def strip_rows(b: MeshBuilder, rng: np.random.Generator, S: Street) -> dict:
+    """Low-rise commercial strips (most real streets): single-storey shops, parking lots in front of
+    set-back shops, open lots behind walls or fences, low halls; above 5 m mostly sky, trees and poles."""
+    y_front = S.hw + S.sw
+    counts = {"low_shops": 0, "parking_cars": 0, "open_lots": 0}
+    for s in (1, -1):
+        for x0, x1 in lots(rng, S, y_front, y_front + 30.0, 10.0, 40.0, 0.3, (2.0, 10.0), margin=0.5):
+            lot = Lot(S, s, x0, x1)
+            kind = str(rng.choice(["shops", "parking", "open", "hall"], p=[0.4, 0.3, 0.15, 0.15]))
+            if kind == "shops":
+                counts["low_shops"] += 1
+                _shop_units(b, rng, S, s, x0, x1, rng.uniform(0.0, 1.5))
+            elif kind == "parking":
+                back = rng.uniform(14.0, 24.0)
+                counts["parking_cars"] += _car_rows(b, rng, lot, 0.5, back - 1.0)
+                if rng.random() < 0.7:
+                    _shop_units(b, rng, S, s, x0, x1, back)
+                if rng.random() < 0.5:  # a low wall, hedge or rail along the front, a gap for the entrance
+                    kind_f = str(rng.choice(["hedge", "wall", "picket"]))
+                    gate = rng.uniform(1.0, max(1.1, lot.width - 7.0))
+                    for a, z in ((0.2, gate), (gate + 6.0, lot.width - 0.2)):
+                        if z - a > 1.0:
+                            lot.fence(b, rng, a, 0.2, z - a, kind_f)
+                for _ in range(int(rng.integers(0, 3))):   # lamps in the lot
+                    with b.placed(*lot.at(rng.uniform(1.0, lot.width - 1.0), rng.uniform(2.0, back - 2.0))):
+                        F.street_lamp(b, rng)
+            elif kind == "open":
+                counts["open_lots"] += 1
+                lot.fence(b, rng, 0.2, 0.3, lot.width - 0.4, "wall" if rng.random() < 0.5 else "panel")
+                for _ in range(int(rng.integers(0, 4))):
+                    with b.placed(*lot.at(rng.uniform(1.0, lot.width - 1.0), rng.uniform(2.0, 25.0))):
+                        F.bush(b, rng) if rng.random() < 0.6 else F.tree(b, rng, rng.uniform(0.7, 1.2))
+            else:
+                setback = rng.uniform(0.0, 8.0)
+                with b.placed(*lot.at(0.0, setback, foot=(0, 0, lot.width, 15.0))):
+                    A.warehouse(b, rng, lot.width, rng.uniform(12.0, 20.0), heights=(3.8, 6.5))
+            if rng.random() < 0.4:  # trees at the lot's edge
+                with b.placed(*lot.at(rng.uniform(0.5, lot.width - 0.5), rng.uniform(0.6, 1.2))):
+                    F.tree(b, rng, rng.uniform(0.7, 1.2), conifer=rng.random() < 0.2)
+        if rng.random() < 0.6:  # some of the back row, low
+            _back_row(b, rng, S, s, y_front + 34.0, lambda w: rng.uniform(3.5, 8.0))
+    return counts

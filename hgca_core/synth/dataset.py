@@ -25,8 +25,9 @@ from hgca_core.synth.assets import LABEL_NAMES
 from hgca_core.synth.scene import StreetScene, make_scene
 
 SPLITS = {"train": 0, "val": 1_000_000, "test": 2_000_000}
+SPLIT_SPAN = 1_000_000   # seeds a split may use before the next split's
 FORMAT_VERSION = 2      # layout of the sample file (CONTRACTS.md); 2 added ground_height
-GENERATOR_VERSION = 6   # bumped whenever the same seed would produce different content
+GENERATOR_VERSION = 7   # bumped whenever the same seed would produce different content
 SCANS = (1, 10)         # a sample draws its number of input scans from this range (inclusive)
 EVAL_HEIGHT = 2.0       # the evaluation LiDAR rides this high above the road
 KEYS = ("region", "input_points", "input_scan_index", "input_origins", "input_poses", "gt_occ20", "gt_occ10",
@@ -410,8 +411,9 @@ class _SplitLock:
 
 
 def build_split(out_dir: str | os.PathLike, split: str, count: int, n_scans: int | None = None, workers: int = 2,
-                progress: bool = True, quality: Quality = DEFAULT_QUALITY) -> list[Path]:
-    """Write out_dir/<split>/sample_<seed>.npz for the split's first `count` seeds, in `workers` processes.
+                progress: bool = True, quality: Quality = DEFAULT_QUALITY, first: int = 0) -> list[Path]:
+    """Write out_dir/<split>/sample_<seed>.npz for `count` of the split's seeds from its `first`-th, in `workers`
+    processes.
 
     Incremental and resumable: finished files are skipped (writes are atomic, so a file that exists is
     complete), and out_dir/recipe.json records the generator version, the quality and each seed's sensor
@@ -419,7 +421,9 @@ def build_split(out_dir: str | os.PathLike, split: str, count: int, n_scans: int
     """
     if split not in SPLITS:
         raise ValueError(f"unknown split {split!r}; use one of {', '.join(SPLITS)}")
-    seeds = [SPLITS[split] + i for i in range(count)]
+    if first < 0 or first + count > SPLIT_SPAN:
+        raise ValueError(f"seeds {first}..{first + count - 1} of a split must lie in 0..{SPLIT_SPAN - 1}")
+    seeds = [SPLITS[split] + first + i for i in range(count)]
     Path(out_dir, split).mkdir(parents=True, exist_ok=True)
     from tqdm import tqdm
 

@@ -5,8 +5,9 @@ side) and bent onto the world by the street's centre line (straight or a gentle 
 height field (flat, a grade, or rolling hills, with a cambered road), and every object stands on the
 ground under its footprint. A cross street may meet the main street at an angle. Styles: "city" (dense
 rows of 6-45 m blocks, shops with glass fronts and awnings, apartments behind front yards), "suburb"
-(gabled houses set back behind yards, fences and hedges, garages and driveways, many trees) and "town"
-(terraced houses behind small front gardens, small shops, warehouses).
+(gabled houses set back behind yards, fences and hedges, garages and driveways, many trees), "town"
+(terraced houses behind small front gardens, small shops, warehouses) and "strip" (low-rise commercial:
+single-storey shops, parking lots, open lots behind walls, low halls).
 """
 from __future__ import annotations
 
@@ -22,8 +23,8 @@ from hgca_core.synth.materials import resolve
 from hgca_core.synth.primitives import MeshBuilder, Solids
 from hgca_core.synth.terrain import StreetCurve, Terrain, make_terrain, tilt_to
 
-STYLES = ("city", "suburb", "town")
-STYLE_P = (0.45, 0.35, 0.2)
+STYLES = ("city", "suburb", "town", "strip")
+STYLE_P = (0.3, 0.25, 0.15, 0.3)
 EXTENT = 60.0       # half size of the layout square in street coordinates (metres)
 GROUND_HALF = 78.0  # the ground reaches further, so a bent layout still stands on it
 DRIVE_STEP = 0.5    # spacing of drive samples (metres)
@@ -60,7 +61,7 @@ class StreetScene:
 
 def make_scene(seed: int, style: str | None = None) -> StreetScene:
     """The scene named by `seed` (and `style`; by default the seed picks it)."""
-    from hgca_core.synth.blocks import city_rows, suburb_rows, town_rows
+    from hgca_core.synth.blocks import city_rows, strip_rows, suburb_rows, town_rows
 
     rng = np.random.default_rng([int(seed), 7919])
     picked = STYLES[int(rng.choice(len(STYLES), p=STYLE_P))]
@@ -80,7 +81,7 @@ def make_scene(seed: int, style: str | None = None) -> StreetScene:
     _sidewalks(b, S)
     blocked = _street_furniture(b, rng, S, style)
     parked = _parked_vehicles(b, rng, S, blocked, city)
-    extra = {"city": city_rows, "suburb": suburb_rows, "town": town_rows}[style](b, rng, S)
+    extra = {"city": city_rows, "suburb": suburb_rows, "town": town_rows, "strip": strip_rows}[style](b, rng, S)
     _people_and_bikes(b, rng, S, style)
     mesh, labels, solids = b.build()
     materials = resolve(b.materials, labels)
@@ -329,7 +330,7 @@ def _parked_vehicles(b: MeshBuilder, rng: np.random.Generator, S: Street, blocke
 
 def _people_and_bikes(b: MeshBuilder, rng: np.random.Generator, S: Street, style: str) -> None:
     """People standing on the sidewalks (alone or in small groups) and bicycle racks."""
-    n = {"city": (3, 12), "town": (2, 8), "suburb": (0, 4)}[style]
+    n = {"city": (3, 12), "town": (2, 8), "suburb": (0, 4), "strip": (1, 6)}[style]
     for _ in range(int(rng.integers(*n))):
         s = int(rng.choice([-1, 1]))
         u = rng.uniform(-EXTENT + 3, EXTENT - 3)

@@ -4,6 +4,8 @@ With `GCAConfig.free_space` every chain also carries its crop's observed free sp
 bool grid cut and flipped with the same crop as s^0 and the ground truth), which the kernel and the planner read."""
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -89,7 +91,7 @@ class CoarseLoss(nn.Module):
 class CoarseTask:
     """Everything the trainer needs to know about the coarse stage."""
 
-    data_dir: str
+    data_dir: str | Sequence[str]   # several: train on all their train splits, validate on the first's
     cfg: GCAConfig
     crop: int | None = 96
     val_count: int = 4      # val IoU of one 64-cell crop swings by +-0.1 between scenes: average several

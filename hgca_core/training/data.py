@@ -2,6 +2,7 @@
 space of a sample's input (`free_cells`), cached beside it."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -16,12 +17,20 @@ from hgca_core.geometry.voxel import COARSE, FINE, grid_shape, point_cells, voxe
 from hgca_core.io.atomic import atomic_write
 
 
-def split_files(data_dir: str | Path, split: str) -> list[Path]:
-    """Sample files of a split, sorted, so that an index names the same sample on every run."""
-    files = sorted(Path(data_dir, split).glob("sample_*.npz"))
-    if not files:
-        raise InputError(f"no samples in {Path(data_dir, split)}; make them with `hgca synth --split {split}`")
-    return files
+def split_files(data: str | Path | Sequence[str | Path], split: str) -> list[Path]:
+    """Sample files of a split, sorted, so that an index names the same sample on every run.
+
+    `data` may name several dataset folders (newer scenes built beside a dataset with `hgca synth --first`):
+    the train split is then the union of theirs, in the order given, and any other split is the first
+    folder's, so that validation compares like with like across runs that add data."""
+    folders = [data] if isinstance(data, (str, Path)) else list(data)
+    out = []
+    for folder in folders if split == "train" else folders[:1]:
+        files = sorted(Path(folder, split).glob("sample_*.npz"))
+        if not files:
+            raise InputError(f"no samples in {Path(folder, split)}; make them with `hgca synth --split {split}`")
+        out += files
+    return out
 
 
 @lru_cache(maxsize=64)

@@ -20,6 +20,8 @@ the children of the sample's seen-empty 20 cm cells, cut and flipped with the sa
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -165,7 +167,7 @@ class AutoencoderLoss(nn.Module):
 class AutoencoderTask:
     """The autoencoder for the shared trainer (`hgca train autoencoder`)."""
 
-    data_dir: str
+    data_dir: str | Sequence[str]   # several: train on all their train splits, validate on the first's
     cfg: AutoencoderConfig = field(default_factory=AutoencoderConfig)
     val_count: int = 2
     max_pairs: int = 100_000
@@ -263,7 +265,7 @@ class FineLoss(nn.Module):
 class FineTask:
     """The cGCA upsampler for the shared trainer (`hgca train fine`); needs a trained autoencoder."""
 
-    data_dir: str
+    data_dir: str | Sequence[str]   # several: train on all their train splits, validate on the first's
     cfg: CGCAConfig
     autoencoder: str | Autoencoder
     val_count: int = 2

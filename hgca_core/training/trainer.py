@@ -295,12 +295,14 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
                     print(json.dumps(state["history"][-1]), flush=True)
     bar.close()
     validate()
+    train_files = getattr(task, "train_files", [])
     state["sessions"].append({"ended": time.strftime("%Y-%m-%d %H:%M:%S"), "steps": steps_this_session,
                               "wall_s": round(time.time() - session_start, 1), "world_size": world,
                               "device": dev.type, "device_name": device_name(dev), "cpu": cpu_name(),
                               "threads": torch.get_num_threads(), "precision": precision,
                               "lr": optim.param_groups[0]["lr"],
-                              "train_samples": [Path(f).name for f in getattr(task, "train_files", [])],
+                              "train_samples": [Path(f).name for f in train_files],
+                              "train_folders": sorted({str(Path(f).parents[1]) for f in train_files}),
                               "recipe": dict(getattr(task, "recipe", lambda: {})())})
     checkpoint()
     if rank == 0:

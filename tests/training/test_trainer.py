@@ -196,3 +196,38 @@ def test_signal_handlers_come_back_when_a_step_raises(tiny_dataset, tmp_path, mo
         train(_task(tiny_dataset, planner=False), tmp_path / "b", minutes=5, max_steps=3, batch=1, buffer_size=1,
               progress=False)
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+
+
+def test_several_data_folders_train_on_the_union_and_validate_on_the_first(tiny_dataset, tmp_path):
+    """`--data A B`: B's train samples (built with `hgca synth --first`) join A's; val stays A's, so runs that add
+    data are selected on the same scenes; a folder without a train split is an error, not silently skipped."""
+    import shutil
+
+    import numpy as np
+
+    from hgca_core.errors import InputError
+    from hgca_core.training.data import split_files
+    from hgca_testdata import tiny_sample
+
+    more = tmp_path / "more"
+    (more / "train").mkdir(parents=True)
+    np.savez(more / "train" / "sample_0001000.npz", **tiny_sample(1000))
+    both = [str(tiny_dataset), str(more)]
+    train_files = split_files(both, "train")
+    assert [p.name for p in train_files] == [f"sample_{s:07d}.npz" for s in (0, 1, 2, 1000)]
+    assert split_files(both, "val") == split_files(tiny_dataset, "val")
+    with pytest.raises(InputError, match="no samples in"):
+        split_files([str(tiny_dataset), str(tmp_path / "empty")], "train")
+    def run(out, data):
+        cmd = [sys.executable, "-m", "hgca_core.cli", "train", "coarse-noplanner", "--data", *data, "--out", str(out),
+               "--max-steps", "1", "--batch", "1", "--buffer", "1", "--crop", "24", "--channels", "8,8,16,16,16",
+               "--threads", "1", "--minutes", "5", "--no-progress"]
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+
+    assert run(tmp_path / "run", both).returncode == 0
+    ses = load_file(tmp_path / "run" / "ckpt.pt")["state"]["sessions"][-1]
+    assert ses["train_folders"] == sorted(both) and "sample_0001000.npz" in ses["train_samples"]
+    shutil.rmtree(more / "train")
+    (more / "train").mkdir()
+    bad = run(tmp_path / "bad", both)
+    assert bad.returncode == 2 and str(more / "train") in bad.stderr
