@@ -6,6 +6,7 @@ fine (cGCA upsampler; needs the autoencoder's weights). `--export` writes the sh
 from __future__ import annotations
 
 import argparse
+import sys
 import json
 from pathlib import Path
 
@@ -35,18 +36,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch", type=int, default=2,
                    help="chains per step (per rank under torchrun; the paper uses 6 for coarse, 3 for fine)")
     p.add_argument("--buffer", type=int, default=8, help="persistent chains kept (per rank)")
-    p.add_argument("--focus", type=_share, default=0.5, metavar="SHARE",
+    p.add_argument("--focus", type=_share, default=None, metavar="SHARE",
                    help="coarse: share of training crops drawn around cells the input misses 3 m or more above "
                         "the ground (facades up high, tree crowns); 0 draws every crop uniformly (default 0.5)")
-    p.add_argument("--free-weight", type=float, default=0.0, metavar="W",
+    p.add_argument("--free-weight", type=float, default=None, metavar="W",
                    help="coarse with --free-space: the loss on cells the input rays saw empty (and the ground truth "
                         "leaves empty) weighs 1 + W, against growth into observed free space (default 0)")
-    p.add_argument("--cut", type=_share, default=0.0, metavar="SHARE",
+    p.add_argument("--cut", type=_share, default=None, metavar="SHARE",
                    help="coarse: share of training inputs cut 1.5-3 m above the ground (a uniform crop, the free "
                         "space above the cut unknown), as hgca eval-real cuts real scans (default 0)")
-    p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
+    p.add_argument("--precision", choices=("fp32", "bf16"), default=None,
                    help="GEMM precision of the sparse convs' forward and backward passes (bf16: float32 "
-                        "accumulation, weights and optimiser; see benchmarks/results/train_precision.md)")
+                        "accumulation, weights and optimiser; see benchmarks/results/train_precision.md; "
+                        "default fp32). --resume keeps the run's last --focus, --free-weight, --cut and --precision "
+                        "unless given again")
     p.add_argument("--crop", type=int, default=None,
                    help="training crop in the stage's cells (coarse: 20 cm, default 64; fine: 10 cm, default 64)")
     p.add_argument("--channels", default=None, help="coarse U-Net widths, e.g. 16,32,48,64,96")
@@ -69,10 +72,35 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true")
 
 
+# recipe options: argparse name -> (key in a session's record, default of a new run)
+RECIPE_OPTIONS = {"focus": ("focus_share", 0.5), "free_weight": ("free_weight", 0.0), "cut": ("cut_share", 0.0),
+                  "precision": ("precision", "fp32")}
+
+
 def _saved_config(ckpt: Path) -> dict | None:
     from hgca_core.models.weights import load_file
 
     return load_file(ckpt)["config"] if ckpt.exists() else None
+
+
+def resolve_recipe(args: argparse.Namespace, ckpt: Path) -> dict:
+    """Fill the recipe options left out: a resumed run keeps what its last session trained with (so leaving an
+    option out of a resume command does not change the recipe), a new run takes the defaults. Returns the
+    options taken from the run."""
+    last: dict = {}
+    if args.resume and ckpt.exists():
+        from hgca_core.models.weights import load_file
+
+        sessions = (load_file(ckpt).get("state") or {}).get("sessions") or [{}]
+        last = {**sessions[-1].get("recipe", {}), "precision": sessions[-1].get("precision")}
+    taken = {}
+    for opt, (key, default) in RECIPE_OPTIONS.items():
+        if getattr(args, opt) is None:
+            value = last.get(key)
+            if value is not None:
+                taken[opt] = value
+            setattr(args, opt, default if value is None else value)
+    return taken
 
 
 def _init_config(args: argparse.Namespace) -> dict | None:
@@ -158,6 +186,10 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     out = Path(args.out or f"runs/{args.stage.replace('-', '_')}")
     ckpt = out / "ckpt.pt"
+    taken = resolve_recipe(args, ckpt)
+    if taken:
+        print("resuming with the run's " + ", ".join(f"--{k.replace('_', '-')} {v}" for k, v in taken.items()),
+              file=sys.stderr)
     task = build_task(args, ckpt)
     if args.minutes > 0 or args.max_steps:
         state = train(task, out, args.minutes, resume=args.resume, batch=args.batch, buffer_size=args.buffer,

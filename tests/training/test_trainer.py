@@ -231,3 +231,24 @@ def test_several_data_folders_train_on_the_union_and_validate_on_the_first(tiny_
     (more / "train").mkdir()
     bad = run(tmp_path / "bad", both)
     assert bad.returncode == 2 and str(more / "train") in bad.stderr
+
+
+def test_a_resume_keeps_the_runs_recipe_unless_told_otherwise(tiny_dataset, tmp_path):
+    """Leaving --focus / --cut / --precision out of a resume command keeps what the run trained with (it used to
+    fall back to the defaults and change the recipe silently); giving one again changes it from then on."""
+    def run(*extra):
+        cmd = [sys.executable, "-m", "hgca_core.cli", "train", "coarse-noplanner", "--data", str(tiny_dataset),
+               "--out", str(tmp_path / "r"), "--max-steps", "1", "--batch", "1", "--buffer", "1", "--crop", "24",
+               "--channels", "8,8,16,16,16", "--threads", "1", "--minutes", "5", "--no-progress", *extra]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        ses = load_file(tmp_path / "r" / "ckpt.pt")["state"]["sessions"][-1]
+        return ses["recipe"], ses["precision"], done.stderr
+
+    recipe, precision, _ = run("--focus", "0.25", "--cut", "0.5", "--precision", "bf16")
+    assert (recipe["focus_share"], recipe["cut_share"], precision) == (0.25, 0.5, "bf16")
+    recipe, precision, err = run("--resume")
+    assert (recipe["focus_share"], recipe["cut_share"], recipe["free_weight"], precision) == (0.25, 0.5, 0.0, "bf16")
+    assert "--focus 0.25" in err and "--precision bf16" in err
+    recipe, precision, _ = run("--resume", "--focus", "0", "--precision", "fp32")
+    assert (recipe["focus_share"], recipe["cut_share"], precision) == (0.0, 0.5, "fp32")
