@@ -45,6 +45,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cut", type=_share, default=None, metavar="SHARE",
                    help="coarse: share of training inputs cut 1.5-3 m above the ground (a uniform crop, the free "
                         "space above the cut unknown), as hgca eval-real cuts real scans (default 0)")
+    p.add_argument("--cut-free-loss", action="store_true", default=None,
+                   help="with --cut and --free-weight: on a cut input the weight also falls on cells the uncut input "
+                        "saw empty (the model does not see them; hgca eval-real counts growth there)")
     p.add_argument("--precision", choices=("fp32", "bf16"), default=None,
                    help="GEMM precision of the sparse convs' forward and backward passes (bf16: float32 "
                         "accumulation, weights and optimiser; see benchmarks/results/train_precision.md; "
@@ -74,7 +77,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 # recipe options: argparse name -> (key in a session's record, default of a new run)
 RECIPE_OPTIONS = {"focus": ("focus_share", 0.5), "free_weight": ("free_weight", 0.0), "cut": ("cut_share", 0.0),
-                  "precision": ("precision", "fp32")}
+                  "cut_free_loss": ("cut_free_loss", False), "precision": ("precision", "fp32")}
 
 
 def _saved_config(ckpt: Path) -> dict | None:
@@ -148,8 +151,12 @@ def build_task(args: argparse.Namespace, ckpt: Path):
 
             raise InputError(f"--free-weight must be 0 or more, got {args.free_weight}" if args.free_weight < 0
                              else "--free-weight needs the free space: add --free-space (or weights with it)")
+        if args.cut_free_loss and not (args.cut and args.free_weight):
+            from hgca_core.errors import InputError
+
+            raise InputError("--cut-free-loss weighs cut inputs' losses: it needs --cut and --free-weight")
         return CoarseTask(args.data, cfg, crop=args.crop or 64, focus_share=args.focus,
-                          free_weight=args.free_weight, cut_share=args.cut)
+                          free_weight=args.free_weight, cut_share=args.cut, cut_free_loss=bool(args.cut_free_loss))
     if args.stage == "autoencoder":
         from hgca_core.models.autoencoder import AutoencoderConfig
         from hgca_core.training.fine import AutoencoderTask
@@ -188,8 +195,11 @@ def run(args: argparse.Namespace) -> int:
     ckpt = out / "ckpt.pt"
     taken = resolve_recipe(args, ckpt)
     if taken:
-        print("resuming with the run's " + ", ".join(f"--{k.replace('_', '-')} {v}" for k, v in taken.items()),
-              file=sys.stderr)
+        said = []
+        for k, v in taken.items():
+            flag = f"--{k.replace('_', '-')}"
+            said.append((flag if v else f"no {flag}") if isinstance(v, bool) else f"{flag} {v}")
+        print("resuming with the run's " + ", ".join(said), file=sys.stderr)
     task = build_task(args, ckpt)
     if args.minutes > 0 or args.max_steps:
         state = train(task, out, args.minutes, resume=args.resume, batch=args.batch, buffer_size=args.buffer,

@@ -66,8 +66,10 @@ class CoarseLoss(nn.Module):
         stats = {}
         if self.free_weight and free is not None:
             # growth into what the rays saw through is the error real scans punish most (10-15 % of generated
-            # cells): its negatives weigh 1 + free_weight; a seen-empty cell that the ground truth fills keeps 1
-            seen = (fs.at(free, nbhd) & (target == 0)).float()
+            # cells): its negatives weigh 1 + free_weight; a seen-empty cell that the ground truth fills keeps 1.
+            # A cut input may carry what its uncut scan saw empty (`free_loss`), which the model does not see
+            seen_by = torch.stack([c.extra.get("free_loss", c.extra["free"]) for c in chains])
+            seen = (fs.at(seen_by, nbhd) & (target == 0)).float()
             weight = 1.0 + self.free_weight * seen
             stats["seen_empty"] = float(seen.mean())
         loss_gca = F.binary_cross_entropy_with_logits(logits, target, weight=weight)
@@ -99,6 +101,7 @@ class CoarseTask:
     focus_share: float = 0.0  # share of training crops drawn around missed cells up high (`data.focus_cells`)
     free_weight: float = 0.0  # extra weight of the loss on negatives seen empty (`CoarseLoss`; needs free_space)
     cut_share: float = 0.0    # share of training inputs cut at a random height (`height_cut`), as eval-real cuts
+    cut_free_loss: bool = False  # free_weight on a cut input also weighs what the uncut input saw empty (`example`)
 
     def __post_init__(self) -> None:
         self.train_files = split_files(self.data_dir, "train")
@@ -106,7 +109,7 @@ class CoarseTask:
     def recipe(self) -> dict:
         """The training settings a session records beside its steps (the model card shows them)."""
         return {"crop": self.crop, "focus_share": self.focus_share, "free_weight": self.free_weight,
-                "cut_share": self.cut_share}
+                "cut_share": self.cut_share, "cut_free_loss": self.cut_free_loss}
 
     def build(self) -> CoarseLoss:
         return CoarseLoss(self.cfg, self.free_weight)
@@ -123,17 +126,28 @@ class CoarseTask:
                 cut_height: float | None = None) -> tuple[list[torch.Tensor], tuple[int, int, int], dict | None]:
         """([s0, gt, *more] cut by one random crop, the crop's grid, {"free": its free space} or None); with
         `focus_share` > 0 that share of crops is centred near missed cells up high (validation uses none); with
-        `cut_height` (metres above the ground) the input is cut there first (`height_cut`)."""
+        `cut_height` (metres above the ground) the input is cut there first (`height_cut`). With `cut_free_loss`, a cut
+        input's extra also holds {"free_loss": what the uncut input saw empty}: the model never sees it, but the
+        loss weighs growth there as `hgca eval-real` counts it (against the whole scan's rays, not the cut's)."""
         s0, gt, full = coarse_pair(path)
         free = free_cells(path) if self.cfg.free_space else None
+        sets = [s0, gt, *more]
         if cut_height is not None:
-            s0, free = height_cut(s0, free, cut_height)
-        sets = [s0, gt, *more] + ([free] if free is not None else [])
+            s0, cut_free = height_cut(s0, free, cut_height)
+            sets[0] = s0
+            if free is not None and self.cut_free_loss:
+                sets.append(free)                                # the uncut free space, for the loss only
+            free = cut_free
+        n = len(sets)
+        sets += [free] if free is not None else []
         focus = focus_cells(s0, gt) if focus_share > 0 else None
         cut, grid = crop_flip(sets, full, self.crop, rng, focus, focus_share)
         if not self.cfg.free_space:
             return cut, grid, None
-        return cut[:-1], grid, {"free": fs.from_cells(cut[-1], grid)[0]}
+        extra = {"free": fs.from_cells(cut[-1], grid)[0]}
+        if n > 2 + len(more):
+            extra["free_loss"] = fs.from_cells(cut[n - 1], grid)[0]
+        return cut[: 2 + len(more)], grid, extra
 
     def validate(self, loss_module: CoarseLoss, seed: int = 0) -> dict:
         """IoU (20 cm, visible cells) of full T1 sampling on the first val samples, cropped like training."""

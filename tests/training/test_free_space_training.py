@@ -215,3 +215,45 @@ def test_height_cut_inputs_match_eval_reals_cut(dataset, monkeypatch):
         assert ch.s0[:, 2].max() < limit and not ch.extra["free"][..., limit:].any()
         assert ch.gt[:, 2].max() >= limit                               # what lies above is still to be made
     assert task.recipe()["cut_share"] == 1.0
+
+
+def test_cut_free_loss_weighs_what_the_uncut_scan_saw_empty(dataset, monkeypatch, capsys):
+    """`--cut-free-loss`: a cut input keeps the model's view (no free space above the cut) but its loss weighs
+    the cells the uncut input saw empty, above the cut too, as `hgca eval-real` counts growth there."""
+    from hgca_core.geometry.region import BELOW_GROUND
+    from hgca_core.training import coarse
+    from hgca_core.training.coarse import CoarseLoss
+
+    monkeypatch.setattr(coarse, "CUT_HEIGHTS", (0.5, 0.9))
+    cfg = GCAConfig(**SMALL, steps=3, free_space=True)
+    task = CoarseTask(str(dataset), cfg, crop=16, cut_share=1.0, free_weight=5.0, cut_free_loss=True)
+    plain_task = CoarseTask(str(dataset), cfg, crop=16, cut_share=1.0, free_weight=5.0)
+    limit = int(np.ceil((BELOW_GROUND + 0.9) / COARSE))
+    chains = [task.new_example(np.random.default_rng(s)) for s in (0, 1)]
+    same = plain_task.new_example(np.random.default_rng(0))             # same draws without the option
+    assert torch.equal(same.s0, chains[0].s0) and torch.equal(same.extra["free"], chains[0].extra["free"])
+    assert "free_loss" not in same.extra and task.recipe()["cut_free_loss"] is True
+    for ch in chains:
+        free, loss_free = ch.extra["free"], ch.extra["free_loss"]
+        assert not free[..., limit:].any() and loss_free[..., limit:].any()
+        assert torch.equal(free & loss_free, free)                      # below the cut the two agree
+        ch.state = torch.cat([ch.state, torch.nonzero(loss_free[..., limit:])[::5] + torch.tensor([0, 0, limit])])
+    model_free = []
+    real_forward = GCAKernel.forward
+
+    def recording(self, nbhd, st, s0, grid, bev, free):
+        model_free.append(free)
+        return real_forward(self, nbhd, st, s0, grid, bev, free)
+
+    monkeypatch.setattr(GCAKernel, "forward", recording)
+    torch.manual_seed(0)
+    loss = CoarseLoss(cfg, free_weight=5.0)
+    _, with_uncut, _ = loss(chains)
+    for ch in chains:
+        ch.extra.pop("free_loss")
+    _, cut_only, _ = loss(chains)
+    assert torch.equal(model_free[0], model_free[1])                   # the model sees the cut's view both times
+    assert with_uncut["seen_empty"] > cut_only["seen_empty"]
+    assert main(["train", "coarse", "--data", str(dataset), "--free-space", "--free-weight", "2",
+                 "--cut-free-loss", "--max-steps", "1"]) == 2
+    assert "needs --cut" in capsys.readouterr().err
