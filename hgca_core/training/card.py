@@ -14,7 +14,7 @@ from hgca_core.models.weights import WEIGHTS_DIR, load_file
 INTRO = """# hgca model card
 
 Weights trained by this project on its own procedural street scenes (`hgca_core/synth`), never on real scans.
-Each file below names its training data, one of two datasets:
+Each file below names its training data, one of three:
 - `data/synth` (the first split): two styles, city and suburb; one Waymo-like 64-beam LiDAR with 1 cm point
   noise and 0.02 deg pitch noise; 5 scans per sample. Trained on it last: {synth1}.
 - synth2 (generator 6, recipe `docs/data/synth2_recipe.json`): five sensor profiles with their real beam tables
@@ -24,6 +24,10 @@ Each file below names its training data, one of two datasets:
   distortion, pose noise and drift between scans; sloped, hilly and curved streets, more building, vegetation,
   vehicle and street-furniture types. Trained on it last: {synth2} (each warm-started from its first-split
   weights; see its notes).
+- synth2 + synth3 (`--data data/synth2 data/synth3`; synth3 is generator 7, recipe `docs/data/synth3_recipe.json`,
+  train seeds from 1,000, so the two share no scene): synth2's sensors and effects, and a fourth street style drawn
+  for 30 % of seeds, low-rise commercial strips (single-storey shops of 3.2-5 m, parking lots, open lots behind
+  walls, low halls). Validation stays on synth2's val split. Trained on it last: {synth3}.
 With the observed free space (cells the input rays crossed) as a further input: {free}. `hgca complete`
 computes it from the scans' sensor origins and gives the model an all-unknown grid where a scan has none; by
 default (`--free-space auto`, from session 9) it never outputs a cell in the core of that space (seen-empty cells
@@ -97,9 +101,10 @@ def _samples(names: list[str] | None) -> str:
 
 def _by_dataset(blobs: dict[Path, dict]) -> dict[str, str]:
     """The INTRO's file lists, from each file's own metadata (its `data` folder and `free_space` config)."""
-    names: dict[str, list[str]] = {"synth1": [], "synth2": [], "free": []}
+    names: dict[str, list[str]] = {"synth1": [], "synth2": [], "synth3": [], "free": []}
     for path, blob in blobs.items():
-        names["synth2" if "synth2" in str(blob["meta"].get("data", "")) else "synth1"].append(f"`{path.name}`")
+        data = str(blob["meta"].get("data", ""))
+        names["synth3" if "synth3" in data else "synth2" if "synth2" in data else "synth1"].append(f"`{path.name}`")
         if blob.get("config", {}).get("free_space"):
             names["free"].append(f"`{path.name}`")
     return {k: ", ".join(v) or "none of the files here" for k, v in names.items()}

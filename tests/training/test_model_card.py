@@ -34,3 +34,12 @@ def test_card_renders_weights_metadata_and_eval_provenance(tmp_path):
     assert "Trained on it last: `coarse.pt` (each warm-started" in card
     assert "one Waymo-like" in card and "5 scans per sample. Trained on it last: none of the files here." in card
     assert "a further input: `coarse.pt`." in card
+    assert "low halls). Validation stays on synth2's val split. Trained on it last: none of the files here." in card
+
+
+def test_card_lists_weights_trained_on_synth2_and_synth3_under_both(tmp_path):
+    meta = {"stage": "coarse", "data": "/work/data/synth2 + /work/data/synth3", "steps": 1, "sessions": []}
+    save_weights(tmp_path / "coarse.pt", GCAKernel(GCAConfig(channels=(8, 8, 16, 16, 16))), meta)
+    card = write_model_card(tmp_path).read_text()
+    assert "Validation stays on synth2's val split. Trained on it last: `coarse.pt`." in card
+    assert "Trained on it last: none of the files here (each warm-started" in card     # not under synth2 alone
