@@ -51,10 +51,11 @@ that floor was not measured, and the previous first-split fine.pt scores 5.46 cm
 
 Intended use: completing street-level LiDAR (vehicle-mounted, 32-128 beams) into 20 cm geometry and 10 cm
 implicit surfaces. Limits: trained on synthetic content only, on 2 CPU cores, for far fewer steps than the
-paper (400k), so completions are rough; on real scans (Argoverse 2, nuScenes: `benchmarks/results/real_scans*.md`)
-the coarse stage finds about a third of the real cells cut away 2 m above the ground, and 6-10 % of what it
-generates lies in space the input rays saw empty, none in that space's core (the ground truth of simulated
-single sweeps of these sensors scores 3.7-5.7 % by the first count: `benchmarks/results/freespace_floor.md`).
+paper (400k), so completions are rough; on real scans (Argoverse 2, nuScenes: `benchmarks/results/real_scans_s12.md`)
+the coarse stage finds 36-49 % of the real cells cut away 2 m above the ground (8.5-9.9 % of what it grows above
+the cut lies where the whole scans' rays passed), and 5.6-8.4 % of what it generates on the whole input lies in
+space the input rays saw empty, none in that space's core (the ground truth of simulated single sweeps of these
+sensors scores 3.7-5.7 % by the first count: `benchmarks/results/freespace_floor.md`).
 """
 
 
