@@ -72,11 +72,6 @@ def run(args: argparse.Namespace) -> int:
 def _split(args: argparse.Namespace) -> int:
     if args.count is None or args.count < 1:
         raise InputError("--split needs --count N (N >= 1)")
-    from hgca_core.synth.dataset import SPLIT_SPAN
-
-    if not 0 <= args.first <= SPLIT_SPAN - args.count:
-        raise InputError(f"--first {args.first} with --count {args.count} leaves the split's seeds "
-                         f"(0..{SPLIT_SPAN - 1}: the next split's start there)")
     if args.style is not None:
         raise InputError("--style applies to --seed only; a split mixes styles by seed")
     if args.workers < 1:

@@ -6,8 +6,8 @@ fine (cGCA upsampler; needs the autoencoder's weights). `--export` writes the sh
 from __future__ import annotations
 
 import argparse
-import sys
 import json
+import sys
 from pathlib import Path
 
 STAGES = ("coarse", "coarse-noplanner", "autoencoder", "fine")
@@ -80,21 +80,22 @@ RECIPE_OPTIONS = {"focus": ("focus_share", 0.5), "free_weight": ("free_weight", 
                   "cut_free_loss": ("cut_free_loss", False), "precision": ("precision", "fp32")}
 
 
-def _saved_config(ckpt: Path) -> dict | None:
+def _run_file(args: argparse.Namespace, ckpt: Path) -> dict | None:
+    """The run's checkpoint, read once, where it decides the task: on --resume and on an export without training."""
+    if not ckpt.exists() or not (args.resume or (not args.minutes and not args.max_steps)):
+        return None
     from hgca_core.models.weights import load_file
 
-    return load_file(ckpt)["config"] if ckpt.exists() else None
+    return load_file(ckpt)
 
 
-def resolve_recipe(args: argparse.Namespace, ckpt: Path) -> dict:
+def resolve_recipe(args: argparse.Namespace, run_file: dict | None) -> dict:
     """Fill the recipe options left out: a resumed run keeps what its last session trained with (so leaving an
     option out of a resume command does not change the recipe), a new run takes the defaults. Returns the
     options taken from the run."""
     last: dict = {}
-    if args.resume and ckpt.exists():
-        from hgca_core.models.weights import load_file
-
-        sessions = (load_file(ckpt).get("state") or {}).get("sessions") or [{}]
+    if args.resume and run_file is not None:
+        sessions = (run_file.get("state") or {}).get("sessions") or [{}]
         last = {**sessions[-1].get("recipe", {}), "precision": sessions[-1].get("precision")}
     taken = {}
     for opt, (key, default) in RECIPE_OPTIONS.items():
@@ -121,12 +122,11 @@ def _init_config(args: argparse.Namespace) -> dict | None:
     return config
 
 
-def build_task(args: argparse.Namespace, ckpt: Path):
+def build_task(args: argparse.Namespace, run_file: dict | None):
     """The task for the stage; a resumed run (and an export without training) keeps the architecture the run
     was started with, a run started --init-from takes the file's architecture (with --free-space switched on when
     asked)."""
-    export_only = not args.minutes and not args.max_steps
-    saved = _saved_config(ckpt) if args.resume or export_only else None
+    saved = run_file["config"] if run_file is not None else None
     init = None if saved else _init_config(args)
     free = bool(getattr(args, "free_space", False))
     if args.stage.startswith("coarse"):
@@ -193,14 +193,16 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     out = Path(args.out or f"runs/{args.stage.replace('-', '_')}")
     ckpt = out / "ckpt.pt"
-    taken = resolve_recipe(args, ckpt)
+    run_file = _run_file(args, ckpt)
+    taken = resolve_recipe(args, run_file)
     if taken:
         said = []
         for k, v in taken.items():
             flag = f"--{k.replace('_', '-')}"
             said.append((flag if v else f"no {flag}") if isinstance(v, bool) else f"{flag} {v}")
         print("resuming with the run's " + ", ".join(said), file=sys.stderr)
-    task = build_task(args, ckpt)
+    task = build_task(args, run_file)
+    del run_file   # the trainer reads the checkpoint itself (optimiser, chains)
     if args.minutes > 0 or args.max_steps:
         state = train(task, out, args.minutes, resume=args.resume, batch=args.batch, buffer_size=args.buffer,
                       val_every_min=args.val_every, max_steps=args.max_steps, progress=not args.no_progress,

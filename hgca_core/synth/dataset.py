@@ -422,7 +422,10 @@ def build_split(out_dir: str | os.PathLike, split: str, count: int, n_scans: int
     if split not in SPLITS:
         raise ValueError(f"unknown split {split!r}; use one of {', '.join(SPLITS)}")
     if first < 0 or first + count > SPLIT_SPAN:
-        raise ValueError(f"seeds {first}..{first + count - 1} of a split must lie in 0..{SPLIT_SPAN - 1}")
+        from hgca_core.errors import InputError
+
+        raise InputError(f"--first {first} with --count {count}: seeds {first}..{first + count - 1} of a split must "
+                         f"lie in 0..{SPLIT_SPAN - 1} (the next split's start after)")
     seeds = [SPLITS[split] + first + i for i in range(count)]
     Path(out_dir, split).mkdir(parents=True, exist_ok=True)
     from tqdm import tqdm

@@ -5,7 +5,6 @@ bool grid cut and flipped with the same crop as s^0 and the ground truth), which
 from __future__ import annotations
 
 from collections.abc import Sequence
-
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -131,23 +130,19 @@ class CoarseTask:
         loss weighs growth there as `hgca eval-real` counts it (against the whole scan's rays, not the cut's)."""
         s0, gt, full = coarse_pair(path)
         free = free_cells(path) if self.cfg.free_space else None
-        sets = [s0, gt, *more]
+        frees: dict[str, np.ndarray] = {}     # the extra's free-space grids, cropped with the rest
         if cut_height is not None:
-            s0, cut_free = height_cut(s0, free, cut_height)
-            sets[0] = s0
             if free is not None and self.cut_free_loss:
-                sets.append(free)                                # the uncut free space, for the loss only
-            free = cut_free
-        n = len(sets)
-        sets += [free] if free is not None else []
+                frees["free_loss"] = free                        # the uncut free space, for the loss only
+            s0, free = height_cut(s0, free, cut_height)
+        if free is not None:
+            frees["free"] = free
+        sets = [s0, gt, *more]
         focus = focus_cells(s0, gt) if focus_share > 0 else None
-        cut, grid = crop_flip(sets, full, self.crop, rng, focus, focus_share)
+        cut, grid = crop_flip(sets + list(frees.values()), full, self.crop, rng, focus, focus_share)
         if not self.cfg.free_space:
             return cut, grid, None
-        extra = {"free": fs.from_cells(cut[-1], grid)[0]}
-        if n > 2 + len(more):
-            extra["free_loss"] = fs.from_cells(cut[n - 1], grid)[0]
-        return cut[: 2 + len(more)], grid, extra
+        return cut[: len(sets)], grid, {k: fs.from_cells(c, grid)[0] for k, c in zip(frees, cut[len(sets):])}
 
     def validate(self, loss_module: CoarseLoss, seed: int = 0) -> dict:
         """IoU (20 cm, visible cells) of full T1 sampling on the first val samples, cropped like training."""

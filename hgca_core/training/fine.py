@@ -21,7 +21,6 @@ the children of the sample's seen-empty 20 cm cells, cut and flipped with the sa
 from __future__ import annotations
 
 from collections.abc import Sequence
-
 from dataclasses import dataclass, field
 from pathlib import Path
 
