@@ -1,7 +1,7 @@
 """`hgca synth`: one synthetic street scene with its files, or a whole dataset split.
 
-    hgca synth --seed S [--scans N] [--profile P] [--style city|suburb|town] --out DIR
-    hgca synth --split train|val|test --count N --out DIR [--scans N] [--workers 2]
+    hgca synth --seed S [--scans N] [--profile P] [--style city|suburb|town|strip] [--generator 6|7] --out DIR
+    hgca synth --split train|val|test --count N --out DIR [--scans N] [--workers 2] [--generator 6|7]
 
 Each sample draws its sensor profile and number of scans (1-10) from its seed unless given.
 """
@@ -13,7 +13,7 @@ import time
 
 from hgca_core.errors import InputError
 from hgca_core.synth.lidar import PROFILES
-from hgca_core.synth.scene import STYLES
+from hgca_core.synth.scene import GENERATOR_VERSION, STYLE_DRAWS, STYLES
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -31,6 +31,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="sensor profile with --seed (default: the seed picks): " + ", ".join(
                        f"{k} ({v.dataset})" for k, v in sorted(PROFILES.items())))
     p.add_argument("--style", choices=STYLES, help="scene style (default: the seed picks)")
+    p.add_argument("--generator", type=int, choices=sorted(STYLE_DRAWS),
+                   help=f"scene generator version (default: a split folder's own, else {GENERATOR_VERSION}); 6 makes "
+                        "every seed's scene as it was before the strip style (synth2, docs/data/synth2_recipe.json)")
     p.add_argument("--workers", type=int, default=2, help="processes for --split (default 2)")
     p.add_argument("--no-preview", action="store_true", help="skip the preview PNG (with --seed)")
     p.add_argument("--quick", action="store_true",
@@ -53,8 +56,11 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.synth.export import write_scene
 
     t0 = time.perf_counter()
+    generator = GENERATOR_VERSION if args.generator is None else args.generator
+    if args.style is not None and args.style not in STYLE_DRAWS[generator][0]:
+        raise InputError(f"--style {args.style} does not exist in generator version {generator}")
     sim = simulate(args.seed, args.scans, args.style, quality=QUICK_QUALITY if args.quick else DEFAULT_QUALITY,
-                   profile=args.profile)
+                   profile=args.profile, generator=generator)
     t1 = time.perf_counter()
     paths = write_scene(sim, args.out, preview=not args.no_preview)
     t2 = time.perf_counter()
@@ -80,6 +86,7 @@ def _split(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     paths = build_split(args.out, args.split, args.count, n_scans=args.scans, workers=args.workers,
-                        quality=QUICK_QUALITY if args.quick else DEFAULT_QUALITY, first=args.first)
+                        quality=QUICK_QUALITY if args.quick else DEFAULT_QUALITY, first=args.first,
+                        generator=args.generator)
     print(f"{args.split}: {len(paths)} samples in {args.out}/{args.split} ({time.perf_counter() - t0:.1f} s)")
     return 0

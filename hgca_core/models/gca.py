@@ -45,6 +45,7 @@ class GCAConfig(Config):
     alpha1: float = 0.005
     grid: tuple[int, int, int] = (192, 192, 40)
     free_space: bool = False          # observed free space as an input (kernel column, planner height bins)
+    keep: float = 0.5                 # the last transition keeps cells with p > keep (0.5: the most likely state)
 
     legacy: ClassVar[dict] = {"pe_axes": "xyz"}  # files written before pe_axes existed encoded all three axes
 
@@ -54,6 +55,8 @@ class GCAKernel(nn.Module):
 
     def __init__(self, cfg: GCAConfig) -> None:
         super().__init__()
+        if not 0.0 < float(cfg.keep) < 1.0:   # 1 or more would end every chain empty, 0 or less keep every cell
+            raise ValueError(f"keep must lie strictly between 0 and 1, not {cfg.keep!r}")
         self.cfg = cfg
         self.pe_axes = ["xyz".index(a) for a in cfg.pe_axes]
         in_ch = 2 + int(cfg.free_space) + len(self.pe_axes) * 2 * cfg.pe_freq
@@ -112,7 +115,9 @@ class GCAKernel(nn.Module):
 def sample(model: GCAKernel, s0: torch.Tensor, grid: tuple[int, int, int], steps: int,
            generator: torch.Generator, progress: Callable[[int, int], None] | None = None,
            free: torch.Tensor | None = None, forbid: torch.Tensor | None = None) -> torch.Tensor:
-    """Run the Markov chain from s^0 for `steps` transitions (Eq. 1); the last one by maximum likelihood.
+    """Run the Markov chain from s^0 for `steps` transitions (Eq. 1); the last one keeps the cells with p > cfg.keep
+    (0.5: the most likely state, as the paper; a weights file may hold a higher one, chosen on val and real logs,
+    to trade far cells the model is unsure of for fewer cells where a sensor would have seen empty space).
 
     s0: (N, 4) coordinates of one or more samples (batch column). Returns the final occupied set.
     free: (B, *grid) bool seen-empty cells, the model's input when it has free_space; forbid: (B, *grid) bool cells
@@ -128,7 +133,7 @@ def sample(model: GCAKernel, s0: torch.Tensor, grid: tuple[int, int, int], steps
         nbhd = model.neighbourhood(state, grid)
         prob = torch.sigmoid(model(nbhd, state, s0, grid, bev, free))
         if t == steps - 1:
-            keep = prob > 0.5
+            keep = prob > model.cfg.keep
         else:
             keep = torch.rand(prob.shape, generator=generator, device=prob.device) < prob
         if forbid is not None:

@@ -22,12 +22,11 @@ from hgca_core.geometry.region import BELOW_GROUND, DEFAULT_SIZE, GROUND_STEP, R
 from hgca_core.synth.groundtruth import RegionSurface, visible_cells
 from hgca_core.synth.lidar import PROFILES, Effects, Unit, scan
 from hgca_core.synth.assets import LABEL_NAMES
-from hgca_core.synth.scene import StreetScene, make_scene
+from hgca_core.synth.scene import GENERATOR_VERSION, STYLE_DRAWS, StreetScene, make_scene
 
 SPLITS = {"train": 0, "val": 1_000_000, "test": 2_000_000}
 SPLIT_SPAN = 1_000_000   # seeds a split may use before the next split's
 FORMAT_VERSION = 2      # layout of the sample file (CONTRACTS.md); 2 added ground_height
-GENERATOR_VERSION = 7   # bumped whenever the same seed would produce different content
 SCANS = (1, 10)         # a sample draws its number of input scans from this range (inclusive)
 EVAL_HEIGHT = 2.0       # the evaluation LiDAR rides this high above the road
 KEYS = ("region", "input_points", "input_scan_index", "input_origins", "input_poses", "gt_occ20", "gt_occ10",
@@ -107,15 +106,18 @@ class Simulation:
 
 def make_sample(seed: int, n_scans: int | None = None, style: str | None = None,
                 size: tuple[float, float, float] = DEFAULT_SIZE, quality: Quality = DEFAULT_QUALITY,
-                scene: StreetScene | None = None, profile: str | None = None) -> dict:
+                scene: StreetScene | None = None, profile: str | None = None,
+                generator: int = GENERATOR_VERSION) -> dict:
     """The sample named by `seed`: arrays in the region frame, exactly the CONTRACTS.md keys and dtypes.
-    `n_scans` and `profile` default to the seed's own draw (`draw_recipe`)."""
-    return simulate(seed, n_scans, style, size, quality, scene, profile).sample
+    `n_scans` and `profile` default to the seed's own draw (`draw_recipe`); `generator`: the scene generator
+    version (`scene.STYLE_DRAWS`)."""
+    return simulate(seed, n_scans, style, size, quality, scene, profile, generator).sample
 
 
 def simulate(seed: int, n_scans: int | None = None, style: str | None = None,
              size: tuple[float, float, float] = DEFAULT_SIZE, quality: Quality = DEFAULT_QUALITY,
-             scene: StreetScene | None = None, profile: str | None = None) -> Simulation:
+             scene: StreetScene | None = None, profile: str | None = None,
+             generator: int = GENERATOR_VERSION) -> Simulation:
     """`make_sample`, keeping the scene and the raw scans (for `hgca synth --seed`, which writes them)."""
     drawn_profile, drawn_scans = draw_recipe(seed)
     n_scans = drawn_scans if n_scans is None else int(n_scans)
@@ -124,7 +126,7 @@ def simulate(seed: int, n_scans: int | None = None, style: str | None = None,
         raise ValueError("n_scans must be at least 1")
     if profile not in PROFILES:
         raise ValueError(f"unknown sensor profile {profile!r}; use one of {', '.join(sorted(PROFILES))}")
-    scene = make_scene(seed, style) if scene is None else scene
+    scene = make_scene(seed, style, generator) if scene is None else scene
     rng = np.random.default_rng([int(seed), 104729])
     drive = Drive(scene.drive, scene.drive_up)
     half = size[0] / 2
@@ -186,7 +188,7 @@ def simulate(seed: int, n_scans: int | None = None, style: str | None = None,
     street = _street_box_local(scene, region)
     pitch = float(np.degrees(np.arcsin(np.clip(-unit.mount[2, 0], -1, 1))))
     meta = {"seed": int(seed), "style": scene.style, "n_scans": int(n_scans), "format_version": FORMAT_VERSION,
-            "generator_version": GENERATOR_VERSION, "profile": unit.profile.name, "dataset": unit.profile.dataset,
+            "generator_version": int(generator), "profile": unit.profile.name, "dataset": unit.profile.dataset,
             "sensor_height": round(float(unit.mount[2, 3]), 3), "sensor_pitch_deg": round(pitch, 3),
             "ego_arc": round(float(s0), 3), "input_arcs": [round(float(a), 3) for a in arcs],
             "speed_mps": round(float(speed), 3), "scene_faces": int(len(scene.mesh.faces)),
@@ -314,10 +316,10 @@ def sample_path(out_dir: str | os.PathLike, split: str, seed: int) -> Path:
     return Path(out_dir, split, f"sample_{seed:07d}.npz")
 
 
-def _build_one(job: tuple[str, str, int, int | None, Quality]) -> tuple[int, float]:
-    out_dir, split, seed, n_scans, quality = job
+def _build_one(job: tuple[str, str, int, int | None, Quality, int]) -> tuple[int, float]:
+    out_dir, split, seed, n_scans, quality, generator = job
     t = time.perf_counter()
-    save_sample(sample_path(out_dir, split, seed), make_sample(seed, n_scans, quality=quality))
+    save_sample(sample_path(out_dir, split, seed), make_sample(seed, n_scans, quality=quality, generator=generator))
     return seed, time.perf_counter() - t
 
 
@@ -340,21 +342,32 @@ def quality_record(quality: Quality) -> dict:
 
 
 def update_recipe(out_dir: str | os.PathLike, split: str, seeds: list[int], n_scans: int | None,
-                  quality: Quality) -> dict:
+                  quality: Quality, generator: int | None = None) -> dict:
     """Read, check and extend out_dir/recipe.json: generator and format versions, the quality, and per split
     each seed's sensor profile and scan count. A folder made by another generator version or quality is
-    refused (mixing them would make a split whose samples differ in kind)."""
+    refused (mixing them would make a split whose samples differ in kind). `generator` None: the folder's own
+    version (a build resumed or extended goes on as it began), the latest for a new folder."""
     from hgca_core.errors import InputError
     from hgca_core.io.atomic import atomic_write
 
     path = Path(out_dir, RECIPE)
-    want = {"generator_version": GENERATOR_VERSION, "format_version": FORMAT_VERSION,
-            "quality": quality_record(quality)}
+    recipe = None
     if path.exists():
         try:
             recipe = json.loads(path.read_text())
         except (OSError, ValueError) as exc:
             raise InputError(f"cannot read the dataset recipe ({exc})", str(path)) from None
+        if generator is None:
+            generator = recipe.get("generator_version")
+            if generator not in STYLE_DRAWS:
+                raise InputError(f"this folder was built by generator version {generator!r}, which this version "
+                                 f"cannot make (it makes {', '.join(map(str, STYLE_DRAWS))}); build into a new "
+                                 "folder", str(path))
+    generator = GENERATOR_VERSION if generator is None else generator
+    if generator not in STYLE_DRAWS:
+        raise InputError(f"unknown generator version {generator!r}; use one of {', '.join(map(str, STYLE_DRAWS))}")
+    want = {"generator_version": generator, "format_version": FORMAT_VERSION, "quality": quality_record(quality)}
+    if recipe is not None:
         for key, val in want.items():
             if json.loads(json.dumps(val)) != recipe.get(key):
                 raise InputError(f"this folder was built with another {key.replace('_', ' ')} ({recipe.get(key)!r}, "
@@ -411,13 +424,15 @@ class _SplitLock:
 
 
 def build_split(out_dir: str | os.PathLike, split: str, count: int, n_scans: int | None = None, workers: int = 2,
-                progress: bool = True, quality: Quality = DEFAULT_QUALITY, first: int = 0) -> list[Path]:
+                progress: bool = True, quality: Quality = DEFAULT_QUALITY, first: int = 0,
+                generator: int | None = None) -> list[Path]:
     """Write out_dir/<split>/sample_<seed>.npz for `count` of the split's seeds from its `first`-th, in `workers`
     processes.
 
     Incremental and resumable: finished files are skipped (writes are atomic, so a file that exists is
     complete), and out_dir/recipe.json records the generator version, the quality and each seed's sensor
-    profile and scan count (drawn from the seed unless `n_scans` fixes it).
+    profile and scan count (drawn from the seed unless `n_scans` fixes it). `generator`: the scene generator
+    version (None: the folder's own, or the latest for a new folder; 6 rebuilds synth2 as it was made).
     """
     if split not in SPLITS:
         raise ValueError(f"unknown split {split!r}; use one of {', '.join(SPLITS)}")
@@ -431,9 +446,9 @@ def build_split(out_dir: str | os.PathLike, split: str, count: int, n_scans: int
     from tqdm import tqdm
 
     with _SplitLock(Path(out_dir, split)):
-        update_recipe(out_dir, split, seeds, n_scans, quality)
+        generator = update_recipe(out_dir, split, seeds, n_scans, quality, generator)["generator_version"]
         todo = [s for s in seeds if not sample_path(out_dir, split, s).exists()]
-        jobs = [(os.fspath(out_dir), split, s, n_scans, quality) for s in todo]
+        jobs = [(os.fspath(out_dir), split, s, n_scans, quality, generator) for s in todo]
         bar = tqdm(total=len(seeds), initial=len(seeds) - len(todo), desc=f"synth {split}", unit="sample",
                    disable=not progress)
         try:

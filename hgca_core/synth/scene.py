@@ -25,6 +25,11 @@ from hgca_core.synth.terrain import StreetCurve, Terrain, make_terrain, tilt_to
 
 STYLES = ("city", "suburb", "town", "strip")
 STYLE_P = (0.3, 0.25, 0.15, 0.3)
+# The seed's style draw of each generator version (`dataset.GENERATOR_VERSION`): version 7 added "strip"; with
+# the draw of version 6 every seed gives its version-6 scene again, so data built by it (synth2, the val and
+# test splits of every table before session 12) can be rebuilt exactly.
+STYLE_DRAWS = {6: (STYLES[:3], (0.45, 0.35, 0.2)), 7: (STYLES, STYLE_P)}
+GENERATOR_VERSION = max(STYLE_DRAWS)   # bumped whenever the same seed would produce different content
 EXTENT = 60.0       # half size of the layout square in street coordinates (metres)
 GROUND_HALF = 78.0  # the ground reaches further, so a bent layout still stands on it
 DRIVE_STEP = 0.5    # spacing of drive samples (metres)
@@ -59,15 +64,19 @@ class StreetScene:
         return np.stack([self.curve.to_world(u, s * self.street_half_width) for s in (-1.0, 1.0)])
 
 
-def make_scene(seed: int, style: str | None = None) -> StreetScene:
-    """The scene named by `seed` (and `style`; by default the seed picks it)."""
+def make_scene(seed: int, style: str | None = None, generator: int = GENERATOR_VERSION) -> StreetScene:
+    """The scene named by `seed` (and `style`; by default the seed picks it) as generator version `generator`
+    made it."""
     from hgca_core.synth.blocks import city_rows, strip_rows, suburb_rows, town_rows
 
+    if generator not in STYLE_DRAWS:
+        raise ValueError(f"unknown generator version {generator!r}; use one of {', '.join(map(str, STYLE_DRAWS))}")
+    styles, p = STYLE_DRAWS[generator]
     rng = np.random.default_rng([int(seed), 7919])
-    picked = STYLES[int(rng.choice(len(STYLES), p=STYLE_P))]
+    picked = styles[int(rng.choice(len(styles), p=p))]
     style = picked if style is None else style
-    if style not in STYLES:
-        raise ValueError(f"unknown style {style!r}; use one of {', '.join(STYLES)}")
+    if style not in styles:
+        raise ValueError(f"unknown style {style!r} for generator version {generator}; use one of {', '.join(styles)}")
     city, suburb = style == "city", style == "suburb"
     hw = rng.uniform(5.5, 8.0) if city else rng.uniform(4.5, 6.0)
     curve = StreetCurve(0.0 if rng.random() < 0.45 else rng.uniform(1 / 700, 1 / 220) * rng.choice([-1, 1]))

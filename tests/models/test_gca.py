@@ -1,3 +1,4 @@
+import pytest
 import torch
 
 from hgca_core.geometry import coords as cs
@@ -66,3 +67,24 @@ def test_a_dead_chain_stops():
     steps = []
     out = sample(m, _plane(), GRID, 5, torch.Generator().manual_seed(0), lambda t, n: steps.append(t))
     assert len(out) == 0 and steps == [0, 1]        # the planner event, one step, then no more work
+
+
+def test_a_higher_last_step_threshold_keeps_a_subset_of_the_same_chain():
+    m = _model(planner=False)
+    s0 = _plane()
+    base = sample(m, s0, GRID, 3, torch.Generator().manual_seed(1))
+    probs = []
+    forward = m.forward
+    m.forward = lambda *a: probs.append(torch.sigmoid(forward(*a))) or forward(*a)
+    m.cfg.keep = 0.6
+    sure = sample(m, s0, GRID, 3, torch.Generator().manual_seed(1))
+    # the same draws before the last step; there, only the cells with p > 0.6 stay of those with p > 0.5
+    last = probs[-1]
+    assert int((last > 0.6).sum()) == len(sure) < int((last > 0.5).sum()) == len(base)
+    assert bool(cs.isin(sure, base).all())
+
+
+def test_the_threshold_must_lie_inside_zero_one():
+    for bad in (0.0, 1.0, 1.5, -0.1):
+        with pytest.raises(ValueError, match="keep must lie strictly between 0 and 1"):
+            GCAKernel(GCAConfig(channels=(8, 8, 16, 16, 16), grid=GRID, keep=bad))

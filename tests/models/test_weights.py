@@ -129,6 +129,8 @@ def test_configs_that_do_not_fit_the_tensors(files, tmp_path):
                          r"tensors do not fit the coarse model the config describes: .*of another shape "
                          r"\(e\.g\. unet\.[^:]+: file \("),
              "nonsense": ({**blob, "config": {**blob["config"], "channels": "abc"}}, "does not describe a coarse model"),
+             "threshold": ({**blob, "config": {**blob["config"], "keep": 1.0}},
+                           r"does not describe a coarse model \(ValueError: keep must lie strictly between 0 and 1"),
              "missing": ({**blob, "state_dict": {k: v for i, (k, v) in enumerate(blob["state_dict"].items()) if i}},
                          r"1 missing \(e\.g\."),
              "not tensors": ({**blob, "state_dict": {"a": 1}}, "not a non-empty table of named tensors")}

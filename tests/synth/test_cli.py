@@ -84,7 +84,8 @@ def test_preview_png(tmp_path, out_dir):
                                   ["synth", "--split", "val", "--count", "1", "--profile", "av2", "--out", "x"],
                                   ["synth", "--seed", "1", "--first", "5", "--out", "x"],
                                   ["synth", "--split", "train", "--count", "2", "--first", "999999", "--out", "x"],
-                                  ["synth", "--split", "train", "--count", "2", "--first", "-1", "--out", "x"]])
+                                  ["synth", "--split", "train", "--count", "2", "--first", "-1", "--out", "x"],
+                                  ["synth", "--seed", "1", "--style", "strip", "--generator", "6", "--out", "x"]])
 def test_bad_arguments_exit_2(argv, capsys):
     saved = sys.argv
     try:

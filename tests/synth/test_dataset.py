@@ -260,3 +260,11 @@ def test_split_is_seeded_resumable_and_keeps_a_recipe(tmp_path):
     assert json.loads(str(load_sample(later[0])["meta"]))["seed"] == 1_000_007
     with pytest.raises(ValueError, match="must lie in"):
         build_split(tmp_path / "later", "val", 2, first=999_999)
+    # generator 6 (synth2's): recorded in the recipe and the sample; a resumed build keeps the folder's version
+    v6 = build_split(tmp_path / "v6", "val", 1, n_scans=1, workers=1, progress=False, quality=QUICK_QUALITY,
+                     generator=6)
+    assert json.loads(str(load_sample(v6[0])["meta"]))["generator_version"] == 6
+    build_split(tmp_path / "v6", "val", 1, n_scans=1, workers=1, progress=False, quality=QUICK_QUALITY)
+    assert json.loads((tmp_path / "v6" / "recipe.json").read_text())["generator_version"] == 6
+    with pytest.raises(InputError, match="another generator version"):
+        build_split(tmp_path / "v6", "val", 1, progress=False, quality=QUICK_QUALITY, generator=GENERATOR_VERSION)

@@ -1,0 +1,146 @@
+"""The coarse model's last-step threshold (`GCAConfig.keep`) on val sweeps and on the real logs (run by hand):
+`python benchmarks/keep_sweep.py --keeps 0.5,0.6,0.7 --out benchmarks/results/keep_sweep.json`.
+
+Why: the last transition keeps the cells with p > keep. At 0.5 (the most likely state, as the paper) the model
+keeps far cells it is unsure of, and on real sensors many of those lie where the rays saw empty space
+(`violation_anatomy.py`). The chain before the last step is the same at every threshold (same seed, same draws),
+so each higher threshold keeps a subset of the cells of a lower one: a pure precision / recall trade, chosen here
+on the synthetic val sweeps and the real AV2 logs (nuScenes is reported, not chosen on). For each threshold a copy
+of the weights with that `keep` is written and scored by `benchmarks/val_cut.py` (val sweeps, cut 2 m) and
+`hgca eval-real` (coarse stage, k = 3, cuts 2 m and 1.5 m); the table goes beside the JSON (.md).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+CLI = [sys.executable, "-c", "import sys; from hgca_core.cli import main; sys.exit(main())"]
+
+
+def variant(weights: str | None, keep: float, folder: Path) -> Path:
+    """A copy of the coarse weights whose config holds `keep` (the tensors and the rest of the file unchanged)."""
+    from hgca_core.models.weights import load_file, save_file, shipped
+
+    blob = load_file(weights or shipped("coarse"))
+    blob["config"] = {**blob["config"], "keep": keep}
+    return save_file(blob, folder / f"coarse_keep{keep:g}.pt")
+
+
+def jobs(w: Path, tag: str, folder: Path, data: str, samples: int) -> list[list[str]]:
+    """The two scoring commands of one weights file: val sweeps, then the real logs."""
+    val = [sys.executable, str(REPO / "benchmarks" / "val_cut.py"), "--data", data, "--weights", str(w),
+           "--samples", str(samples), "--out", str(folder / f"val_{tag}.json")]
+    real = [*CLI, "eval-real", "--threads", "1", "--methods", "hgca", "--samples", str(samples), "--cuts", "2.0,1.5",
+            "--no-render", "--weights", str(w), "--out", str(folder / f"real_{tag}.json")]
+    return [val, real]
+
+
+def mean(summary: dict, key: str) -> float:
+    return float(summary[key]["mean"])
+
+
+def scores(val: dict, real: dict) -> dict:
+    """Per input: the whole sweep's share in observed empty space; per cut: recall, cells above, share there."""
+    out = {}
+    for name, res in [*(("val/" + k, v) for k, v in val["inputs"].items()), *real["inputs"].items()]:
+        row = {"whole_empty_share": mean(res["cases"]["full"]["rows"]["hgca"]["summary"], "empty_share")}
+        for case, c in res["cases"].items():
+            if case.startswith("cut_"):
+                s = c["rows"]["hgca"]["summary"]
+                row[case] = {"recall": mean(s, "recall"), "generated_above": mean(s, "generated_above"),
+                             "above_empty_share": mean(s, "above_empty_share")}
+        out[name] = row
+    return out
+
+
+def header(info: dict) -> str:
+    """What was scored, on what: the weights, the val data's generator version, the machine."""
+    return (f"Coarse weights {info['weights']} with the last-step threshold `keep` replaced (`GCAConfig.keep`); k = "
+            f"{info['samples']}; val: the first sweep of the first 4 val scenes of {info['data']} (generator version "
+            f"{info['generator']}), cut 2 m; real: `hgca eval-real` coarse stage. Machine: {info['machine']}, torch "
+            f"{info['torch']}, 1 thread per scoring process, precision auto ({info['precision']} here).\n\n")
+
+
+def table(results: dict[str, dict]) -> str:
+    """Markdown: one row per threshold, val averaged over the sweeps, real per log."""
+    lines = ["| keep | val: cells above 2 m cut / recall % / above-cut in obs. empty % / whole in obs. empty % "
+             "(mean of sweeps) | real 2 m recall % | real above 2 m cut in obs. empty % | real 1.5 m recall % | "
+             "real above 1.5 m in obs. empty % | real whole input in obs. empty % |", "|---|---|---|---|---|---|---|"]
+    for keep, sc in results.items():
+        val = [v for k, v in sc.items() if k.startswith("val/")]
+        real = {k: v for k, v in sc.items() if not k.startswith("val/")}
+
+        def avg(rows, f):
+            return sum(f(r) for r in rows) / len(rows)
+
+        v = (f"{avg(val, lambda r: r['cut_2']['generated_above']):,.0f}"
+             f" / {100 * avg(val, lambda r: r['cut_2']['recall']):.1f}"
+             f" / {100 * avg(val, lambda r: r['cut_2']['above_empty_share']):.1f}"
+             f" / {100 * avg(val, lambda r: r['whole_empty_share']):.1f}")
+
+        def per(f):
+            return " / ".join(f"{100 * f(r):.1f}" for r in real.values())
+
+        lines.append(f"| {keep} | {v} | {per(lambda r: r['cut_2']['recall'])} | "
+                     f"{per(lambda r: r['cut_2']['above_empty_share'])} | {per(lambda r: r['cut_1.5']['recall'])} | "
+                     f"{per(lambda r: r['cut_1.5']['above_empty_share'])} | {per(lambda r: r['whole_empty_share'])} |")
+    first = next(iter(results.values()))
+    lines.append(f"\nReal logs in order: {', '.join(k for k in first if not k.startswith('val/'))}.")
+    return "\n".join(lines) + "\n"
+
+
+def machine_info(args: argparse.Namespace) -> dict:
+    import platform
+
+    import torch
+
+    from hgca_core.nn.conv import precision_name, resolve_precision
+
+    recipe = Path(args.data, "recipe.json")
+    generator = json.loads(recipe.read_text()).get("generator_version") if recipe.exists() else None
+    cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
+                if ln.startswith("model name")), platform.machine()) if Path("/proc/cpuinfo").exists() else ""
+    return {"weights": args.weights or "shipped coarse.pt", "samples": args.samples, "data": args.data,
+            "generator": generator, "machine": f"{cpu}, {os.cpu_count()} cores", "torch": torch.__version__,
+            "precision": precision_name(resolve_precision("auto"))}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--weights", default=None, help="coarse weights (default: the shipped coarse.pt)")
+    p.add_argument("--keeps", default="0.5,0.6,0.7", help="comma list of thresholds in (0, 1)")
+    p.add_argument("--data", default=str(REPO / "data" / "synth2"), help="dataset folder with a val split")
+    p.add_argument("--samples", type=int, default=3)
+    p.add_argument("--jobs", type=int, default=2, help="scoring processes at once (1 thread each)")
+    p.add_argument("--out", required=True, help="results JSON (the table goes to .md beside it)")
+    args = p.parse_args(argv)
+    keeps = [float(k) for k in args.keeps.split(",")]
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        cmds = [c for k in keeps for c in jobs(variant(args.weights, k, folder), f"{k:g}", folder, args.data,
+                                               args.samples)]
+        with ThreadPoolExecutor(args.jobs) as pool:
+            codes = list(pool.map(lambda c: subprocess.run(c, check=False, stdout=subprocess.DEVNULL).returncode,
+                                  cmds))
+        if any(codes):
+            print(f"a scoring command failed (exit codes {codes})", file=sys.stderr)
+            return 1
+        results = {f"{k:g}": scores(json.loads((folder / f"val_{k:g}.json").read_text()),
+                                    json.loads((folder / f"real_{k:g}.json").read_text())) for k in keeps}
+    out = Path(args.out)
+    info = machine_info(args)
+    out.write_text(json.dumps({**info, "keeps": keeps, "results": results}, indent=1))
+    out.with_suffix(".md").write_text(header(info) + table(results))
+    print(out.with_suffix(".md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
