@@ -17,13 +17,13 @@ Weights trained by this project on its own procedural street scenes (`hgca_core/
 Each file below names its training data, one of three:
 - `data/synth` (the first split): two styles, city and suburb; one Waymo-like 64-beam LiDAR with 1 cm point
   noise and 0.02 deg pitch noise; 5 scans per sample. Trained on it last: {synth1}.
-- synth2 (generator 6, recipe `docs/data/synth2_recipe.json`): five sensor profiles with their real beam tables
-  and mounting (Velodyne HDL-64E as on KITTI, HDL-32E as on nuScenes, two stacked VLP-32C as on Argoverse 2,
-  the Waymo top LiDAR, Ouster OS1-128), 1 to 10 scans per sample, mounting height and pitch jitter, random and
-  range-dependent dropout, no return from glass and dark surfaces, range and ring-correlated noise, motion
-  distortion, pose noise and drift between scans; sloped, hilly and curved streets, more building, vegetation,
-  vehicle and street-furniture types. Trained on it last: {synth2} (each warm-started from its first-split
-  weights; see its notes).
+- synth2 (generator 6, recipe `docs/data/synth2_recipe.json`, rebuilt by `hgca synth --generator 6`): five sensor
+  profiles with their real beam tables and mounting (Velodyne HDL-64E as on KITTI, HDL-32E as on nuScenes, two
+  stacked VLP-32C as on Argoverse 2, the Waymo top LiDAR, Ouster OS1-128), 1 to 10 scans per sample, mounting
+  height and pitch jitter, random and range-dependent dropout, no return from glass and dark surfaces, range and
+  ring-correlated noise, motion distortion, pose noise and drift between scans; sloped, hilly and curved streets,
+  more building, vegetation, vehicle and street-furniture types. Trained on it last: {synth2} (each warm-started
+  from its first-split weights; see its notes).
 - synth2 + synth3 (`--data data/synth2 data/synth3`; synth3 is generator 7, recipe `docs/data/synth3_recipe.json`,
   train seeds from 1,000, so the two share no scene): synth2's sensors and effects, and a fourth street style drawn
   for 30 % of seeds, low-rise commercial strips (single-storey shops of 3.2-5 m, parking lots, open lots behind
