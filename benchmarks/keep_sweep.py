@@ -42,6 +42,21 @@ def jobs(w: Path, tag: str, folder: Path, data: str, samples: int) -> list[list[
     return [val, real]
 
 
+def run_all(cmds: list[list[str]], n: int) -> bool:
+    """The scoring commands, n at a time; False (exit codes on stderr) when one of them failed."""
+    with ThreadPoolExecutor(n) as pool:
+        codes = list(pool.map(lambda c: subprocess.run(c, check=False, stdout=subprocess.DEVNULL).returncode, cmds))
+    if any(codes):
+        print(f"a scoring command failed (exit codes {codes})", file=sys.stderr)
+    return not any(codes)
+
+
+def scored(folder: Path, tag: str) -> dict:
+    """`scores` of the two result files `jobs` wrote for `tag`."""
+    return scores(json.loads((folder / f"val_{tag}.json").read_text()),
+                  json.loads((folder / f"real_{tag}.json").read_text()))
+
+
 def mean(summary: dict, key: str) -> float:
     return float(summary[key]["mean"])
 
@@ -68,9 +83,9 @@ def header(info: dict) -> str:
             f"{info['torch']}, 1 thread per scoring process, precision auto ({info['precision']} here).\n\n")
 
 
-def table(results: dict[str, dict]) -> str:
-    """Markdown: one row per threshold, val averaged over the sweeps, real per log."""
-    lines = ["| keep | val: cells above 2 m cut / recall % / above-cut in obs. empty % / whole in obs. empty % "
+def table(results: dict[str, dict], label: str = "keep") -> str:
+    """Markdown: one row per variant (threshold), val averaged over the sweeps, real per log."""
+    lines = [f"| {label} | val: cells above 2 m cut / recall % / above-cut in obs. empty % / whole in obs. empty % "
              "(mean of sweeps) | real 2 m recall % | real above 2 m cut in obs. empty % | real 1.5 m recall % | "
              "real above 1.5 m in obs. empty % | real whole input in obs. empty % |", "|---|---|---|---|---|---|---|"]
     for keep, sc in results.items():
@@ -126,14 +141,9 @@ def main(argv: list[str] | None = None) -> int:
         folder = Path(tmp)
         cmds = [c for k in keeps for c in jobs(variant(args.weights, k, folder), f"{k:g}", folder, args.data,
                                                args.samples)]
-        with ThreadPoolExecutor(args.jobs) as pool:
-            codes = list(pool.map(lambda c: subprocess.run(c, check=False, stdout=subprocess.DEVNULL).returncode,
-                                  cmds))
-        if any(codes):
-            print(f"a scoring command failed (exit codes {codes})", file=sys.stderr)
+        if not run_all(cmds, args.jobs):
             return 1
-        results = {f"{k:g}": scores(json.loads((folder / f"val_{k:g}.json").read_text()),
-                                    json.loads((folder / f"real_{k:g}.json").read_text())) for k in keeps}
+        results = {f"{k:g}": scored(folder, f"{k:g}") for k in keeps}
     out = Path(args.out)
     info = machine_info(args)
     out.write_text(json.dumps({**info, "keeps": keeps, "results": results}, indent=1))

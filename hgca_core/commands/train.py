@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 from pathlib import Path
 
 STAGES = ("coarse", "coarse-noplanner", "autoencoder", "fine")
@@ -72,6 +73,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--export", nargs="?", const=True, default=None, metavar="PATH",
                    help="after training, write the trained (EMA) weights with their training record: to PATH, or "
                         "without PATH as the shipped hgca_core/weights/<stage>.pt and re-render the model card")
+    p.add_argument("--blend-with", default=None, metavar="WEIGHTS",
+                   help="coarse, with --export: write (1 - T) * WEIGHTS + T * the run's weights, a fine-tune "
+                        "interpolated back toward the weights it started from (WiSE-FT; benchmarks/blend_sweep.py)")
+    p.add_argument("--blend-t", type=_share, default=None, metavar="T", help="with --blend-with: the run's share")
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -184,11 +189,15 @@ def build_task(args: argparse.Namespace, run_file: dict | None):
 def run(args: argparse.Namespace) -> int:
     import torch
 
+    from hgca_core.errors import InputError
+    from hgca_core.hardware import resolve_device
     from hgca_core.training.trainer import train
 
-    from hgca_core.hardware import resolve_device
-
     resolve_device(args.device)   # a bad --device fails before any data is read
+    if (args.blend_with is None) != (args.blend_t is None) or (args.blend_with and not args.export):
+        raise InputError("--blend-with and --blend-t go together, with --export")
+    if args.blend_with and not args.stage.startswith("coarse"):
+        raise InputError("--blend-with is for the coarse stages")
     if args.threads:
         torch.set_num_threads(args.threads)
     out = Path(args.out or f"runs/{args.stage.replace('-', '_')}")
@@ -229,7 +238,17 @@ def export(args: argparse.Namespace, task, ckpt: Path) -> Path:
         ck = load_file(ckpt)
         module = task.build()
         module.load_state_dict(trained_weights(ck))
-        dest = save_weights(target, module.model, {**run_record(ck), **extra, "crop": task.crop})
+        meta = {**run_record(ck), **extra, "crop": task.crop}
+        if args.blend_with:
+            from hgca_core.models.weights import blend_files, save_file
+
+            with tempfile.TemporaryDirectory() as tmp:
+                run_weights = save_weights(Path(tmp) / f"{ckpt.parent.name}.pt", module.model, meta)
+                blob = blend_files(args.blend_with, run_weights, args.blend_t)
+            blob["meta"]["blend"]["b"]["file"] = str(ckpt)
+            dest = save_file(blob, target)
+        else:
+            dest = save_weights(target, module.model, meta)
     elif args.stage == "autoencoder":
         from hgca_core.training.fine import export_autoencoder
 

@@ -95,6 +95,37 @@ def save_weights(path: str | os.PathLike, model: nn.Module, meta: dict[str, Any]
     return save_file(blob, path)
 
 
+def blend_files(a: str | os.PathLike, b: str | os.PathLike, t: float) -> dict:
+    """Weights `(1 - t) * a + t * b`, tensor by tensor: a fine-tune interpolated back toward the weights it started
+    from (WiSE-FT, Wortsman et al. 2022), which keeps more of the fine-tune's gain off its training distribution.
+
+    Both files must be weights (not checkpoints) of the same kind and architecture; the result takes `a`'s config
+    and records both sources in its meta. Floating tensors are mixed in fp32, integer buffers are `a`'s."""
+    if not 0.0 <= t <= 1.0:
+        raise ValueError(f"blend fraction {t} is outside [0, 1]")
+    blobs = [load_file(f) for f in (a, b)]
+    for f, blob in zip((a, b), blobs):
+        kind, checkpoint = identify(blob)
+        if kind is None or checkpoint:
+            raise InputError("not an hgca weights file (export a checkpoint with `hgca train --export` first)", str(f))
+    ka, kb = blobs[0]["kind"], blobs[1]["kind"]
+    ca, cb = ({k: v for k, v in bl["config"].items() if k != "keep"} for bl in blobs)
+    if ka != kb or ca != cb or "autoencoder" in blobs[0]:
+        raise InputError(f"cannot blend: {ka} and {kb} weights of different architectures (or fine weights, whose "
+                         "autoencoders differ)", str(b))
+    sa, sb = blobs[0]["state_dict"], blobs[1]["state_dict"]
+    if sa.keys() != sb.keys() or any(sa[k].shape != sb[k].shape for k in sa):
+        raise InputError("cannot blend: the files' tensors differ in names or shapes", str(b))
+    state = {k: (((1 - t) * v.float() + t * sb[k].float()).to(v.dtype) if v.is_floating_point() else v)
+             for k, v in sa.items()}
+    def source(f: str | os.PathLike, blob: dict) -> dict:
+        m = _meta(blob)
+        return {"file": str(f), **{k: m[k] for k in ("steps", "train_wall_s", "data", "sessions") if k in m}}
+
+    meta = {**_meta(blobs[0]), "blend": {"t": t, "a": source(a, blobs[0]), "b": source(b, blobs[1])}}
+    return {**blobs[0], "state_dict": state, "meta": meta}
+
+
 # -- reading ----------------------------------------------------------------------------------------------------
 def load_file(path: str | os.PathLike, hint: str = "") -> dict:
     """The plain contents of a weights file or checkpoint, read without running anything from it.

@@ -71,13 +71,14 @@ def _section(path: Path, blob: dict) -> str:
              f"crop {meta.get('crop', cfg.get('crop'))} cells",
              f"- steps: {meta.get('steps')}, summed step wall time: {meta.get('train_wall_s')} s "
              f"over {len(sessions)} session(s)"]
-    for s in sessions:
-        hardware = s.get("device_name") or s.get("cpu")   # runs before device_name was recorded kept the CPU's
-        lines.append(f"  - session ended {s['ended']}: {s['steps']} steps in {s['wall_s']} s, device {s['device']}"
-                     f"{' (' + hardware + ')' if hardware else ''}, {s['threads']} thread(s), "
-                     f"world size {s['world_size']}, {s.get('precision', 'fp32')} GEMMs"
-                     + (f", learning rate {s['lr']:g}" if "lr" in s else "")
-                     + "".join(f", {k.replace('_', ' ')} {v}" for k, v in s.get("recipe", {}).items()))
+    lines += [_session(s) for s in sessions]
+    blend = meta.get("blend")
+    if blend:
+        b = blend["b"]
+        lines.append(f"- blend: these tensors are `(1 - t) * a + t * b`, t = {blend['t']:g} "
+                     "(`hgca_core.models.weights.blend_files`, WiSE-FT), a = the training above, b = a fine-tune "
+                     f"from a on {b.get('data')}: {b.get('steps')} steps, {b.get('train_wall_s')} s of step wall time")
+        lines += [_session(s) for s in b.get("sessions", [])]
     vals = [h for h in meta.get("history_tail", []) if h.get("kind") == "val"]
     trains = [h for h in meta.get("history_tail", []) if h.get("kind") == "train"]
     for note in meta.get("notes", []):
@@ -90,6 +91,15 @@ def _section(path: Path, blob: dict) -> str:
             scores = ", ".join(f"{k} {v:.4f}" for k, v in h.items() if k.startswith("val_"))
             lines.append(f"  - step {h['step']}: {scores}")
     return "\n".join(lines)
+
+
+def _session(s: dict) -> str:
+    hardware = s.get("device_name") or s.get("cpu")   # runs before device_name was recorded kept the CPU's
+    return (f"  - session ended {s['ended']}: {s['steps']} steps in {s['wall_s']} s, device {s['device']}"
+            f"{' (' + hardware + ')' if hardware else ''}, {s['threads']} thread(s), "
+            f"world size {s['world_size']}, {s.get('precision', 'fp32')} GEMMs"
+            + (f", learning rate {s['lr']:g}" if "lr" in s else "")
+            + "".join(f", {k.replace('_', ' ')} {v}" for k, v in s.get("recipe", {}).items()))
 
 
 def _samples(names: list[str] | None) -> str:

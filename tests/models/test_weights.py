@@ -167,3 +167,36 @@ def test_kinds_table_covers_the_models():
     assert {k: (v.config, v.model) for k, v in KINDS.items()} == {
         "coarse": (GCAConfig, GCAKernel), "fine": (CGCAConfig, CGCAKernel),
         "autoencoder": (AutoencoderConfig, Autoencoder)}
+
+
+def test_blend_interpolates_tensor_by_tensor_and_refuses_what_does_not_fit(files, tmp_path):
+    from hgca_core.models.weights import blend_files
+
+    torch.manual_seed(1)
+    other = GCAKernel(GCAConfig(channels=(8, 8, 16, 16, 16), steps=3))
+    b = save_weights(tmp_path / "b.pt", other, {"steps": 7, "data": "d2"})
+    a_sd, b_sd = load_file(files["coarse"])["state_dict"], load_file(b)["state_dict"]
+    for t in (0.0, 0.5, 1.0):
+        blob = blend_files(files["coarse"], b, t)
+        floats = [k for k, v in a_sd.items() if v.is_floating_point()]
+        assert floats and len(floats) < len(a_sd)          # the model has integer buffers to keep as they are
+        for k, v in blob["state_dict"].items():
+            want = ((1 - t) * a_sd[k].float() + t * b_sd[k].float()).half() if k in floats else a_sd[k]
+            assert v.dtype == a_sd[k].dtype and torch.equal(v, want), (t, k)
+        assert blob["meta"]["blend"]["t"] == t and blob["meta"]["blend"]["b"] == {"file": str(b), "steps": 7,
+                                                                                   "data": "d2"}
+    mid = save_file(blend_files(files["coarse"], b, 0.5), tmp_path / "mid.pt")
+    model, meta = load_coarse(mid)                           # a blend loads like any coarse weights
+    assert meta["blend"]["a"]["file"] == str(files["coarse"])
+    assert not torch.equal(model.state_dict()[floats[0]], load_coarse(b)[0].state_dict()[floats[0]])
+
+    wider = save_weights(tmp_path / "w.pt", GCAKernel(GCAConfig(channels=(8, 8, 16, 16, 32), steps=3)))
+    with pytest.raises(InputError, match="different architectures"):
+        blend_files(files["coarse"], wider, 0.5)
+    with pytest.raises(InputError, match="different architectures"):
+        blend_files(files["coarse"], files["autoencoder"], 0.5)
+    ckpt = save_file({"task": "coarse", "model": a_sd, "config": {}}, tmp_path / "ckpt.pt")
+    with pytest.raises(InputError, match="export a checkpoint"):
+        blend_files(files["coarse"], ckpt, 0.5)
+    with pytest.raises(ValueError, match="outside"):
+        blend_files(files["coarse"], b, 1.5)

@@ -43,3 +43,23 @@ def test_card_lists_weights_trained_on_synth2_and_synth3_under_both(tmp_path):
     card = write_model_card(tmp_path).read_text()
     assert "Validation stays on synth2's val split. Trained on it last: `coarse.pt`." in card
     assert "Trained on it last: none of the files here (each warm-started" in card     # not under synth2 alone
+
+
+def test_card_says_a_blend_is_one_and_lists_both_trainings(tmp_path):
+    from hgca_core.models.weights import blend_files, save_file
+
+    ses = {"ended": "2026-11-23 11:00:00", "steps": 9, "wall_s": 3.0, "device": "cpu", "threads": 2,
+           "world_size": 1, "precision": "fp32"}
+    cfg = GCAConfig(channels=(8, 8, 16, 16, 16))
+    a = save_weights(tmp_path / "a.pt", GCAKernel(cfg), {"stage": "coarse", "data": "d/synth2", "steps": 5,
+                                                          "sessions": [{**ses, "steps": 5}]})
+    b = save_weights(tmp_path / "b.pt", GCAKernel(cfg), {"stage": "coarse", "data": "d/synth7", "steps": 9,
+                                                          "train_wall_s": 3.0, "sessions": [ses]})
+    cards = tmp_path / "card"
+    cards.mkdir()
+    save_file(blend_files(a, b, 0.25), cards / "coarse.pt")
+    card = write_model_card(cards).read_text()
+    assert "- steps: 5," in card and "  - session ended 2026-11-23 11:00:00: 5 steps in 3.0 s" in card
+    assert "t = 0.25 (`hgca_core.models.weights.blend_files`, WiSE-FT), a = the training above, b = a fine-tune " \
+           "from a on d/synth7: 9 steps, 3.0 s of step wall time" in card
+    assert "  - session ended 2026-11-23 11:00:00: 9 steps in 3.0 s" in card

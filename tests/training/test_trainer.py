@@ -252,3 +252,34 @@ def test_a_resume_keeps_the_runs_recipe_unless_told_otherwise(tiny_dataset, tmp_
     assert "--focus 0.25" in err and "--precision bf16" in err
     recipe, precision, _ = run("--resume", "--focus", "0", "--precision", "fp32")
     assert (recipe["focus_share"], recipe["cut_share"], precision) == (0.0, 0.5, "fp32")
+
+
+def test_export_blended_toward_the_weights_the_run_started_from(tiny_dataset, tmp_path):
+    """`--export F --blend-with A --blend-t T` writes (1 - T) * A + T * the run's EMA weights, says so in the meta
+    (which the card renders), and the options are refused alone or for the fine stage (exit 2, nothing written)."""
+    from hgca_core.models.weights import save_weights
+
+    def run(*extra):
+        cmd = [sys.executable, "-m", "hgca_core.cli", "train", "coarse-noplanner", "--data", str(tiny_dataset),
+               "--out", str(tmp_path / "r"), "--batch", "1", "--buffer", "1", "--crop", "24",
+               "--channels", "8,8,16,16,16", "--threads", "1", "--no-progress", *extra]
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+
+    assert run("--max-steps", "1", "--minutes", "5").returncode == 0
+    from hgca_core.models.gca import GCAKernel
+
+    torch.manual_seed(3)
+    a = save_weights(tmp_path / "a.pt", GCAKernel(GCAConfig(use_planner=False, **SMALL)), {"steps": 5})
+    assert run("--minutes", "0", "--export", str(tmp_path / "plain.pt")).returncode == 0
+    done = run("--minutes", "0", "--export", str(tmp_path / "mix.pt"), "--blend-with", str(a), "--blend-t", "0.25")
+    assert done.returncode == 0, done.stderr
+    mix, plain, base = (load_file(tmp_path / f) for f in ("mix.pt", "plain.pt", "a.pt"))
+    k = next(n for n, v in plain["state_dict"].items() if v.is_floating_point() and v.abs().sum() > 0)
+    want = (0.75 * base["state_dict"][k].float() + 0.25 * plain["state_dict"][k].float()).half()
+    assert torch.equal(mix["state_dict"][k], want)
+    assert mix["meta"]["blend"]["t"] == 0.25 and mix["meta"]["blend"]["b"]["file"] == str(tmp_path / "r" / "ckpt.pt")
+    assert mix["meta"]["blend"]["b"]["sessions"] == plain["meta"]["sessions"]
+    for bad in (["--blend-with", str(a)], ["--blend-t", "0.5", "--export", str(tmp_path / "x.pt")],
+                ["--blend-with", str(a), "--blend-t", "2", "--export", str(tmp_path / "x.pt")]):
+        done = run("--minutes", "0", *bad)
+        assert done.returncode == 2 and not (tmp_path / "x.pt").exists(), done.stderr
