@@ -8,7 +8,9 @@ real input (the eval-real defaults) this completes the input cut `--cut` m above
 of `--seed`) and describes those cells: their height above the ground; their distance to the nearest cell the
 uncut input holds (cells next to a hit are never seen empty, so the least is 0.4 m); whether their column stands
 over, or within 20 / 60 cm of, a column the uncut input holds 1.6-2.0 m up (a structure the cut crossed); and the
-tallest cut-input cell within 60 cm (only ground there: a structure grown over open ground).
+tallest cut-input cell within 60 cm (only ground there: a structure grown over open ground); and whether the line
+from the sensor through the cell meets a cell the uncut input holds within 1 m behind it, before it, both or
+neither (in front of a real surface, inside something rays see through, or in open air).
 """
 from __future__ import annotations
 
@@ -61,13 +63,35 @@ def anatomy(points: np.ndarray, origins: np.ndarray, index: np.ndarray, cut: flo
     top = np.where(cut_occ.any(axis=2), shape[2] - 1 - np.argmax(cut_occ[:, :, ::-1], axis=2), -1)
     near_top = (maximum_filter(top, size=7)[col] + 0.5) * COARSE - BELOW_GROUND
     pct = lambda m: round(100.0 * float(np.mean(m)), 1)  # noqa: E731
+    sensor = region.to_local(origins)[0]
+    back, front = along_ray(bad, occ, sensor, 1.0), along_ray(bad, occ, sensor, -1.0)
     return {"above_cut": len(up), "in_seen_empty": len(bad), "share_pct": round(100.0 * len(bad) / len(up), 1),
             "height_m_p10_p50_p90": np.percentile(height, [10, 50, 90]).round(2).tolist(),
             "height_bands": {f"{a:g}-{b:g}": int(((height >= a) & (height < b)).sum()) for a, b in BANDS},
             "distance_m_p10_p50_p90": np.percentile(dist, [10, 50, 90]).round(2).tolist(),
             "over_structure_pct": pct(base[col]), "within_20cm_pct": pct(binary_dilation(base, iterations=1)[col]),
             "within_60cm_pct": pct(binary_dilation(base, iterations=3)[col]),
-            "only_ground_within_60cm_pct": pct(near_top < 0.5)}
+            "only_ground_within_60cm_pct": pct(near_top < 0.5), "ray_within_1m_pct": {
+                "real_behind_only": pct(back & ~front), "real_behind_and_before": pct(back & front),
+                "real_before_only": pct(front & ~back), "neither": pct(~back & ~front)}}
+
+
+def along_ray(cells: np.ndarray, occ: np.ndarray, sensor: np.ndarray, reach: float) -> np.ndarray:
+    """Per cell: does the line from the sensor through its centre meet a cell the uncut input holds within |reach|
+    metres beyond it (reach > 0) or before it, toward the sensor (reach < 0)? Behind only: grown in front of a real
+    surface; behind and before: inside something the rays see through (a tree crown, a fence); neither: open air,
+    e.g. above where a structure ends."""
+    from hgca_core.geometry.voxel import COARSE
+
+    centre = (cells + 0.5) * COARSE
+    ray = centre - sensor
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    hit = np.zeros(len(cells), dtype=bool)
+    for s in np.sign(reach) * np.arange(COARSE, abs(reach) + 1e-9, COARSE / 2):
+        c = np.floor((centre + s * ray) / COARSE).astype(np.int64)
+        ok = np.all((c >= 0) & (c < occ.shape), axis=1)
+        hit[ok] |= occ[c[ok, 0], c[ok, 1], c[ok, 2]]
+    return hit
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -94,16 +118,18 @@ def main(argv: list[str] | None = None) -> int:
     out.write_text(json.dumps({"weights": args.weights or "shipped", "cut_m": args.cut, "seed": args.seed,
                                "inputs": rows}, indent=1) + "\n")
     head = ("| input | above cut | in seen-empty (%) | height p10/p50/p90 (m) | distance to real p10/p50/p90 (m) | "
-            "over a 1.6-2 m structure (%) | within 20 cm (%) | within 60 cm (%) | only ground within 60 cm (%) |")
-    lines = [head, "|---|---:|---:|---|---|---:|---:|---:|---:|"]
+            "over a 1.6-2 m structure (%) | within 20 cm (%) | within 60 cm (%) | only ground within 60 cm (%) | "
+            "along the ray within 1 m: real behind only / behind and before / before only / neither (%) |")
+    lines = [head, "|---|---:|---:|---|---|---:|---:|---:|---:|---|"]
     for name, r in rows.items():
         if not r["in_seen_empty"]:
-            lines.append(f"| {name} | {r['above_cut']:,} | 0 | - | - | - | - | - | - |")
+            lines.append(f"| {name} | {r['above_cut']:,} | 0 | - | - | - | - | - | - | - |")
             continue
         lines.append(f"| {name} | {r['above_cut']:,} | {r['share_pct']:.1f} | "
                      f"{' / '.join(f'{v:g}' for v in r['height_m_p10_p50_p90'])} | "
                      f"{' / '.join(f'{v:g}' for v in r['distance_m_p10_p50_p90'])} | {r['over_structure_pct']} | "
-                     f"{r['within_20cm_pct']} | {r['within_60cm_pct']} | {r['only_ground_within_60cm_pct']} |")
+                     f"{r['within_20cm_pct']} | {r['within_60cm_pct']} | {r['only_ground_within_60cm_pct']} | "
+                     f"{' / '.join(f'{v:g}' for v in r['ray_within_1m_pct'].values())} |")
     out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
