@@ -24,13 +24,14 @@ REPO = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-c", "import sys; from hgca_core.cli import main; sys.exit(main())"]
 
 
-def variant(weights: str | None, keep: float, folder: Path) -> Path:
-    """A copy of the coarse weights whose config holds `keep` (the tensors and the rest of the file unchanged)."""
+def variant(weights: str | None, keep: float, folder: Path, field: str = "keep") -> Path:
+    """A copy of the coarse weights whose config holds `field` = `keep` (tensors and the rest of the file unchanged):
+    the last-step threshold `keep` or the every-step logit shift `bias` (`GCAConfig`)."""
     from hgca_core.models.weights import load_file, save_file, shipped
 
     blob = load_file(weights or shipped("coarse"))
-    blob["config"] = {**blob["config"], "keep": keep}
-    return save_file(blob, folder / f"coarse_keep{keep:g}.pt")
+    blob["config"] = {**blob["config"], field: keep}
+    return save_file(blob, folder / f"coarse_{field}{keep:g}.pt")
 
 
 def jobs(w: Path, tag: str, folder: Path, data: str, samples: int) -> list[list[str]]:
@@ -77,7 +78,7 @@ def scores(val: dict, real: dict) -> dict:
 
 def header(info: dict) -> str:
     """What was scored, on what: the weights, the val data's generator version, the machine."""
-    return (f"Coarse weights {info['weights']} with the last-step threshold `keep` replaced (`GCAConfig.keep`); k = "
+    return (f"Coarse weights {info['weights']} with `{info.get('field', 'keep')}` replaced (`GCAConfig`); k = "
             f"{info['samples']}; val: the first sweep of the first 4 val scenes of {info['data']} (generator version "
             f"{info['generator']}), cut 2 m; real: `hgca eval-real` coarse stage. Machine: {info['machine']}, torch "
             f"{info['torch']}, 1 thread per scoring process, precision auto ({info['precision']} here).\n\n")
@@ -130,7 +131,10 @@ def machine_info(args: argparse.Namespace) -> dict:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--weights", default=None, help="coarse weights (default: the shipped coarse.pt)")
-    p.add_argument("--keeps", default="0.5,0.6,0.7", help="comma list of thresholds in (0, 1)")
+    p.add_argument("--field", choices=("keep", "bias"), default="keep",
+                   help="the config value to vary: the last-step threshold or the every-step logit shift")
+    p.add_argument("--keeps", "--values", dest="keeps", default="0.5,0.6,0.7",
+                   help="comma list of values (thresholds in (0, 1), or logit shifts)")
     p.add_argument("--data", default=str(REPO / "data" / "synth2"), help="dataset folder with a val split")
     p.add_argument("--samples", type=int, default=3)
     p.add_argument("--jobs", type=int, default=2, help="scoring processes at once (1 thread each)")
@@ -139,15 +143,15 @@ def main(argv: list[str] | None = None) -> int:
     keeps = [float(k) for k in args.keeps.split(",")]
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        cmds = [c for k in keeps for c in jobs(variant(args.weights, k, folder), f"{k:g}", folder, args.data,
-                                               args.samples)]
+        cmds = [c for k in keeps for c in jobs(variant(args.weights, k, folder, args.field), f"{k:g}", folder,
+                                               args.data, args.samples)]
         if not run_all(cmds, args.jobs):
             return 1
         results = {f"{k:g}": scored(folder, f"{k:g}") for k in keeps}
     out = Path(args.out)
-    info = machine_info(args)
+    info = {**machine_info(args), "field": args.field}
     out.write_text(json.dumps({**info, "keeps": keeps, "results": results}, indent=1))
-    out.with_suffix(".md").write_text(header(info) + table(results))
+    out.with_suffix(".md").write_text(header(info) + table(results, label=args.field))
     print(out.with_suffix(".md").read_text())
     return 0
 

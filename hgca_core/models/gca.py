@@ -15,6 +15,7 @@ model learnt.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable, ClassVar
 
@@ -46,6 +47,7 @@ class GCAConfig(Config):
     grid: tuple[int, int, int] = (192, 192, 40)
     free_space: bool = False          # observed free space as an input (kernel column, planner height bins)
     keep: float = 0.5                 # the last transition keeps cells with p > keep (0.5: the most likely state)
+    bias: float = 0.0                 # added to every transition's logits when sampling (< 0: each step grows less)
 
     legacy: ClassVar[dict] = {"pe_axes": "xyz"}  # files written before pe_axes existed encoded all three axes
 
@@ -57,6 +59,8 @@ class GCAKernel(nn.Module):
         super().__init__()
         if not 0.0 < float(cfg.keep) < 1.0:   # 1 or more would end every chain empty, 0 or less keep every cell
             raise ValueError(f"keep must lie strictly between 0 and 1, not {cfg.keep!r}")
+        if not math.isfinite(float(cfg.bias)):
+            raise ValueError(f"bias must be a finite number, not {cfg.bias!r}")
         self.cfg = cfg
         self.pe_axes = ["xyz".index(a) for a in cfg.pe_axes]
         in_ch = 2 + int(cfg.free_space) + len(self.pe_axes) * 2 * cfg.pe_freq
@@ -118,6 +122,8 @@ def sample(model: GCAKernel, s0: torch.Tensor, grid: tuple[int, int, int], steps
     """Run the Markov chain from s^0 for `steps` transitions (Eq. 1); the last one keeps the cells with p > cfg.keep
     (0.5: the most likely state, as the paper; a weights file may hold a higher one, chosen on val and real logs,
     to trade far cells the model is unsure of for fewer cells where a sensor would have seen empty space).
+    cfg.bias (0 as the paper) shifts every step's logits: growth compounds over the T steps, so a small negative
+    shift curbs long excursions more than the cells next to the input.
 
     s0: (N, 4) coordinates of one or more samples (batch column). Returns the final occupied set.
     free: (B, *grid) bool seen-empty cells, the model's input when it has free_space; forbid: (B, *grid) bool cells
@@ -131,7 +137,7 @@ def sample(model: GCAKernel, s0: torch.Tensor, grid: tuple[int, int, int], steps
     state = s0
     for t in range(steps):
         nbhd = model.neighbourhood(state, grid)
-        prob = torch.sigmoid(model(nbhd, state, s0, grid, bev, free))
+        prob = torch.sigmoid(model(nbhd, state, s0, grid, bev, free) + model.cfg.bias)
         if t == steps - 1:
             keep = prob > model.cfg.keep
         else:

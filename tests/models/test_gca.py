@@ -88,3 +88,34 @@ def test_the_threshold_must_lie_inside_zero_one():
     for bad in (0.0, 1.0, 1.5, -0.1):
         with pytest.raises(ValueError, match="keep must lie strictly between 0 and 1"):
             GCAKernel(GCAConfig(channels=(8, 8, 16, 16, 16), grid=GRID, keep=bad))
+
+
+def test_a_negative_logit_shift_draws_a_subset_at_every_step_and_shifts_the_last_threshold():
+    """bias is added to every step's logits: with the draws of the same seed a step keeps a subset of the cells it
+    keeps without it (checked on the first step, where both chains see the same neighbourhood), and the last step
+    keeps p > keep of the shifted probabilities."""
+    m = _model(planner=False)
+    s0 = _plane()
+    one = sample(m, s0, GRID, 2, torch.Generator().manual_seed(1))
+    logits = []
+    forward = m.forward
+    m.forward = lambda *a: logits.append(forward(*a)) or logits[-1]
+    m.cfg.bias = -0.7
+    first = sample(m, s0, GRID, 1, torch.Generator().manual_seed(1))   # one step: the last, thresholded
+    assert len(first) == int((torch.sigmoid(logits[-1] - 0.7) > 0.5).sum())
+    m.cfg.bias = 0.0
+    draws_free = sample(m, s0, GRID, 2, torch.Generator().manual_seed(1))
+    assert torch.equal(draws_free, one)                                # a shift of 0 is the paper's chain
+    m.cfg.bias = -0.7
+    less = sample(m, s0, GRID, 2, torch.Generator().manual_seed(1))
+    m.cfg.bias = 0.0
+    # step one of both chains: same neighbourhood and draws, so u < sigmoid(l - 0.7) implies u < sigmoid(l)
+    u = torch.rand(len(m.neighbourhood(s0, GRID)), generator=torch.Generator().manual_seed(1))
+    nb = m.neighbourhood(s0, GRID)
+    l0 = forward(nb, s0, s0, GRID, None, None)
+    kept_shifted, kept = nb[u < torch.sigmoid(l0 - 0.7)], nb[u < torch.sigmoid(l0)]
+    assert 0 < len(kept_shifted) < len(kept) and bool(cs.isin(kept_shifted, kept).all())
+    assert len(less) < len(one)
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="bias must be a finite number"):
+            GCAKernel(GCAConfig(channels=(8, 8, 16, 16, 16), grid=GRID, bias=bad))
