@@ -55,7 +55,11 @@ paper (400k), so completions are rough; on real scans (Argoverse 2, nuScenes: `b
 the coarse stage finds 36-49 % of the real cells cut away 2 m above the ground (8.5-9.9 % of what it grows above
 the cut lies where the whole scans' rays passed), and 5.6-8.4 % of what it generates on the whole input lies in
 space the input rays saw empty, none in that space's core (the ground truth of simulated single sweeps of these
-sensors scores 3.7-5.7 % by the first count: `benchmarks/results/freespace_floor.md`).
+sensors scores 3.7-5.7 % by the first count: `benchmarks/results/freespace_floor.md`). Most of that growth above a
+cut lies in open air 1-2 m up (`violation_anatomy_s14_shipped.md`); neither a higher last-step threshold, nor a shift
+of every step's logits, nor interpolation toward a fine-tune lowers its share (`keep_sweep.md`, `bias_sweep.md`,
+`blend_sweep.md`), and how much the chain grows swings far within a few hundred training steps
+(`real_scans_coarse_ft373.md`), so these weights are one selected point of that swing, not a settled optimum.
 """
 
 
