@@ -18,7 +18,7 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from keep_sweep import REPO, jobs, machine_info, run_all, scored, scores, table  # noqa: E402
+from keep_sweep import REPO, jobs, known_rows, machine_info, run_all, scored, table  # noqa: E402
 
 
 def blended(a: str, b: str, t: float, folder: Path) -> Path:
@@ -41,11 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="results JSON (the table goes to .md beside it)")
     args = p.parse_args(argv)
     ts = [float(t) for t in args.ts.split(",")] if args.ts else []
-    results: dict[str, dict] = {}
-    for item in args.known:
-        label, files = item.rsplit("=", 1)
-        val, real = files.split(",")
-        results[label] = scores(json.loads(Path(val).read_text()), json.loads(Path(real).read_text()))
+    results = known_rows(args.known)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(args.keep_weights or tmp)
         folder.mkdir(parents=True, exist_ok=True)

@@ -58,6 +58,16 @@ def scored(folder: Path, tag: str) -> dict:
                   json.loads((folder / f"real_{tag}.json").read_text()))
 
 
+def known_rows(items: list[str]) -> dict[str, dict]:
+    """`scores` of rows scored before by val_cut.py and `hgca eval-real`, each given as LABEL=VAL.json,REAL.json."""
+    rows = {}
+    for item in items:
+        label, files = item.rsplit("=", 1)
+        val, real = files.split(",")
+        rows[label] = scores(json.loads(Path(val).read_text()), json.loads(Path(real).read_text()))
+    return rows
+
+
 def mean(summary: dict, key: str) -> float:
     return float(summary[key]["mean"])
 
@@ -78,7 +88,9 @@ def scores(val: dict, real: dict) -> dict:
 
 def header(info: dict) -> str:
     """What was scored, on what: the weights, the val data's generator version, the machine."""
-    return (f"Coarse weights {info['weights']} with `{info.get('field', 'keep')}` replaced (`GCAConfig`); k = "
+    what = (f"Coarse weights {info['weights']} with `{info.get('field', 'keep')}` replaced (`GCAConfig`)"
+            if info.get("keeps", True) else "Coarse weights scored before by the same commands (rows named by label)")
+    return (f"{what}; k = "
             f"{info['samples']}; val: the first sweep of the first 4 val scenes of {info['data']} (generator version "
             f"{info['generator']}), cut 2 m; real: `hgca eval-real` coarse stage. Machine: {info['machine']}, torch "
             f"{info['torch']}, 1 thread per scoring process, precision auto ({info['precision']} here).\n\n")
@@ -134,24 +146,28 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--field", choices=("keep", "bias"), default="keep",
                    help="the config value to vary: the last-step threshold or the every-step logit shift")
     p.add_argument("--keeps", "--values", dest="keeps", default="0.5,0.6,0.7",
-                   help="comma list of values (thresholds in (0, 1), or logit shifts)")
+                   help="comma list of values (thresholds in (0, 1), or logit shifts); empty: only --known rows")
+    p.add_argument("--known", action="append", default=[], metavar="LABEL=VAL.json,REAL.json",
+                   help="a row scored before by val_cut.py and hgca eval-real, e.g. other weights (repeatable)")
     p.add_argument("--data", default=str(REPO / "data" / "synth2"), help="dataset folder with a val split")
     p.add_argument("--samples", type=int, default=3)
     p.add_argument("--jobs", type=int, default=2, help="scoring processes at once (1 thread each)")
     p.add_argument("--out", required=True, help="results JSON (the table goes to .md beside it)")
     args = p.parse_args(argv)
-    keeps = [float(k) for k in args.keeps.split(",")]
+    keeps = [float(k) for k in args.keeps.split(",")] if args.keeps else []
+    if not keeps and not args.known:
+        p.error("nothing to score: give --keeps or --known")
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         cmds = [c for k in keeps for c in jobs(variant(args.weights, k, folder, args.field), f"{k:g}", folder,
                                                args.data, args.samples)]
         if not run_all(cmds, args.jobs):
             return 1
-        results = {f"{k:g}": scored(folder, f"{k:g}") for k in keeps}
+        results = {**known_rows(args.known), **{f"{k:g}": scored(folder, f"{k:g}") for k in keeps}}
     out = Path(args.out)
-    info = {**machine_info(args), "field": args.field}
-    out.write_text(json.dumps({**info, "keeps": keeps, "results": results}, indent=1))
-    out.with_suffix(".md").write_text(header(info) + table(results, label=args.field))
+    info = {**machine_info(args), "field": args.field, "keeps": keeps}
+    out.write_text(json.dumps({**info, "known": args.known, "results": results}, indent=1))
+    out.with_suffix(".md").write_text(header(info) + table(results, label=args.field if keeps else "weights"))
     print(out.with_suffix(".md").read_text())
     return 0
 

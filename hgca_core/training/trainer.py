@@ -47,8 +47,11 @@ class Task(Protocol):
 
 
 class EMA:
-    """Exponential moving average of a module's weights (buffers are copied), with the usual warm-up
-    decay min(decay, (1 + n) / (10 + n)) so short runs are averaged over their own steps only."""
+    """Exponential moving average of a module's weights and floating buffers (integer ones, e.g. BatchNorm's batch
+    count, are copied), with the usual warm-up decay min(decay, (1 + n) / (10 + n)) so short runs are averaged
+    over their own steps only. BatchNorm's running statistics are averaged too (as `AveragedModel(use_buffers=True)`
+    does): copied, they are the live model's last ~10 batches, and the coarse chain's growth on real scans swung
+    with them from one checkpoint to the next (`hgca_core.training.precise_bn`, session 15)."""
 
     def __init__(self, module: nn.Module, decay: float = 0.999) -> None:
         self.decay, self.n = decay, 0
@@ -62,7 +65,10 @@ class EMA:
         for e, p in zip(self.module.parameters(), module.parameters()):
             e.lerp_(p.detach(), 1.0 - d)
         for e, b in zip(self.module.buffers(), module.buffers()):
-            e.copy_(b)
+            if e.is_floating_point():
+                e.lerp_(b, 1.0 - d)
+            else:
+                e.copy_(b)
         self.n += 1
 
     def state_dict(self) -> dict:

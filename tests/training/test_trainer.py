@@ -156,6 +156,19 @@ def test_ema_warms_up_then_averages():
     assert abs(float(ema.module.weight) - 0.9) < 1e-6
 
 
+def test_ema_averages_batchnorm_statistics_and_copies_the_batch_count():
+    bn = torch.nn.BatchNorm1d(1)
+    ema = EMA(bn, decay=0.9)
+    for _ in range(100):
+        ema.update(bn)                   # past the warm-up
+    with torch.no_grad():
+        bn.running_mean.fill_(1.0)
+        bn.num_batches_tracked.fill_(7)
+    ema.update(bn)
+    assert abs(float(ema.module.running_mean) - 0.1) < 1e-6        # 0.9 * 0 + 0.1 * 1, not the live 1.0
+    assert int(ema.module.num_batches_tracked) == 7
+
+
 def test_sigterm_stops_after_the_step_with_a_checkpoint(tiny_dataset, tmp_path):
     import signal
     import time
