@@ -66,8 +66,9 @@ def main(argv: list[str] | None = None) -> int:
     out.write_text(json.dumps({"weights": args.weights, "data": args.data, "cut_m": args.cut, "rows": rows},
                               indent=1) + "\n")
     names = list(items)
+    data = " + ".join(args.data)
     lines = [f"Coarse weights {args.weights}, every parameter kept; BatchNorm statistics from training batches of "
-             f"{args.data} (crop {args.crop}, focus {args.focus:g}, cut share {args.cut_share:g}); real inputs cut "
+             f"{data} (crop {args.crop}, focus {args.focus:g}, cut share {args.cut_share:g}); real inputs cut "
              f"{args.cut:g} m above the ground, coarse stage, sample 0.\n",
              "| statistics | " + " | ".join(f"{n}: cells above cut / in obs. empty %" for n in names) + " |",
              "|---|" + "---|" * len(names)]

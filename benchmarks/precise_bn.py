@@ -20,7 +20,8 @@ import torch
 def add_args(p: argparse.ArgumentParser) -> None:
     """The options that say which batches set the statistics (shared with `bn_noise.py`)."""
     p.add_argument("--weights", default="hgca_core/weights/coarse.pt")
-    p.add_argument("--data", required=True, help="dataset folder whose train split gives the inputs")
+    p.add_argument("--data", required=True, nargs="+",
+                   help="dataset folders whose train splits give the inputs (as the run was trained: all of them)")
     p.add_argument("--crop", type=int, default=64, help="training batches: the training crop (cells)")
     p.add_argument("--focus", type=float, default=0.5, help="training batches: share of crops near missed cells")
     p.add_argument("--free-weight", type=float, default=8.0, help="training batches: as the run was trained")
@@ -37,15 +38,16 @@ def precise(args: argparse.Namespace, source: str, amount: int, seed: int) -> tu
     from hgca_core.training.precise_bn import recompute_bn, recompute_bn_training, train_inputs
 
     model, _ = load_coarse(args.weights)
+    data = " + ".join(args.data)
     if source == "training":
         task = CoarseTask(args.data, model.cfg, crop=args.crop, focus_share=args.focus, free_weight=args.free_weight,
                           cut_share=args.cut_share)
         recompute_bn_training(model, task, amount, seed=seed)
-        return model, (f"{amount} training batches of {args.data} (crop {args.crop}, focus {args.focus:g}, cut "
+        return model, (f"{amount} training batches of {data} (crop {args.crop}, focus {args.focus:g}, cut "
                        f"{args.cut_share:g}, seed {seed})")
     inputs = train_inputs(split_files(args.data, "train")[:amount], model.cfg.free_space, args.cut_share, seed)
     passes = recompute_bn(model, inputs, tuple(model.cfg.grid), model.cfg.steps, seed)
-    return model, f"{passes} passes of {len(inputs)} whole train regions of {args.data}"
+    return model, f"{passes} passes of {len(inputs)} whole train regions of {data}"
 
 
 def save(model: torch.nn.Module, weights: str, what: str, out: str) -> str:
