@@ -92,6 +92,28 @@ def test_tilted_plane_is_one_layer_on_the_plane():
     assert boundary_length(m.vertices, m.faces) < 5.0
 
 
+def test_a_shallow_wide_valley_still_gives_one_sheet(monkeypatch):
+    """Where the decoder is unsure its distances bottom out 3-4 cm above zero over a wide valley (generated ground
+    far between scan rings): both ends of the crossing edge exceed half the old d_i + d_j bound. The surface must
+    still be there, once, on the valley's floor; with the plane-only bound (WIDE_SUM = MAX_SUM) it is a hole."""
+    from hgca_core.geometry import udf_surface
+
+    off, floor = 0.537, 0.035
+
+    def valley(q: torch.Tensor) -> torch.Tensor:
+        s = q.double() @ torch.from_numpy(TILT) - off
+        return (s ** 2 + floor ** 2).sqrt().clamp(max=0.1).to(q.dtype)
+
+    cells = band_cells(plane_udf(TILT, off), 0, 12)
+    xy = np.random.default_rng(1).uniform(0.15, 1.0, size=(400, 2))
+    m = udf_mesh(valley, cells, min_area=0.0)
+    assert np.all(vertical_layers(m, xy) == 1)
+    err = np.abs(m.vertices @ TILT - off)   # a non-linear valley moves the linear crossing toward the edge middle
+    assert err.mean() < 0.01 and err.max() < 0.025        # on the floor: within half a grid step
+    monkeypatch.setattr(udf_surface, "WIDE_SUM", udf_surface.MAX_SUM)
+    old = udf_mesh(valley, cells, min_area=0.0)
+    assert len(old.faces) == 0 or np.mean(vertical_layers(old, xy) == 0) > 0.9
+
 def test_concave_and_convex_corners_of_a_kerb_close():
     """Road, kerb face and sidewalk (a 13.7 cm step, extruded in x): the surface follows the step without a slit
     at the concave corner (where the gradients on the two sides of the surface are 90 degrees apart)."""

@@ -11,7 +11,7 @@ Here the zero level itself is extracted, as one sheet:
    the sign of (d+ - d-). No decoder gradients are needed, so this costs no network evaluation.
 2. An axis edge (i, j) crosses the surface where the two gradient directions disagree (cosine < MAX_DOT) and the
    distances are small enough for the surface to lie between them (d_i + d_j <= `max_sum` h; a plane crossing
-   gives h |n_a|). The crossing point interpolates the pseudo-signed values d_i and -d_j (exact for a plane).
+   gives h |n_a|; up to WIDE_SUM h where the directions are clearly opposed, for the decoder's shallow valleys). The crossing point interpolates the pseudo-signed values d_i and -d_j (exact for a plane).
    MeshUDF assigns pseudo-signs per cube and runs marching cubes on each; two cubes sharing a face can then
    disagree about its edges (cracks, which MeshUDF later patches). Deciding per *edge* makes the decision one
    for all the cubes around it.
@@ -43,11 +43,16 @@ from hgca_core.geometry.keys import pack
 # Crossing test thresholds, in grid steps h. A plane crossing an edge has d_i + d_j = h |n_a| <= h; the learned
 # decoder's distances bottom out at ~1.5 mm rather than 0 and its slope is not exactly 1, so allow some slack.
 MAX_SUM = 1.2
-# Only points closer than this (grid steps) can be the end of a crossing edge (d_i < MAX_SUM h, with margin).
-NEAR = 1.5
 # Gradient directions count as opposed below this cosine: 0 would do for a plane, but at a concave corner (road
 # meeting a kerb face or a car's side) the two ends of a crossing edge see different surfaces, 90 degrees apart.
 MAX_DOT = 0.3
+# Where the decoder is unsure (generated ground far between scan rings) its zero valley is shallow and wide: both
+# ends of the edge the surface crosses sit 2-5 cm off it, d_i + d_j > MAX_SUM h, and the surface had a hole there
+# (up to 7 % of a test scene's road rays). An edge whose gradients are clearly opposed (cosine below WIDE_DOT, as
+# across a plane) may therefore span up to WIDE_SUM h. Corner pairs (gradients ~90 degrees apart) keep MAX_SUM:
+# there the wider test accepts pairs across the medial axis outside a convex corner (non-manifold spots).
+WIDE_SUM = 2.0
+WIDE_DOT = -0.7
 
 # Corner offsets (subtracted from an edge's start) of the four cubes around an edge along each axis a, in the
 # order (0, 0), (1, 0), (1, 1), (0, 1) over the axes (a + 1, a + 2): counter-clockwise seen from +a
@@ -139,11 +144,13 @@ def crossing_edges(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_s
     g (G, 3) int grid indices, vals (G,) distances (same unit as h). Returns (start point index into g (E,),
     axis (E,), crossing parameter t in [0, 1] from the start (E,)).
 
-    Only points with d <= max_sum h can end a crossing edge (d_i + d_j <= max_sum h bounds each end).
+    An edge crosses where its ends' gradient directions are opposed (cosine < max_dot) and d_i + d_j <= max_sum h,
+    or clearly opposed (cosine < WIDE_DOT) and d_i + d_j <= WIDE_SUM h (the decoder's wide valleys, see WIDE_SUM).
     """
     index = GridIndex(g) if index is None else index
     lim = np.float32(max_sum * h)
-    near = np.flatnonzero(vals <= lim)
+    wide = np.float32(max(max_sum, WIDE_SUM) * h)
+    near = np.flatnonzero(vals <= wide)
     if len(near) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros(0)
     nb = index.neighbours(g[near])
@@ -159,9 +166,10 @@ def crossing_edges(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_s
         i_n = np.flatnonzero(j >= 0)
         j_n = pos[j[i_n]]
         di, dj = vals[near[i_n]], vals[j[i_n]]
-        ok = (j_n >= 0) & (di + dj <= lim)                 # the distance test first: it is the cheap one
+        ok = (j_n >= 0) & (di + dj <= wide)                # the distance test first: it is the cheap one
         i_n, j_n, di, dj = i_n[ok], j_n[ok], di[ok], dj[ok]
-        cross = (np.einsum("ij,ij->i", unit[i_n], unit[j_n]) < max_dot) & good[i_n] & good[j_n]
+        cos = np.einsum("ij,ij->i", unit[i_n], unit[j_n])
+        cross = ((cos < max_dot) & (di + dj <= lim) | (cos < WIDE_DOT)) & good[i_n] & good[j_n]
         starts.append(near[i_n[cross]])
         axes.append(np.full(int(cross.sum()), a, dtype=np.int8))
         ts.append(di[cross] / np.maximum(di[cross] + dj[cross], 1e-12))
