@@ -11,7 +11,8 @@ Here the zero level itself is extracted, as one sheet:
    the sign of (d+ - d-). No decoder gradients are needed, so this costs no network evaluation.
 2. An axis edge (i, j) crosses the surface where the two gradient directions disagree (cosine < MAX_DOT) and the
    distances are small enough for the surface to lie between them (d_i + d_j <= `max_sum` h; a plane crossing
-   gives h |n_a|; up to WIDE_SUM h where the directions are clearly opposed, for the decoder's shallow valleys). The crossing point interpolates the pseudo-signed values d_i and -d_j (exact for a plane).
+   gives h |n_a|; up to WIDE_SUM h where the directions are clearly opposed, for the decoder's shallow valleys).
+   The crossing point interpolates the pseudo-signed values d_i and -d_j (exact for a plane).
    MeshUDF assigns pseudo-signs per cube and runs marching cubes on each; two cubes sharing a face can then
    disagree about its edges (cracks, which MeshUDF later patches). Deciding per *edge* makes the decision one
    for all the cubes around it.
