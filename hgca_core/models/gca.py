@@ -115,6 +115,14 @@ class GCAKernel(nn.Module):
         return modulate
 
 
+def transition(model: GCAKernel, state: torch.Tensor, s0: torch.Tensor, grid: tuple[int, int, int],
+               bev: BevOutput | None, free: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """One step of the chain: the candidate cells (the neighbourhood of `state`) and their occupancy
+    probabilities, with cfg.bias added to the logits. Shared by sampling and BatchNorm re-estimation."""
+    nbhd = model.neighbourhood(state, grid)
+    return nbhd, torch.sigmoid(model(nbhd, state, s0, grid, bev, free) + model.cfg.bias)
+
+
 @torch.no_grad()
 def sample(model: GCAKernel, s0: torch.Tensor, grid: tuple[int, int, int], steps: int,
            generator: torch.Generator, progress: Callable[[int, int], None] | None = None,
@@ -136,8 +144,7 @@ def sample(model: GCAKernel, s0: torch.Tensor, grid: tuple[int, int, int], steps
         progress(0, steps)
     state = s0
     for t in range(steps):
-        nbhd = model.neighbourhood(state, grid)
-        prob = torch.sigmoid(model(nbhd, state, s0, grid, bev, free) + model.cfg.bias)
+        nbhd, prob = transition(model, state, s0, grid, bev, free)
         if t == steps - 1:
             keep = prob > model.cfg.keep
         else:

@@ -22,7 +22,7 @@ from torch import nn
 
 from hgca_core.geometry import coords as cs
 from hgca_core.models import free as fs
-from hgca_core.models.gca import GCAKernel
+from hgca_core.models.gca import GCAKernel, transition
 
 if TYPE_CHECKING:
     from hgca_core.training.coarse import CoarseTask
@@ -62,8 +62,7 @@ def recompute_bn(model: GCAKernel, inputs: Sequence[tuple[torch.Tensor, torch.Te
             bev = model.bev(s0, 1, grid, free_b)
             state = s0
             for _ in range(steps):
-                nbhd = model.neighbourhood(state, grid)
-                prob = torch.sigmoid(model(nbhd, state, s0, grid, bev, free_b) + model.cfg.bias)
+                nbhd, prob = transition(model, state, s0, grid, bev, free_b)
                 passes += 1
                 state = nbhd[torch.rand(prob.shape, generator=gen) < prob]
                 if len(state) == 0:
