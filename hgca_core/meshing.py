@@ -16,7 +16,7 @@ import trimesh
 from hgca_core.geometry.keys import pack, unpack
 
 if TYPE_CHECKING:
-    from scipy.spatial import cKDTree
+    from hgca_core.geometry.nearest import PointIndex
 
 # ---------------------------------------------------------------------------------------------------------------
 # Unsigned distance -> mesh (the fine stage, paper App. "Other Implementation Details")
@@ -130,7 +130,7 @@ def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.T
              lower_corner: float | np.ndarray | None = None, voxel: float = 0.1, res: float = 0.05,
              chunk: int = 1 << 15, min_area: float = MIN_AREA, pinhole_edges: int = PINHOLE_EDGES,
              points: np.ndarray | None = None, sensors: np.ndarray | None = None, fair: bool = True,
-             timings: dict | None = None, tree: cKDTree | None = None) -> trimesh.Trimesh:
+             timings: dict | None = None, tree: PointIndex | None = None) -> trimesh.Trimesh:
     """One open surface at the zero level of the unsigned distance around occupied 10 cm cells (5 cm grid).
 
     decoder: an autoencoder (anything with `.field(cells, latents)`) or a function of (Q, 3) cell-frame points
@@ -145,9 +145,10 @@ def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.T
       face the nearest sensor, and each connected piece follows its observed faces; pieces nobody saw face
       away from their own centre (outwards from what they enclose), or up. Without points: the latter.
     fair: near-horizontal surfaces are faired between the input points (`hgca_core.geometry.fairing`: the
-      generated ground between scan rings is flattened onto what the rings say); needs `points`.
-    tree: a scipy cKDTree of `points` when the caller has one (`pipeline.complete_local` builds one per
-      completion for the fairing's anchors and the vertices' observed_distance); None: built here if needed.
+      generated ground between scan rings is flattened onto what the rings say, vertices at a point pulled to its
+      height); needs `points`.
+    tree: a `geometry.nearest.PointIndex` of `points` when the caller has one (`pipeline.complete_local` builds
+      one per completion for the fairing's anchors and the vertices' observed_distance); None: built here if needed.
     timings: if given, filled with the wall seconds of each step (decode, extract, clean, fair) and the CPU seconds
       (`*_cpu`, all threads of this process: on a busy machine a fairer measure of the work).
     """
@@ -169,13 +170,12 @@ def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.T
     v, f = mc.clean_surface(v, f, min_area, observed, sensors, pinhole_edges)
     t3, c3 = time.perf_counter(), time.process_time()
     if fair and points is not None and len(points) and len(f):
-        from scipy.spatial import cKDTree
-
         from hgca_core.geometry.fairing import ANCHOR_SCALE, fair_ground
+        from hgca_core.geometry.nearest import PointIndex
 
-        tree = cKDTree(np.asarray(points, dtype=np.float64)) if tree is None else tree
-        near = tree.query(v, distance_upper_bound=3 * ANCHOR_SCALE, workers=torch.get_num_threads())[0]
-        v = fair_ground(v, f, near)[0]
+        tree = PointIndex(points) if tree is None else tree
+        near, which = tree.nearest(v, upper=3 * ANCHOR_SCALE)
+        v = fair_ground(v, f, near, targets=np.where(which >= 0, tree.points[which, 2], np.nan))[0]
     if timings is not None:   # wall seconds, and CPU seconds of this process (all its threads)
         t4, c4 = time.perf_counter(), time.process_time()
         timings.update(decode=t1 - t0, extract=t2 - t1, clean=t3 - t2, fair=t4 - t3,

@@ -19,10 +19,10 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 import torch
 import trimesh
-from scipy.spatial import cKDTree
 
 from hgca_core.errors import HgcaWarning, InputError
 from hgca_core.geometry import coords as cs
+from hgca_core.geometry.nearest import PointIndex
 from hgca_core.geometry.region import Region, default_region
 from hgca_core.geometry.voxel import COARSE, FINE, voxelize
 from hgca_core.geometry.voxel_mesh import voxel_mesh
@@ -247,7 +247,7 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
     # at the region's centre (the box starts 1 m below the ground)
     sensors = (np.asarray(origins, dtype=np.float64).reshape(-1, 3) if origins is not None and len(origins)
                else np.array([[*(np.asarray(region.size[:2]) / 2), 3.0]]))
-    tree = cKDTree(local)     # the input points, for the fairing's anchors and each vertex's observed_distance
+    tree = PointIndex(local)  # the input points, for the fairing's anchors and each vertex's observed_distance
     results = []
     for i in range(samples):
         tag = f"sample {i + 1}/{samples}"
@@ -276,7 +276,7 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
         if len(mesh.faces) == 0:  # inputs too small to complete were refused above: this is the model's doing
             warnings.warn(HgcaWarning(f"{tag} is an empty mesh: the model made no surface from {len(s0)} input "
                                       "cells (untrained or mismatched weights?)"), stacklevel=2)
-        dist = tree.query(mesh.vertices, workers=torch.get_num_threads())[0] if len(mesh.vertices) else np.zeros(0)
+        dist = tree.distances(mesh.vertices)
         results.append(LocalCompletion(mesh=mesh, coarse_cells=cells, fine_cells=cells10, seed=seed + i,
                                        free_cells=None if free_np is None else int(free_np.sum()),
                                        fine_latents=latents10, observed_distance=dist.astype(np.float32)))

@@ -204,12 +204,12 @@ def evaluate_input(item: dict, methods: list[str], cuts: list[float], full_cuts:
 def _render(mesh, region: Region, points_local: np.ndarray, png: Path, marked_local: np.ndarray | None) -> None:
     """Input yellow, observed grey, generated blue (distance to the input), cut-away points red."""
     import trimesh
-    from scipy.spatial import cKDTree
 
+    from hgca_core.geometry.nearest import PointIndex
     from hgca_core.render import render_mesh
 
     local = trimesh.Trimesh(region.to_local(mesh.vertices), mesh.faces, process=False)
-    dist = cKDTree(points_local).query(local.vertices, workers=-1)[0] if len(points_local) else None
+    dist = PointIndex(points_local).distances(local.vertices) if len(points_local) else None
     centre = region.size / 2 * np.array([1.0, 1.0, 0.0]) + np.array([0.0, 0.0, BELOW_GROUND])
     eye = centre + np.array([-22.0, -30.0, 24.0])
     render_mesh(local, png, points=points_local, colour_by=dist, eye=eye, target=centre, marked=marked_local)

@@ -5,15 +5,17 @@ generates between the rings sits on terraces up to ~5-10 cm above or below them 
 know its sub-cell height; benchmarks/results/mesh_quality.md), which is what "scan-ring ripples" are on a road.
 The fairing treats the heights of near-horizontal vertices as a membrane anchored where input points are:
 
-    minimise  sum over edges (i, j) of (z_i - z_j - s . (p_i - p_j))^2  +  sum_i w_i (z_i - z0_i)^2,
+    minimise  sum over edges (i, j) of (z_i - z_j - s . (p_i - p_j))^2  +  sum_i w_i (z_i - t_i)^2,
     w_i = anchor_weight * exp(-(d_i / anchor_scale)^2) + free_weight,
 
 over the heights z_i of "ground-like" vertices only: normals, averaged over `rings` rings of neighbours, within
 `tilt` degrees of vertical, not on a steep part at least `step` tall, in a connected region of at least
 `min_region` (a car roof, a bonnet keep their shape). Every other vertex (facades, kerb sides, car bodies) is
 fixed and bounds the membrane, so kerbs stay while the terraces' few-centimetre risers are smoothed away. d_i is
-the vertex's distance to the nearest input point: near a point the height is kept (the evidence), far from every
-point it follows the evidence around it. Without input (`distances` None) it is a plain low-pass.
+the vertex's distance to the nearest input point and t_i that point's height (`targets`; the vertex's own height
+where no point is near, or without targets): near a point the height goes where the point says (the evidence; the
+decoded surface there is off by a few millimetres: on the AV2 log 7fab 1-6 mm below the points' plane), far from every point it follows
+the evidence around it. Without input (`distances` None) it is a plain low-pass.
 
 s is the local slope (`slopes`: planes per region and 8 m square, fitted mostly to the vertices at input points).
 A membrane on raw heights prefers level ground: where the neighbours lie on one side (the region's edge, holes) it
@@ -26,8 +28,9 @@ Only heights move (the surfaces concerned are within `tilt` of horizontal), so n
 the graph Laplacian plus a positive diagonal: symmetric positive definite, solved by Jacobi-preconditioned CG for
 the height change (relative tolerance 1e-3: 0.4 mm RMS from the converged solution on a default region).
 
-Defaults selected on synth2 val scenes (height error against the ground-truth road plane) and the AV2 log 7fab
-(flatness): benchmarks/results/mesh_quality.md.
+Defaults selected on val scenes by the height error against the ground-truth road plane, with the real scans'
+flatness as a check (anchor weight and targets: benchmarks/results/fairing_sweep.md; the rest in session 8, on
+three synth2 val scenes: the mesh_quality.md of commit 01d23f9).
 """
 from __future__ import annotations
 
@@ -45,7 +48,7 @@ from hgca_core.geometry.planes import fit_planes
 TILT = 30.0            # degrees: surfaces flatter than this are ground-like
 NORMAL_RINGS = 3       # rings of neighbours the normals are averaged over before the tilt test (~15 cm at 5 cm)
 ANCHOR_SCALE = 0.02    # m: an input point holds a vertex within about this distance
-ANCHOR_WEIGHT = 10.0
+ANCHOR_WEIGHT = 10.0    # the val optimum with the anchors pulling to the points (benchmarks/results/fairing_sweep.md)
 FREE_WEIGHT = 3e-4     # keeps vertices far from every point near their own height over ~60 edges (~2 m)
 TILE = 8.0             # m: the squares whose local planes give the slope the membrane keeps (see slopes)
 MAX_MOVE = 0.1         # m: no vertex moves farther than one fine cell (a rim or a lip far from every point)
@@ -142,10 +145,13 @@ def fair_ground(vertices: np.ndarray, faces: np.ndarray, distances: np.ndarray |
                 tilt: float = TILT, rings: int = NORMAL_RINGS, anchor_scale: float = ANCHOR_SCALE,
                 anchor_weight: float = ANCHOR_WEIGHT, free_weight: float = FREE_WEIGHT,
                 min_region: float = MIN_REGION, step: float = STEP, tile: float = TILE, max_move: float = MAX_MOVE,
-                tol: float = 1e-3, max_iter: int = 500) -> tuple[np.ndarray, FairingReport]:
+                tol: float = 1e-3, max_iter: int = 500, targets: np.ndarray | None = None
+                ) -> tuple[np.ndarray, FairingReport]:
     """(vertices with the heights of ground-like vertices faired, report); see the module docstring.
 
     distances: (V,) each vertex's distance to the nearest input point (m), or None for no evidence.
+    targets: (V,) the height of that nearest point (NaN where none is near): where the anchors pull; None: each
+      vertex's own height (the anchors only hold).
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
@@ -175,6 +181,9 @@ def fair_ground(vertices: np.ndarray, faces: np.ndarray, distances: np.ndarray |
     if distances is not None:
         w += anchor_weight * np.exp(-np.square(np.asarray(distances, dtype=np.float64)[g] / anchor_scale))
     r = pull[:, 2] - np.einsum("ij,ij->i", slopes(v[g], label[big], w, tile), pull[:, :2])
+    if targets is not None:
+        t = np.asarray(targets, dtype=np.float64)[g]
+        r += np.where(np.isfinite(t), (w - free_weight) * (t - v[g, 2]), 0.0)
     diag = (deg + w).astype(np.float32)
     system = (diags(diag) - sub[big][:, big]).tocsr()                   # float32: half the memory traffic
     dz, iterations = _cg(system, r.astype(np.float32), 1.0 / diag, tol, max_iter)

@@ -60,6 +60,22 @@ def test_terraces_between_rings_flatten_onto_the_rings():
     assert rep.ground == len(v) and rep.max_move <= 0.1
 
 
+def test_anchors_pull_to_the_points_heights_when_given():
+    """The decoded ground sits 8 mm below the rings' points (as on the AV2 log, where it is 1-6 mm low): with the
+    points' heights as targets the faired road goes to the rings' height, at the rings and between them; without,
+    the anchors hold the decoded height and the road stays low."""
+    rings = (0.5, 1.5, 2.5, 3.5, 4.5)
+    v, f = grid_mesh(100, lambda x, y: 0 * x - 0.008)
+    d = ring_distances(v * [1, 1, 0], rings)
+    targets = np.where(d < 0.06, 0.0, np.nan)               # the nearest point's height (0) where one is near
+    held = fair_ground(v, f, d)[0]
+    pulled = fair_ground(v, f, d, targets=targets)[0]
+    assert np.abs(held[:, 2] + 0.008).max() < 1e-4
+    on_ring, between = d < 0.01, d > 0.3
+    assert np.abs(pulled[on_ring, 2]).max() < 0.002 and np.abs(pulled[between, 2]).max() < 0.003
+    assert np.abs(fair_ground(v, f, d, targets=np.full(len(v), np.nan))[0] - held).max() < 1e-6
+
+
 @pytest.mark.parametrize("slope", [0.0, 0.05, 0.15])
 def test_planes_are_fixed_points_with_or_without_evidence(slope):
     """Also at the border: a membrane on the raw heights would bend a 5 % slope by 10 cm there (away from any

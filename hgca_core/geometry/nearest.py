@@ -1,0 +1,40 @@
+"""Nearest input point of many query points: the one k-d tree of the completion path.
+
+Why not scipy's cKDTree: a mesh's generated vertices lie metres from any input point, and there its queries are
+slow (on a default region, 0.5 M decimated vertices against 0.8 M points: 1.2 s on 2 cores, 1.0 s of it for the
+17 % of vertices farther than 0.5 m). pykdtree (the pytroll project's OpenMP k-d tree) answers the same queries
+exactly in 0.3 s. Its threads follow OMP_NUM_THREADS.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+class PointIndex:
+    """Exact nearest-neighbour queries against a fixed point set (N, 3), in float64."""
+
+    def __init__(self, points: np.ndarray) -> None:
+        from pykdtree.kdtree import KDTree
+
+        self.points = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+        self._tree = KDTree(self.points) if len(self.points) else None
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def nearest(self, queries: np.ndarray, upper: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(distance (Q,) float64, index (Q,) int64) of each query's nearest point; inf and -1 where there is none
+        within `upper` metres (or no point at all)."""
+        q = np.ascontiguousarray(np.asarray(queries, dtype=np.float64).reshape(-1, 3))
+        if self._tree is None or len(q) == 0:
+            return np.full(len(q), np.inf), np.full(len(q), -1, dtype=np.int64)
+        d, i = self._tree.query(q, k=1, distance_upper_bound=upper)
+        i = i.astype(np.int64)
+        none = ~np.isfinite(d) | (i >= len(self.points))
+        i[none] = -1
+        d = np.where(none, np.inf, d)
+        return d, i
+
+    def distances(self, queries: np.ndarray, upper: float | None = None) -> np.ndarray:
+        """(Q,) distance of each query to its nearest point (inf beyond `upper`)."""
+        return self.nearest(queries, upper)[0]
