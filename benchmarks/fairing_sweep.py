@@ -108,7 +108,8 @@ def report(result: dict) -> str:
              f"point's height). Machine: {m.get('cpu')}, {m.get('cores')} cores, {m.get('date', '')}.", "",
              f"Val scenes ({len(val)}, generator 7; selection: lowest mean RMS height error to the ground-truth road "
              "plane per 2 x 2 m patch). Millimetres, means over scenes:", "",
-             "| fairing (anchor weight) | to truth ↓ | mesh flatness | input points' | ground truth's | one layer (%) |",
+             "| fairing (anchor weight) | to truth ↓ | mesh flatness | input points' | ground truth's "
+             "| one layer (%) |",
              "|---|---:|---:|---:|---:|---:|"]
     for c in cols:
         lines.append(f"| {c} | {mean('rms_to_truth', c):.1f} | {mean('rms_mesh', c):.1f} | "

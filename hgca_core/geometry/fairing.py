@@ -13,9 +13,9 @@ over the heights z_i of "ground-like" vertices only: normals, averaged over `rin
 `min_region` (a car roof, a bonnet keep their shape). Every other vertex (facades, kerb sides, car bodies) is
 fixed and bounds the membrane, so kerbs stay while the terraces' few-centimetre risers are smoothed away. d_i is
 the vertex's distance to the nearest input point and t_i that point's height (`targets`; the vertex's own height
-where no point is near, or without targets): near a point the height goes where the point says (the evidence; the
-decoded surface there is off by a few millimetres: on the AV2 log 7fab 1-6 mm below the points' plane), far from every point it follows
-the evidence around it. Without input (`distances` None) it is a plain low-pass.
+where no point is near, or without targets): near a point the height goes where the point says (the evidence;
+the decoded surface there is off by a few millimetres: on the AV2 log 7fab 1-6 mm below the points' plane), far
+from every point it follows the evidence around it. Without input (`distances` None) it is a plain low-pass.
 
 s is the local slope (`slopes`: planes per region and 8 m square, fitted mostly to the vertices at input points).
 A membrane on raw heights prefers level ground: where the neighbours lie on one side (the region's edge, holes) it
