@@ -104,8 +104,9 @@ def report(result: dict) -> str:
         return 1000 * float(np.mean([val[s][col][key] for s in val]))
 
     m = result["machine"]
-    lines = [f"Ground-fairing anchor weight (shipped: {result['shipped']:g}, anchors pulling to the nearest input "
-             f"point's height). Machine: {m.get('cpu')}, {m.get('cores')} cores, {m.get('date', '')}.", "",
+    lines = [f"Ground-fairing anchor weight (shipped: {result['shipped']:g}, anchors holding each vertex at its own "
+             "height; the numbered rows pull it to the nearest input point's height instead). "
+             f"Machine: {m.get('cpu')}, {m.get('cores')} cores, {m.get('date', '')}.", "",
              f"Val scenes ({len(val)}, generator 7; selection: lowest mean RMS height error to the ground-truth road "
              "plane per 2 x 2 m patch). Millimetres, means over scenes:", "",
              "| fairing (anchor weight) | to truth ↓ | mesh flatness | input points' | ground truth's "

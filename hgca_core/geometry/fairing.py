@@ -12,10 +12,12 @@ over the heights z_i of "ground-like" vertices only: normals, averaged over `rin
 `tilt` degrees of vertical, not on a steep part at least `step` tall, in a connected region of at least
 `min_region` (a car roof, a bonnet keep their shape). Every other vertex (facades, kerb sides, car bodies) is
 fixed and bounds the membrane, so kerbs stay while the terraces' few-centimetre risers are smoothed away. d_i is
-the vertex's distance to the nearest input point and t_i that point's height (`targets`; the vertex's own height
-where no point is near, or without targets): near a point the height goes where the point says (the evidence;
-the decoded surface there is off by a few millimetres: on the AV2 log 7fab 1-6 mm below the points' plane), far
-from every point it follows the evidence around it. Without input (`distances` None) it is a plain low-pass.
+the vertex's distance to the nearest input point and t_i its own height (the anchors hold: near a point the height
+is kept, the evidence; far from every point it follows the evidence around it). `targets` can set t_i to the
+nearest point's height instead: on 10 val scenes that puts the road 20.9 mm (RMS) from the true plane instead of
+23.4, but the close-up shows every scan ring drawn as a stripe on the road (benchmarks/results/fairing_sweep.md; the
+likely cause, not isolated: each vertex at a ring pulled to one noisy point), so the product keeps its own heights.
+Without input (`distances` None) it is a plain low-pass.
 
 s is the local slope (`slopes`: planes per region and 8 m square, fitted mostly to the vertices at input points).
 A membrane on raw heights prefers level ground: where the neighbours lie on one side (the region's edge, holes) it
@@ -28,9 +30,9 @@ Only heights move (the surfaces concerned are within `tilt` of horizontal), so n
 the graph Laplacian plus a positive diagonal: symmetric positive definite, solved by Jacobi-preconditioned CG for
 the height change (relative tolerance 1e-3: 0.4 mm RMS from the converged solution on a default region).
 
-Defaults selected on val scenes by the height error against the ground-truth road plane, with the real scans'
-flatness as a check (anchor weight and targets: benchmarks/results/fairing_sweep.md; the rest in session 8, on
-three synth2 val scenes: the mesh_quality.md of commit 01d23f9).
+Defaults selected in session 8 on three synth2 val scenes by the height error against the ground-truth road plane,
+with the AV2 log 7fab's flatness as a check (the mesh_quality.md of commit 01d23f9); the anchor weight with both
+kinds of targets re-measured on 10 generator-7 val scenes in benchmarks/results/fairing_sweep.md.
 """
 from __future__ import annotations
 
@@ -48,7 +50,7 @@ from hgca_core.geometry.planes import fit_planes
 TILT = 30.0            # degrees: surfaces flatter than this are ground-like
 NORMAL_RINGS = 3       # rings of neighbours the normals are averaged over before the tilt test (~15 cm at 5 cm)
 ANCHOR_SCALE = 0.02    # m: an input point holds a vertex within about this distance
-ANCHOR_WEIGHT = 10.0    # the val optimum with the anchors pulling to the points (benchmarks/results/fairing_sweep.md)
+ANCHOR_WEIGHT = 10.0
 FREE_WEIGHT = 3e-4     # keeps vertices far from every point near their own height over ~60 edges (~2 m)
 TILE = 8.0             # m: the squares whose local planes give the slope the membrane keeps (see slopes)
 MAX_MOVE = 0.1         # m: no vertex moves farther than one fine cell (a rim or a lip far from every point)
