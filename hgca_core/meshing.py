@@ -145,7 +145,8 @@ def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.T
       face the nearest sensor, and each connected piece follows its observed faces; pieces nobody saw face
       away from their own centre (outwards from what they enclose), or up. Without points: the latter.
     fair: near-horizontal surfaces are faired between the input points (`hgca_core.geometry.fairing`: the
-      generated ground between scan rings is flattened onto what the rings say); needs `points`.
+      generated ground between scan rings is flattened onto what the rings say, and the decoder's local bias at
+      the rings taken out); needs `points`.
     tree: a `geometry.nearest.PointIndex` of `points` when the caller has one (`pipeline.complete_local` builds
       one per completion for the fairing's anchors and the vertices' observed_distance); None: built here if needed.
     timings: if given, filled with the wall seconds of each step (decode, extract, clean, fair) and the CPU seconds
@@ -173,7 +174,8 @@ def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.T
         from hgca_core.geometry.nearest import PointIndex
 
         tree = PointIndex(points) if tree is None else tree
-        v = fair_ground(v, f, tree.distances(v, upper=3 * ANCHOR_SCALE))[0]
+        near, which = tree.nearest(v, upper=3 * ANCHOR_SCALE)
+        v = fair_ground(v, f, near, point_heights=np.where(which >= 0, tree.points[which, 2], np.nan))[0]
     if timings is not None:   # wall seconds, and CPU seconds of this process (all its threads)
         t4, c4 = time.perf_counter(), time.process_time()
         timings.update(decode=t1 - t0, extract=t2 - t1, clean=t3 - t2, fair=t4 - t3,

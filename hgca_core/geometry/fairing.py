@@ -12,12 +12,14 @@ over the heights z_i of "ground-like" vertices only: normals, averaged over `rin
 `tilt` degrees of vertical, not on a steep part at least `step` tall, in a connected region of at least
 `min_region` (a car roof, a bonnet keep their shape). Every other vertex (facades, kerb sides, car bodies) is
 fixed and bounds the membrane, so kerbs stay while the terraces' few-centimetre risers are smoothed away. d_i is
-the vertex's distance to the nearest input point and t_i its own height (the anchors hold: near a point the height
-is kept, the evidence; far from every point it follows the evidence around it). `targets` can set t_i to the
-nearest point's height instead: on 10 val scenes that puts the road 20.9 mm (RMS) from the true plane instead of
-23.4, but the close-up shows every scan ring drawn as a stripe on the road (benchmarks/results/fairing_sweep.md; the
-likely cause, not isolated: each vertex at a ring pulled to one noisy point), so the product keeps its own heights.
-Without input (`distances` None) it is a plain low-pass.
+the vertex's distance to the nearest input point. t_i is where the anchor pulls: the vertex's own height plus the
+local bias of the decoded ground, the anchor-weighted mean of (nearest point's height - vertex height) over
+`offset_tile` squares, blended bilinearly (`point_heights`; without them t_i is the vertex's own height). The decoded
+surface at the rings is off by a few millimetres (on the AV2 log 7fab 1-6 mm below the points' plane), and holding
+it there carried that error between the rings; pulling each vertex to its own nearest point instead fixes the bias
+but draws every ring as a stripe (its one noisy point per vertex), so the pull is the local mean. On 10 val scenes
+the road then lies closer to the true plane (benchmarks/results/fairing_sweep.md). Far from every point a vertex
+follows the evidence around it. Without input (`distances` None) it is a plain low-pass.
 
 s is the local slope (`slopes`: planes per region and 8 m square, fitted mostly to the vertices at input points).
 A membrane on raw heights prefers level ground: where the neighbours lie on one side (the region's edge, holes) it
@@ -56,6 +58,7 @@ TILE = 8.0             # m: the squares whose local planes give the slope the me
 MAX_MOVE = 0.1         # m: no vertex moves farther than one fine cell (a rim or a lip far from every point)
 STEP = 0.08            # m: steep parts at least this tall (kerbs, walls, car sides) bound the membrane
 STEEP = 45.0           # degrees: faces steeper than this make up steps
+OFFSET_TILE = 0.5      # m: squares over which the anchors' offset to the points is averaged (0.25 m: stripes)
 MIN_REGION = 8.0       # m^2: connected ground-like regions smaller than this (a car roof, a bonnet) keep their shape
 
 
@@ -143,17 +146,47 @@ def slopes(vertices: np.ndarray, label: np.ndarray, weight: np.ndarray, tile: fl
     return np.where(den[:, None] > 0, num / np.maximum(den, 1e-300)[:, None], 0.0)    # none trusted: level
 
 
+def local_offsets(p: np.ndarray, offset: np.ndarray, weight: np.ndarray, tile: float) -> np.ndarray:
+    """(N,) the `weight`-ed mean of the finite `offset`s over `tile` squares, splatted to and gathered from the
+    square centres bilinearly (so it varies smoothly); NaN where the offset itself is not finite (no point near)."""
+    if len(p) == 0:
+        return np.zeros(0)
+    ok = np.isfinite(offset)
+    u = p[:, :2] / tile - 0.5
+    base = np.floor(u).astype(np.int64)
+    frac = u - base
+    lo = base.min(0)
+    ny = int(base[:, 1].max() - lo[1]) + 2
+    n = (int(base[:, 0].max() - lo[0]) + 2) * ny
+    key = (base[:, 0] - lo[0]) * ny + (base[:, 1] - lo[1])
+    corners = [(dx * ny + dy, np.abs(1 - dx - frac[:, 0]) * np.abs(1 - dy - frac[:, 1]))
+               for dx in (0, 1) for dy in (0, 1)]
+    wo = np.where(ok, weight, 0.0)
+    num, den = np.zeros(n), np.zeros(n)
+    for shift, b in corners:
+        num += np.bincount(key + shift, weights=b * wo * np.where(ok, offset, 0.0), minlength=n)
+        den += np.bincount(key + shift, weights=b * wo, minlength=n)
+    has = den > 1e-3                       # squares with at least a vertex at a point's worth of evidence
+    mean = np.where(has, num / np.maximum(den, 1e-12), 0.0)
+    out, norm = np.zeros(len(p)), np.zeros(len(p))
+    for shift, b in corners:
+        k = key + shift
+        out += np.where(has[k], b * mean[k], 0.0)
+        norm += np.where(has[k], b, 0.0)
+    return np.where(ok & (norm > 0), out / np.maximum(norm, 1e-12), np.nan)
+
+
 def fair_ground(vertices: np.ndarray, faces: np.ndarray, distances: np.ndarray | None = None,
                 tilt: float = TILT, rings: int = NORMAL_RINGS, anchor_scale: float = ANCHOR_SCALE,
                 anchor_weight: float = ANCHOR_WEIGHT, free_weight: float = FREE_WEIGHT,
                 min_region: float = MIN_REGION, step: float = STEP, tile: float = TILE, max_move: float = MAX_MOVE,
-                tol: float = 1e-3, max_iter: int = 500, targets: np.ndarray | None = None
-                ) -> tuple[np.ndarray, FairingReport]:
+                tol: float = 1e-3, max_iter: int = 500, point_heights: np.ndarray | None = None,
+                offset_tile: float = OFFSET_TILE) -> tuple[np.ndarray, FairingReport]:
     """(vertices with the heights of ground-like vertices faired, report); see the module docstring.
 
     distances: (V,) each vertex's distance to the nearest input point (m), or None for no evidence.
-    targets: (V,) the height of that nearest point (NaN where none is near): where the anchors pull; None: each
-      vertex's own height (the anchors only hold).
+    point_heights: (V,) the height of that nearest point (NaN where none is near): the anchors pull by the local
+      mean offset to them over `offset_tile` squares (0: to each vertex's own point); None: the anchors hold.
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
@@ -183,8 +216,10 @@ def fair_ground(vertices: np.ndarray, faces: np.ndarray, distances: np.ndarray |
     if distances is not None:
         w += anchor_weight * np.exp(-np.square(np.asarray(distances, dtype=np.float64)[g] / anchor_scale))
     r = pull[:, 2] - np.einsum("ij,ij->i", slopes(v[g], label[big], w, tile), pull[:, :2])
-    if targets is not None:
-        t = np.asarray(targets, dtype=np.float64)[g]
+    if point_heights is not None:
+        t = np.asarray(point_heights, dtype=np.float64)[g]
+        if offset_tile > 0:
+            t = v[g, 2] + local_offsets(v[g], t - v[g, 2], w - free_weight, offset_tile)
         r += np.where(np.isfinite(t), (w - free_weight) * (t - v[g, 2]), 0.0)
     diag = (deg + w).astype(np.float32)
     system = (diags(diag) - sub[big][:, big]).tocsr()                   # float32: half the memory traffic
