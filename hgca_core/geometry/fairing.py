@@ -212,15 +212,15 @@ def fair_ground(vertices: np.ndarray, faces: np.ndarray, distances: np.ndarray |
     # imbalance left", whatever the heights' magnitude.
     deg = np.diff(adj.indptr).astype(np.float64)[g]
     pull = (adj @ v)[g] - deg[:, None] * v[g]                          # sum_j (p_j - p_i), x y z
-    w = np.full(n, free_weight)
-    if distances is not None:
-        w += anchor_weight * np.exp(-np.square(np.asarray(distances, dtype=np.float64)[g] / anchor_scale))
+    anchor = (anchor_weight * np.exp(-np.square(np.asarray(distances, dtype=np.float64)[g] / anchor_scale))
+              if distances is not None else np.zeros(n))
+    w = free_weight + anchor
     r = pull[:, 2] - np.einsum("ij,ij->i", slopes(v[g], label[big], w, tile), pull[:, :2])
-    if point_heights is not None:
-        t = np.asarray(point_heights, dtype=np.float64)[g]
+    if point_heights is not None:          # the anchors pull by t_i - z_i instead of holding (module docstring)
+        offset = np.asarray(point_heights, dtype=np.float64)[g] - v[g, 2]
         if offset_tile > 0:
-            t = v[g, 2] + local_offsets(v[g], t - v[g, 2], w - free_weight, offset_tile)
-        r += np.where(np.isfinite(t), (w - free_weight) * (t - v[g, 2]), 0.0)
+            offset = local_offsets(v[g], offset, anchor, offset_tile)
+        r += np.where(np.isfinite(offset), anchor * offset, 0.0)
     diag = (deg + w).astype(np.float32)
     system = (diags(diag) - sub[big][:, big]).tocsr()                   # float32: half the memory traffic
     dz, iterations = _cg(system, r.astype(np.float32), 1.0 / diag, tol, max_iter)

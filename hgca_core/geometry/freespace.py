@@ -35,9 +35,9 @@ def ray_origins(origins: np.ndarray | None, attributes: dict[str, np.ndarray], p
         return np.zeros(n, dtype=np.int64)
     if "scan_index" in attributes and int(attributes["scan_index"].max()) + 1 == len(origins):
         return attributes["scan_index"].astype(np.int64)
-    from scipy.spatial import cKDTree
+    from hgca_core.geometry.nearest import PointIndex
 
-    return cKDTree(origins).query(points, workers=-1)[1].astype(np.int64)
+    return PointIndex(origins).nearest(points)[1]
 
 
 def _clip(o: np.ndarray, e: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
