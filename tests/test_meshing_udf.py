@@ -171,6 +171,30 @@ def test_ground_between_rings_is_faired_onto_the_rings():
     assert np.array_equal(faired.faces, plain.faces)                   # only heights move
 
 
+def test_threads_do_not_change_the_mesh(monkeypatch):
+    """The numpy steps split their points, edges and faces into slices run in threads (geometry.parallel); with
+    slices of 64 elements even these small meshes are cut many times, and every cut must leave the mesh as the
+    one-thread run makes it (extraction, cleanup with seeds and pinholes, fairing)."""
+    from hgca_core.geometry import parallel
+
+    monkeypatch.setattr(parallel, "MIN_SLICE", 64)
+    cells = band_cells(sphere_udf)
+    pts = CENTRE + RADIUS * np.array([[1.0, 0, 0], [0.98, 0.2, 0], [0.98, 0, 0.2]])
+    kw = {"points": pts, "sensors": np.array([CENTRE + [3.0, 0, 0]]), "fair": False}
+    plane = plane_udf(TILT, 0.537)
+    flat = band_cells(plane, 0, 12)
+    g, _ = udf_grid(plane, flat)
+    on = g * 0.05
+    ground = on[np.abs(on @ TILT - 0.537) < 0.01][::7]
+    for field, c, extra in ((sphere_udf, cells, kw), (sphere_udf, cells, {}),
+                            (plane, flat, {"points": ground, "sensors": np.array([[0.6, 0.6, 3.0]])})):
+        one = udf_mesh(field, c, workers=1, **extra)
+        assert len(parallel.slices(len(one.faces), 5)) == 5
+        many = udf_mesh(field, c, workers=5, **extra)
+        np.testing.assert_array_equal(one.faces, many.faces)
+        np.testing.assert_array_equal(one.vertices, many.vertices)
+
+
 def test_chunk_size_does_not_change_the_mesh():
     cells = band_cells(sphere_udf)
     a = udf_mesh(sphere_udf, cells)

@@ -47,6 +47,7 @@ from scipy.sparse.linalg import cg
 
 from hgca_core.geometry.keys import pack
 from hgca_core.geometry.mesh_clean import adjacency, face_normals, vertex_sums
+from hgca_core.geometry.parallel import run_all
 from hgca_core.geometry.planes import fit_planes
 
 TILT = 30.0            # degrees: surfaces flatter than this are ground-like
@@ -181,12 +182,13 @@ def fair_ground(vertices: np.ndarray, faces: np.ndarray, distances: np.ndarray |
                 anchor_weight: float = ANCHOR_WEIGHT, free_weight: float = FREE_WEIGHT,
                 min_region: float = MIN_REGION, step: float = STEP, tile: float = TILE, max_move: float = MAX_MOVE,
                 tol: float = 1e-3, max_iter: int = 500, point_heights: np.ndarray | None = None,
-                offset_tile: float = OFFSET_TILE) -> tuple[np.ndarray, FairingReport]:
+                offset_tile: float = OFFSET_TILE, workers: int = 1) -> tuple[np.ndarray, FairingReport]:
     """(vertices with the heights of ground-like vertices faired, report); see the module docstring.
 
     distances: (V,) each vertex's distance to the nearest input point (m), or None for no evidence.
     point_heights: (V,) the height of that nearest point (NaN where none is near): the anchors pull by the local
       mean offset to them over `offset_tile` squares (0: to each vertex's own point); None: the anchors hold.
+    workers: threads (the adjacency is built while the normals are summed).
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
@@ -195,9 +197,11 @@ def fair_ground(vertices: np.ndarray, faces: np.ndarray, distances: np.ndarray |
         return out, FairingReport(0, 0.0, 0.0, 0)
     if free_weight <= 0:
         raise ValueError(f"free_weight must be positive (it keeps the system definite), got {free_weight}")
-    adj = adjacency(f, len(v))
-    fn, area = face_normals(v.astype(np.float32), f)
-    sums = vertex_sums(f, len(v), np.c_[fn * area[:, None], area / 3])    # area-weighted normals, vertex areas
+    def normals() -> tuple[np.ndarray, np.ndarray]:
+        fn, area = face_normals(v.astype(np.float32), f, workers)
+        return fn, vertex_sums(f, len(v), np.c_[fn * area[:, None], area / 3])  # area-weighted normals, areas
+
+    adj, (fn, sums) = run_all(lambda: adjacency(f, len(v)), normals, workers=workers)
     g = ground_like(sums[:, :3], adj, tilt, rings) & ~tall_steps(fn, f, v[:, 2], adj, step=step)
     idx = np.flatnonzero(g)
     n_regions, label, sub = _components(adj, idx)                       # connected ground regions

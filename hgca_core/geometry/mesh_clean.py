@@ -10,20 +10,31 @@ import numpy as np
 from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
+from hgca_core.geometry.parallel import map_slices, run_all
 
-def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(unit normals (F, 3), areas (F,)) by the right-hand rule."""
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray, workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """(unit normals (F, 3), areas (F,)) by the right-hand rule, in the vertices' float type; slices of the faces
+    in `workers` threads."""
     if len(faces) == 0:
         return np.zeros((0, 3)), np.zeros(0)
-    a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
-    e1, e2 = b - a, c - a
-    n = np.empty_like(e1)       # the cross product by components: np.cross is several times slower
-    n[:, 0] = e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1]
-    n[:, 1] = e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2]
-    n[:, 2] = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    area2 = np.sqrt(np.einsum("ij,ij->i", n, n))
-    n /= np.maximum(area2, np.finfo(n.dtype).tiny)[:, None]
-    return n, 0.5 * area2
+    n = np.empty((len(faces), 3), dtype=np.result_type(vertices.dtype, np.float32))
+    area = np.empty(len(faces), dtype=n.dtype)
+
+    def part(lo: int, hi: int) -> None:
+        f = faces[lo:hi]
+        a = vertices[f[:, 0]]
+        e1, e2 = vertices[f[:, 1]] - a, vertices[f[:, 2]] - a
+        m = n[lo:hi]            # the cross product by components: np.cross is several times slower
+        m[:, 0] = e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1]
+        m[:, 1] = e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2]
+        m[:, 2] = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+        area2 = np.sqrt(np.einsum("ij,ij->i", m, m))
+        m /= np.maximum(area2, np.finfo(n.dtype).tiny)[:, None]
+        area[lo:hi] = 0.5 * area2
+
+    map_slices(part, len(faces), workers)
+    return n, area
 
 
 def vertex_sums(faces: np.ndarray, n_vertices: int, values: np.ndarray) -> np.ndarray:
@@ -47,7 +58,7 @@ def edge_faces(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarr
     a = faces.reshape(-1)
     b = faces[:, [1, 2, 0]].reshape(-1)
     key = np.minimum(a, b).astype(np.int64) * n_vertices + np.maximum(a, b)
-    order = np.argsort(key)
+    order = np.argsort(key, kind="stable")     # faces come in runs of near vertex ids: ~1.7x faster than quicksort
     ks = key[order]
     start = np.r_[True, ks[1:] != ks[:-1]]
     group = np.cumsum(start) - 1
@@ -87,7 +98,8 @@ def _manifold_pairs(faces: np.ndarray, n_vertices: int, edges: tuple | None = No
 
 def orient(vertices: np.ndarray, faces: np.ndarray, prior: np.ndarray | None = None,
            seed: np.ndarray | None = None, normals: np.ndarray | None = None, edges: tuple | None = None,
-           pieces: tuple[int, np.ndarray] | None = None, pairs: tuple | None = None) -> np.ndarray:
+           pieces: tuple[int, np.ndarray] | None = None, pairs: tuple | None = None,
+           graph: csr_matrix | None = None, workers: int = 1) -> np.ndarray:
     """Faces turned so that their normals follow `prior` where it is trusted (`seed`) and are consistent with their
     neighbours elsewhere.
 
@@ -96,8 +108,8 @@ def orient(vertices: np.ndarray, faces: np.ndarray, prior: np.ndarray | None = N
     from all seeds at once, gives every face the winding of the seed nearest to it (in steps); flips are
     accumulated by pointer doubling (O(F log depth), no Python loop over faces). A connected piece without seeds
     gets a consistent winding, turned as a whole to agree with `prior` (face-count weighted).
-    normals / edges / pieces / pairs: `face_normals(...)[0]`, `edge_faces(...)`, `face_pieces(...)` and the
-    manifold face pairs (fa, fb) of these faces, if already known.
+    normals / edges / pieces / pairs / graph: `face_normals(...)[0]`, `edge_faces(...)`, `face_pieces(...)`, the
+    manifold face pairs (fa, fb) of these faces and their `face_graph`, if already known.
     """
     faces = np.asarray(faces, dtype=np.int64)
     nf = len(faces)
@@ -105,33 +117,40 @@ def orient(vertices: np.ndarray, faces: np.ndarray, prior: np.ndarray | None = N
         return faces
     prior = np.zeros((nf, 3)) if prior is None else np.asarray(prior, dtype=np.float64)
     seed = np.zeros(nf, dtype=bool) if seed is None else np.asarray(seed, dtype=bool)
-    fa, fb = _manifold_pairs(faces, len(vertices), edges)[:2] if pairs is None else pairs
-    n = face_normals(vertices, faces)[0] if normals is None else normals
-    agree = np.einsum("ij,ij->i", n, prior) >= 0
-    n_comp, label = face_pieces(nf, fa, fb) if pieces is None else pieces
+    if graph is None:
+        fa, fb = _manifold_pairs(faces, len(vertices), edges)[:2] if pairs is None else pairs
+        graph = face_graph(nf, fa, fb)
+    n = face_normals(vertices, faces, workers)[0] if normals is None else normals
+    dot = np.concatenate(map_slices(lambda lo, hi: np.einsum("ij,ij->i", n[lo:hi], prior[lo:hi]), nf, workers))
+    n_comp, label = face_pieces(nf, graph=graph) if pieces is None else pieces
     # roots: every seed, and the first face of each piece without one (it keeps its winding)
     has_seed = np.bincount(label, weights=seed, minlength=n_comp) > 0
     first = np.empty(n_comp, dtype=np.int64)
     first[label[::-1]] = np.arange(nf - 1, -1, -1)
-    roots = np.r_[np.flatnonzero(seed), first[~has_seed]]
-    # one breadth-first forest from a virtual root (index nf) joined to the roots
-    graph = coo_matrix((np.ones(len(fa) + len(roots), dtype=np.int8),
-                        (np.r_[fa, np.full(len(roots), nf)], np.r_[fb, roots])), shape=(nf + 1, nf + 1)).tocsr()
-    _, pred = breadth_first_order(graph, nf, directed=False, return_predecessors=True)
+    roots = np.r_[np.flatnonzero(seed), first[~has_seed]].astype(graph.indices.dtype)
+    # one breadth-first forest from a virtual root (index nf): the graph with one more row, listing the roots
+    rooted = csr_matrix((np.r_[graph.data, np.ones(len(roots), dtype=graph.data.dtype)],
+                         np.r_[graph.indices, roots], np.r_[graph.indptr, graph.indptr[-1] + len(roots)]),
+                        shape=(nf + 1, nf + 1))
+    _, pred = breadth_first_order(rooted, nf, directed=True, return_predecessors=True)
     pred = pred[:nf].astype(np.int64)
     # flip relative to the parent (index nf: the virtual root, flip 0): a seed turns to its prior, any other
     # face to its parent's winding (it must flip when both run their shared edge the same way)
     flip = np.zeros(nf + 1, dtype=np.int8)
     up = np.full(nf + 1, nf, dtype=np.int64)
     at_root = pred == nf
-    flip[:nf][at_root] = seed[at_root] & ~agree[at_root]
+    flip[:nf][at_root] = seed[at_root] & (dot[at_root] < 0)
     child = np.flatnonzero((pred >= 0) & (pred < nf))
-    fc, fp = faces[child], faces[pred[child]]
-    same = np.zeros(len(child), dtype=bool)
-    for i in range(3):
-        for j in range(3):
-            same |= (fc[:, i] == fp[:, j]) & (fc[:, (i + 1) % 3] == fp[:, (j + 1) % 3])
-    flip[child] = same
+
+    def same_way(lo: int, hi: int) -> np.ndarray:
+        fc, fp = faces[child[lo:hi]], faces[pred[child[lo:hi]]]
+        same = np.zeros(len(fc), dtype=bool)
+        for i in range(3):
+            for j in range(3):
+                same |= (fc[:, i] == fp[:, j]) & (fc[:, (i + 1) % 3] == fp[:, (j + 1) % 3])
+        return same
+
+    flip[child] = np.concatenate(map_slices(same_way, len(child), workers))
     up[child] = pred[child]
     active = child
     while len(active):  # pointer doubling: flip = xor of the relative flips from a face up to (excluding) `up`
@@ -141,18 +160,26 @@ def orient(vertices: np.ndarray, faces: np.ndarray, prior: np.ndarray | None = N
     flip = flip[:nf]
     # pieces without seeds: turn as a whole to the area-weighted prior
     if not has_seed.all():
-        sgn = np.where(flip == 1, -1.0, 1.0)
-        vote = np.bincount(label, weights=sgn * np.einsum("ij,ij->i", n, prior), minlength=n_comp)
+        vote = np.bincount(label, weights=np.where(flip == 1, -dot, dot), minlength=n_comp)
         flip ^= (~has_seed & (vote < 0))[label].astype(np.int8)
     out = faces.copy()
     out[flip == 1] = out[flip == 1][:, ::-1]
     return out
 
 
-def face_pieces(n_faces: int, fa: np.ndarray, fb: np.ndarray) -> tuple[int, np.ndarray]:
-    """(count, label per face) of the pieces connected through manifold edges (face pairs fa, fb)."""
-    return connected_components(coo_matrix((np.ones(len(fa), dtype=np.int8), (fa, fb)), shape=(n_faces, n_faces)),
-                                directed=False)
+def face_graph(n_faces: int, fa: np.ndarray, fb: np.ndarray) -> csr_matrix:
+    """(F, F) symmetric 0/1 matrix of face adjacency from face pairs (both directions stored, so traversals need
+    no transpose)."""
+    return csr_matrix((np.ones(2 * len(fa), dtype=np.int8), (np.r_[fa, fb], np.r_[fb, fa])),
+                      shape=(n_faces, n_faces))
+
+
+def face_pieces(n_faces: int, fa: np.ndarray | None = None, fb: np.ndarray | None = None,
+                graph: csr_matrix | None = None) -> tuple[int, np.ndarray]:
+    """(count, label per face) of the pieces connected through manifold edges (face pairs fa, fb, or their
+    `face_graph`)."""
+    graph = face_graph(n_faces, fa, fb) if graph is None else graph
+    return connected_components(graph, directed=False)
 
 
 def adjacency(faces: np.ndarray, n_vertices: int) -> csr_matrix:
@@ -242,7 +269,7 @@ def reversed_edges(edges: tuple, flipped: np.ndarray) -> tuple:
 
 def clean_surface(vertices: np.ndarray, faces: np.ndarray, min_area: float = 0.0,
                   observed: np.ndarray | None = None, sensors: np.ndarray | None = None,
-                  pinhole_edges: int = 12) -> tuple[np.ndarray, np.ndarray]:
+                  pinhole_edges: int = 12, workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Fragments (and faces of zero area) -> orientation -> pinholes, sharing normals, components and edges
     between the steps.
 
@@ -251,71 +278,93 @@ def clean_surface(vertices: np.ndarray, faces: np.ndarray, min_area: float = 0.0
     vertices observed, not seen edge-on (|cos| > 0.1), is a seed of `orient` and faces its nearest sensor; pieces
     without seeds face away from their own centre (outwards from what they enclose), ties broken upwards.
     pinhole_edges: boundary loops of at most this many edges are closed (< 3: none).
+    workers: threads for the per-face steps (the seeds are found while the pieces are labelled).
+
+    Everything runs on all faces and the fragments go at the end, in one compaction. A face of zero area joins
+    the face graph as a leaf (through one neighbour of non-zero area), so it never bridges two pieces (a speck
+    hanging on a large piece by a collapsed face is still a speck); it goes, and the pinhole step closes the
+    hole it leaves, consistently wound.
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     if len(f) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
-    edges = edge_faces(f, len(v))
-    fa, fb, _ = _manifold_pairs(f, len(v), edges)
     v32 = v.astype(np.float32)                                 # normals and centres: float32 is plenty, and faster
-    fn, area = face_normals(v32, f)
-    # pieces joined through faces of non-zero area only: then the faces kept are whole pieces, whose labels
-    # survive the compaction below (no second connected-components pass)
-    flat = area > 0
-    joined = flat[fa] & flat[fb]
-    n_comp, label = face_pieces(len(f), fa[joined], fb[joined])
-    keep = (np.bincount(label, weights=area, minlength=n_comp)[label] >= min_area) & flat
-    if not keep.all():                                        # drop the specks, carrying every structure along
-        v, f, used = compact(v, f, keep)
-        v32 = v32[used]
-        new_id = np.cumsum(keep) - 1
-        order, ks, _ = edges
-        he = keep[order // 3]
-        order, ks = new_id[order[he] // 3] * 3 + order[he] % 3, ks[he]
-        start = np.r_[True, ks[1:] != ks[:-1]]
-        group = np.cumsum(start) - 1
-        edges = (order, ks, np.bincount(group)[group])
-        pair = keep[fa] & keep[fb]
-        fa, fb = new_id[fa[pair]], new_id[fb[pair]]
-        fn = fn[keep]
-        kept = np.zeros(n_comp, dtype=bool)
-        kept[label[keep]] = True
-        n_comp, label = int(kept.sum()), (np.cumsum(kept) - 1)[label[keep]]
-    else:
-        used = np.arange(len(v))
+    edges, (fn, area) = run_all(lambda: edge_faces(f, len(v)), lambda: face_normals(v32, f, workers),
+                                workers=workers)
+    fa, fb, _ = _manifold_pairs(f, len(v), edges)
+    flat_a, flat_b = area[fa] > 0, area[fb] > 0
+    leaf = flat_a ^ flat_b                                     # a zero-area face and a neighbour with area
+    z = np.where(flat_a, fb, fa)[leaf]
+    _, once = np.unique(z, return_index=True)                  # one neighbour per zero-area face
+    joined = np.flatnonzero(flat_a & flat_b)
+    joined = np.r_[joined, np.flatnonzero(leaf)[once]]
+    fa, fb = fa[joined], fb[joined]
+
     def centre(sel: np.ndarray) -> np.ndarray:
         return (v32[f[sel, 0]] + v32[f[sel, 1]] + v32[f[sel, 2]]) / np.float32(3.0)
 
     def unit(x: np.ndarray) -> np.ndarray:
         return x / np.maximum(np.sqrt(np.einsum("ij,ij->i", x, x)), 1e-9)[:, None]
 
-    prior = np.zeros((len(f), 3), dtype=np.float32)
-    seed = np.zeros(len(f), dtype=bool)
-    if observed is not None and sensors is not None and len(sensors):
-        seen = np.flatnonzero(np.asarray(observed)[used][f].all(1))
+    def seeds() -> tuple[np.ndarray, np.ndarray]:
+        """(prior (F, 3), seed (F,)): observed faces look at their nearest sensor."""
+        prior = np.zeros((len(f), 3), dtype=np.float32)
+        seed = np.zeros(len(f), dtype=bool)
+        if observed is None or sensors is None or not len(sensors):
+            return prior, seed
+        obs = np.asarray(observed, dtype=bool)
         s = np.asarray(sensors, dtype=np.float32).reshape(-1, 3)
-        c = centre(seen)
-        best = np.zeros(len(c), dtype=np.int64)
-        if len(s) > 1:
-            dist = np.full(len(c), np.inf, dtype=np.float32)
-            for k in range(len(s)):
-                dk = ((c - s[k]) ** 2).sum(1)
-                best[dk < dist] = k
-                dist = np.minimum(dist, dk)
-        look = unit(s[best] - c)
-        prior[seen] = look
-        seed[seen] = np.abs(np.einsum("ij,ij->i", fn[seen], look)) > 0.1
+
+        def part(lo: int, hi: int) -> None:
+            seen = lo + np.flatnonzero(obs[f[lo:hi]].all(1) & (area[lo:hi] > 0))
+            c = centre(seen)
+            best = np.zeros(len(c), dtype=np.int64)
+            if len(s) > 1:
+                dist = np.full(len(c), np.inf, dtype=np.float32)
+                for k in range(len(s)):
+                    dk = ((c - s[k]) ** 2).sum(1)
+                    best[dk < dist] = k
+                    dist = np.minimum(dist, dk)
+            look = unit(s[best] - c)
+            prior[seen] = look
+            seed[seen] = np.abs(np.einsum("ij,ij->i", fn[seen], look)) > 0.1
+
+        map_slices(part, len(f), workers)
+        return prior, seed
+
+    def pieces() -> tuple[csr_matrix, int, np.ndarray]:
+        graph = face_graph(len(f), fa, fb)
+        return (graph, *face_pieces(len(f), graph=graph))
+
+    (graph, n_comp, label), (prior, seed) = run_all(pieces, seeds, workers=workers)
+    keep = (np.bincount(label, weights=area, minlength=n_comp)[label] >= min_area) & (area > 0)
     # pieces without seeds (only they use it): away from the piece's centre, ties broken upwards
-    rest = np.flatnonzero(~(np.bincount(label, weights=seed, minlength=n_comp) > 0)[label])
+    rest = np.flatnonzero(~(np.bincount(label, weights=seed, minlength=n_comp) > 0)[label] & keep)
     if len(rest):
         c = centre(rest)
         count = np.maximum(np.bincount(label[rest], minlength=n_comp), 1)[:, None]
         mid = np.stack([np.bincount(label[rest], weights=c[:, a], minlength=n_comp) for a in range(3)], 1) / count
         prior[rest] = unit(c - mid[label[rest]])
         prior[rest, 2] += 1e-3
-    out = orient(v, f, prior, seed, normals=fn, edges=edges, pieces=(n_comp, label), pairs=(fa, fb))
-    if pinhole_edges >= 3:
-        out = fill_pinholes(v, out, pinhole_edges, reversed_edges(edges, out[:, 0] != f[:, 0]))
-    return v, out
+    def rim() -> tuple[tuple, np.ndarray]:
+        """The boundary half-edges of the kept faces (all `fill_pinholes` reads), and which vertices stay."""
+        order, ks, _ = edges
+        he = keep[order // 3]
+        order, ks = order[he], ks[he]
+        group = np.cumsum(np.r_[True, ks[1:] != ks[:-1]]) - 1
+        one = np.bincount(group)[group] == 1
+        kept_vertex = np.zeros(len(v), dtype=bool)
+        kept_vertex[f[keep]] = True
+        return (order[one], ks[one], np.ones(int(one.sum()), dtype=np.int64)), kept_vertex
 
+    jobs = [lambda: orient(v, f, prior, seed, normals=fn, pieces=(n_comp, label), graph=graph, workers=workers)]
+    out, *more = run_all(*jobs, *([rim] if pinhole_edges >= 3 else []), workers=workers)
+    if more:                                                   # the holes of what stays
+        (boundary, kept_vertex), = more
+        out = fill_pinholes(v, out, pinhole_edges, reversed_edges(boundary, out[:, 0] != f[:, 0]))
+        keep = np.r_[keep, kept_vertex[out[len(f):]].all(1)]  # a fan stays when its rim's faces stay
+    if keep.all():
+        return v, out
+    v, out, _ = compact(v, out, keep)
+    return v, out

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hgca_core.geometry.keys import pack
+from hgca_core.geometry.parallel import map_slices
 
 # Crossing test thresholds, in grid steps h. A plane crossing an edge has d_i + d_j = h |n_a| <= h; the learned
 # decoder's distances bottom out at ~1.5 mm rather than 0 and its slope is not exactly 1, so allow some slack.
@@ -93,9 +94,11 @@ class GridIndex:
             first = np.flatnonzero(np.r_[True, step > 0])         # sorted (x, y, z), as the decoder returns them
             last = np.r_[first[1:], len(g)] - 1
             zlo[col[first]], zhi[col[first]] = d[first, 2], d[last, 2]
-        else:
-            np.minimum.at(zlo, col, d[:, 2])
-            np.maximum.at(zhi, col, d[:, 2])
+        elif len(g):                                               # any order: per-column extremes by one sort
+            order = np.argsort(col, kind="stable")
+            cs, zs = col[order], d[order, 2]
+            first = np.flatnonzero(np.r_[True, cs[1:] != cs[:-1]])
+            zlo[cs[first]], zhi[cs[first]] = np.minimum.reduceat(zs, first), np.maximum.reduceat(zs, first)
         span = np.where(zhi >= 0, zhi - np.minimum(zlo, zhi) + 1, 0)
         self.base = np.cumsum(span) - span
         self.zlo, self.span = np.where(zhi >= 0, zlo, 0), span
@@ -138,52 +141,62 @@ def upwind_gradients(vals: np.ndarray, idx: np.ndarray, nb: np.ndarray, h: float
 
 
 def crossing_edges(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_sum: float = MAX_SUM,
-                   max_dot: float = MAX_DOT, index: GridIndex | None = None
+                   max_dot: float = MAX_DOT, index: GridIndex | None = None, workers: int = 1
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Axis edges of the grid that the zero level crosses.
 
     g (G, 3) int grid indices, vals (G,) distances (same unit as h). Returns (start point index into g (E,),
-    axis (E,), crossing parameter t in [0, 1] from the start (E,)).
+    axis (E,), crossing parameter t in [0, 1] from the start (E,)), ordered by axis, then start.
 
     An edge crosses where its ends' gradient directions are opposed (cosine < max_dot) and d_i + d_j <= max_sum h,
     or clearly opposed (cosine < WIDE_DOT) and d_i + d_j <= WIDE_SUM h (the decoder's wide valleys, see WIDE_SUM).
+    Both passes (gradients per point, then the test per edge) work on slices of the points, in `workers` threads.
     """
     index = GridIndex(g) if index is None else index
     lim = np.float32(max_sum * h)
     wide = np.float32(max(max_sum, WIDE_SUM) * h)
-    near = np.flatnonzero(vals <= wide)
-    if len(near) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros(0)
-    nb = index.neighbours(g[near])
-    grad = upwind_gradients(vals, near, nb, h, fill)
-    norm = np.sqrt(np.einsum("ij,ij->i", grad, grad))
-    unit = grad / np.maximum(norm, 1e-12)[:, None]
-    good = norm > 0
-    pos = np.full(len(g), -1, dtype=np.int64)
-    pos[near] = np.arange(len(near))
-    starts, axes, ts = [], [], []
-    for a in range(3):
-        j = nb[:, a, 0]
-        i_n = np.flatnonzero(j >= 0)
-        j_n = pos[j[i_n]]
-        di, dj = vals[near[i_n]], vals[j[i_n]]
-        ok = (j_n >= 0) & (di + dj <= wide)                # the distance test first: it is the cheap one
-        i_n, j_n, di, dj = i_n[ok], j_n[ok], di[ok], dj[ok]
-        cos = np.einsum("ij,ij->i", unit[i_n], unit[j_n])
-        cross = ((cos < max_dot) & (di + dj <= lim) | (cos < WIDE_DOT)) & good[i_n] & good[j_n]
-        starts.append(near[i_n[cross]])
-        axes.append(np.full(int(cross.sum()), a, dtype=np.int8))
-        ts.append(di[cross] / np.maximum(di[cross] + dj[cross], 1e-12))
+    n = len(g)
+    plus = np.empty((n, 3), dtype=np.int64)              # index of g + e_a, -1 where absent
+    unit = np.empty((n, 3), dtype=np.float32)            # gradient directions
+    good = np.empty(n, dtype=bool)                       # ... where there is a gradient
+
+    def gradients(lo: int, hi: int) -> None:
+        nb = index.neighbours(g[lo:hi])
+        plus[lo:hi] = nb[:, :, 0]
+        grad = upwind_gradients(vals, np.arange(lo, hi), nb, h, fill)
+        norm = np.sqrt(np.einsum("ij,ij->i", grad, grad))
+        unit[lo:hi] = grad / np.maximum(norm, 1e-12)[:, None]
+        good[lo:hi] = norm > 0
+
+    def crossings(lo: int, hi: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        out = []
+        for a in range(3):
+            i = lo + np.flatnonzero(plus[lo:hi, a] >= 0)
+            j = plus[i, a]
+            di, dj = vals[i], vals[j]
+            ok = di + dj <= wide                            # the distance test first: it is the cheap one
+            i, j, di, dj = i[ok], j[ok], di[ok], dj[ok]
+            cos = np.einsum("ij,ij->i", unit[i], unit[j])
+            cross = ((cos < max_dot) & (di + dj <= lim) | (cos < WIDE_DOT)) & good[i] & good[j]
+            out.append((i[cross], di[cross] / np.maximum(di[cross] + dj[cross], 1e-12)))
+        return out
+
+    map_slices(gradients, n, workers)
+    parts = map_slices(crossings, n, workers)
+    starts = [p[a][0] for a in range(3) for p in parts]
+    axes = [np.full(len(p[a][0]), a, dtype=np.int8) for a in range(3) for p in parts]
+    ts = [p[a][1] for a in range(3) for p in parts]
     return np.concatenate(starts), np.concatenate(axes), np.concatenate(ts).astype(np.float64)
 
 
 def dual_surface(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_sum: float = MAX_SUM,
-                 max_dot: float = MAX_DOT) -> DualSurface:
-    """Surface nets over the crossing edges (module docstring, step 3), in grid units."""
+                 max_dot: float = MAX_DOT, workers: int = 1) -> DualSurface:
+    """Surface nets over the crossing edges (module docstring, step 3), in grid units; the per-point and per-edge
+    steps run in `workers` threads."""
     g = np.asarray(g, dtype=np.int64).reshape(-1, 3)
     vals = np.asarray(vals, dtype=np.float32).reshape(-1)
     index = GridIndex(g)
-    start, axis, t = crossing_edges(g, vals, h, fill, max_sum, max_dot, index)
+    start, axis, t = crossing_edges(g, vals, h, fill, max_sum, max_dot, index, workers)
     if len(start) == 0:
         return DualSurface(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
     p0 = g[start]
@@ -191,9 +204,14 @@ def dual_surface(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_sum
     rows = np.arange(len(start))
     point[rows, axis] += t
     # the four cubes (by min corner) around each edge, counter-clockwise seen from +axis
-    corners = (p0[:, None, :] - _CUBES[axis]).reshape(-1, 3)
+    corners = np.empty((len(start) * 4, 3), dtype=np.int64)
+
+    def cube_ids(lo: int, hi: int) -> np.ndarray:
+        corners[4 * lo:4 * hi] = (p0[lo:hi, None, :] - _CUBES[axis[lo:hi]]).reshape(-1, 3)
+        return index.find(corners[4 * lo:4 * hi])
+
     # a cube's id: its min corner's index among the grid points, or a new one past them
-    cid = index.find(corners)
+    cid = np.concatenate(map_slices(cube_ids, len(start), workers))
     missing = cid < 0
     n_ids = len(g)
     if missing.any():
@@ -210,7 +228,11 @@ def dual_surface(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_sum
                       for a in range(3)], 1) / counts[:, None]
     quads = inv.reshape(-1, 4)
     # split each quad along its shorter diagonal
-    d02 = ((verts[quads[:, 0]] - verts[quads[:, 2]]) ** 2).sum(1)
-    d13 = ((verts[quads[:, 1]] - verts[quads[:, 3]]) ** 2).sum(1)
-    tri = np.take_along_axis(quads, _SPLITS[(d02 > d13).astype(np.int64)], axis=1).reshape(-1, 3)
+    def split(lo: int, hi: int) -> np.ndarray:
+        q = quads[lo:hi]
+        d02 = ((verts[q[:, 0]] - verts[q[:, 2]]) ** 2).sum(1)
+        d13 = ((verts[q[:, 1]] - verts[q[:, 3]]) ** 2).sum(1)
+        return np.take_along_axis(q, _SPLITS[(d02 > d13).astype(np.int64)], axis=1)
+
+    tri = np.concatenate(map_slices(split, len(quads), workers)).reshape(-1, 3)
     return DualSurface(verts, tri)
