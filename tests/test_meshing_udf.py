@@ -287,6 +287,11 @@ def test_surface_points_band_and_projection():
 def test_empty():
     assert len(udf_mesh(sphere_udf, np.zeros((0, 3), int)).faces) == 0
     assert len(udf_surface_points(sphere_udf, np.zeros((0, 3), int))) == 0
+    # everything a speck: cleanup drops it all and returns an empty mesh (with and without pinhole filling)
+    cells = band_cells(sphere_udf)
+    for pinholes in (12, 0):
+        m = udf_mesh(sphere_udf, cells, min_area=1e3, pinhole_edges=pinholes, workers=2)
+        assert len(m.faces) == 0 and len(m.vertices) == 0
 
 
 def test_decimate_keeps_the_surface_with_fewer_faces():

@@ -352,7 +352,7 @@ def clean_surface(vertices: np.ndarray, faces: np.ndarray, min_area: float = 0.0
         order, ks, _ = edges
         he = keep[order // 3]
         order, ks = order[he], ks[he]
-        group = np.cumsum(np.r_[True, ks[1:] != ks[:-1]]) - 1
+        group = np.cumsum(np.r_[True, ks[1:] != ks[:-1]][:len(ks)]) - 1
         one = np.bincount(group)[group] == 1
         kept_vertex = np.zeros(len(v), dtype=bool)
         kept_vertex[f[keep]] = True
