@@ -122,7 +122,7 @@ def orient(vertices: np.ndarray, faces: np.ndarray, prior: np.ndarray | None = N
         graph = face_graph(nf, fa, fb)
     n = face_normals(vertices, faces, workers)[0] if normals is None else normals
     dot = np.concatenate(map_slices(lambda lo, hi: np.einsum("ij,ij->i", n[lo:hi], prior[lo:hi]), nf, workers))
-    n_comp, label = face_pieces(nf, graph=graph) if pieces is None else pieces
+    n_comp, label = face_pieces(graph) if pieces is None else pieces
     # roots: every seed, and the first face of each piece without one (it keeps its winding)
     has_seed = np.bincount(label, weights=seed, minlength=n_comp) > 0
     first = np.empty(n_comp, dtype=np.int64)
@@ -174,11 +174,8 @@ def face_graph(n_faces: int, fa: np.ndarray, fb: np.ndarray) -> csr_matrix:
                       shape=(n_faces, n_faces))
 
 
-def face_pieces(n_faces: int, fa: np.ndarray | None = None, fb: np.ndarray | None = None,
-                graph: csr_matrix | None = None) -> tuple[int, np.ndarray]:
-    """(count, label per face) of the pieces connected through manifold edges (face pairs fa, fb, or their
-    `face_graph`)."""
-    graph = face_graph(n_faces, fa, fb) if graph is None else graph
+def face_pieces(graph: csr_matrix) -> tuple[int, np.ndarray]:
+    """(count, label per face) of the pieces of a `face_graph` (faces connected through manifold edges)."""
     return connected_components(graph, directed=False)
 
 
@@ -335,7 +332,7 @@ def clean_surface(vertices: np.ndarray, faces: np.ndarray, min_area: float = 0.0
 
     def pieces() -> tuple[csr_matrix, int, np.ndarray]:
         graph = face_graph(len(f), fa, fb)
-        return (graph, *face_pieces(len(f), graph=graph))
+        return (graph, *face_pieces(graph))
 
     (graph, n_comp, label), (prior, seed) = run_all(pieces, seeds, workers=workers)
     keep = (np.bincount(label, weights=area, minlength=n_comp)[label] >= min_area) & (area > 0)
