@@ -2,7 +2,7 @@
 
 Most numpy kernels (fancy indexing, arithmetic, einsum, sorting) release the GIL, so contiguous slices of one
 vectorised step run side by side on the cores the caller was given: on 2 cores a slice-wise step takes ~0.55x
-its one-thread time (benchmarks/results/mesh_quality.md, meshing). The caller passes the thread count (the
+its one-thread time (benchmarks/results/meshing_time.md). The caller passes the thread count (the
 pipeline passes torch's, so a Ray worker with 1 thread per tile stays on its one core).
 """
 from __future__ import annotations
