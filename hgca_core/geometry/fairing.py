@@ -47,7 +47,7 @@ from scipy.sparse.linalg import cg
 
 from hgca_core.geometry.keys import pack
 from hgca_core.geometry.mesh_clean import adjacency, face_normals, vertex_sums
-from hgca_core.geometry.parallel import run_all
+from hgca_core.geometry.parallel import map_slices, run_all
 from hgca_core.geometry.planes import fit_planes
 
 TILT = 30.0            # degrees: surfaces flatter than this are ground-like
@@ -107,20 +107,19 @@ def tall_steps(face_normals: np.ndarray, faces: np.ndarray, z: np.ndarray, adj: 
     return v_steep
 
 
-def slopes(vertices: np.ndarray, label: np.ndarray, weight: np.ndarray, tile: float = TILE) -> np.ndarray:
+def slopes(vertices: np.ndarray, label: np.ndarray, weight: np.ndarray, tile: float = TILE,
+           workers: int = 1) -> np.ndarray:
     """(N, 2) slope (dz/dx, dz/dy) at each of N labelled vertices (`label` >= 0: its ground region): weighted
     least-squares planes per region and `tile` x `tile` square, their slopes blended bilinearly between square
     centres within the region. Exact for any plane; a kerb between two regions does not tilt either's planes.
     `weight`: how much each vertex is trusted (the fairing gives vertices at input points ~1000 times the weight
-    of the others, so where the rings are, they alone set the slope and the terraces between them do not)."""
+    of the others, so where the rings are, they alone set the slope and the terraces between them do not).
+    `workers`: threads for the blend (slices of the vertices)."""
     p = np.asarray(vertices, dtype=np.float64)
     region = np.unique(label, return_inverse=True)[1].reshape(-1)       # 0..R-1: fits in a key's z field
     t = np.floor(p[:, :2] / tile).astype(np.int64)                     # squares
 
-    def square_keys(tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
-        return pack(np.c_[tx, ty, region])
-
-    key, inv = np.unique(square_keys(t[:, 0], t[:, 1]), return_inverse=True)
+    key, inv = np.unique(pack(np.c_[t[:, 0], t[:, 1], region]), return_inverse=True)
     inv = inv.reshape(-1)
     m = len(key)
     fit = fit_planes(p, inv, m, weight)
@@ -131,20 +130,26 @@ def slopes(vertices: np.ndarray, label: np.ndarray, weight: np.ndarray, tile: fl
     ok = (fit.det > 1e-6 * np.maximum(fit.sxx * fit.syy, 1e-30)) & spread
     # bilinear blend over the (up to) four squares of the same region nearest to each vertex, each also weighted
     # by its total weight
-    u = p[:, :2] / tile - 0.5
-    base = np.floor(u).astype(np.int64)
-    frac = u - base
-    num = np.zeros((len(p), 2))
-    den = np.zeros(len(p))
-    for dx in (0, 1):
-        for dy in (0, 1):
-            k = square_keys(base[:, 0] + dx, base[:, 1] + dy)
-            j = np.searchsorted(key, k).clip(max=m - 1)
-            wt = np.where((key[j] == k) & ok[j], np.abs(1 - dx - frac[:, 0]) * np.abs(1 - dy - frac[:, 1]) * cnt[j],
-                          0.0)
-            num += wt[:, None] * grad[j]
-            den += wt
-    return np.where(den[:, None] > 0, num / np.maximum(den, 1e-300)[:, None], 0.0)    # none trusted: level
+    out = np.empty((len(p), 2))
+
+    def blend(lo: int, hi: int) -> None:
+        u = p[lo:hi, :2] / tile - 0.5
+        base = np.floor(u).astype(np.int64)
+        frac = u - base
+        num = np.zeros((hi - lo, 2))
+        den = np.zeros(hi - lo)
+        for dx in (0, 1):
+            for dy in (0, 1):
+                k = pack(np.c_[base[:, 0] + dx, base[:, 1] + dy, region[lo:hi]])
+                j = np.searchsorted(key, k).clip(max=m - 1)
+                wt = np.where((key[j] == k) & ok[j],
+                              np.abs(1 - dx - frac[:, 0]) * np.abs(1 - dy - frac[:, 1]) * cnt[j], 0.0)
+                num += wt[:, None] * grad[j]
+                den += wt
+        out[lo:hi] = np.where(den[:, None] > 0, num / np.maximum(den, 1e-300)[:, None], 0.0)  # none trusted: level
+
+    map_slices(blend, len(p), workers)
+    return out
 
 
 def local_offsets(p: np.ndarray, offset: np.ndarray, weight: np.ndarray, tile: float) -> np.ndarray:
@@ -219,7 +224,7 @@ def fair_ground(vertices: np.ndarray, faces: np.ndarray, distances: np.ndarray |
     anchor = (anchor_weight * np.exp(-np.square(np.asarray(distances, dtype=np.float64)[g] / anchor_scale))
               if distances is not None else np.zeros(n))
     w = free_weight + anchor
-    r = pull[:, 2] - np.einsum("ij,ij->i", slopes(v[g], label[big], w, tile), pull[:, :2])
+    r = pull[:, 2] - np.einsum("ij,ij->i", slopes(v[g], label[big], w, tile, workers), pull[:, :2])
     if point_heights is not None:          # the anchors pull by t_i - z_i instead of holding (module docstring)
         offset = np.asarray(point_heights, dtype=np.float64)[g] - v[g, 2]
         if offset_tile > 0:
