@@ -45,6 +45,7 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.models.weights import WEIGHTS_DIR
     from hgca_core.nn.conv import precision_name, resolve_precision
     from hgca_core.training.data import split_files
+    from hgca_core.training.packed import refuse_packed
 
     default = DEFAULT_METHODS + (("hgca-full",) if args.stage == "full" else ())
     methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else list(default)
@@ -52,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         raise InputError(f"unknown methods {sorted(unknown)}; choose from {', '.join(METHODS)}")
     files = split_files(args.data, args.split)[: args.count]
+    refuse_packed(files, "hgca eval")
     gemm_dtype = resolve_precision(args.precision)
     models = load_method_models(methods, args.fine_weights, args.weights, args.noplanner_weights)
     rows_of = {m: [m] for m in methods}

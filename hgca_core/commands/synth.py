@@ -2,6 +2,7 @@
 
     hgca synth --seed S [--scans N] [--profile P] [--style city|suburb|town|strip] [--generator 6|7] --out DIR
     hgca synth --split train|val|test --count N --out DIR [--scans N] [--workers 2] [--generator 6|7]
+    hgca synth --pack DATASET --out DIR   (the coarse stage's 20 cm cells only, ~60 kB a scene: hgca_core.training.packed)
 
 Each sample draws its sensor profile and number of scans (1-10) from its seed unless given.
 """
@@ -21,6 +22,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     what.add_argument("--seed", type=int, help="make the scene named by this seed and write its files")
     what.add_argument("--split", choices=("train", "val", "test"),
                       help="build a dataset split (seeds: train i, val 1,000,000 + i, test 2,000,000 + i)")
+    what.add_argument("--pack", metavar="DATASET",
+                      help="pack a built dataset's splits for coarse training only (input, ground truth and free "
+                           "space as 20 cm bit grids, ~60 kB a scene instead of ~6 MB), e.g. to carry it to a GPU "
+                           "machine; resumable, like --split")
     p.add_argument("--count", type=int, help="samples in the split (with --split)")
     p.add_argument("--first", type=int, default=0, metavar="I",
                    help="with --split: start at the split's I-th seed (a folder of new scenes beside an older "
@@ -42,6 +47,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.pack is not None:
+        return _pack(args)
     if args.scans is not None and not 1 <= args.scans <= 255:
         raise InputError(f"--scans must be between 1 and 255, got {args.scans}")
     if args.split is not None:
@@ -89,4 +96,31 @@ def _split(args: argparse.Namespace) -> int:
                         quality=QUICK_QUALITY if args.quick else DEFAULT_QUALITY, first=args.first,
                         generator=args.generator)
     print(f"{args.split}: {len(paths)} samples in {args.out}/{args.split} ({time.perf_counter() - t0:.1f} s)")
+    return 0
+
+
+def _pack(args: argparse.Namespace) -> int:
+    given = [f for f, v in (("--count", args.count), ("--first", args.first), ("--scans", args.scans),
+                            ("--profile", args.profile), ("--style", args.style), ("--generator", args.generator),
+                            ("--quick", args.quick)) if v]
+    if given:
+        raise InputError(f"{', '.join(given)} make scenes; --pack only packs a built dataset")
+    from tqdm import tqdm
+
+    from hgca_core.training.packed import pack_dataset
+
+    t0 = time.perf_counter()
+    bar = tqdm(desc="pack", unit="sample")
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        paths = pack_dataset(args.pack, args.out, progress=progress)
+    finally:
+        bar.close()
+    size = sum(p.stat().st_size for p in paths)
+    print(f"packed {len(paths)} samples into {args.out} ({size / 2**20:.1f} MiB, {size / max(len(paths), 1) / 1e3:.0f} kB "
+          f"a sample, {time.perf_counter() - t0:.1f} s)")
     return 0

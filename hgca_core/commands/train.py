@@ -25,6 +25,17 @@ def _share(text: str) -> float:
     return value
 
 
+def _infusion(text: str) -> tuple[float, float]:
+    """'A0,A1': the infusion schedule alpha_t = A0 + A1 * t (argparse type); each in [0, 1]."""
+    try:
+        a0, a1 = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected two numbers A0,A1, got {text!r}") from None
+    if not (0.0 <= a0 <= 1.0 and 0.0 <= a1 <= 1.0):
+        raise argparse.ArgumentTypeError(f"A0 and A1 must lie in [0, 1], got {text!r}")
+    return a0, a1
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("stage", choices=STAGES, help="which model to train (coarse-noplanner is the planner ablation)")
     p.add_argument("--data", default=["data/synth"], nargs="+", metavar="DIR",
@@ -57,6 +68,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--crop", type=int, default=None,
                    help="training crop in the stage's cells (coarse: 20 cm, default 64; fine: 10 cm, default 64)")
     p.add_argument("--channels", default=None, help="coarse U-Net widths, e.g. 16,32,48,64,96")
+    p.add_argument("--infusion", type=_infusion, default=None, metavar="A0,A1",
+                   help="coarse / fine, a new run: the infusion schedule alpha_t = A0 + A1 * t (default: the "
+                        "--init-from file's, else the paper's 0.15,0.005); a lower A0 trains on chains closer to "
+                        "the model's own, as it samples (no infusion). A resumed run keeps its own")
     p.add_argument("--autoencoder", default=None, help="fine: autoencoder weights (default: the shipped ones)")
     p.add_argument("--lr", type=float, default=None,
                    help="Adam learning rate (default 5e-4; with --resume: the run's own, or this one from now on)")
@@ -134,6 +149,12 @@ def build_task(args: argparse.Namespace, run_file: dict | None):
     saved = run_file["config"] if run_file is not None else None
     init = None if saved else _init_config(args)
     free = bool(getattr(args, "free_space", False))
+    infusion = getattr(args, "infusion", None)
+    if infusion is not None and (saved or args.stage == "autoencoder"):
+        from hgca_core.errors import InputError
+
+        raise InputError("--infusion sets a new coarse or fine run's schedule; a resumed run keeps its own"
+                         if saved else "--infusion is for the coarse and fine stages (the autoencoder has no chain)")
     if args.stage.startswith("coarse"):
         from hgca_core.models.gca import GCAConfig
         from hgca_core.training.coarse import CoarseTask
@@ -151,6 +172,8 @@ def build_task(args: argparse.Namespace, run_file: dict | None):
             cfg = GCAConfig(use_planner=args.stage == "coarse", free_space=free)
         if args.channels and not saved and not init:
             cfg.channels = tuple(int(c) for c in args.channels.split(","))
+        if infusion is not None:
+            cfg.alpha0, cfg.alpha1 = infusion
         if args.free_weight < 0 or (args.free_weight and not cfg.free_space):
             from hgca_core.errors import InputError
 
@@ -183,6 +206,8 @@ def build_task(args: argparse.Namespace, run_file: dict | None):
         cfg = CGCAConfig(free_space=free)
     if args.crop and not saved:
         cfg.crop = args.crop
+    if infusion is not None:
+        cfg.alpha0, cfg.alpha1 = infusion
     return FineTask(args.data, cfg, autoencoder=args.autoencoder or str(shipped("autoencoder")))
 
 

@@ -29,11 +29,10 @@ the field existed.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import torch
-import trimesh
 from torch import nn
 
 from hgca_core.geometry import coords as cs
@@ -43,6 +42,9 @@ from hgca_core.models.config import Config
 from hgca_core.nn.encoding import sinusoidal
 from hgca_core.nn.sparse import SparseConv3d, SparseConvTranspose3d, SparseTensor
 from hgca_core.nn.unet import SparseUNet
+
+if TYPE_CHECKING:   # only the annotation: a GPU machine trains without trimesh
+    import trimesh
 
 
 @dataclass

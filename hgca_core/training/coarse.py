@@ -21,7 +21,7 @@ from hgca_core.models.gca import GCAConfig, GCAKernel, sample
 from hgca_core.models.infusion import alpha
 from hgca_core.models.planner import rough_target
 from hgca_core.training.buffer import Chain
-from hgca_core.training.data import coarse_pair, crop_flip, focus_cells, free_cells, load_arrays, split_files
+from hgca_core.training.data import coarse_pair, crop_flip, focus_cells, free_cells, split_files, visible_cells
 
 
 CUT_HEIGHTS = (1.5, 3.0)  # m above the ground: `hgca eval-real` cuts real scans at 1.5 and 2 m
@@ -153,7 +153,7 @@ class CoarseTask:
         scores = []
         for k, path in enumerate(files):
             rng = np.random.default_rng(1000 + k)  # fixed crops: the curve compares like with like
-            vis = load_arrays(str(path), ("visible20",))["visible20"].astype(np.int64)
+            vis = visible_cells(path)
             (s0_t, gt_t, vis_t), grid, extra = self.example(path, [vis], rng)
             free = extra["free"][None].to(dev) if extra else None
             gen = torch.Generator(dev).manual_seed(seed + k)

@@ -15,6 +15,7 @@ from hgca_core.geometry.freespace import observed_empty
 from hgca_core.geometry.keys import pack, unique_rows
 from hgca_core.geometry.voxel import COARSE, FINE, grid_shape, point_cells, voxelize
 from hgca_core.io.atomic import atomic_write
+from hgca_core.training.packed import is_packed, unpack_cells
 
 
 def split_files(data: str | Path | Sequence[str | Path], split: str) -> list[Path]:
@@ -46,8 +47,16 @@ def grids(path: str | Path) -> tuple[tuple[int, int, int], tuple[int, int, int]]
     return grid_shape(size, FINE), grid_shape(size, COARSE)
 
 
+def packed_cells(path: str | Path, name: str) -> np.ndarray:
+    """One cell set ("s0", "gt", "free", "visible20") of a packed coarse sample (`training.packed`)."""
+    a = load_arrays(str(path), ("grid", name))
+    return unpack_cells(a[name], a["grid"])
+
+
 def coarse_pair(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
     """(s0, gt, grid) at 20 cm for a sample: the input voxelised as the paper says, and the ground truth."""
+    if is_packed(path):
+        return packed_cells(path, "s0"), packed_cells(path, "gt"), grids(path)[1]
     a = load_arrays(str(path), ("region", "input_points", "gt_occ20"))
     return voxelize(a["input_points"], COARSE, a["region"][3:6]), a["gt_occ20"].astype(np.int64), grids(path)[1]
 
@@ -67,25 +76,32 @@ def free_cells(path: str | Path) -> np.ndarray:
     sidecar file (the dense grid as packed bits, 184 kB for the default region) written atomically beside the
     sample and read back in 6-50 ms on the busy 2-core machine; a sidecar older than its sample, of the wrong
     size or unreadable is recomputed, and a folder that cannot be written to only costs the recomputation. Not
-    kept in memory: reading the sidecar is cheaper than holding a split's worth of cells."""
+    kept in memory: reading the sidecar is cheaper than holding a split's worth of cells. A packed sample holds them."""
+    if is_packed(path):
+        return packed_cells(path, "free")
     shape = grids(path)[1]
     side, n = free_path(path), int(np.prod(shape))
-    grid = None
     try:
         if side.stat().st_mtime_ns >= Path(path).stat().st_mtime_ns:
             bits = np.load(side, allow_pickle=False)
             if bits.dtype == np.uint8 and bits.shape == ((n + 7) // 8,):
-                grid = np.unpackbits(bits, count=n).astype(bool).reshape(shape)
+                return unpack_cells(bits, shape)
     except (OSError, ValueError):
-        grid = None
-    if grid is None:
-        with np.load(path, allow_pickle=False) as a:
-            grid = observed_empty(a["input_points"], a["input_origins"], a["input_scan_index"], shape)
-        try:
-            atomic_write(side, lambda f: np.save(f, np.packbits(grid.reshape(-1))))
-        except InputError:
-            pass   # a read-only dataset: recompute next time
+        pass
+    with np.load(path, allow_pickle=False) as a:
+        grid = observed_empty(a["input_points"], a["input_origins"], a["input_scan_index"], shape)
+    try:
+        atomic_write(side, lambda f: np.save(f, np.packbits(grid.reshape(-1))))
+    except InputError:
+        pass   # a read-only dataset: recompute next time
     return np.argwhere(grid).astype(np.int64)
+
+
+def visible_cells(path: str | Path) -> np.ndarray:
+    """(V, 3) int64 20 cm cells the evaluation LiDAR sees (what the IoU scores), of a full or packed sample."""
+    if is_packed(path):
+        return packed_cells(path, "visible20")
+    return load_arrays(str(path), ("visible20",))["visible20"].astype(np.int64)
 
 
 @dataclass(frozen=True)

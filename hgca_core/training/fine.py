@@ -41,6 +41,7 @@ from hgca_core.models.infusion import alpha
 from hgca_core.models.weights import load_autoencoder, load_file, save_weights, shipped, trained_weights
 from hgca_core.training.buffer import Chain
 from hgca_core.training.data import draw_crop, free_cells, grids, load_arrays, split_files
+from hgca_core.training.packed import refuse_packed
 from hgca_core.training.trainer import run_record
 
 KEYS = ("input_points", "gt_occ10", "gt_occ20", "gt_surface", "udf_points", "udf_dist")
@@ -174,6 +175,7 @@ class AutoencoderTask:
 
     def __post_init__(self) -> None:
         self.train_files = split_files(self.data_dir, "train")
+        refuse_packed(self.train_files, "the autoencoder")
 
     def build(self) -> AutoencoderLoss:
         return AutoencoderLoss(self.cfg)
@@ -273,6 +275,7 @@ class FineTask:
 
     def __post_init__(self) -> None:
         self.train_files = split_files(self.data_dir, "train")
+        refuse_packed(self.train_files, "the fine stage")
         ae = load_autoencoder(str(self.autoencoder)) if isinstance(self.autoencoder, (str, Path)) else self.autoencoder
         self.ae = ae.eval()
         for p in self.ae.parameters():
