@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from hgca_core.errors import InputError
+from hgca_core.geometry.freespace import dense
 from hgca_core.io.atomic import atomic_write
 
 MARK = "packed_coarse"   # key present in every packed file; its value is the format version
@@ -48,10 +49,7 @@ def refuse_packed(files: Sequence[str | Path], what: str) -> None:
 
 
 def _bits(cells: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
-    grid = np.zeros(shape, dtype=bool)
-    c = np.asarray(cells, dtype=np.int64).reshape(-1, 3)
-    grid[c[:, 0], c[:, 1], c[:, 2]] = True
-    return np.packbits(grid.reshape(-1))
+    return np.packbits(dense(cells, shape).reshape(-1))
 
 
 def unpack_cells(bits: np.ndarray, shape: Sequence[int]) -> np.ndarray:
