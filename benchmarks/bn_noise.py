@@ -26,7 +26,7 @@ from violation_anatomy import REPO, anatomy  # noqa: E402
 def main(argv: list[str] | None = None) -> int:
     import torch
 
-    from hgca_core.commands.eval_real import DEFAULT_INPUTS
+    from hgca_core.commands.eval_real import default_items
     from hgca_core.real_eval import input_rays
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -40,12 +40,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="results JSON (the table goes to .md beside it)")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
-    root = Path(args.real_dir)
+    fixtures = default_items(args.real_dir)
     items = {}
     for i in (int(k) for k in args.inputs.split(",")):
-        name, path, frames, calib = DEFAULT_INPUTS[i]
-        items[name] = input_rays({"path": str(root / path), "frames": frames,
-                                  "calibration": None if calib is None else str(root / calib)})
+        items[fixtures[i]["name"]] = input_rays(fixtures[i])
     draws = [("own", 0, 0)] + [("few", args.few, s) for s in range(args.seeds)] + [("many", args.many, s)
                                                                                       for s in range(2)]
     rows = []

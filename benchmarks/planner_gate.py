@@ -80,7 +80,7 @@ def gate(points: np.ndarray, origins: np.ndarray, index: np.ndarray, cut: float,
 
 
 def main(argv: list[str] | None = None) -> int:
-    from hgca_core.commands.eval_real import DEFAULT_INPUTS
+    from hgca_core.commands.eval_real import default_items
     from hgca_core.real_eval import input_rays
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -93,9 +93,9 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     torch.set_num_threads(args.threads)
-    root, rows = Path(args.real_dir), {}
-    for name, path, frames, calib in DEFAULT_INPUTS:
-        item = {"path": str(root / path), "frames": frames, "calibration": None if calib is None else str(root / calib)}
+    rows = {}
+    for item in default_items(args.real_dir):
+        name = item["name"]
         rows[name] = gate(*input_rays(item), args.cut, args.weights)
         print(name, rows[name], file=sys.stderr)
     out = Path(args.out)

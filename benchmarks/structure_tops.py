@@ -58,15 +58,14 @@ def thin(occ: np.ndarray, crossing: np.ndarray, layer) -> dict:
 
 
 def real_rows(real_dir: Path) -> dict:
-    from hgca_core.commands.eval_real import DEFAULT_INPUTS
+    from hgca_core.commands.eval_real import default_items
     from hgca_core.geometry.region import Region
     from hgca_core.geometry.voxel import COARSE, voxelize
     from hgca_core.real_eval import input_rays
 
     rows = {}
-    for name, path, frames, calib in DEFAULT_INPUTS:
-        item = {"path": str(real_dir / path), "frames": frames,
-                "calibration": None if calib is None else str(real_dir / calib)}
+    for item in default_items(real_dir):
+        name = item["name"]
         points, origins, _ = input_rays(item)
         region = Region.around(points, sensor=origins[0])
         local = region.to_local(points)

@@ -116,7 +116,7 @@ def adapt_bn() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from hgca_core.commands.eval_real import DEFAULT_INPUTS
+    from hgca_core.commands.eval_real import default_items
     from hgca_core.real_eval import input_rays
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -134,9 +134,9 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     if args.adapt_bn:
         adapt_bn()
-    root, rows = Path(args.real_dir), {}
-    for name, path, frames, calib in DEFAULT_INPUTS:
-        item = {"path": str(root / path), "frames": frames, "calibration": None if calib is None else str(root / calib)}
+    rows = {}
+    for item in default_items(args.real_dir):
+        name = item["name"]
         rows[name] = anatomy(*input_rays(item), args.cut, args.weights, args.seed)
         print(name, rows[name], file=sys.stderr)
     out = Path(args.out)

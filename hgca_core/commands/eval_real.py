@@ -74,6 +74,13 @@ def inputs_of(args: argparse.Namespace) -> list[dict]:
     root = Path(args.real_dir)
     if not root.is_dir():
         raise InputError("real fixtures folder not found (give --real-dir or inputs)", str(root))
+    return default_items(root)
+
+
+def default_items(root: str | Path) -> list[dict]:
+    """The fixtures of DEFAULT_INPUTS under the real fixtures folder `root`, as `real_eval` reads an input (name,
+    path, frames, calibration); the benchmarks on the real logs read them through this too."""
+    root = Path(root)
     return [{"name": n, "path": str(root / p), "frames": f, "calibration": None if c is None else str(root / c)}
             for n, p, f, c in DEFAULT_INPUTS]
 
