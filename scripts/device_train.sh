@@ -12,8 +12,9 @@
 # `hgca train coarse --init-from`, compare with benchmarks/val_cut.py and `hgca eval-real`), curve.png, the
 # run's history (history.json) and the log. Settings by environment: DATA (packed folders, space-separated;
 # default every folder in gpu_data/, validation on the first one's val split), MINUTES (training budget,
-# default 7), BATCH (chains per step, default 6, the paper's), LR, INIT (weights to start from), DEVICE
-# (default cuda; cpu runs the same path here, as tests/test_device_script.py does).
+# default 7), BATCH (chains per step, default 6, the paper's), LR, INIT (weights to start from), TURN (share of
+# inputs turned by a random yaw, default 0), DEVICE (default cuda; cpu runs the same path here, as
+# tests/test_device_script.py does).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:?set OUT to the folder that comes back}
@@ -21,6 +22,7 @@ DEVICE=${DEVICE:-cuda}
 MINUTES=${MINUTES:-7}
 BATCH=${BATCH:-6}
 LR=${LR:-1.5e-4}
+TURN=${TURN:-0}
 INIT=${INIT:-hgca_core/weights/coarse.pt}
 DATA=${DATA:-$(find gpu_data -mindepth 1 -maxdepth 1 -type d 2>/dev/null | sort | tr '\n' ' ')}
 PY=${PY:-python3}
@@ -43,7 +45,7 @@ EOF
   # shellcheck disable=SC2086  # DATA is a list of folders
   "$PY" -m hgca_core.cli train coarse --data $DATA --out "$RUN" --device "$DEVICE" --batch "$BATCH" \
     --minutes "$MINUTES" --init-from "$INIT" --free-space --free-weight 8 --cut 0.5 --focus 0.5 --lr "$LR" \
-    --precision bf16 --val-every "$MINUTES" --no-progress --export "$OUT/coarse_gpu.pt"
+    --turn "$TURN" --precision bf16 --val-every "$MINUTES" --no-progress --export "$OUT/coarse_gpu.pt"
 } 2>&1 | tee "$OUT/device_train.log"
 cp "$RUN/curve.png" "$OUT/" 2>/dev/null || true
 "$PY" - "$RUN/ckpt.pt" "$OUT/history.json" <<'EOF'

@@ -27,6 +27,16 @@ def tiny_dataset(tmp_path_factory) -> Path:
     return root
 
 
+@pytest.fixture
+def dataset(tiny_dataset, tmp_path) -> Path:
+    """A private copy of the tiny dataset, for tests that write beside the samples (free-space sidecars)."""
+    import shutil
+
+    root = tmp_path / "data"
+    shutil.copytree(tiny_dataset, root)
+    return root
+
+
 @pytest.fixture(scope="session")
 def real_dir() -> Path:
     """The real-files folder ../shared/fixtures/real: a skip where it is missing, a failure under CI."""

@@ -34,6 +34,7 @@ def describe(path: str, fmt: str | None = None) -> dict[str, Any]:
         "bounds": {"min": scan.points.min(axis=0).tolist(), "max": scan.points.max(axis=0).tolist()},
         "attributes": {name: str(values.dtype) for name, values in scan.attributes.items()},
         "origins": None if scan.origins is None else scan.origins.tolist(),
+        "dropped": dict(scan.dropped),
     }
     if chosen == "las":
         info["las"] = las_header_info(path)
@@ -58,6 +59,7 @@ def describe_sequence(root: str, frames: str | None, poses: str | None) -> dict[
         "bounds": {"min": scan.points.min(axis=0).tolist(), "max": scan.points.max(axis=0).tolist()},
         "attributes": {name: str(values.dtype) for name, values in scan.attributes.items()},
         "origins": None if scan.origins is None else scan.origins.tolist(),
+        "dropped": dict(scan.dropped),
     }
 
 
@@ -79,6 +81,7 @@ def _text(info: dict[str, Any]) -> str:
         "  origins:    " + ("unknown" if info["origins"] is None
                             else "; ".join(fmt3(o) for o in info["origins"][:4])
                             + (f" ... ({len(info['origins'])} in all)" if len(info["origins"]) > 4 else "")),
+        *[f"  dropped:    {n} {why}" for why, n in info.get("dropped", {}).items()],
     ]
     las = info.get("las")
     if las:

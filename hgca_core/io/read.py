@@ -117,4 +117,5 @@ def read_scans(paths: Sequence[str | os.PathLike], poses: str | os.PathLike | Se
         attributes=attributes,
         origins=np.concatenate(origins) if any_origin else None,
         path=paths[0] if len(paths) == 1 else None,
+        dropped={k: sum(s.dropped.get(k, 0) for s in scans) for k in sorted({k for s in scans for k in s.dropped})},
     )

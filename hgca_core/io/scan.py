@@ -17,13 +17,15 @@ class Scan:
     """Points in world metres with per-point attributes and the sensor origins they were seen from.
 
     `origins` is None when the file does not say where the sensor was (aerial LAS, plain XYZ); the
-    pipeline then estimates what it needs from the points alone.
+    pipeline then estimates what it needs from the points alone. `dropped` counts rows of the file a reader
+    left out on purpose, by reason (e.g. nuScenes returns off the own car), so that `hgca info` can say so.
     """
 
     points: np.ndarray
     attributes: dict[str, np.ndarray] = field(default_factory=dict)
     origins: np.ndarray | None = None
     path: str | None = None
+    dropped: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.points = np.ascontiguousarray(self.points, dtype=np.float64)
@@ -70,6 +72,7 @@ def finalize(scan: Scan, path: str | None = None) -> Scan:
             attributes={k: v[keep] for k, v in scan.attributes.items()},
             origins=scan.origins,
             path=scan.path,
+            dropped=scan.dropped,
         )
     if scan.origins is not None and not np.isfinite(scan.origins).all():
         raise InputError("sensor origin has NaN or infinite values", where)

@@ -53,9 +53,10 @@ that floor was not measured, and the previous first-split fine.pt scores 5.46 cm
 
 Intended use: completing street-level LiDAR (vehicle-mounted, 32-128 beams) into 20 cm geometry and 10 cm
 implicit surfaces. Limits: trained on synthetic content only, on 2 CPU cores, for far fewer steps than the
-paper (400k), so completions are rough; on real scans (Argoverse 2, nuScenes: `benchmarks/results/real_scans_s12.md`)
-the coarse stage finds 36-49 % of the real cells cut away 2 m above the ground (8.5-9.9 % of what it grows above
-the cut lies where the whole scans' rays passed), and 5.6-8.4 % of what it generates on the whole input lies in
+paper (400k), so completions are rough; on real scans (Argoverse 2: `benchmarks/results/real_scans_s12.md`; the
+nuScenes sweep read without the car's own returns since session 21: `real_scans_s21_nuscenes.md`) the coarse
+stage finds 40-49 % of the real cells cut away 2 m above the ground (8.5-10.8 % of what it grows above the cut lies
+where the whole scans' rays passed), and 5.6-8.4 % of what it generates on the whole input lies in
 space the input rays saw empty, none in that space's core (the ground truth of simulated single sweeps of these
 sensors scores 3.7-5.7 % by the first count: `benchmarks/results/freespace_floor.md`). Most of that growth above a
 cut lies in open air 1-2 m up (`violation_anatomy_s14_shipped.md`); neither a higher last-step threshold, nor a shift

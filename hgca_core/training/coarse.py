@@ -21,7 +21,8 @@ from hgca_core.models.gca import GCAConfig, GCAKernel, sample
 from hgca_core.models.infusion import alpha
 from hgca_core.models.planner import rough_target
 from hgca_core.training.buffer import Chain
-from hgca_core.training.data import coarse_pair, crop_flip, focus_cells, free_cells, split_files, visible_cells
+from hgca_core.training.data import (coarse_pair, crop_flip, focus_cells, free_cells, split_files, turn_cells,
+                                     visible_cells)
 
 
 CUT_HEIGHTS = (1.5, 3.0)  # m above the ground: `hgca eval-real` cuts real scans at 1.5 and 2 m
@@ -101,6 +102,7 @@ class CoarseTask:
     free_weight: float = 0.0  # extra weight of the loss on negatives seen empty (`CoarseLoss`; needs free_space)
     cut_share: float = 0.0    # share of training inputs cut at a random height (`height_cut`), as eval-real cuts
     cut_free_loss: bool = False  # free_weight on a cut input also weighs what the uncut input saw empty (`example`)
+    turn_share: float = 0.0   # share of training inputs turned by a random yaw about the sensor (`data.turn_cells`)
 
     def __post_init__(self) -> None:
         self.train_files = split_files(self.data_dir, "train")
@@ -108,7 +110,7 @@ class CoarseTask:
     def recipe(self) -> dict:
         """The training settings a session records beside its steps (the model card shows them)."""
         return {"crop": self.crop, "focus_share": self.focus_share, "free_weight": self.free_weight,
-                "cut_share": self.cut_share, "cut_free_loss": self.cut_free_loss}
+                "cut_share": self.cut_share, "cut_free_loss": self.cut_free_loss, "turn_share": self.turn_share}
 
     def build(self) -> CoarseLoss:
         return CoarseLoss(self.cfg, self.free_weight)
@@ -118,18 +120,27 @@ class CoarseTask:
         height = None   # without cuts the random stream is the one runs before `cut_share` drew
         if self.cut_share and rng.random() < self.cut_share:
             height = CUT_HEIGHTS[0] + rng.random() * (CUT_HEIGHTS[1] - CUT_HEIGHTS[0])   # its crop is drawn uniformly
-        (s0_t, gt_t), grid, extra = self.example(path, [], rng, self.focus_share if height is None else 0.0, height)
+        yaw = None      # likewise: runs without turns keep their random stream
+        if self.turn_share and rng.random() < self.turn_share:
+            yaw = float(rng.uniform(0.0, 2.0 * np.pi))
+        (s0_t, gt_t), grid, extra = self.example(path, [], rng, self.focus_share if height is None else 0.0, height,
+                                                 yaw)
         return Chain(s0=s0_t, gt=gt_t, state=s0_t.clone(), t=0, grid=grid, extra=extra)
 
     def example(self, path: str | Path, more: list[np.ndarray], rng: np.random.Generator, focus_share: float = 0.0,
-                cut_height: float | None = None) -> tuple[list[torch.Tensor], tuple[int, int, int], dict | None]:
+                cut_height: float | None = None, yaw: float | None = None
+                ) -> tuple[list[torch.Tensor], tuple[int, int, int], dict | None]:
         """([s0, gt, *more] cut by one random crop, the crop's grid, {"free": its free space} or None); with
         `focus_share` > 0 that share of crops is centred near missed cells up high (validation uses none); with
         `cut_height` (metres above the ground) the input is cut there first (`height_cut`). With `cut_free_loss`, a cut
         input's extra also holds {"free_loss": what the uncut input saw empty}: the model never sees it, but the
-        loss weighs growth there as `hgca eval-real` counts it (against the whole scan's rays, not the cut's)."""
+        loss weighs growth there as `hgca eval-real` counts it (against the whole scan's rays, not the cut's). With
+        `yaw` (radians) every set is first turned by it about the region's centre, the sensor (`turn_cells`)."""
         s0, gt, full = coarse_pair(path)
         free = free_cells(path) if self.cfg.free_space else None
+        if yaw is not None:
+            s0, gt, *more = turn_cells([s0, gt, *more], full, yaw)
+            free = None if free is None else turn_cells([free], full, yaw)[0]
         frees: dict[str, np.ndarray] = {}     # the extra's free-space grids, cropped with the rest
         if cut_height is not None:
             if free is not None and self.cut_free_loss:

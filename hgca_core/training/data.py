@@ -158,6 +158,33 @@ def focus_cells(s0: np.ndarray, gt: np.ndarray, height: int = FOCUS_HEIGHT) -> n
     return missing[missing[:, 2] >= low[at] + height]
 
 
+def turn_cells(sets: Sequence[np.ndarray], grid: tuple[int, int, int], yaw: float) -> list[np.ndarray]:
+    """Every cell set turned by `yaw` (radians) about z through the centre of the grid's x/y extent, where a
+    sample's sensor stands, as a region placed at that angle would hold the same street: each target column takes
+    the column its centre comes from (inverse nearest-neighbour mapping of the dense grid, so a one-cell wall stays
+    one connected cell thick at any angle); columns that come from outside the grid are empty.
+
+    Why: a synthetic region has its x axis along the drive, so without turning the model only sees streets along
+    x, while real scans arrive in any frame (the Argoverse 2 city frame, the nuScenes sensor frame's y forward),
+    and on them it grows walls along the grid axes, not along the street (`violation_anatomy_s21_shipped.md`)."""
+    from hgca_core.geometry.freespace import dense
+
+    x, y = np.meshgrid(np.arange(grid[0]) + 0.5, np.arange(grid[1]) + 0.5, indexing="ij")
+    cx, cy = grid[0] / 2.0, grid[1] / 2.0
+    c, s = np.cos(yaw), np.sin(yaw)
+    sx = np.floor(c * (x - cx) + s * (y - cy) + cx).astype(np.int64)      # R(-yaw) of the target centre
+    sy = np.floor(-s * (x - cx) + c * (y - cy) + cy).astype(np.int64)
+    ok = (sx >= 0) & (sx < grid[0]) & (sy >= 0) & (sy < grid[1])
+    tx, ty, sx, sy = x[ok].astype(np.int64), y[ok].astype(np.int64), sx[ok], sy[ok]
+    out = []
+    for cells in sets:
+        src = dense(cells, grid)
+        turned = np.zeros(tuple(grid), dtype=bool)
+        turned[tx, ty] = src[sx, sy]
+        out.append(np.argwhere(turned).astype(np.int64))
+    return out
+
+
 def draw_crop(grid: tuple[int, int, int], crop: int | None, rng: np.random.Generator,
               focus: np.ndarray | None = None, focus_share: float = 0.0) -> CropSpec:
     """A random crop (the whole grid when crop is None or too large) and random flips.

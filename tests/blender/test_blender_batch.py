@@ -11,7 +11,7 @@ from pathlib import Path
 import bpy
 import pytest
 
-from bl_helpers import CORE_PYTHON, NUSCENES, REPO, SMALL_REGION, require_fixture
+from bl_helpers import CORE_PYTHON, NUSCENES, REPO, SMALL_REGION, core_arrays, require_fixture
 
 
 def run_batch(args: list[str], tmp_path: Path, module: bool = True) -> subprocess.CompletedProcess:
@@ -45,7 +45,8 @@ def test_batch_completes_saves_and_renders(tmp_path: Path) -> None:
     assert len(colls) == 1 and len(colls[0].objects) == 2
     assert all(len(o.data.polygons) > 0 and "observed_distance" in o.data.attributes for o in colls[0].objects)
     scans = [o for o in bpy.data.objects if o.get("hgca_role") == "scan"]
-    assert len(scans) == 1 and len(scans[0].data.vertices) == NUSCENES.stat().st_size // 20
+    assert len(scans) == 1 and len(scans[0].data.vertices) == len(core_arrays(
+        f"from hgca_core.io import read_scan; s = read_scan({str(NUSCENES)!r})", p="s.points")["p"])
     assert bpy.context.scene.camera is not None
 
 

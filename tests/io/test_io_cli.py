@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from hgca_core.cli import main
+from hgca_core.io.sensor_bin import EGO_RETURNS
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -40,11 +41,13 @@ def test_info_every_real_file_json(real_dir, monkeypatch, capsys):
     doc = json.loads(out)
     assert [f["file"] for f in doc["files"]] == [str(p) for p in files]
     for path, info in zip(files, doc["files"]):
-        assert info["points"] == expected_count(path), path.name
+        # every row of the file is either read or counted as dropped (the nuScenes car's own returns)
+        assert info["points"] + sum(info["dropped"].values()) == expected_count(path), path.name
         if path.name.endswith(".pcd.bin"):
-            assert info["format"] == "nuscenes" and info["points"] == 34688
+            assert info["format"] == "nuscenes" and 0 < info["dropped"][EGO_RETURNS] < info["points"]
             assert info["attributes"] == {"intensity": "float32", "ring": "uint16"}
             continue
+        assert info["dropped"] == {}
         las = laspy.read(path)
         assert info["format"] == "las"
         assert info["las"]["header_point_count"] == las.header.point_count
@@ -63,7 +66,10 @@ def test_info_text(real_dir, monkeypatch, capsys, name):
     path = real_dir / name
     code, out, _ = run_cli(monkeypatch, capsys, "info", path)
     assert code == 0
-    assert f"points:     {expected_count(path)}\n" in out
+    points = int(out.split("points:")[1].split()[0])
+    dropped = int(out.split("dropped:")[1].split()[0]) if "dropped:" in out else 0
+    assert points + dropped == expected_count(path)
+    assert (dropped > 0) == name.endswith(".pcd.bin")
     assert "bounds min:" in out and "attributes: intensity" in out
     if name.endswith(".laz") or name.endswith(".las"):
         assert "scale:" in out and "offset:" in out and "header point count" in out

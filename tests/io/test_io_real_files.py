@@ -7,6 +7,7 @@ import pytest
 
 from hgca_core.io import read_scan, read_scans
 from hgca_core.io.las import las_header_info
+from hgca_core.io.sensor_bin import EGO_RETURNS
 
 LAS_FILES = ("simple.las", "simple.laz", "simple1_4.las", "plane.laz", "simple.copc.laz", "autzen_trim.laz")
 NUSCENES = "nuscenes_lidar_top_1532402927647951.pcd.bin"
@@ -50,6 +51,13 @@ def test_copc_and_laz_equal_las(real_dir):
     assert info["copc"] and info["compressed"] and info["version"] == "1.4"
 
 
+def on_own_car(raw: np.ndarray) -> np.ndarray:
+    """Reference, written apart from the reader: a nuScenes return lies on the own car when it is within 1 m
+    across and -1.8 to 2.6 m along (y forward) of the roof LiDAR and not above it (the Renault Zoe is 1.73 m
+    wide and 4.08 m long, the LiDAR 0.99 m ahead of its rear axle)."""
+    return np.array([abs(x) <= 1.0 and -1.8 <= y <= 2.6 and -2.5 <= z <= 0.2 for x, y, z in raw[:, :3]])
+
+
 def test_nuscenes_sweep(real_dir):
     path = real_dir / NUSCENES
     raw = np.fromfile(path, dtype="<f4")
@@ -57,17 +65,40 @@ def test_nuscenes_sweep(real_dir):
     raw = raw.reshape(-1, 5)
     assert raw.shape == (34688, 5)
     scan = read_scan(path)
-    assert len(scan) == 34688
-    np.testing.assert_array_equal(scan.points, raw[:, :3].astype(np.float64))
-    np.testing.assert_array_equal(scan.attributes["intensity"], raw[:, 3])
-    np.testing.assert_array_equal(scan.attributes["ring"], raw[:, 4].astype(np.uint16))
+    ego = on_own_car(raw)
+    kept = raw[~ego]
+    assert len(scan) == len(kept) and scan.dropped == {EGO_RETURNS: int(ego.sum())}
+    np.testing.assert_array_equal(scan.points, kept[:, :3].astype(np.float64))
+    np.testing.assert_array_equal(scan.attributes["intensity"], kept[:, 3])
+    np.testing.assert_array_equal(scan.attributes["ring"], kept[:, 4].astype(np.uint16))
     assert scan.attributes["ring"].max() == 31  # HDL-32E
     np.testing.assert_array_equal(scan.origins, [[0.0, 0.0, 0.0]])
 
 
+def test_nuscenes_drops_the_own_car_only(real_dir):
+    """The returns off the car are a quarter of this sweep, all within 2 m of the sensor and at most 1 m below it;
+    every return farther than 2.5 m is kept."""
+    raw = np.fromfile(real_dir / NUSCENES, dtype="<f4").reshape(-1, 5)
+    scan = read_scan(real_dir / NUSCENES)
+    near = np.hypot(raw[:, 0], raw[:, 1]) < 2.0
+    assert 0.2 < near.mean() < 0.3 and (raw[near, 2] > -1.0).all()
+    assert scan.dropped[EGO_RETURNS] == near.sum()
+    assert (np.hypot(scan.points[:, 0], scan.points[:, 1]) >= 2.5).all()
+    assert len(scan) == (np.hypot(raw[:, 0], raw[:, 1]) >= 2.5).sum()
+
+
+def test_nuscenes_file_near_the_sensor_only_is_not_emptied(tmp_path):
+    """A sweep whose every return falls in the car's box (a tiny test file) is read as it is, not emptied."""
+    rows = np.array([[0.1, 0.2, -0.5, 1.0, 3.0], [0.3, -0.4, -0.2, 2.0, 4.0]], dtype="<f4")
+    (tmp_path / "tiny.pcd.bin").write_bytes(rows.tobytes())
+    scan = read_scan(tmp_path / "tiny.pcd.bin")
+    assert len(scan) == 2 and scan.dropped == {}
+
+
 def test_accumulate_real_las_keeps_common_attributes(real_dir):
     scan = read_scans([real_dir / "simple.las", real_dir / NUSCENES])
-    assert len(scan) == 1065 + 34688
+    nuscenes = read_scan(real_dir / NUSCENES)
+    assert len(scan) == 1065 + len(nuscenes) and scan.dropped == nuscenes.dropped
     assert set(scan.attributes) == {"intensity", "scan_index"}
     assert scan.attributes["scan_index"].dtype == np.uint16
     assert (scan.attributes["scan_index"][:1065] == 0).all() and (scan.attributes["scan_index"][1065:] == 1).all()

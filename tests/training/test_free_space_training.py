@@ -1,7 +1,6 @@
 """Training with observed free space: the per-sample cache, crops that carry it, `hgca train --free-space
 --init-from` (warm start from weights without it) that trains and resumes, and the fine stage."""
 import os
-import shutil
 
 import numpy as np
 import pytest
@@ -24,14 +23,6 @@ from hgca_core.training.trainer import train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 SMALL = dict(channels=(8, 8, 16, 16, 16))
-
-
-@pytest.fixture
-def dataset(tiny_dataset, tmp_path):
-    """A private copy of the tiny dataset (the sidecars are written next to the samples)."""
-    root = tmp_path / "data"
-    shutil.copytree(tiny_dataset, root)
-    return root
 
 
 def test_free_cells_are_cached_beside_the_sample(dataset, monkeypatch):
