@@ -45,5 +45,6 @@ def run(args: argparse.Namespace) -> int:
     attributes = {k: v for k, v in scan.attributes.items() if k not in NPZ_RESERVED}
     write_points(args.out, scan.points, attributes, origins=scan.origins)
     print(f"{args.out}: {len(scan)} points from {int(scan.attributes['scan_index'].max()) + 1} scan(s), "
-          f"attributes: {', '.join(attributes) or 'none'}")
+          f"attributes: {', '.join(attributes) or 'none'}"
+          + "".join(f"; left out {n} {why}" for why, n in scan.dropped.items()))
     return 0

@@ -129,3 +129,14 @@ def test_installed_script_and_no_torch(real_dir, tmp_path):
     res = subprocess.run([str(exe), "info", str(tmp_path / "nothing.ply")], capture_output=True, text=True,
                          timeout=60)
     assert res.returncode == 2 and "nothing.ply: file not found" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_read_command_says_what_it_left_out(real_dir, tmp_path, monkeypatch, capsys):
+    """`hgca read` of the nuScenes sweep writes the points less the car's own returns and says how many it left."""
+    path = real_dir / "nuscenes_lidar_top_1532402927647951.pcd.bin"
+    code, out, _ = run_cli(monkeypatch, capsys, "read", path, "-o", tmp_path / "n.npz")
+    assert code == 0
+    with np.load(tmp_path / "n.npz") as data:
+        kept = len(data["points"])
+    left = int(out.split("left out ")[1].split()[0])
+    assert kept + left == expected_count(path) and f"left out {left} {EGO_RETURNS}" in out
