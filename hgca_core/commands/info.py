@@ -20,6 +20,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="force the format (ply, las, pcd, xyz, npy, npz, kitti, nuscenes) instead of the extension's")
 
 
+def _facts(scan) -> dict[str, Any]:  # noqa: ANN001 - a hgca_core.io.Scan (imported lazily)
+    """What `hgca info` says of any read scan: point count, bounds, attributes, origins, rows left out."""
+    return {
+        "points": len(scan),
+        "bounds": {"min": scan.points.min(axis=0).tolist(), "max": scan.points.max(axis=0).tolist()},
+        "attributes": {name: str(values.dtype) for name, values in scan.attributes.items()},
+        "origins": None if scan.origins is None else scan.origins.tolist(),
+        "dropped": dict(scan.dropped),
+    }
+
+
 def describe(path: str, fmt: str | None = None) -> dict[str, Any]:
     """Facts about one file as plain JSON-able values (raises InputError for bad files)."""
     from hgca_core.io import read_scan, resolve_format
@@ -27,15 +38,7 @@ def describe(path: str, fmt: str | None = None) -> dict[str, Any]:
 
     scan = read_scan(path, fmt)  # raises InputError for anything wrong with the file
     chosen = resolve_format(path, fmt)
-    info: dict[str, Any] = {
-        "file": path,
-        "format": chosen,
-        "points": len(scan),
-        "bounds": {"min": scan.points.min(axis=0).tolist(), "max": scan.points.max(axis=0).tolist()},
-        "attributes": {name: str(values.dtype) for name, values in scan.attributes.items()},
-        "origins": None if scan.origins is None else scan.origins.tolist(),
-        "dropped": dict(scan.dropped),
-    }
+    info: dict[str, Any] = {"file": path, "format": chosen, **_facts(scan)}
     if chosen == "las":
         info["las"] = las_header_info(path)
     return info
@@ -55,11 +58,7 @@ def describe_sequence(root: str, frames: str | None, poses: str | None) -> dict[
         "frames_total": len(seq),
         "frames": parse_frames(frames, len(seq), root),
         "scans": files,
-        "points": len(scan),
-        "bounds": {"min": scan.points.min(axis=0).tolist(), "max": scan.points.max(axis=0).tolist()},
-        "attributes": {name: str(values.dtype) for name, values in scan.attributes.items()},
-        "origins": None if scan.origins is None else scan.origins.tolist(),
-        "dropped": dict(scan.dropped),
+        **_facts(scan),
     }
 
 
