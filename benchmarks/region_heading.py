@@ -43,11 +43,11 @@ def run_turned(item: dict, yaw_deg: float, out: Path, threads: int) -> dict:
     """`hgca eval-real` on one input with `Region.around` turned by `yaw_deg` (the eval-real code itself)."""
     import hgca_core.real_eval as real_eval
     from hgca_core.cli import main
-    from hgca_core.geometry.region import Region
+    from hgca_core.geometry.region import DEFAULT_SIZE, Region
 
     class Turned(Region):
         @classmethod
-        def around(cls, points, sensor=None, ground_z=None, size=(38.4, 38.4, 8.0), yaw=0.0):  # noqa: ANN001, ANN206
+        def around(cls, points, sensor=None, ground_z=None, size=DEFAULT_SIZE, yaw=0.0):  # noqa: ANN001, ANN206
             return Region.around(points, sensor=sensor, ground_z=ground_z, size=size, yaw=float(np.radians(yaw_deg)))
 
     plain = real_eval.Region

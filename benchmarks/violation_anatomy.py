@@ -110,8 +110,7 @@ def anatomy(points: np.ndarray, origins: np.ndarray, index: np.ndarray, cut: flo
         return {"above_cut": len(up), "in_seen_empty": 0}
     grown_cols = np.zeros(shape[:2], dtype=bool)
     grown_cols[up[:, 0], up[:, 1]] = True
-    real_cols = np.zeros(shape[:2], dtype=bool)
-    real_cols[real_up[:, 0], real_up[:, 1]] = True
+    real_cols = occ[:, :, layer(cut):].any(axis=2)
     grown_wall, grown_block = column_kinds(grown_cols, int(round(2.0 / COARSE)))
     real_wall, _ = column_kinds(real_cols, int(round(2.0 / COARSE)))
     ok = up[~is_bad]

@@ -52,10 +52,12 @@ def read_nuscenes(path: str) -> Scan:
     returns off the own car (`NUSCENES_EGO_BOX`) are dropped and counted in `Scan.dropped` (module docstring)."""
     rows = _read_float_rows(path, 5, "nuScenes .pcd.bin")
     ego = in_box(rows[:, :3], NUSCENES_EGO_BOX)
-    if ego.any() and not ego.all():     # a file of nothing but such rows is left as it is, to fail on its own
+    if ego.all():                       # a file of nothing but such rows is left as it is, to fail on its own
+        ego[:] = False
+    if ego.any():
         rows = rows[~ego]
     ring = rows[:, 4]
     integral = np.isfinite(ring).all() and (ring == np.round(ring)).all() and (ring >= 0).all() and (ring < 65536).all()
     attributes = {"intensity": rows[:, 3].copy(), "ring": ring.astype(np.uint16) if integral else ring.copy()}
-    dropped = {EGO_RETURNS: int(ego.sum())} if ego.any() and len(rows) < len(ego) else {}
+    dropped = {EGO_RETURNS: int(ego.sum())} if ego.any() else {}
     return Scan(rows[:, :3].astype(np.float64), attributes, np.zeros((1, 3)), path, dropped)

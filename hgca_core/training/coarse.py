@@ -139,8 +139,9 @@ class CoarseTask:
         s0, gt, full = coarse_pair(path)
         free = free_cells(path) if self.cfg.free_space else None
         if yaw is not None:
-            s0, gt, *more = turn_cells([s0, gt, *more], full, yaw)
-            free = None if free is None else turn_cells([free], full, yaw)[0]
+            s0, gt, *more = turn_cells([s0, gt, *more] + ([] if free is None else [free]), full, yaw)
+            if free is not None:
+                free = more.pop()
         frees: dict[str, np.ndarray] = {}     # the extra's free-space grids, cropped with the rest
         if cut_height is not None:
             if free is not None and self.cut_free_loss:
