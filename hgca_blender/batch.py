@@ -74,13 +74,15 @@ def run(args: argparse.Namespace) -> int:
     scene = bpy.context.scene
     t0 = time.perf_counter()
     try:
-        obj, skipped = operators_import.import_scans(python, [Path(s) for s in args.scans], scene.collection,
-                                                     Path(args.poses) if args.poses else None, scene=scene)
+        obj, skipped, dropped = operators_import.import_scans(python, [Path(s) for s in args.scans],
+                                                              scene.collection,
+                                                              Path(args.poses) if args.poses else None, scene=scene)
     except (core.CoreError, ValueError, OSError) as exc:
         _log(f"error: {exc}")
         return 2
     _log(f"imported {len(obj.data.vertices):,} points as '{obj.name}' in {time.perf_counter() - t0:.1f} s"
-         + (f" (skipped attributes: {', '.join(skipped)})" if skipped else ""))
+         + (f" (skipped attributes: {', '.join(skipped)})" if skipped else "")
+         + (f"; {operators_import.dropped_text(dropped)}" if dropped else ""))
     if args.drive:
         return _drive(args, python, scene, t0)
     points = sources.world_points([obj])  # Blender coordinates: world minus the scene's georeference origin

@@ -34,10 +34,11 @@ def object_name(paths: list[Path], frames: str = "") -> str:
 
 
 def read_scans(python: str, paths: list[Path], poses: Path | None = None, frames: str = ""
-               ) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray | None, np.ndarray]:
+               ) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray | None, np.ndarray, dict[str, int]]:
     """Run `hgca read` into a temporary .npz; returns (points (N,3) float32, per-point attributes, sensor
-    origins (world, float64) or None, the points' float64 offset: world = points + offset). `paths` may be one
-    sequence folder, with `frames` START:STOP[:STEP] (empty: the core's default, 5 around the middle)."""
+    origins (world, float64) or None, the points' float64 offset: world = points + offset, the returns the reader
+    left out by reason, e.g. {"returns off the recording vehicle": 8526}). `paths` may be one sequence folder,
+    with `frames` START:STOP[:STEP] (empty: the core's default, 5 around the middle)."""
     tmpdir = Path(tempfile.mkdtemp(prefix="hgca_read_"))
     try:
         out = tmpdir / "scan.npz"
@@ -46,7 +47,7 @@ def read_scans(python: str, paths: list[Path], poses: Path | None = None, frames
             args += ["--poses", str(poses)]
         if frames:
             args += ["--frames", frames]
-        core.run_core(python, [*args, "-o", str(out)], timeout=READ_TIMEOUT_S, cwd=tmpdir)
+        summary = core.run_core_json(python, [*args, "-o", str(out), "--json"], timeout=READ_TIMEOUT_S, cwd=tmpdir)
         if not out.is_file():
             raise core.CoreError("hgca read finished but wrote no output")
         with np.load(out, allow_pickle=False) as data:
@@ -62,14 +63,23 @@ def read_scans(python: str, paths: list[Path], poses: Path | None = None, frames
         raise core.CoreError(f"no points read from {', '.join(p.name for p in paths)}")
     if offset.shape != (3,) or not np.all(np.isfinite(offset)):
         raise core.CoreError(f"hgca read wrote a bad offset {offset.tolist()}")
-    return points, attributes, origins, offset
+    dropped = summary.get("dropped") or {}
+    if not isinstance(dropped, dict) or not all(isinstance(n, int) for n in dropped.values()):
+        raise core.CoreError(f"hgca read printed a bad 'dropped' record {dropped!r}")
+    return points, attributes, origins, offset, dropped
+
+
+def dropped_text(dropped: dict[str, int]) -> str:
+    """"left out 8,526 returns off the recording vehicle" (joined by "; "), or "" when the reader kept every row."""
+    return "; ".join(f"left out {n:,} {why}" for why, n in dropped.items() if n)
 
 
 def import_scans(python: str, paths: list[Path], collection: bpy.types.Collection, poses: Path | None = None,
                  name: str = "", show_points: bool = True, scene: bpy.types.Scene | None = None,
-                 frames: str = "") -> tuple[bpy.types.Object, list[str]]:
+                 frames: str = "") -> tuple[bpy.types.Object, list[str], dict[str, int]]:
     """Read and add one point object to `collection`, placed relative to `scene`'s georeference origin (set
-    here when the scene has none and the scans lie far from zero); returns it and the attributes not stored.
+    here when the scene has none and the scans lie far from zero); returns it, the attributes not stored and the
+    returns the reader left out by reason (`read_scans`).
     `paths` is scan files or one sequence folder (`frames` picks its frames)."""
     # absolute: the core runs in a temporary folder (poses then match scans by their resolved paths)
     paths = [Path(p).absolute() for p in paths]
@@ -81,7 +91,7 @@ def import_scans(python: str, paths: list[Path], collection: bpy.types.Collectio
     if frames and not folder:
         raise core.CoreError("frames apply to a sequence folder, not to scan files")
     # a poses path that is no file (missing, a folder, a link loop) is described by `hgca read` itself
-    points, attributes, origins, offset = read_scans(python, paths, poses, frames)
+    points, attributes, origins, offset, dropped = read_scans(python, paths, poses, frames)
     scene = scene or bpy.context.scene
     centre = offset + (points.min(axis=0).astype(np.float64) + points.max(axis=0)) / 2
     previous = scene.get(georef.ORIGIN_KEY)
@@ -96,7 +106,7 @@ def import_scans(python: str, paths: list[Path], collection: bpy.types.Collectio
         raise
     if origins is not None:  # the default region is centred on the first one (Blender coordinates)
         sources.set_sensor_origins(obj, origins - origin)
-    return obj, skipped
+    return obj, skipped, dropped
 
 
 class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
@@ -142,14 +152,16 @@ class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
         python = preferences.core_python(context)
         collection = context.collection or context.scene.collection
         try:
-            obj, skipped = import_scans(python, paths, collection, poses, show_points=self.show_points,
-                                        scene=context.scene, frames=self.frames.strip())
+            obj, skipped, dropped = import_scans(python, paths, collection, poses, show_points=self.show_points,
+                                                 scene=context.scene, frames=self.frames.strip())
         except (core.CoreError, ValueError, OSError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         if skipped:
             self.report({"WARNING"}, f"attributes not imported (not one value per point): {', '.join(skipped)}")
-        self.report({"INFO"}, f"Imported {len(obj.data.vertices):,} points as '{obj.name}'")
+        left_out = dropped_text(dropped)
+        self.report({"INFO"}, f"Imported {len(obj.data.vertices):,} points as '{obj.name}'"
+                    + (f" ({left_out})" if left_out else ""))
         return {"FINISHED"}
 
     def draw(self, context: bpy.types.Context) -> None:

@@ -1,4 +1,4 @@
-"""`hgca read SCAN... [--poses P] [--format F] -o OUT.npz`: accumulate scans into one .npz.
+"""`hgca read SCAN... [--poses P] [--format F] [--json] -o OUT.npz`: accumulate scans into one .npz.
 
 The Blender add-on imports scans through this command, so it gets every format and the poses logic
 without importing laspy/plyfile (or torch) inside Blender.
@@ -6,6 +6,7 @@ without importing laspy/plyfile (or torch) inside Blender.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 
 from hgca_core.errors import InputError
@@ -22,6 +23,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="force the format (ply, las, pcd, xyz, npy, npz, kitti, nuscenes) instead of the extension's")
     p.add_argument("-o", "--out", required=True, metavar="OUT.npz",
                    help="output .npz: points (N,3) f32 relative to offset (3,) f64, attributes, origins")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object (out, points, scans, attributes, dropped: returns the reader left "
+                        "out, by reason) instead of the sentence")
 
 
 def add_frames_argument(p: argparse.ArgumentParser) -> None:
@@ -44,7 +48,11 @@ def run(args: argparse.Namespace) -> int:
     scan = read_inputs(args.scans, poses=args.poses, fmt=args.fmt, frames=args.frames)
     attributes = {k: v for k, v in scan.attributes.items() if k not in NPZ_RESERVED}
     write_points(args.out, scan.points, attributes, origins=scan.origins)
-    print(f"{args.out}: {len(scan)} points from {int(scan.attributes['scan_index'].max()) + 1} scan(s), "
-          f"attributes: {', '.join(attributes) or 'none'}"
-          + "".join(f"; left out {n} {why}" for why, n in scan.dropped.items()))
+    scans = int(scan.attributes["scan_index"].max()) + 1
+    if args.json:
+        print(json.dumps({"out": args.out, "points": len(scan), "scans": scans, "attributes": list(attributes),
+                          "dropped": {why: int(n) for why, n in scan.dropped.items()}}))
+    else:
+        print(f"{args.out}: {len(scan)} points from {scans} scan(s), attributes: {', '.join(attributes) or 'none'}"
+              + "".join(f"; left out {n} {why}" for why, n in scan.dropped.items()))
     return 0

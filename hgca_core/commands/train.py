@@ -63,11 +63,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cut-free-loss", action="store_true", default=None,
                    help="with --cut and --free-weight: on a cut input the weight also falls on cells the uncut input "
                         "saw empty (the model does not see them; hgca eval-real counts growth there)")
+    p.add_argument("--frozen-bn", action="store_true", default=None,
+                   help="coarse: BatchNorm normalises by the running statistics of the --init-from weights and "
+                        "never updates them (trains the function sampling runs; the affine scale and shift train)")
     p.add_argument("--precision", choices=("fp32", "bf16"), default=None,
                    help="GEMM precision of the sparse convs' forward and backward passes (bf16: float32 "
                         "accumulation, weights and optimiser; see benchmarks/results/train_precision.md; "
-                        "default fp32). --resume keeps the run's last --focus, --free-weight, --cut, --turn and "
-                        "--precision unless given again")
+                        "default fp32). --resume keeps the run's last --focus, --free-weight, --cut, --turn, "
+                        "--frozen-bn and --precision unless given again")
     p.add_argument("--crop", type=int, default=None,
                    help="training crop in the stage's cells (coarse: 20 cm, default 64; fine: 10 cm, default 64)")
     p.add_argument("--channels", default=None, help="coarse U-Net widths, e.g. 16,32,48,64,96")
@@ -101,7 +104,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 # recipe options: argparse name -> (key in a session's record, default of a new run)
 RECIPE_OPTIONS = {"focus": ("focus_share", 0.5), "free_weight": ("free_weight", 0.0), "cut": ("cut_share", 0.0),
                   "cut_free_loss": ("cut_free_loss", False), "turn": ("turn_share", 0.0),
-                  "precision": ("precision", "fp32")}
+                  "frozen_bn": ("frozen_bn", False), "precision": ("precision", "fp32")}
 
 
 def _run_file(args: argparse.Namespace, ckpt: Path) -> dict | None:
@@ -187,9 +190,14 @@ def build_task(args: argparse.Namespace, run_file: dict | None):
             from hgca_core.errors import InputError
 
             raise InputError("--cut-free-loss weighs cut inputs' losses: it needs --cut and --free-weight")
+        if args.frozen_bn and not (args.init_from or args.resume):
+            from hgca_core.errors import InputError
+
+            raise InputError("--frozen-bn keeps the running statistics of the weights a run starts from: it needs "
+                             "--init-from (or --resume)")
         return CoarseTask(args.data, cfg, crop=args.crop or 64, focus_share=args.focus,
                           free_weight=args.free_weight, cut_share=args.cut, cut_free_loss=bool(args.cut_free_loss),
-                          turn_share=args.turn)
+                          turn_share=args.turn, frozen_bn=bool(args.frozen_bn))
     if args.stage == "autoencoder":
         from hgca_core.models.autoencoder import AutoencoderConfig
         from hgca_core.training.fine import AutoencoderTask

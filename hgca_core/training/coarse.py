@@ -48,11 +48,25 @@ def batched(sets: list[torch.Tensor]) -> torch.Tensor:
 class CoarseLoss(nn.Module):
     """Wraps the kernel so one forward computes the whole loss (what DDP must see) and the next states."""
 
-    def __init__(self, cfg: GCAConfig, free_weight: float = 0.0) -> None:
+    def __init__(self, cfg: GCAConfig, free_weight: float = 0.0, frozen_bn: bool = False) -> None:
         super().__init__()
         self.cfg = cfg
         self.free_weight = free_weight
+        self.frozen_bn = frozen_bn
         self.model = GCAKernel(cfg)
+
+    def train(self, mode: bool = True) -> "CoarseLoss":
+        """With `frozen_bn`, every BatchNorm stays in eval mode whatever the trainer asks: it normalises by the
+        running statistics the weights came with and never updates them, so training optimises the function
+        sampling runs (batches of two crops give noisy batch statistics, and exported statistics that differ
+        from the ones trained under change what the chain grows: benchmarks/results/precise_bn.md). Their
+        affine scale and shift still train."""
+        super().train(mode)
+        if self.frozen_bn:
+            for m in self.modules():
+                if isinstance(m, nn.modules.batchnorm._BatchNorm):
+                    m.eval()
+        return self
 
     def forward(self, chains: list[Chain]) -> tuple[torch.Tensor, dict, list[torch.Tensor]]:
         cfg, grid, b = self.cfg, chains[0].grid, len(chains)
@@ -103,6 +117,7 @@ class CoarseTask:
     cut_share: float = 0.0    # share of training inputs cut at a random height (`height_cut`), as eval-real cuts
     cut_free_loss: bool = False  # free_weight on a cut input also weighs what the uncut input saw empty (`example`)
     turn_share: float = 0.0   # share of training inputs turned by a random yaw about the sensor (`data.turn_cells`)
+    frozen_bn: bool = False   # BatchNorm normalises by the initial weights' running statistics (`CoarseLoss.train`)
 
     def __post_init__(self) -> None:
         self.train_files = split_files(self.data_dir, "train")
@@ -110,10 +125,11 @@ class CoarseTask:
     def recipe(self) -> dict:
         """The training settings a session records beside its steps (the model card shows them)."""
         return {"crop": self.crop, "focus_share": self.focus_share, "free_weight": self.free_weight,
-                "cut_share": self.cut_share, "cut_free_loss": self.cut_free_loss, "turn_share": self.turn_share}
+                "cut_share": self.cut_share, "cut_free_loss": self.cut_free_loss, "turn_share": self.turn_share,
+                "frozen_bn": self.frozen_bn}
 
     def build(self) -> CoarseLoss:
-        return CoarseLoss(self.cfg, self.free_weight)
+        return CoarseLoss(self.cfg, self.free_weight, self.frozen_bn)
 
     def new_example(self, rng: np.random.Generator) -> Chain:
         path = self.train_files[int(rng.integers(len(self.train_files)))]

@@ -51,6 +51,13 @@ def test_import_nuscenes_sweep(addon) -> None:
     mesh.attributes["intensity"].data.foreach_get("value", intensity)
     np.testing.assert_allclose(intensity, raw[:, 3], rtol=1e-6)
     assert obj.modifiers["hGCA Points"].node_group.name.startswith("hGCA Points")
+    # what the import reports: the rows the reader left out, counted against the file's own rows (20 bytes each)
+    ops = addon_module("operators_import")
+    *_, dropped = ops.read_scans(addon_module("preferences").core_python(), [path])
+    left = path.stat().st_size // 20 - len(raw)
+    assert left > 0 and dropped == {"returns off the recording vehicle": left}
+    assert ops.dropped_text(dropped) == f"left out {left:,} returns off the recording vehicle"
+    assert ops.dropped_text({}) == ""
 
 
 @pytest.mark.parametrize("name", LAS_FILES)

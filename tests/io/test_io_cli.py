@@ -140,3 +140,18 @@ def test_read_command_says_what_it_left_out(real_dir, tmp_path, monkeypatch, cap
         kept = len(data["points"])
     left = int(out.split("left out ")[1].split()[0])
     assert kept + left == expected_count(path) and f"left out {left} {EGO_RETURNS}" in out
+
+
+def test_read_json_says_what_it_wrote_and_left_out(real_dir, tmp_path, monkeypatch, capsys):
+    """`hgca read --json` (what the Blender import reads): one object with the counts the sentence gives."""
+    path = real_dir / "nuscenes_lidar_top_1532402927647951.pcd.bin"
+    code, out, _ = run_cli(monkeypatch, capsys, "read", path, "-o", tmp_path / "n.npz", "--json")
+    assert code == 0
+    doc = json.loads(out.strip().splitlines()[-1])
+    with np.load(tmp_path / "n.npz") as data:
+        kept = len(data["points"])
+        names = [k for k in data.files if k not in ("points", "origins", "offset")]
+    assert doc["points"] == kept and doc["scans"] == 1 and doc["attributes"] == names
+    assert set(doc["dropped"]) == {EGO_RETURNS} and kept + doc["dropped"][EGO_RETURNS] == expected_count(path)
+    code, out, _ = run_cli(monkeypatch, capsys, "read", real_dir / "simple.las", "-o", tmp_path / "l.npz", "--json")
+    assert code == 0 and json.loads(out.strip().splitlines()[-1])["dropped"] == {}
