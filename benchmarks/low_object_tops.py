@@ -56,13 +56,13 @@ def tops_above(points: np.ndarray, origins: np.ndarray, index: np.ndarray, cut: 
 
 def synthetic_inputs(data: Path, split: str, count: int) -> list[tuple[str, tuple]]:
     """(name, (points, origins, index)) of the first sweep of the first `count` scenes of a split."""
+    from hgca_core.synth.rays import input_rays
     from hgca_core.training.data import split_files
 
     out = []
     for path in split_files(str(data), split)[:count]:
         with np.load(path, allow_pickle=False) as z:
-            first = np.asarray(z["input_scan_index"]) == 0
-            points = np.asarray(z["input_points"], dtype=np.float64)[first]
+            points = input_rays(z, scan=0)[0]    # beyond the region too where the sample kept those hits
             origin = np.asarray(z["input_origins"], dtype=np.float64)[:1]
         out.append((f"{data.name}/{split}/{Path(path).stem}", (points, origin, np.zeros(len(points), np.int64))))
     return out

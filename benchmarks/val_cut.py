@@ -21,14 +21,15 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def write_first_sweeps(data: Path, count: int, folder: Path) -> list[Path]:
-    """The first sweep (scan index 0) of the first `count` val scenes as NPZ scans with their sensor origin."""
+    """The first sweep (scan index 0) of the first `count` val scenes as NPZ scans with their sensor origin: every hit
+    the sample kept, beyond the region too (format 3 on), as a real sweep holds them."""
+    from hgca_core.synth.rays import input_rays
     from hgca_core.training.data import split_files
 
     out = []
     for path in split_files(str(data), "val")[:count]:
         with np.load(path, allow_pickle=False) as z:
-            first = np.asarray(z["input_scan_index"]) == 0
-            points = np.asarray(z["input_points"], dtype=np.float64)[first]
+            points = input_rays(z, scan=0)[0]    # with the hits beyond the region where the sample kept them
             origin = np.asarray(z["input_origins"], dtype=np.float64)[:1]
         target = folder / f"{Path(path).stem}_sweep0.npz"
         np.savez(target, points=points, origins=origin, origin_index=np.zeros(len(points), np.int64))

@@ -130,9 +130,11 @@ def evaluate_methods(path: Path, methods: list[str], models: dict, args: argpars
     from hgca_core.pipeline import complete_local
     from hgca_core.progress import StageClock
     from hgca_core.synth.dataset import load_sample
+    from hgca_core.synth.rays import input_rays
 
     sample = load_sample(path)
     pts = np.asarray(sample["input_points"], dtype=np.float64)
+    rays, ray_scan = input_rays(sample)   # hgca's free space walks every ray, as on a real scan
     region = Region.from_tuple(sample["region"])
     k = args.samples
     runs: dict[tuple[str, str], tuple[list, StageClock]] = {}
@@ -141,9 +143,9 @@ def evaluate_methods(path: Path, methods: list[str], models: dict, args: argpars
     def core(name: str, stage: str) -> tuple[list, StageClock]:
         if (name, stage) not in runs:
             clock = StageClock()
-            runs[name, stage] = (complete_local(pts, region, models[name], stage, k, args.seed, args.t1, args.t2,
+            runs[name, stage] = (complete_local(rays, region, models[name], stage, k, args.seed, args.t1, args.t2,
                                                 clock, args.precision, origins=sample["input_origins"],
-                                                origin_index=sample["input_scan_index"],
+                                                origin_index=ray_scan,
                                                 free_space=getattr(args, "free_space", "auto")), clock)
         return runs[name, stage]
 

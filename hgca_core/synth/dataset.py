@@ -26,10 +26,10 @@ from hgca_core.synth.scene import GENERATOR_VERSION, STYLE_DRAWS, StreetScene, m
 
 SPLITS = {"train": 0, "val": 1_000_000, "test": 2_000_000}
 SPLIT_SPAN = 1_000_000   # seeds a split may use before the next split's
-FORMAT_VERSION = 2      # layout of the sample file (CONTRACTS.md); 2 added ground_height
+FORMAT_VERSION = 3      # layout of the sample file (CONTRACTS.md); 2 added ground_height, 3 the hits beyond the region
 SCANS = (1, 10)         # a sample draws its number of input scans from this range (inclusive)
 EVAL_HEIGHT = 2.0       # the evaluation LiDAR rides this high above the road
-KEYS = ("region", "input_points", "input_scan_index", "input_origins", "input_poses", "gt_occ20", "gt_occ10",
+KEYS = ("region", "input_points", "input_scan_index", "input_far_points", "input_far_scan_index", "input_origins", "input_poses", "gt_occ20", "gt_occ10",
         "gt_surface", "gt_surface_label", "udf_points", "udf_dist", "eval_poses", "eval_scan_0", "eval_scan_1",
         "visible20", "street_box", "ground_z", "ground_height", "meta")
 
@@ -144,16 +144,18 @@ def simulate(seed: int, n_scans: int | None = None, style: str | None = None,
     arcs = _input_arcs(rng, s0, n_scans, quality.scan_radius, drive.length)
     speed = rng.uniform(3.0, 10.0)
     turn = speed / unit.profile.rate_hz
-    pts, idx, poses, raw, raw_poses = [], [], [], [], []
+    pts, idx, far, far_idx, poses, raw, raw_poses = [], [], [], [], [], [], []
     for i, s in enumerate(arcs):
         sc = scan(inter, scene.face_materials, drive.pose(s), unit, rng, quality.effects,
                   vehicle_pose_end=drive.pose(min(s + turn, drive.length)), travelled=abs(s - s0))
         raw.append(sc.points)
         raw_poses.append(sc.pose)
         local = region.to_local(sc.points)
-        local = local[region.contains_local(local)]
-        pts.append(local)
-        idx.append(np.full(len(local), i, dtype=np.uint8))
+        inside = region.contains_local(local)
+        pts.append(local[inside])
+        idx.append(np.full(int(inside.sum()), i, dtype=np.uint8))
+        far.append(local[~inside])   # their rays cross the region: the free space walks them (`rays.input_rays`)
+        far_idx.append(np.full(int((~inside).sum()), i, dtype=np.uint8))
         poses.append(to_region @ sc.pose)
     input_poses = np.stack(poses)
 
@@ -197,12 +199,15 @@ def simulate(seed: int, n_scans: int | None = None, style: str | None = None,
     f32 = lambda a: _quantize(a, quality.quantum, size_arr)  # noqa: E731
     # point sets sorted by x (with their per-point arrays): the files compress a third better
     inp, inp_idx = _by_x(np.concatenate(pts), np.concatenate(idx))
+    far_pts, far_idx_all = _by_x(np.concatenate(far), np.concatenate(far_idx))
     gt_surface, gt_label = _by_x(gt_surface, gt_label)
     udf_pts, udf_dist = _by_x(udf_pts, udf_dist)
     sample = {
         "region": np.asarray(region.as_tuple(), dtype=np.float64),
         "input_points": f32(inp),
         "input_scan_index": inp_idx,
+        "input_far_points": far_pts.astype(np.float32),   # not rounded: rounding could move a hit into the region
+        "input_far_scan_index": far_idx_all,
         "input_origins": input_poses[:, :3, 3].astype(np.float32),
         "input_poses": input_poses.astype(np.float32),
         "gt_occ20": occ20.astype(np.int16),

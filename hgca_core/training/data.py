@@ -15,6 +15,7 @@ from hgca_core.geometry.freespace import observed_empty
 from hgca_core.geometry.keys import pack, unique_rows
 from hgca_core.geometry.voxel import COARSE, FINE, grid_shape, point_cells, voxelize
 from hgca_core.io.atomic import atomic_write
+from hgca_core.synth.rays import input_rays
 from hgca_core.training.packed import is_packed, unpack_cells
 
 
@@ -69,7 +70,7 @@ def free_path(path: str | Path) -> Path:
 
 def free_cells(path: str | Path) -> np.ndarray:
     """(F, 3) int64 20 cm cells of a sample's region that its input rays saw empty (`observed_empty` of the stored
-    input points, origins and scan index), sorted.
+    input points, beyond the region too from format 3 on (`synth.rays.input_rays`), origins and scan index), sorted.
 
     Computing it costs 1.5-1.9 s of CPU on a 5-scan sample of 540-700 k points (reading them and the ray walk,
     which alone takes 0.8-1.0 s), and a trainer draws samples at random from the whole split, so the result is kept in a
@@ -89,7 +90,8 @@ def free_cells(path: str | Path) -> np.ndarray:
     except (OSError, ValueError):
         pass
     with np.load(path, allow_pickle=False) as a:
-        grid = observed_empty(a["input_points"], a["input_origins"], a["input_scan_index"], shape)
+        points, index = input_rays(a)
+        grid = observed_empty(points, a["input_origins"], index, shape)
     try:
         atomic_write(side, lambda f: np.save(f, np.packbits(grid.reshape(-1))))
     except InputError:

@@ -17,6 +17,7 @@ from hgca_core.synth.lidar import PAPER_EFFECTS, PROFILES
 
 SEED = 21
 DTYPES = {"region": (np.float64, (7,)), "input_points": (np.float32, (None, 3)), "input_scan_index": (np.uint8, (None,)),
+          "input_far_points": (np.float32, (None, 3)), "input_far_scan_index": (np.uint8, (None,)),
           "input_origins": (np.float32, (3, 3)), "input_poses": (np.float32, (3, 4, 4)),
           "gt_occ20": (np.int16, (None, 3)), "gt_occ10": (np.int16, (None, 3)), "gt_surface": (np.float32, (None, 3)),
           "gt_surface_label": (np.uint8, (None,)), "udf_points": (np.float32, (None, 3)), "udf_dist": (np.float32, (None,)),
@@ -70,6 +71,39 @@ def test_every_key_with_its_dtype_and_shape(sample):
     assert abs(meta["sensor_height"] - 2.0) < 0.2 and abs(meta["sensor_pitch_deg"]) < 3.0
     assert np.allclose(sample["region"][3:6], [38.4, 38.4, 8.0])
     assert sample["ground_z"] == 1.0
+
+
+def test_hits_beyond_the_region_are_kept_and_widen_the_free_space(sample, tmp_path):
+    """Format 3: the scans' hits outside the region are stored apart, and the free space walks them too (as
+    `hgca complete` walks every return of a real scan): more cells seen empty, above all up high."""
+    from hgca_core.geometry.freespace import observed_empty
+    from hgca_core.geometry.region import BELOW_GROUND
+    from hgca_core.geometry.voxel import COARSE
+    from hgca_core.synth.rays import input_rays
+    from hgca_core.training.data import free_cells
+
+    region = _region(sample)
+    far, far_idx = sample["input_far_points"], sample["input_far_scan_index"]
+    assert len(far) > 1000 and far_idx.shape == (len(far),) and set(np.unique(far_idx)) <= {0, 1, 2}
+    assert not region.contains_local(far.astype(np.float64)).any()
+    assert region.contains_local(sample["input_points"].astype(np.float64)).all()
+    points, index = input_rays(sample)
+    assert len(points) == len(sample["input_points"]) + len(far)
+    assert np.array_equal(index[: len(sample["input_points"])], sample["input_scan_index"])
+    first, first_idx = input_rays(sample, scan=0)
+    assert (first_idx == 0).all() and len(first) == int((index == 0).sum())
+    shape = region.grid_shape(COARSE)
+    origins = sample["input_origins"]
+    inside = observed_empty(sample["input_points"], origins, sample["input_scan_index"], shape)
+    every = observed_empty(points, origins, index, shape)
+    up = slice(int(round((BELOW_GROUND + 2.0) / COARSE)), None)   # 2 m and more above the ground
+    assert every.sum() > inside.sum() and every[:, :, up].sum() > 1.2 * inside[:, :, up].sum()
+    path = tmp_path / "s.npz"
+    np.savez(path, **sample)
+    assert np.array_equal(free_cells(path), np.argwhere(every))
+    old = {k: v for k, v in sample.items() if not k.startswith("input_far")}   # a format-2 sample
+    np.savez(tmp_path / "old.npz", **old)
+    assert np.array_equal(free_cells(tmp_path / "old.npz"), np.argwhere(inside))
 
 
 def test_same_seed_same_sample(sample):
