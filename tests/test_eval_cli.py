@@ -95,16 +95,19 @@ def test_eval_scores_what_complete_ships(small_split):
     from hgca_core.metrics.evaluate import evaluate_sample
     from hgca_core.models.weights import shipped
     from hgca_core.synth.dataset import load_sample
+    from hgca_core.synth.rays import input_rays
 
     path = small_split / "val" / "sample_1000123.npz"
     args = argparse.Namespace(samples=1, seed=3, t1=2, t2=None, precision="fp32")
     got = evaluate_methods(path, ["input", "hgca"], load_method_models(["hgca"], None), args)
     sample = load_sample(path)
     region = Region.from_tuple(sample["region"])
-    world = region.to_world(np.asarray(sample["input_points"], dtype=np.float64))
+    rays, scan = input_rays(sample)       # every hit, beyond the region too, as a user's scan holds them
+    assert len(rays) > len(sample["input_points"])
+    world = region.to_world(rays)
     origins = region.to_world(np.asarray(sample["input_origins"], dtype=np.float64))   # eval gives each ray's origin
     shipped = hgca_core.complete(world, region=region, seed=3, t1=2, weights=shipped("coarse"), precision="fp32",
-                                 origins=origins, origin_index=np.asarray(sample["input_scan_index"]))[0]
+                                 origins=origins, origin_index=scan)[0]
     mesh = shipped.mesh.copy()
     mesh.vertices = region.to_local(mesh.vertices)
     want = evaluate_sample(sample, [mesh], [shipped.coarse_cells])
