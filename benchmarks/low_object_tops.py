@@ -25,8 +25,8 @@ def tops_above(points: np.ndarray, origins: np.ndarray, index: np.ndarray, cut: 
                reach: float = 3.0) -> dict:
     """The shares of the module docstring for one input (world-frame points, sensor origins, each point's origin)."""
     from hgca_core.geometry.freespace import observed_empty
-    from hgca_core.geometry.region import BELOW_GROUND, Region
-    from hgca_core.geometry.voxel import COARSE, voxelize
+    from hgca_core.geometry.region import Region, height_layer
+    from hgca_core.geometry.voxel import COARSE, column_tops, voxelize
 
     region = Region.around(points, sensor=origins[0])
     local = region.to_local(points)
@@ -35,19 +35,17 @@ def tops_above(points: np.ndarray, origins: np.ndarray, index: np.ndarray, cut: 
     occ = np.zeros(shape, dtype=bool)
     c = voxelize(local[region.contains_local(local)], COARSE, region.size)
     occ[c[:, 0], c[:, 1], c[:, 2]] = True
-    layer = lambda h: int(np.floor((BELOW_GROUND + h) / COARSE + 1e-9))  # noqa: E731
-    below = occ[:, :, : layer(cut)]
-    top = np.where(below.any(axis=2), below.shape[2] - 1 - np.argmax(below[:, :, ::-1], axis=2), -1)
-    columns = top >= layer(low)
+    layer = lambda h: height_layer(h, COARSE)  # noqa: E731
+    columns = column_tops(occ[:, :, : layer(cut)]) >= layer(low)
     band = slice(layer(cut), min(layer(cut + reach), shape[2]))
     structure = occ[:, :, band].any(axis=2) & columns
     seen_open = empty[:, :, band].any(axis=2) & columns & ~structure
     n = int(columns.sum())
     share = lambda m: round(100.0 * float(m.sum()) / max(n, 1), 1)  # noqa: E731
     # the returns that can mark space above the cut seen open: those above the sensor (upward rays that came back)
-    rise = points[:, 2] - origins[index][:, 2]
-    rng = np.linalg.norm(points[:, :2] - origins[index][:, :2], axis=1)
-    up = rise > 0.5
+    offset = points - origins[index]
+    up = offset[:, 2] > 0.5
+    rng = np.linalg.norm(offset[:, :2], axis=1)
     return {"low_object_columns": n, "structure_above_pct": share(structure), "seen_open_above_pct": share(seen_open),
             "unseen_pct": share(columns & ~structure & ~seen_open),
             "returns_above_sensor_pct": round(100.0 * float(up.mean()), 1),
@@ -56,16 +54,10 @@ def tops_above(points: np.ndarray, origins: np.ndarray, index: np.ndarray, cut: 
 
 def synthetic_inputs(data: Path, split: str, count: int) -> list[tuple[str, tuple]]:
     """(name, (points, origins, index)) of the first sweep of the first `count` scenes of a split."""
-    from hgca_core.synth.rays import input_rays
-    from hgca_core.training.data import split_files
+    from val_cut import first_sweeps
 
-    out = []
-    for path in split_files(str(data), split)[:count]:
-        with np.load(path, allow_pickle=False) as z:
-            points = input_rays(z, scan=0)[0]    # beyond the region too where the sample kept those hits
-            origin = np.asarray(z["input_origins"], dtype=np.float64)[:1]
-        out.append((f"{data.name}/{split}/{Path(path).stem}", (points, origin, np.zeros(len(points), np.int64))))
-    return out
+    return [(f"{data.name}/{split}/{stem}", (points, origin, np.zeros(len(points), np.int64)))
+            for stem, points, origin in first_sweeps(data, split, count)]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -30,7 +30,7 @@ def gate(points: np.ndarray, origins: np.ndarray, index: np.ndarray, cut: float,
     import hgca_core
     import hgca_core.models.gca as gca
     from hgca_core.geometry.freespace import observed_empty
-    from hgca_core.geometry.region import BELOW_GROUND, Region
+    from hgca_core.geometry.region import BELOW_GROUND, Region, height_layer
     from hgca_core.geometry.voxel import COARSE, voxelize
     from hgca_core.models.planner import PILLAR
 
@@ -56,7 +56,7 @@ def gate(points: np.ndarray, origins: np.ndarray, index: np.ndarray, cut: float,
     finally:
         gca.sample = plain
     rough = seen["rough"]
-    top = int(np.floor((BELOW_GROUND + cut) / COARSE + 1e-9))
+    top = height_layer(cut, COARSE)
 
     def prob(c: np.ndarray) -> np.ndarray:
         zb = np.clip(c[:, 2] * rough.shape[0] // shape[2], 0, rough.shape[0] - 1)

@@ -27,14 +27,14 @@ def tops(cells: np.ndarray, shape: tuple[int, int, int]) -> dict:
     """Columns crossing 1.6-2.0 m and the height bands of their highest cell within one column around."""
     from scipy.ndimage import maximum_filter
 
-    from hgca_core.geometry.region import BELOW_GROUND
-    from hgca_core.geometry.voxel import COARSE
+    from hgca_core.geometry.region import BELOW_GROUND, height_layer
+    from hgca_core.geometry.voxel import COARSE, column_tops
 
     occ = np.zeros(shape, dtype=bool)
     occ[cells[:, 0], cells[:, 1], cells[:, 2]] = True
-    layer = lambda h: int(np.floor((BELOW_GROUND + h) / COARSE + 1e-9))  # noqa: E731
+    layer = lambda h: height_layer(h, COARSE)  # noqa: E731
     crossing = occ[:, :, layer(1.6):layer(2.0)].any(axis=2)
-    top = np.where(occ.any(axis=2), shape[2] - 1 - np.argmax(occ[:, :, ::-1], axis=2), -1)
+    top = column_tops(occ)
     height = (maximum_filter(top, size=3)[crossing] + 1) * COARSE - BELOW_GROUND   # top face of the top cell
     edges = [*BINS[1:], np.inf]
     counts = [int(((height >= lo) & (height < hi)).sum()) for lo, hi in zip(BINS, edges)]

@@ -13,6 +13,7 @@ import argparse
 import subprocess
 import sys
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -20,18 +21,25 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 
 
-def write_first_sweeps(data: Path, count: int, folder: Path) -> list[Path]:
-    """The first sweep (scan index 0) of the first `count` val scenes as NPZ scans with their sensor origin: every hit
-    the sample kept, beyond the region too (format 3 on), as a real sweep holds them."""
+def first_sweeps(data: Path, split: str, count: int) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
+    """(sample stem, points (N, 3) region frame, sensor origin (1, 3)) of the first sweep (scan index 0) of the first
+    `count` scenes of a split: every hit the sample kept, beyond the region too (format 3 on), as a real sweep
+    holds them."""
     from hgca_core.synth.rays import input_rays
     from hgca_core.training.data import split_files
 
-    out = []
-    for path in split_files(str(data), "val")[:count]:
+    for path in split_files(str(data), split)[:count]:
         with np.load(path, allow_pickle=False) as z:
-            points = input_rays(z, scan=0)[0]    # with the hits beyond the region where the sample kept them
+            points = input_rays(z, scan=0)[0]
             origin = np.asarray(z["input_origins"], dtype=np.float64)[:1]
-        target = folder / f"{Path(path).stem}_sweep0.npz"
+        yield Path(path).stem, points, origin
+
+
+def write_first_sweeps(data: Path, count: int, folder: Path) -> list[Path]:
+    """`first_sweeps` of the first `count` val scenes as NPZ scans with their sensor origin."""
+    out = []
+    for stem, points, origin in first_sweeps(data, "val", count):
+        target = folder / f"{stem}_sweep0.npz"
         np.savez(target, points=points, origins=origin, origin_index=np.zeros(len(points), np.int64))
         out.append(target)
     return out

@@ -74,8 +74,8 @@ def anatomy(points: np.ndarray, origins: np.ndarray, index: np.ndarray, cut: flo
 
     import hgca_core
     from hgca_core.geometry.freespace import observed_empty
-    from hgca_core.geometry.region import BELOW_GROUND, Region
-    from hgca_core.geometry.voxel import COARSE, voxelize
+    from hgca_core.geometry.region import BELOW_GROUND, Region, height_layer
+    from hgca_core.geometry.voxel import COARSE, column_tops, voxelize
 
     region = Region.around(points, sensor=origins[0], yaw=float(np.radians(yaw_deg)))
     local = region.to_local(points)
@@ -93,7 +93,7 @@ def anatomy(points: np.ndarray, origins: np.ndarray, index: np.ndarray, cut: flo
     occ, cut_occ = grid(inside), grid(inside & keep)
     res = hgca_core.complete(points[keep], region=region, origins=origins, samples=1, seed=seed, stage="coarse",
                              weights=weights, origin_index=index[keep])
-    layer = lambda h: int(np.floor((BELOW_GROUND + h) / COARSE + 1e-9))  # noqa: E731
+    layer = lambda h: height_layer(h, COARSE)  # noqa: E731
     gen = res[0].coarse_cells
     up = gen[gen[:, 2] >= layer(cut)]
     is_bad = empty[up[:, 0], up[:, 1], up[:, 2]]
@@ -118,7 +118,7 @@ def anatomy(points: np.ndarray, origins: np.ndarray, index: np.ndarray, cut: flo
     height = (bad[:, 2] + 0.5) * COARSE - BELOW_GROUND
     dist = distance_transform_edt(~occ)[bad[:, 0], bad[:, 1], bad[:, 2]] * COARSE
     base = occ[:, :, layer(1.6):layer(2.0)].any(axis=2)
-    top = np.where(cut_occ.any(axis=2), shape[2] - 1 - np.argmax(cut_occ[:, :, ::-1], axis=2), -1)
+    top = column_tops(cut_occ)
     near_top = (maximum_filter(top, size=7)[col] + 0.5) * COARSE - BELOW_GROUND
     pct = lambda m: round(100.0 * float(np.mean(m)), 1)  # noqa: E731
     sensor = region.to_local(origins)[0]

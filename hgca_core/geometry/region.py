@@ -16,6 +16,12 @@ from hgca_core.geometry.voxel import grid_shape
 
 DEFAULT_SIZE = (38.4, 38.4, 8.0)
 BELOW_GROUND = 1.0  # the box starts this far below the ground under the sensor (paper: [-1, 7] m)
+
+
+def height_layer(height: float, cell: float) -> int:
+    """Index of the layer of `cell`-metre cells that holds the height `height` m above the region's ground (the
+    box starts BELOW_GROUND under it); a height on a cell boundary belongs to the layer above."""
+    return int(np.floor((BELOW_GROUND + height) / cell + 1e-9))
 GROUND_STEP = 1.0   # metres between the samples of a region's ground-height grid (x, y = i, j * GROUND_STEP)
 
 

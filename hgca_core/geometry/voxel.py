@@ -68,6 +68,12 @@ def downsample(coords: np.ndarray, factor: int = 2) -> np.ndarray:
     return unique_rows(np.floor_divide(np.asarray(coords, dtype=np.int64), factor))
 
 
+def column_tops(occ: np.ndarray) -> np.ndarray:
+    """(X, Y) int: the z index of the highest occupied cell of each column of a dense (X, Y, Z) bool grid, -1 where
+    the column is empty."""
+    return np.where(occ.any(axis=2), occ.shape[2] - 1 - np.argmax(occ[:, :, ::-1], axis=2), -1)
+
+
 def cell_centers(coords: np.ndarray, voxel: float) -> np.ndarray:
     """Region-frame centres of cells. A 10 cm cell c holds points rounding to c, so its centre is c * 0.1;
     a 20 cm cell holds 10 cm cells 2c and 2c+1, so its centre is (2c + 0.5) * 0.1 = (c + 0.25) * 0.2."""

@@ -29,7 +29,8 @@ SPLIT_SPAN = 1_000_000   # seeds a split may use before the next split's
 FORMAT_VERSION = 3      # layout of the sample file (CONTRACTS.md); 2 added ground_height, 3 the hits beyond the region
 SCANS = (1, 10)         # a sample draws its number of input scans from this range (inclusive)
 EVAL_HEIGHT = 2.0       # the evaluation LiDAR rides this high above the road
-KEYS = ("region", "input_points", "input_scan_index", "input_far_points", "input_far_scan_index", "input_origins", "input_poses", "gt_occ20", "gt_occ10",
+KEYS = ("region", "input_points", "input_scan_index", "input_far_points", "input_far_scan_index", "input_origins",
+        "input_poses", "gt_occ20", "gt_occ10",
         "gt_surface", "gt_surface_label", "udf_points", "udf_dist", "eval_poses", "eval_scan_0", "eval_scan_1",
         "visible20", "street_box", "ground_z", "ground_height", "meta")
 

@@ -105,3 +105,12 @@ def test_ground_of_real_sweeps():
         low = sw.points[sw.ring == 31]                      # the upper head's -25 deg beam: a ring on the road
         road = np.median(low[:, 2])
         assert estimate_ground(sw.points, sw.origin[:2]) == pytest.approx(road, abs=0.03), sw.name
+
+
+def test_height_layer_names_the_layer_holding_a_height():
+    from hgca_core.geometry.region import BELOW_GROUND, height_layer
+
+    # 20 cm cells, the box starting 1 m under the ground: the ground is the bottom of layer 5
+    assert BELOW_GROUND == 1.0
+    assert height_layer(0.0, 0.2) == 5 and height_layer(-0.01, 0.2) == 4
+    assert height_layer(2.0, 0.2) == 15 and height_layer(1.99, 0.2) == 14 and height_layer(2.0, 0.1) == 30

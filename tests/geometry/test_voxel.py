@@ -65,3 +65,13 @@ def test_centres_and_corners_follow_the_rule():
         assert np.all((pts >= lo - 1e-12) & (pts < lo + voxel))              # each point lies in its cell
         assert np.allclose(cell_centers(c, voxel), lo + voxel / 2)
     assert lower_corner(0.1) == pytest.approx(-0.05) and lower_corner(0.2) == pytest.approx(-0.05)
+
+
+def test_column_tops_is_the_highest_occupied_cell_or_minus_one():
+    from hgca_core.geometry.voxel import column_tops
+
+    occ = np.zeros((3, 2, 6), dtype=bool)
+    occ[0, 0, [1, 4]] = True       # a gap below the top does not matter
+    occ[1, 1, 0] = True
+    occ[2, 0, 5] = True
+    np.testing.assert_array_equal(column_tops(occ), [[4, -1], [-1, 0], [5, -1]])
