@@ -23,19 +23,23 @@ from hgca_core.geometry.freespace import confident, dense, observed_empty  # noq
 from hgca_core.geometry.region import Region, ground_at  # noqa: E402
 from hgca_core.geometry.voxel import COARSE, cell_centers, voxelize  # noqa: E402
 from hgca_core.synth.dataset import draw_recipe, load_sample  # noqa: E402
+from hgca_core.synth.rays import input_rays  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "freespace_floor"
 
 
 def grids(sample: dict, single: bool) -> dict:
-    """The scene's region, its input (all scans or the first), that input's free space and core, and the truth."""
+    """The scene's region, its input (all scans or the first) inside the region, the free space of that input's rays
+    (from format 3 also those to hits beyond the region, as `hgca complete` walks a real scan) and its core, and the
+    truth."""
     region = Region.from_tuple(sample["region"])
     shape = region.grid_shape(COARSE)
     pts = np.asarray(sample["input_points"], np.float64)
     idx = np.asarray(sample["input_scan_index"], np.int64)
     if single:
-        pts, idx = pts[idx == 0], idx[idx == 0]
-    free = observed_empty(pts, np.asarray(sample["input_origins"], np.float64), idx, shape)
+        pts = pts[idx == 0]
+    rays, ray_scan = input_rays(sample, 0 if single else None)
+    free = observed_empty(rays, np.asarray(sample["input_origins"], np.float64), ray_scan, shape)
     return {"region": region, "points": pts, "free": free, "core": confident(free),
             "truth": dense(np.asarray(sample["gt_occ20"], np.int64), shape)}
 
@@ -94,7 +98,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", default="data/synth2", help="dataset folder with a val split (hgca synth)")
     p.add_argument("--count", type=int, default=16, help="val scenes")
-    p.add_argument("--out", default=str(OUT))
+    p.add_argument("--out", default=str(OUT), help="results stem (.md, .json, .png)")
     args = p.parse_args()
     files = sorted((Path(args.data) / "val").glob("sample_*.npz"))[: args.count]
     if not files:
@@ -116,11 +120,12 @@ def main() -> int:
     lines = ["# Ground truth in the observed free space", "",
              f"Synthetic val scenes of `{args.data}` ({len(files)}): the ground-truth 20 cm cells that the input does "
              "not hold (what a perfect completion would generate), and the share of them that the real-scan "
-             "benchmark would count as errors: in the observed free space (rays walked to 0.4 m short of their "
-             "hit, the 26 cells around every hit excluded), and in its core (free cells whose six face neighbours "
-             "are free too). First sweep: the scene's first scan alone, as the real benchmark's single sweeps. Above a 2 m "
-             "cut: the first sweep cut 2 m above the ground, the truth it misses above the cut, against the whole "
-             "sweep's free space (as the real benchmark's height cuts).", "",
+             "benchmark would count as errors: in the observed free space (every ray of the input, from sample "
+             "format 3 also those to hits beyond the region, walked to 0.4 m short of their hit, the 26 cells around "
+             "every hit excluded), and in its core (free cells whose six face neighbours are free too). First sweep: "
+             "the scene's first scan alone, as the real benchmark's single sweeps. Above a 2 m cut: the first sweep "
+             "cut 2 m above the ground, the truth it misses above the cut, against the whole sweep's free space (as "
+             "the real benchmark's height cuts).", "",
              "| scene | profile | scans | unseen truth cells | in free, all scans (%) | in core, all scans (%) "
              "| in free, first sweep (%) | in core, first sweep (%) | above a 2 m cut: in free (%) | in core (%) |",
              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]

@@ -40,25 +40,13 @@ def heading_deg(item: dict) -> float:
 
 
 def run_turned(item: dict, yaw_deg: float, out: Path, threads: int) -> dict:
-    """`hgca eval-real` on one input with `Region.around` turned by `yaw_deg` (the eval-real code itself)."""
-    import hgca_core.real_eval as real_eval
+    """`hgca eval-real --yaw yaw_deg` on one input: the default region turned by `yaw_deg`."""
     from hgca_core.cli import main
-    from hgca_core.geometry.region import DEFAULT_SIZE, Region
 
-    class Turned(Region):
-        @classmethod
-        def around(cls, points, sensor=None, ground_z=None, size=DEFAULT_SIZE, yaw=0.0):  # noqa: ANN001, ANN206
-            return Region.around(points, sensor=sensor, ground_z=ground_z, size=size, yaw=float(np.radians(yaw_deg)))
-
-    plain = real_eval.Region
-    real_eval.Region = Turned
-    try:
-        extra = (["--frames", item["frames"]] if item["frames"] else []) + \
-                (["--calibration", item["calibration"]] if item["calibration"] else [])
-        code = main(["eval-real", item["path"], *extra, "--threads", str(threads), "--methods", "hgca", "--samples",
-                     "3", "--cuts", "2.0", "--no-render", "--out", str(out)])
-    finally:
-        real_eval.Region = plain
+    extra = (["--frames", item["frames"]] if item["frames"] else []) + \
+            (["--calibration", item["calibration"]] if item["calibration"] else [])
+    code = main(["eval-real", item["path"], *extra, "--threads", str(threads), "--methods", "hgca", "--samples",
+                 "3", "--cuts", "2.0", "--no-render", "--yaw", str(yaw_deg), "--out", str(out)])
     if code:
         raise SystemExit(code)
     return next(iter(json.loads(out.read_text())["inputs"].values()))

@@ -2,7 +2,8 @@
 scored with `hgca_core.metrics.realscan`, plus the renderings and the markdown tables.
 
 Everything is scored in the input's default region (the box `hgca complete` picks: 38.4 x 38.4 x 8 m around
-the first sensor origin, from 1 m below the estimated ground), so the ground lies at region-frame z = 1 m.
+the first sensor origin, from 1 m below the estimated ground; turned by `--yaw`), so the ground lies at region-frame
+z = 1 m.
 """
 from __future__ import annotations
 
@@ -131,7 +132,7 @@ def evaluate_input(item: dict, methods: list[str], cuts: list[float], full_cuts:
     run's result for this input, same settings) are kept, not recomputed; `saved(result)` is called after each
     case so an interrupted run loses at most one case."""
     pts, origins, index = input_rays(item)
-    region = Region.around(pts, sensor=origins[0])
+    region = Region.around(pts, sensor=origins[0], yaw=float(np.radians(getattr(args, "yaw", 0.0))))
     local = region.to_local(pts)
     inside = region.contains_local(local)
     shape = region.grid_shape(COARSE)

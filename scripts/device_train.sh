@@ -4,7 +4,7 @@
 # neither Embree nor trimesh, and sees only this repository plus what `carry` names, 64 MiB in all, so the data
 # travels packed (hgca_core/training/packed.py, ~60 kB a scene):
 #
-#   here:  hgca synth --pack /work/data/synth7vt --out gpu_data/synth7vt        (gpu_data/ is git-ignored)
+#   here:  hgca synth --pack /work/data/synth7f --out gpu_data/synth7f          (gpu_data/ is git-ignored)
 #          du -sh gpu_data; git ls-files -z | xargs -0 du -cb | tail -1          (the two under 64 MiB together)
 #   there: run(command="bash scripts/device_train.sh", carry=["gpu_data"], timeout_s=600)
 #
@@ -13,7 +13,8 @@
 # run's history (history.json) and the log. Settings by environment: DATA (packed folders, space-separated;
 # default every folder in gpu_data/, validation on the first one's val split), MINUTES (training budget,
 # default 7), BATCH (chains per step, default 6, the paper's), LR, INIT (weights to start from), TURN (share of
-# inputs turned by a random yaw, default 0), DEVICE (default cuda; cpu runs the same path here, as
+# inputs turned by a random yaw, default 0), FROZEN=1 (--frozen-bn: BatchNorm keeps INIT's running statistics),
+# CUT_FREE=1 (--cut-free-loss: the free-space weight also on what a cut input's uncut scan saw empty), DEVICE (default cuda; cpu runs the same path here, as
 # tests/test_device_script.py does).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -25,6 +26,9 @@ LR=${LR:-1.5e-4}
 TURN=${TURN:-0}
 INIT=${INIT:-hgca_core/weights/coarse.pt}
 DATA=${DATA:-$(find gpu_data -mindepth 1 -maxdepth 1 -type d 2>/dev/null | sort | tr '\n' ' ')}
+FLAGS=()
+[ "${FROZEN:-0}" = 1 ] && FLAGS+=(--frozen-bn)
+[ "${CUT_FREE:-0}" = 1 ] && FLAGS+=(--cut-free-loss)
 PY=${PY:-python3}
 RUN=${RUN:-/tmp/hgca_device_run}
 if [ -z "${DATA// /}" ]; then
@@ -45,7 +49,7 @@ EOF
   # shellcheck disable=SC2086  # DATA is a list of folders
   "$PY" -m hgca_core.cli train coarse --data $DATA --out "$RUN" --device "$DEVICE" --batch "$BATCH" \
     --minutes "$MINUTES" --init-from "$INIT" --free-space --free-weight 8 --cut 0.5 --focus 0.5 --lr "$LR" \
-    --turn "$TURN" --precision bf16 --val-every "$MINUTES" --no-progress --export "$OUT/coarse_gpu.pt"
+    --turn "$TURN" --precision bf16 --val-every "$MINUTES" --no-progress --export "$OUT/coarse_gpu.pt" ${FLAGS[@]+"${FLAGS[@]}"}
 } 2>&1 | tee "$OUT/device_train.log"
 cp "$RUN/curve.png" "$OUT/" 2>/dev/null || true
 "$PY" - "$RUN/ckpt.pt" "$OUT/history.json" <<'EOF'

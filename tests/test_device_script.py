@@ -35,14 +35,16 @@ def test_device_script_trains_on_packed_data_and_returns_the_weights(tiny_datase
     packed = tmp_path / "gpu_data" / "tiny"
     assert main(["synth", "--pack", str(tiny_dataset), "--out", str(packed)]) == 0
     out = tmp_path / "out"
-    r = run_script({"DATA": str(packed), "OUT": str(out), "MINUTES": "0.05", "BATCH": "2"}, tmp_path)
+    r = run_script({"DATA": str(packed), "OUT": str(out), "MINUTES": "0.05", "BATCH": "2",
+                    "FROZEN": "1", "CUT_FREE": "1"}, tmp_path)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert {p.name for p in out.iterdir()} >= {"coarse_gpu.pt", "curve.png", "history.json", "device_train.log"}
     meta = load_file(out / "coarse_gpu.pt")["meta"]
     assert meta["steps"] > 0 and str(packed) in meta["data"]
     history = json.loads((out / "history.json").read_text())
     assert history["step"] == meta["steps"] and history["sessions"][-1]["device"] == "cpu"
-    assert history["sessions"][-1]["recipe"]["free_weight"] == 8.0
+    recipe = history["sessions"][-1]["recipe"]
+    assert recipe["free_weight"] == 8.0 and recipe["frozen_bn"] is True and recipe["cut_free_loss"] is True
     assert any(h["kind"] == "val" for h in history["history"])
 
 

@@ -157,6 +157,27 @@ def test_resume_keeps_cases_only_in_the_same_region(tmp_path):
     assert res.returncode == 2 and "other settings" in res.stderr
 
 
+def test_yaw_turns_the_scored_region_about_the_sensor(tmp_path):
+    s = tiny_sample(4)
+    scan = tmp_path / "street.npz"
+    np.savez(scan, points=s["input_points"].astype(np.float64), origins=[[3.0, 3.0, 3.0]])
+    base = [sys.executable, "-m", "hgca_core.cli", "eval-real", str(scan), "--methods", "input", "--samples", "1",
+            "--cuts", "1.0", "--no-render"]
+    docs = {}
+    for yaw in ("0", "30"):
+        out = tmp_path / f"r{yaw}.json"
+        res = subprocess.run(base + ["--out", str(out), "--yaw", yaw], capture_output=True, text=True, timeout=300)
+        assert res.returncode == 0, res.stderr[-2000:]
+        docs[yaw] = json.loads(out.read_text())
+    plain, turned = (docs[y]["inputs"]["street"]["region"] for y in ("0", "30"))
+    assert plain[6] == pytest.approx(0.0) and turned[6] == pytest.approx(30.0)
+    assert plain[:6] == pytest.approx(turned[:6])   # same box, centred on the sensor, only turned
+    assert docs["30"]["config"]["yaw_deg"] == 30.0
+    res = subprocess.run(base + ["--out", str(tmp_path / "bad.json"), "--yaw", "nan"], capture_output=True,
+                         text=True, timeout=300)
+    assert res.returncode == 2 and "--yaw" in res.stderr and not (tmp_path / "bad.json").exists()
+
+
 def test_eval_real_free_space_mask_reaches_the_model_rows(tmp_path, small_weights):
     """`--free-space mask` goes to every completion: no generated cell lies in the core of the space the input
     rays passed (fewer in its rim than unmasked), and the setting is recorded (a run with another setting is not

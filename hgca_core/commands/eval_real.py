@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 
@@ -41,6 +42,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--samples", type=int, default=3, help="k for the sampling rows")
     p.add_argument("--full-samples", type=int, default=None, help="k for the full-stage rows (default --samples)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--yaw", type=float, default=0.0, metavar="DEG",
+                   help="turn each input's region by DEG degrees about the vertical (default 0: the region's axes "
+                        "along the scan's frame, as `hgca complete` picks it); a model trained on regions along the "
+                        "drive may score otherwise on a turned box (benchmarks/region_heading.py)")
     p.add_argument("--threads", type=int, default=1, help="torch / Open3D threads")
     p.add_argument("--t1", type=int, default=None, help="coarse steps (default from the weights)")
     p.add_argument("--t2", type=int, default=None, help="fine steps (default from the weights)")
@@ -97,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         raise InputError(f"unknown methods {sorted(unknown)}; choose from {', '.join(METHODS)}")
     cuts, full_cuts = _floats(args.cuts, "--cuts"), _floats(args.full_cuts, "--full-cuts")
+    if not math.isfinite(args.yaw):
+        raise InputError(f"--yaw must be a finite number of degrees, got {args.yaw}")
     if args.samples < 1 or (args.full_samples is not None and args.full_samples < 1):
         raise InputError("--samples and --full-samples must be at least 1")
     out = Path(args.out)
@@ -108,7 +115,8 @@ def run(args: argparse.Namespace) -> int:
     items = inputs_of(args)
     config = {"methods": methods, "cuts": cuts, "full_cuts": full_cuts, "samples": args.samples,
               "full_samples": args.full_samples or args.samples, "seed": args.seed, "threads": args.threads,
-              "t1": args.t1, "t2": args.t2, "precision": args.precision, "free_space": args.free_space}
+              "t1": args.t1, "t2": args.t2, "precision": args.precision, "free_space": args.free_space,
+              "yaw_deg": args.yaw}
     results = {"config": config, "inputs": {}, "waymo_protocol": {"applicable": False, "reason": WAYMO_NA}}
     earlier = _earlier(out, config) if args.resume else {}
     total = time.time() - float(earlier.get("total_seconds") or 0.0)

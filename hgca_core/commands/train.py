@@ -190,11 +190,11 @@ def build_task(args: argparse.Namespace, run_file: dict | None):
             from hgca_core.errors import InputError
 
             raise InputError("--cut-free-loss weighs cut inputs' losses: it needs --cut and --free-weight")
-        if args.frozen_bn and not (args.init_from or args.resume):
+        if args.frozen_bn and not (args.init_from or saved):
             from hgca_core.errors import InputError
 
             raise InputError("--frozen-bn keeps the running statistics of the weights a run starts from: it needs "
-                             "--init-from (or --resume)")
+                             "--init-from (or --resume of a run with a checkpoint)")
         return CoarseTask(args.data, cfg, crop=args.crop or 64, focus_share=args.focus,
                           free_weight=args.free_weight, cut_share=args.cut, cut_free_loss=bool(args.cut_free_loss),
                           turn_share=args.turn, frozen_bn=bool(args.frozen_bn))

@@ -59,6 +59,9 @@ def test_frozen_bn_is_kept_on_resume_and_needs_weights_to_start_from(dataset, tm
     base = BASE + ["--data", str(dataset)]
     assert main(base + ["--out", str(tmp_path / "x"), "--frozen-bn", "--max-steps", "1"]) == 2
     assert "--frozen-bn" in capsys.readouterr().err and not (tmp_path / "x" / "ckpt.pt").exists()
+    # --resume of a folder without a checkpoint starts a new run: no statistics to keep either
+    assert main(base + ["--out", str(tmp_path / "x"), "--resume", "--frozen-bn", "--max-steps", "1"]) == 2
+    assert "--frozen-bn" in capsys.readouterr().err and not (tmp_path / "x" / "ckpt.pt").exists()
     init = tmp_path / "init.pt"
     assert main(base + ["--out", str(tmp_path / "a"), "--max-steps", "1", "--export", str(init)]) == 0
     out = tmp_path / "b"
