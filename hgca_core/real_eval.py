@@ -132,7 +132,7 @@ def evaluate_input(item: dict, methods: list[str], cuts: list[float], full_cuts:
     run's result for this input, same settings) are kept, not recomputed; `saved(result)` is called after each
     case so an interrupted run loses at most one case."""
     pts, origins, index = input_rays(item)
-    region = Region.around(pts, sensor=origins[0], yaw=float(np.radians(getattr(args, "yaw", 0.0))))
+    region = Region.around(pts, sensor=origins[0], yaw=float(np.radians(args.yaw)))
     local = region.to_local(pts)
     inside = region.contains_local(local)
     shape = region.grid_shape(COARSE)
