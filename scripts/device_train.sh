@@ -14,8 +14,9 @@
 # default every folder in gpu_data/, validation on the first one's val split), MINUTES (training budget,
 # default 7), BATCH (chains per step, default 6, the paper's), LR, INIT (weights to start from), TURN (share of
 # inputs turned by a random yaw, default 0), FROZEN=1 (--frozen-bn: BatchNorm keeps INIT's running statistics),
-# CUT_FREE=1 (--cut-free-loss: the free-space weight also on what a cut input's uncut scan saw empty), DEVICE (default cuda; cpu runs the same path here, as
-# tests/test_device_script.py does).
+# CUT_FREE=1 (--cut-free-loss: the free-space weight also on what a cut input's uncut scan saw empty), DISTILL=MU
+# (--distill: cut inputs' targets move MU of the way to the probabilities of TEACHER, default INIT), DEVICE
+# (default cuda; cpu runs the same path here, as tests/test_device_script.py does).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:?set OUT to the folder that comes back}
@@ -29,6 +30,8 @@ DATA=${DATA:-$(find gpu_data -mindepth 1 -maxdepth 1 -type d 2>/dev/null | sort 
 FLAGS=()
 [ "${FROZEN:-0}" = 1 ] && FLAGS+=(--frozen-bn)
 [ "${CUT_FREE:-0}" = 1 ] && FLAGS+=(--cut-free-loss)
+[ "${DISTILL:-0}" != 0 ] && FLAGS+=(--distill "$DISTILL")
+[ -n "${TEACHER:-}" ] && FLAGS+=(--teacher "$TEACHER")
 PY=${PY:-python3}
 RUN=${RUN:-/tmp/hgca_device_run}
 if [ -z "${DATA// /}" ]; then

@@ -66,11 +66,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frozen-bn", action="store_true", default=None,
                    help="coarse: BatchNorm normalises by the running statistics of the --init-from weights and "
                         "never updates them (trains the function sampling runs; the affine scale and shift train)")
+    p.add_argument("--distill", type=_share, default=None, metavar="MU",
+                   help="coarse, with --cut: on cut inputs the target moves MU of the way from the ground truth to "
+                        "the --teacher's probability (cells the rays saw empty stay empty), keeping the teacher's "
+                        "restraint above a cut while whole inputs train on the ground truth (default 0)")
+    p.add_argument("--teacher", default=None, metavar="WEIGHTS",
+                   help="with --distill: coarse weights to distil from (default: the --init-from file)")
     p.add_argument("--precision", choices=("fp32", "bf16"), default=None,
                    help="GEMM precision of the sparse convs' forward and backward passes (bf16: float32 "
                         "accumulation, weights and optimiser; see benchmarks/results/train_precision.md; "
                         "default fp32). --resume keeps the run's last --focus, --free-weight, --cut, --turn, "
-                        "--frozen-bn and --precision unless given again")
+                        "--frozen-bn, --distill, --teacher and --precision unless given again")
     p.add_argument("--crop", type=int, default=None,
                    help="training crop in the stage's cells (coarse: 20 cm, default 64; fine: 10 cm, default 64)")
     p.add_argument("--channels", default=None, help="coarse U-Net widths, e.g. 16,32,48,64,96")
@@ -104,7 +110,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 # recipe options: argparse name -> (key in a session's record, default of a new run)
 RECIPE_OPTIONS = {"focus": ("focus_share", 0.5), "free_weight": ("free_weight", 0.0), "cut": ("cut_share", 0.0),
                   "cut_free_loss": ("cut_free_loss", False), "turn": ("turn_share", 0.0),
-                  "frozen_bn": ("frozen_bn", False), "precision": ("precision", "fp32")}
+                  "frozen_bn": ("frozen_bn", False), "distill": ("distill", 0.0), "teacher": ("teacher", None),
+                  "precision": ("precision", "fp32")}
 
 
 def _run_file(args: argparse.Namespace, ckpt: Path) -> dict | None:
@@ -147,6 +154,30 @@ def _init_config(args: argparse.Namespace) -> dict | None:
     if not isinstance(config, dict):
         raise InputError("no model config in the file: not hgca weights or a training checkpoint", args.init_from)
     return config
+
+
+def _teacher(args: argparse.Namespace, cfg) -> str | None:
+    """The --distill teacher's path, checked: coarse weights of the same architecture and inputs."""
+    if not args.distill:
+        if args.teacher:
+            from hgca_core.errors import InputError
+
+            raise InputError("--teacher names the weights --distill distils from: give --distill too", args.teacher)
+        return None
+    from hgca_core.errors import InputError
+    from hgca_core.models.weights import load_coarse
+
+    if not args.cut or not cfg.free_space:
+        raise InputError("--distill acts on cut inputs with the free space: it needs --cut and --free-space "
+                         "(or weights with it)")
+    path = args.teacher or args.init_from
+    if not path:
+        raise InputError("--distill needs a teacher: give --teacher WEIGHTS (or --init-from)")
+    teacher = load_coarse(path)[0]
+    if teacher.cfg.use_planner != cfg.use_planner or teacher.cfg.free_space != cfg.free_space:
+        raise InputError("the --distill teacher must be a coarse model with the trained model's planner and "
+                         "free-space inputs", path)
+    return str(Path(path).resolve())
 
 
 def build_task(args: argparse.Namespace, run_file: dict | None):
@@ -195,9 +226,11 @@ def build_task(args: argparse.Namespace, run_file: dict | None):
 
             raise InputError("--frozen-bn keeps the running statistics of the weights a run starts from: it needs "
                              "--init-from (or --resume of a run with a checkpoint)")
+        teacher = _teacher(args, cfg)
         return CoarseTask(args.data, cfg, crop=args.crop or 64, focus_share=args.focus,
                           free_weight=args.free_weight, cut_share=args.cut, cut_free_loss=bool(args.cut_free_loss),
-                          turn_share=args.turn, frozen_bn=bool(args.frozen_bn))
+                          turn_share=args.turn, frozen_bn=bool(args.frozen_bn), distill=args.distill,
+                          teacher=teacher)
     if args.stage == "autoencoder":
         from hgca_core.models.autoencoder import AutoencoderConfig
         from hgca_core.training.fine import AutoencoderTask

@@ -48,12 +48,16 @@ def batched(sets: list[torch.Tensor]) -> torch.Tensor:
 class CoarseLoss(nn.Module):
     """Wraps the kernel so one forward computes the whole loss (what DDP must see) and the next states."""
 
-    def __init__(self, cfg: GCAConfig, free_weight: float = 0.0, frozen_bn: bool = False) -> None:
+    def __init__(self, cfg: GCAConfig, free_weight: float = 0.0, frozen_bn: bool = False, distill: float = 0.0,
+                 teacher: GCAKernel | None = None) -> None:
         super().__init__()
         self.cfg = cfg
         self.free_weight = free_weight
         self.frozen_bn = frozen_bn
         self.model = GCAKernel(cfg)
+        self.distill = distill
+        # kept out of the module tree: the teacher is neither trained, checkpointed nor averaged
+        self._teacher = [teacher] if teacher is not None else []
 
     def train(self, mode: bool = True) -> "CoarseLoss":
         """With `frozen_bn`, every BatchNorm stays in eval mode whatever the trainer asks: it normalises by the
@@ -78,14 +82,19 @@ class CoarseLoss(nn.Module):
         target = cs.isin(nbhd, gt).float()
         weight = None
         stats = {}
+        hard = target
+        if self.distill and self._teacher:
+            target, stats["distilled"] = self._distilled(chains, nbhd, st, s0, grid, free, target)
         if self.free_weight and free is not None:
             # growth into what the rays saw through is the error real scans punish most (10-15 % of generated
             # cells): its negatives weigh 1 + free_weight; a seen-empty cell that the ground truth fills keeps 1.
             # A cut input may carry what its uncut scan saw empty (`free_loss`), which the model does not see
             seen_by = torch.stack([c.extra.get("free_loss", c.extra["free"]) for c in chains])
-            seen = (fs.at(seen_by, nbhd) & (target == 0)).float()
+            seen = (fs.at(seen_by, nbhd) & (hard == 0)).float()
             weight = 1.0 + self.free_weight * seen
             stats["seen_empty"] = float(seen.mean())
+            if self.distill and self._teacher:
+                target = target * (1.0 - seen)   # what the rays saw empty stays empty, whatever the teacher grows
         loss_gca = F.binary_cross_entropy_with_logits(logits, target, weight=weight)
         loss = loss_gca
         stats["loss_gca"] = float(loss_gca.detach())
@@ -95,12 +104,35 @@ class CoarseLoss(nn.Module):
             stats["loss_bev"] = float(loss_bev.detach())
         with torch.no_grad():  # infusion kernel q^t: Ber((1 - a_t) lambda + a_t 1[c in gt])
             a = torch.tensor([alpha(cfg, c.t) for c in chains], device=nbhd.device)[nbhd[:, 0]]
-            p = (1 - a) * torch.sigmoid(logits) + a * target
+            p = (1 - a) * torch.sigmoid(logits) + a * hard
             keep = torch.rand(p.shape, device=p.device) < p
             nxt = nbhd[keep]
             new_states = [nxt[nxt[:, 0] == i, 1:] for i in range(b)]
             stats["cells"] = float(len(nbhd)) / b
         return loss, stats, new_states
+
+    @torch.no_grad()
+    def _distilled(self, chains: list[Chain], nbhd: torch.Tensor, st: torch.Tensor, s0: torch.Tensor,
+                   grid: tuple[int, int, int], free: torch.Tensor | None, target: torch.Tensor
+                   ) -> tuple[torch.Tensor, float]:
+        """(the target with cut inputs' cells moved `distill` of the way to the teacher's probability, the share
+        of the step's cells so moved).
+
+        Why: every fine-tune on synthetic cuts learnt to grow more above a cut than the weights it started from,
+        and on real scans more of that growth lands where the rays saw empty (benchmarks/results/recipe_s20-23):
+        synthetic streets reward growth there that real ones do not hold. On cut inputs the teacher's
+        (the starting weights') restraint is kept instead, while whole inputs train on the ground truth."""
+        teacher = self._teacher[0]
+        if next(teacher.parameters()).device != nbhd.device:
+            teacher.to(nbhd.device)
+        cut = torch.tensor([bool(c.extra.get("cut", False)) for c in chains], device=nbhd.device)[nbhd[:, 0]]
+        if not bool(cut.any()):
+            return target, 0.0
+        teacher.eval()
+        b = len(chains)
+        p = torch.sigmoid(teacher(nbhd, st, s0, grid, teacher.bev(s0, b, grid, free), free).float())
+        mixed = (1.0 - self.distill) * target + self.distill * p
+        return torch.where(cut, mixed, target), float(cut.float().mean())
 
 
 @dataclass
@@ -118,6 +150,8 @@ class CoarseTask:
     cut_free_loss: bool = False  # free_weight on a cut input also weighs what the uncut input saw empty (`example`)
     turn_share: float = 0.0   # share of training inputs turned by a random yaw about the sensor (`data.turn_cells`)
     frozen_bn: bool = False   # BatchNorm normalises by the initial weights' running statistics (`CoarseLoss.train`)
+    distill: float = 0.0      # on cut inputs the target moves this far to the teacher's probability (`CoarseLoss`)
+    teacher: str | None = None  # coarse weights the cut inputs are distilled from (with distill > 0)
 
     def __post_init__(self) -> None:
         self.train_files = split_files(self.data_dir, "train")
@@ -126,10 +160,19 @@ class CoarseTask:
         """The training settings a session records beside its steps (the model card shows them)."""
         return {"crop": self.crop, "focus_share": self.focus_share, "free_weight": self.free_weight,
                 "cut_share": self.cut_share, "cut_free_loss": self.cut_free_loss, "turn_share": self.turn_share,
-                "frozen_bn": self.frozen_bn}
+                "frozen_bn": self.frozen_bn, "distill": self.distill, "teacher": self.teacher}
 
     def build(self) -> CoarseLoss:
-        return CoarseLoss(self.cfg, self.free_weight, self.frozen_bn)
+        teacher = None
+        if self.distill:
+            import copy
+
+            from hgca_core.models.weights import load_coarse
+
+            teacher = copy.deepcopy(load_coarse(self.teacher)[0])   # its own copy: the cached one may be in use
+            for prm in teacher.parameters():
+                prm.requires_grad_(False)
+        return CoarseLoss(self.cfg, self.free_weight, self.frozen_bn, self.distill, teacher)
 
     def new_example(self, rng: np.random.Generator) -> Chain:
         path = self.train_files[int(rng.integers(len(self.train_files)))]
@@ -170,7 +213,10 @@ class CoarseTask:
         cut, grid = crop_flip(sets + list(frees.values()), full, self.crop, rng, focus, focus_share)
         if not self.cfg.free_space:
             return cut, grid, None
-        return cut[: len(sets)], grid, {k: fs.from_cells(c, grid)[0] for k, c in zip(frees, cut[len(sets):])}
+        extra = {k: fs.from_cells(c, grid)[0] for k, c in zip(frees, cut[len(sets):])}
+        if cut_height is not None:
+            extra["cut"] = True   # what `CoarseLoss` distils
+        return cut[: len(sets)], grid, extra
 
     def validate(self, loss_module: CoarseLoss, seed: int = 0) -> dict:
         """IoU (20 cm, visible cells) of full T1 sampling on the first val samples, cropped like training."""

@@ -1,0 +1,123 @@
+"""`--distill MU --teacher W`: on cut training inputs the coarse kernel's target moves MU of the way from the ground
+truth to the teacher's probability (cells the rays saw empty stay empty); whole inputs keep the ground truth."""
+import numpy as np
+import pytest
+import torch
+
+from hgca_core.cli import main
+from hgca_core.models.gca import GCAConfig, GCAKernel
+from hgca_core.models.weights import load_file, save_weights
+from hgca_core.training import coarse
+from hgca_core.training.coarse import CoarseLoss, CoarseTask
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+SMALL = dict(channels=(8, 8, 16, 16, 16))
+BASE = ["train", "coarse", "--channels", "8,8,16,16,16", "--crop", "16", "--threads", "1", "--no-progress",
+        "--val-every", "1000"]
+
+
+def _chains(dataset, monkeypatch, cfg):
+    """Two chains of the same scene: the first cut 0.5-0.9 m up, the second whole."""
+    monkeypatch.setattr(coarse, "CUT_HEIGHTS", (0.5, 0.9))
+    cut = CoarseTask(str(dataset), cfg, crop=16, cut_share=1.0, free_weight=5.0, cut_free_loss=True)
+    whole = CoarseTask(str(dataset), cfg, crop=16, free_weight=5.0)
+    chains = [cut.new_example(np.random.default_rng(0)), whole.new_example(np.random.default_rng(1))]
+    assert chains[0].extra["cut"] is True and "cut" not in chains[1].extra
+    for ch in chains:   # states that grew into what the (uncut) rays saw empty
+        seen = ch.extra.get("free_loss", ch.extra["free"])
+        ch.state = torch.cat([ch.state, torch.nonzero(seen)[::5]])
+    return chains
+
+
+@pytest.mark.parametrize("mu", [1.0, 0.5])
+def test_cut_inputs_learn_the_teachers_probability_and_whole_ones_the_ground_truth(dataset, monkeypatch, mu):
+    cfg = GCAConfig(**SMALL, steps=3, free_space=True)
+    chains = _chains(dataset, monkeypatch, cfg)
+    torch.manual_seed(0)
+    teacher = GCAKernel(cfg).eval()
+    torch.manual_seed(1)
+    loss = CoarseLoss(cfg, free_weight=5.0, distill=mu, teacher=teacher)
+    assert not any(k.startswith("_teacher") or "teacher" in k for k in loss.state_dict())  # never checkpointed
+    calls = []
+    real_forward = GCAKernel.forward
+
+    def recording(self, nbhd, *a, **k):
+        out = real_forward(self, nbhd, *a, **k)
+        calls.append((self, nbhd, out.detach()))
+        return out
+
+    monkeypatch.setattr(GCAKernel, "forward", recording)
+    _, stats, _ = loss(chains)
+    monkeypatch.undo()
+    (s_mod, nbhd, logits), (t_mod, t_nbhd, t_logits) = calls
+    assert s_mod is loss.model and t_mod is teacher and torch.equal(nbhd, t_nbhd)
+    gts = [{tuple(c) for c in ch.gt.tolist()} for ch in chains]
+    rows = nbhd.tolist()
+    hard = torch.tensor([tuple(r[1:]) in gts[r[0]] for r in rows], dtype=torch.float64)
+    frees = [ch.extra.get("free_loss", ch.extra["free"]) for ch in chains]
+    seen = torch.tensor([bool(frees[r[0]][r[1], r[2], r[3]]) for r in rows]) & (hard == 0)
+    cut = nbhd[:, 0] == 0
+    assert cut.any() and (~cut).any() and (seen & cut).any()
+    teach = torch.sigmoid(t_logits.double())
+    target = torch.where(cut, (1 - mu) * hard + mu * teach, hard) * (~seen)
+    p = torch.sigmoid(logits.double())
+    bce = -(target * torch.log(p) + (1 - target) * torch.log(1 - p))
+    expected = float(((1 + 5.0 * seen) * bce).mean())
+    assert stats["loss_gca"] == pytest.approx(expected, rel=1e-5)
+    assert stats["distilled"] == pytest.approx(float(cut.double().mean()))
+    plain = CoarseLoss(cfg, free_weight=5.0)
+    plain.load_state_dict(loss.state_dict())
+    torch.manual_seed(0)
+    _, plain_stats, _ = plain(chains)
+    assert plain_stats["loss_gca"] != pytest.approx(stats["loss_gca"], rel=1e-3)   # the teacher changed it
+
+
+def test_a_teacher_equal_to_the_student_leaves_cut_inputs_nothing_to_learn(dataset, monkeypatch):
+    """With the student's own weights as teacher and no free-space weight, the cut chain's cells give no
+    gradient (the target is the prediction), the whole chain's do (no planner: its loss would train either way)."""
+    cfg = GCAConfig(**SMALL, steps=3, free_space=True, use_planner=False)
+    chains = _chains(dataset, monkeypatch, cfg)
+    loss = CoarseLoss(cfg, distill=1.0)
+    teacher = GCAKernel(cfg)
+    teacher.load_state_dict(loss.model.state_dict())
+    loss._teacher = [teacher.eval()]
+    loss.eval()     # both normalise by the same running statistics
+    grads = []
+    for keep in ([0], [1]):
+        loss.zero_grad()
+        total, _, _ = loss([chains[i] for i in keep])
+        total.backward()
+        head = [p.grad for p in loss.model.parameters() if p.grad is not None]
+        grads.append(max(float(g.abs().max()) for g in head))
+    cut_grad, whole_grad = grads
+    assert whole_grad > 1e-4 and cut_grad < 1e-3 * whole_grad
+
+
+def test_distill_options_need_a_cut_a_teacher_and_are_kept_on_resume(dataset, tmp_path, capsys):
+    base = BASE + ["--data", str(dataset)]
+    init = tmp_path / "init.pt"
+    assert main(base + ["--out", str(tmp_path / "a"), "--free-space", "--max-steps", "1", "--export", str(init)]) == 0
+    capsys.readouterr()
+    for extra, says in ((["--distill", "0.5", "--init-from", str(init)], "--cut"),
+                        (["--distill", "0.5", "--cut", "0.5"], "teacher"),
+                        (["--teacher", str(init)], "--distill")):
+        out = tmp_path / "bad"
+        assert main(base + ["--out", str(out), "--free-space", "--max-steps", "1"] + extra) == 2
+        assert says in capsys.readouterr().err and not (out / "ckpt.pt").exists()
+    with pytest.raises(SystemExit) as exc:                              # argparse: a share is 0 to 1
+        main(base + ["--out", str(tmp_path / "bad"), "--cut", "0.5", "--distill", "1.5", "--init-from", str(init)])
+    assert exc.value.code == 2 and "between 0 and 1" in capsys.readouterr().err
+    no_planner = tmp_path / "np.pt"
+    save_weights(no_planner, GCAKernel(GCAConfig(**SMALL, use_planner=False, free_space=True)))
+    assert main(base + ["--out", str(tmp_path / "bad"), "--free-space", "--max-steps", "1", "--cut", "0.5",
+                        "--init-from", str(init), "--distill", "1", "--teacher", str(no_planner)]) == 2
+    assert "teacher" in capsys.readouterr().err
+    out = tmp_path / "b"
+    assert main(base + ["--out", str(out), "--init-from", str(init), "--cut", "1", "--distill", "0.5",
+                        "--max-steps", "2"]) == 0
+    assert main(base + ["--out", str(out), "--resume", "--max-steps", "3"]) == 0
+    ck = load_file(out / "ckpt.pt")
+    recipes = [s["recipe"] for s in ck["state"]["sessions"]]
+    assert [r["distill"] for r in recipes] == [0.5, 0.5]
+    assert all(r["teacher"] == str(init.resolve()) for r in recipes)
+    assert not any("teacher" in k for k in ck["model"])
