@@ -158,13 +158,12 @@ def _init_config(args: argparse.Namespace) -> dict | None:
 
 def _teacher(args: argparse.Namespace, cfg) -> str | None:
     """The --distill teacher's path, checked: coarse weights of the same architecture and inputs."""
+    from hgca_core.errors import InputError
+
     if not args.distill:
         if args.teacher:
-            from hgca_core.errors import InputError
-
             raise InputError("--teacher names the weights --distill distils from: give --distill too", args.teacher)
         return None
-    from hgca_core.errors import InputError
     from hgca_core.models.weights import load_coarse
 
     if not args.cut or not cfg.free_space:

@@ -56,8 +56,9 @@ class CoarseLoss(nn.Module):
         self.frozen_bn = frozen_bn
         self.model = GCAKernel(cfg)
         self.distill = distill
-        # kept out of the module tree: the teacher is neither trained, checkpointed nor averaged
-        self._teacher = [teacher] if teacher is not None else []
+        # kept out of the module tree (neither trained, checkpointed nor averaged) and in eval mode: the trainer's
+        # train() calls never reach it
+        self._teacher = [teacher.eval().requires_grad_(False)] if teacher is not None and distill else []
 
     def train(self, mode: bool = True) -> "CoarseLoss":
         """With `frozen_bn`, every BatchNorm stays in eval mode whatever the trainer asks: it normalises by the
@@ -83,7 +84,7 @@ class CoarseLoss(nn.Module):
         weight = None
         stats = {}
         hard = target
-        if self.distill and self._teacher:
+        if self._teacher:
             target, stats["distilled"] = self._distilled(chains, nbhd, st, s0, grid, free, target)
         if self.free_weight and free is not None:
             # growth into what the rays saw through is the error real scans punish most (10-15 % of generated
@@ -93,7 +94,7 @@ class CoarseLoss(nn.Module):
             seen = (fs.at(seen_by, nbhd) & (hard == 0)).float()
             weight = 1.0 + self.free_weight * seen
             stats["seen_empty"] = float(seen.mean())
-            if self.distill and self._teacher:
+            if self._teacher:
                 target = target * (1.0 - seen)   # what the rays saw empty stays empty, whatever the teacher grows
         loss_gca = F.binary_cross_entropy_with_logits(logits, target, weight=weight)
         loss = loss_gca
@@ -128,7 +129,6 @@ class CoarseLoss(nn.Module):
         cut = torch.tensor([bool(c.extra.get("cut", False)) for c in chains], device=nbhd.device)[nbhd[:, 0]]
         if not bool(cut.any()):
             return target, 0.0
-        teacher.eval()
         b = len(chains)
         p = torch.sigmoid(teacher(nbhd, st, s0, grid, teacher.bev(s0, b, grid, free), free).float())
         mixed = (1.0 - self.distill) * target + self.distill * p
@@ -170,8 +170,6 @@ class CoarseTask:
             from hgca_core.models.weights import load_coarse
 
             teacher = copy.deepcopy(load_coarse(self.teacher)[0])   # its own copy: the cached one may be in use
-            for prm in teacher.parameters():
-                prm.requires_grad_(False)
         return CoarseLoss(self.cfg, self.free_weight, self.frozen_bn, self.distill, teacher)
 
     def new_example(self, rng: np.random.Generator) -> Chain:
