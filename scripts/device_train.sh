@@ -15,7 +15,8 @@
 # default 7), BATCH (chains per step, default 6, the paper's), LR, INIT (weights to start from), TURN (share of
 # inputs turned by a random yaw, default 0), FROZEN=1 (--frozen-bn: BatchNorm keeps INIT's running statistics),
 # CUT_FREE=1 (--cut-free-loss: the free-space weight also on what a cut input's uncut scan saw empty), DISTILL=MU
-# (--distill: cut inputs' targets move MU of the way to the probabilities of TEACHER, default INIT), DEVICE
+# (--distill: cut inputs' targets move MU of the way to the probabilities of TEACHER, default INIT), ABOVE=1
+# (--distill-above: only the cells at and above the cut move), DEVICE
 # (default cuda; cpu runs the same path here, as tests/test_device_script.py does).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -32,6 +33,7 @@ FLAGS=()
 [ "${CUT_FREE:-0}" = 1 ] && FLAGS+=(--cut-free-loss)
 [ "${DISTILL:-0}" != 0 ] && FLAGS+=(--distill "$DISTILL")
 [ -n "${TEACHER:-}" ] && FLAGS+=(--teacher "$TEACHER")
+[ "${ABOVE:-0}" = 1 ] && FLAGS+=(--distill-above)
 PY=${PY:-python3}
 RUN=${RUN:-/tmp/hgca_device_run}
 if [ -z "${DATA// /}" ]; then

@@ -36,7 +36,7 @@ def test_device_script_trains_on_packed_data_and_returns_the_weights(tiny_datase
     assert main(["synth", "--pack", str(tiny_dataset), "--out", str(packed)]) == 0
     out = tmp_path / "out"
     r = run_script({"DATA": str(packed), "OUT": str(out), "MINUTES": "0.05", "BATCH": "2",
-                    "FROZEN": "1", "CUT_FREE": "1", "DISTILL": "0.5",
+                    "FROZEN": "1", "CUT_FREE": "1", "DISTILL": "0.5", "ABOVE": "1",
                     "TEACHER": str(WEIGHTS_DIR / "coarse.pt")}, tmp_path)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert {p.name for p in out.iterdir()} >= {"coarse_gpu.pt", "curve.png", "history.json", "device_train.log"}
@@ -46,7 +46,7 @@ def test_device_script_trains_on_packed_data_and_returns_the_weights(tiny_datase
     assert history["step"] == meta["steps"] and history["sessions"][-1]["device"] == "cpu"
     recipe = history["sessions"][-1]["recipe"]
     assert recipe["free_weight"] == 8.0 and recipe["frozen_bn"] is True and recipe["cut_free_loss"] is True
-    assert recipe["distill"] == 0.5 and recipe["teacher"] == str(WEIGHTS_DIR / "coarse.pt")
+    assert recipe["distill"] == 0.5 and recipe["distill_above"] is True and recipe["teacher"] == str(WEIGHTS_DIR / "coarse.pt")
     assert any(h["kind"] == "val" for h in history["history"])
 
 

@@ -70,13 +70,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="coarse, with --cut: on cut inputs the target moves MU of the way from the ground truth to "
                         "the --teacher's probability (cells the rays saw empty stay empty), keeping the teacher's "
                         "restraint above a cut while whole inputs train on the ground truth (default 0)")
+    p.add_argument("--distill-above", action="store_true", default=None,
+                   help="with --distill: distil only the cells at and above the cut's layer; below it a cut input is "
+                        "whole and keeps the ground truth")
     p.add_argument("--teacher", default=None, metavar="WEIGHTS",
                    help="with --distill: coarse weights to distil from (default: the --init-from file)")
     p.add_argument("--precision", choices=("fp32", "bf16"), default=None,
                    help="GEMM precision of the sparse convs' forward and backward passes (bf16: float32 "
                         "accumulation, weights and optimiser; see benchmarks/results/train_precision.md; "
                         "default fp32). --resume keeps the run's last --focus, --free-weight, --cut, --turn, "
-                        "--frozen-bn, --distill, --teacher and --precision unless given again")
+                        "--frozen-bn, --distill, --distill-above, --teacher and --precision unless given again")
     p.add_argument("--crop", type=int, default=None,
                    help="training crop in the stage's cells (coarse: 20 cm, default 64; fine: 10 cm, default 64)")
     p.add_argument("--channels", default=None, help="coarse U-Net widths, e.g. 16,32,48,64,96")
@@ -111,6 +114,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 RECIPE_OPTIONS = {"focus": ("focus_share", 0.5), "free_weight": ("free_weight", 0.0), "cut": ("cut_share", 0.0),
                   "cut_free_loss": ("cut_free_loss", False), "turn": ("turn_share", 0.0),
                   "frozen_bn": ("frozen_bn", False), "distill": ("distill", 0.0), "teacher": ("teacher", None),
+                  "distill_above": ("distill_above", False),
                   "precision": ("precision", "fp32")}
 
 
@@ -163,6 +167,8 @@ def _teacher(args: argparse.Namespace, cfg) -> str | None:
     if not args.distill:
         if args.teacher:
             raise InputError("--teacher names the weights --distill distils from: give --distill too", args.teacher)
+        if args.distill_above:
+            raise InputError("--distill-above says where --distill acts: give --distill too")
         return None
     from hgca_core.models.weights import load_coarse
 
@@ -229,7 +235,7 @@ def build_task(args: argparse.Namespace, run_file: dict | None):
         return CoarseTask(args.data, cfg, crop=args.crop or 64, focus_share=args.focus,
                           free_weight=args.free_weight, cut_share=args.cut, cut_free_loss=bool(args.cut_free_loss),
                           turn_share=args.turn, frozen_bn=bool(args.frozen_bn), distill=args.distill,
-                          teacher=teacher)
+                          teacher=teacher, distill_above=bool(args.distill_above))
     if args.stage == "autoencoder":
         from hgca_core.models.autoencoder import AutoencoderConfig
         from hgca_core.training.fine import AutoencoderTask

@@ -28,13 +28,18 @@ from hgca_core.training.data import (coarse_pair, crop_flip, focus_cells, free_c
 CUT_HEIGHTS = (1.5, 3.0)  # m above the ground: `hgca eval-real` cuts real scans at 1.5 and 2 m
 
 
+def cut_layer(height: float) -> int:
+    """The first coarse cell layer (region z index) at or above a cut `height` m above the ground."""
+    return int(np.ceil((BELOW_GROUND + height) / COARSE - 1e-9))
+
+
 def height_cut(s0: np.ndarray, free: np.ndarray | None, height: float) -> tuple[np.ndarray, np.ndarray | None]:
     """An input cut `height` m above the region's ground (`BELOW_GROUND` in the region frame), as `hgca eval-real`
     cuts real scans to measure extrapolation: input cells whose bottom is at or above the cut go, and so does
     the seen-empty mark of the cells there (the rays to the cut-away points are gone; the rays to the kept
     points stay below the cut but for the few between it and a sensor mounted higher, which are left unknown).
     Trained on, it shows the model what a street holds above what the sensor saw, at its true rate."""
-    top = int(np.ceil((BELOW_GROUND + height) / COARSE - 1e-9))   # first cell layer at or above the cut
+    top = cut_layer(height)
     s0 = s0[s0[:, 2] < top]
     return s0, None if free is None else free[free[:, 2] < top]
 
@@ -49,13 +54,14 @@ class CoarseLoss(nn.Module):
     """Wraps the kernel so one forward computes the whole loss (what DDP must see) and the next states."""
 
     def __init__(self, cfg: GCAConfig, free_weight: float = 0.0, frozen_bn: bool = False, distill: float = 0.0,
-                 teacher: GCAKernel | None = None) -> None:
+                 teacher: GCAKernel | None = None, distill_above: bool = False) -> None:
         super().__init__()
         self.cfg = cfg
         self.free_weight = free_weight
         self.frozen_bn = frozen_bn
         self.model = GCAKernel(cfg)
         self.distill = distill
+        self.distill_above = distill_above
         # kept out of the module tree (neither trained, checkpointed nor averaged) and in eval mode: the trainer's
         # train() calls never reach it
         self._teacher = [teacher.eval().requires_grad_(False)] if teacher is not None and distill else []
@@ -122,11 +128,18 @@ class CoarseLoss(nn.Module):
         Why: every fine-tune on synthetic cuts learnt to grow more above a cut than the weights it started from,
         and on real scans more of that growth lands where the rays saw empty (benchmarks/results/recipe_s20-23):
         synthetic streets reward growth there that real ones do not hold. On cut inputs the teacher's
-        (the starting weights') restraint is kept instead, while whole inputs train on the ground truth."""
+        (the starting weights') restraint is kept instead, while whole inputs train on the ground truth. With
+        `distill_above` only the cells at and above the cut's layer move: below it the input is whole, and the
+        ground truth there keeps teaching what the synthetic test scores."""
         teacher = self._teacher[0]
         if next(teacher.parameters()).device != nbhd.device:
             teacher.to(nbhd.device)
-        cut = torch.tensor([bool(c.extra.get("cut", False)) for c in chains], device=nbhd.device)[nbhd[:, 0]]
+        layers = [int(c.extra["cut"]) if "cut" in c.extra else None for c in chains]   # each chain's cut layer
+        if self.distill_above:   # an uncut chain's "layer" lies above every cell
+            top = torch.tensor([l if l is not None else 1 << 30 for l in layers], device=nbhd.device)[nbhd[:, 0]]
+            cut = nbhd[:, 3] >= top
+        else:
+            cut = torch.tensor([l is not None for l in layers], device=nbhd.device)[nbhd[:, 0]]
         if not bool(cut.any()):
             return target, 0.0
         b = len(chains)
@@ -152,6 +165,7 @@ class CoarseTask:
     frozen_bn: bool = False   # BatchNorm normalises by the initial weights' running statistics (`CoarseLoss.train`)
     distill: float = 0.0      # on cut inputs the target moves this far to the teacher's probability (`CoarseLoss`)
     teacher: str | None = None  # coarse weights the cut inputs are distilled from (with distill > 0)
+    distill_above: bool = False  # distil only the cells at and above the cut's layer (`CoarseLoss._distilled`)
 
     def __post_init__(self) -> None:
         self.train_files = split_files(self.data_dir, "train")
@@ -160,7 +174,8 @@ class CoarseTask:
         """The training settings a session records beside its steps (the model card shows them)."""
         return {"crop": self.crop, "focus_share": self.focus_share, "free_weight": self.free_weight,
                 "cut_share": self.cut_share, "cut_free_loss": self.cut_free_loss, "turn_share": self.turn_share,
-                "frozen_bn": self.frozen_bn, "distill": self.distill, "teacher": self.teacher}
+                "frozen_bn": self.frozen_bn, "distill": self.distill, "teacher": self.teacher,
+                "distill_above": self.distill_above}
 
     def build(self) -> CoarseLoss:
         teacher = None
@@ -170,7 +185,7 @@ class CoarseTask:
             from hgca_core.models.weights import load_coarse
 
             teacher = copy.deepcopy(load_coarse(self.teacher)[0])   # its own copy: the cached one may be in use
-        return CoarseLoss(self.cfg, self.free_weight, self.frozen_bn, self.distill, teacher)
+        return CoarseLoss(self.cfg, self.free_weight, self.frozen_bn, self.distill, teacher, self.distill_above)
 
     def new_example(self, rng: np.random.Generator) -> Chain:
         path = self.train_files[int(rng.integers(len(self.train_files)))]
@@ -213,7 +228,7 @@ class CoarseTask:
             return cut, grid, None
         extra = {k: fs.from_cells(c, grid)[0] for k, c in zip(frees, cut[len(sets):])}
         if cut_height is not None:
-            extra["cut"] = True   # what `CoarseLoss` distils
+            extra["cut"] = cut_layer(cut_height)   # what `CoarseLoss` distils (crops keep z)
         return cut[: len(sets)], grid, extra
 
     def validate(self, loss_module: CoarseLoss, seed: int = 0) -> dict:
