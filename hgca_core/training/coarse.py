@@ -134,12 +134,10 @@ class CoarseLoss(nn.Module):
         teacher = self._teacher[0]
         if next(teacher.parameters()).device != nbhd.device:
             teacher.to(nbhd.device)
-        layers = [int(c.extra["cut"]) if "cut" in c.extra else None for c in chains]   # each chain's cut layer
-        if self.distill_above:   # an uncut chain's "layer" lies above every cell
-            top = torch.tensor([l if l is not None else 1 << 30 for l in layers], device=nbhd.device)[nbhd[:, 0]]
-            cut = nbhd[:, 3] >= top
-        else:
-            cut = torch.tensor([l is not None for l in layers], device=nbhd.device)[nbhd[:, 0]]
+        # each chain's lowest distilled layer: its cut layer with `distill_above`, else every cell of a cut chain;
+        # none of an uncut chain's
+        lowest = [(int(c.extra["cut"]) if self.distill_above else -1) if "cut" in c.extra else 1 << 30 for c in chains]
+        cut = nbhd[:, 3] >= torch.tensor(lowest, device=nbhd.device)[nbhd[:, 0]]
         if not bool(cut.any()):
             return target, 0.0
         b = len(chains)
