@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from hgca_core.io.digest import file_digest
 from hgca_core.cli import main
 from hgca_core.models.weights import WEIGHTS_DIR, load_file
 
@@ -47,6 +48,7 @@ def test_device_script_trains_on_packed_data_and_returns_the_weights(tiny_datase
     recipe = history["sessions"][-1]["recipe"]
     assert recipe["free_weight"] == 8.0 and recipe["frozen_bn"] is True and recipe["cut_free_loss"] is True
     assert recipe["distill"] == 0.5 and recipe["distill_above"] is True and recipe["teacher"] == str(WEIGHTS_DIR / "coarse.pt")
+    assert recipe["teacher_sha256"] == file_digest(WEIGHTS_DIR / "coarse.pt")
     assert any(h["kind"] == "val" for h in history["history"])
 
 

@@ -135,6 +135,8 @@ def resolve_recipe(args: argparse.Namespace, run_file: dict | None) -> dict:
     if args.resume and run_file is not None:
         sessions = (run_file.get("state") or {}).get("sessions") or [{}]
         last = {**sessions[-1].get("recipe", {}), "precision": sessions[-1].get("precision")}
+    # a teacher taken from the run must still be the file the run distilled from (`_teacher` checks)
+    args.teacher_sha256 = last.get("teacher_sha256") if args.teacher is None else None
     taken = {}
     for opt, (key, default) in RECIPE_OPTIONS.items():
         if getattr(args, opt) is None:
@@ -160,8 +162,10 @@ def _init_config(args: argparse.Namespace) -> dict | None:
     return config
 
 
-def _teacher(args: argparse.Namespace, cfg) -> str | None:
-    """The --distill teacher's path, checked: coarse weights of the same architecture and inputs."""
+def _teacher(args: argparse.Namespace, cfg) -> tuple[str, str] | None:
+    """The --distill teacher's path and sha256, checked: coarse weights of the same architecture and inputs and,
+    on a resume that takes the teacher from the run, the same file the run started with (shipping a fine-tune
+    overwrites the weights it was distilled from, and a resume must not quietly distil from the student)."""
     from hgca_core.errors import InputError
 
     if not args.distill:
@@ -170,6 +174,7 @@ def _teacher(args: argparse.Namespace, cfg) -> str | None:
         if args.distill_above:
             raise InputError("--distill-above says where --distill acts: give --distill too")
         return None
+    from hgca_core.io.digest import file_digest
     from hgca_core.models.weights import load_coarse
 
     if not args.cut or not cfg.free_space:
@@ -178,11 +183,17 @@ def _teacher(args: argparse.Namespace, cfg) -> str | None:
     path = args.teacher or args.init_from
     if not path:
         raise InputError("--distill needs a teacher: give --teacher WEIGHTS (or --init-from)")
+    recorded = getattr(args, "teacher_sha256", None)
+    digest = file_digest(path)
+    if recorded and digest != recorded:
+        raise InputError(f"the run distilled from this teacher when its sha256 was {recorded[:12]}; the file is "
+                         f"now {digest[:12]} (overwritten since?): restore it, or give --teacher again to distil "
+                         "from the file as it is", path)
     teacher = load_coarse(path)[0]
     if teacher.cfg.use_planner != cfg.use_planner or teacher.cfg.free_space != cfg.free_space:
         raise InputError("the --distill teacher must be a coarse model with the trained model's planner and "
                          "free-space inputs", path)
-    return str(Path(path).resolve())
+    return str(Path(path).resolve()), digest
 
 
 def build_task(args: argparse.Namespace, run_file: dict | None):
@@ -231,11 +242,11 @@ def build_task(args: argparse.Namespace, run_file: dict | None):
 
             raise InputError("--frozen-bn keeps the running statistics of the weights a run starts from: it needs "
                              "--init-from (or --resume of a run with a checkpoint)")
-        teacher = _teacher(args, cfg)
+        teacher, teacher_sha256 = _teacher(args, cfg) or (None, None)
         return CoarseTask(args.data, cfg, crop=args.crop or 64, focus_share=args.focus,
                           free_weight=args.free_weight, cut_share=args.cut, cut_free_loss=bool(args.cut_free_loss),
                           turn_share=args.turn, frozen_bn=bool(args.frozen_bn), distill=args.distill,
-                          teacher=teacher, distill_above=bool(args.distill_above))
+                          teacher=teacher, teacher_sha256=teacher_sha256, distill_above=bool(args.distill_above))
     if args.stage == "autoencoder":
         from hgca_core.models.autoencoder import AutoencoderConfig
         from hgca_core.training.fine import AutoencoderTask

@@ -24,7 +24,8 @@ from hgca_core.tiling.merge import merge_sample, write_piece
 from hgca_core.tiling.inputs import DriveScan, read_drive_inputs
 from hgca_core.tiling.plan import MIN_OVERLAP, TilePlan, neighbours, plan_tiles, tile_region
 from hgca_core.tiling.store import DriveStore
-from hgca_core.tiling.tile import Settings, TileJob, cells_of, file_digest, weight_files
+from hgca_core.io.digest import file_digest
+from hgca_core.tiling.tile import Settings, TileJob, cells_of, weight_files
 
 MESH_FORMATS = ("ply", "glb", "obj", "npz")
 Report = Callable[[str, int, int, str, int], None]   # (stage, step, total, message, sample): pipeline.ProgressFn

@@ -15,7 +15,6 @@ import resource
 import socket
 import time
 from dataclasses import asdict, dataclass
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +22,7 @@ import numpy as np
 from hgca_core.errors import InputError
 from hgca_core.geometry.region import Region
 from hgca_core.geometry.voxel import COARSE, cell_centers, voxelize
+from hgca_core.io.digest import file_digest
 
 KEY_VERSION = 3   # bump when the same key would give different content (a change to this algorithm)
 
@@ -84,23 +84,6 @@ def weight_files(stage: str, weights: str | None, fine_weights: str | None) -> l
     return files
 
 
-def file_digest(path: str | os.PathLike) -> str:
-    """sha256 of a file, cached per (path, mtime, size) so a worker hashes its weights once."""
-    p = Path(path)
-    try:
-        st = p.stat()
-    except OSError:
-        raise InputError("file not found", str(p)) from None
-    return _digest(str(p.resolve()), st.st_mtime_ns, st.st_size)
-
-
-@lru_cache(maxsize=16)
-def _digest(path: str, mtime: int, size: int) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def transfer_cells(cells: np.ndarray, source: Region, target: Region) -> np.ndarray:

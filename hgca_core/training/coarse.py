@@ -163,6 +163,7 @@ class CoarseTask:
     frozen_bn: bool = False   # BatchNorm normalises by the initial weights' running statistics (`CoarseLoss.train`)
     distill: float = 0.0      # on cut inputs the target moves this far to the teacher's probability (`CoarseLoss`)
     teacher: str | None = None  # coarse weights the cut inputs are distilled from (with distill > 0)
+    teacher_sha256: str | None = None  # the teacher file's digest when the run started: a resume checks it
     distill_above: bool = False  # distil only the cells at and above the cut's layer (`CoarseLoss._distilled`)
 
     def __post_init__(self) -> None:
@@ -173,7 +174,7 @@ class CoarseTask:
         return {"crop": self.crop, "focus_share": self.focus_share, "free_weight": self.free_weight,
                 "cut_share": self.cut_share, "cut_free_loss": self.cut_free_loss, "turn_share": self.turn_share,
                 "frozen_bn": self.frozen_bn, "distill": self.distill, "teacher": self.teacher,
-                "distill_above": self.distill_above}
+                "teacher_sha256": self.teacher_sha256, "distill_above": self.distill_above}
 
     def build(self) -> CoarseLoss:
         teacher = None

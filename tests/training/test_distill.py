@@ -128,3 +128,30 @@ def test_distill_options_need_a_cut_a_teacher_and_are_kept_on_resume(dataset, tm
     assert [(r["distill"], r["distill_above"]) for r in recipes] == [(0.5, True), (0.5, True)]
     assert all(r["teacher"] == str(init.resolve()) for r in recipes)
     assert not any("teacher" in k for k in ck["model"])
+
+
+def test_a_resume_refuses_a_teacher_overwritten_since_the_run_started(dataset, tmp_path, capsys):
+    """Shipping a fine-tune overwrites the weights it distilled from: a resume that takes the teacher's path from
+    the run must notice (exit 2, checkpoint untouched), and distils from the new file only when told to."""
+    from hgca_core.io.digest import file_digest
+
+    base = BASE + ["--data", str(dataset)]
+    teacher = tmp_path / "teacher.pt"
+    assert main(base + ["--out", str(tmp_path / "a"), "--free-space", "--max-steps", "1", "--export",
+                        str(teacher)]) == 0
+    first = file_digest(teacher)
+    out = tmp_path / "b"
+    assert main(base + ["--out", str(out), "--init-from", str(teacher), "--cut", "1", "--distill", "1",
+                        "--max-steps", "1"]) == 0
+    assert load_file(out / "ckpt.pt")["state"]["sessions"][0]["recipe"]["teacher_sha256"] == first
+    assert main(base + ["--out", str(out), "--minutes", "0", "--export", str(teacher)]) == 0   # the student shipped
+    assert file_digest(teacher) != first
+    before = (out / "ckpt.pt").read_bytes()
+    capsys.readouterr()
+    assert main(base + ["--out", str(out), "--resume", "--max-steps", "2"]) == 2
+    err = capsys.readouterr().err
+    assert str(teacher) in err and first[:12] in err and "--teacher" in err
+    assert (out / "ckpt.pt").read_bytes() == before
+    assert main(base + ["--out", str(out), "--resume", "--max-steps", "2", "--teacher", str(teacher)]) == 0
+    sessions = load_file(out / "ckpt.pt")["state"]["sessions"]
+    assert [s["recipe"]["teacher_sha256"] for s in sessions] == [first, file_digest(teacher)]

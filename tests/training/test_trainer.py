@@ -96,7 +96,8 @@ def test_run_record_names_the_device_used(tiny_dataset, tmp_path):
     assert ses["device"] == "cpu" and ses["device_name"] == cpu_name() and ses["device_name"]
     assert ses["recipe"] == {"crop": _task(tiny_dataset, planner=False).crop, "focus_share": 0.0, "free_weight": 0.0,
                              "cut_share": 0.0, "cut_free_loss": False, "turn_share": 0.0,
-                             "frozen_bn": False, "distill": 0.0, "teacher": None, "distill_above": False}
+                             "frozen_bn": False, "distill": 0.0, "teacher": None, "teacher_sha256": None,
+                             "distill_above": False}
     from hgca_core.errors import InputError
 
     with pytest.raises(InputError, match="--device must be cpu, cuda or cuda:N"):
