@@ -155,3 +155,10 @@ def test_a_resume_refuses_a_teacher_overwritten_since_the_run_started(dataset, t
     assert main(base + ["--out", str(out), "--resume", "--max-steps", "2", "--teacher", str(teacher)]) == 0
     sessions = load_file(out / "ckpt.pt")["state"]["sessions"]
     assert [s["recipe"]["teacher_sha256"] for s in sessions] == [first, file_digest(teacher)]
+    from hgca_core.training.card import write_model_card
+
+    shipped = tmp_path / "weights"                     # the card names each session's teacher by its digest
+    shipped.mkdir()
+    assert main(base + ["--out", str(out), "--minutes", "0", "--export", str(shipped / "coarse.pt")]) == 0
+    card = write_model_card(shipped).read_text()
+    assert f"teacher sha256 {first}" in card and f"teacher sha256 {file_digest(teacher)}" in card
