@@ -20,11 +20,11 @@ import numpy as np
 
 from hgca_core.errors import InputError
 from hgca_core.geometry.region import DEFAULT_SIZE, Region
+from hgca_core.io.digest import file_digest
 from hgca_core.tiling.merge import merge_sample, write_piece
 from hgca_core.tiling.inputs import DriveScan, read_drive_inputs
 from hgca_core.tiling.plan import MIN_OVERLAP, TilePlan, neighbours, plan_tiles, tile_region
 from hgca_core.tiling.store import DriveStore
-from hgca_core.io.digest import file_digest
 from hgca_core.tiling.tile import Settings, TileJob, cells_of, weight_files
 
 MESH_FORMATS = ("ply", "glb", "obj", "npz")

@@ -84,8 +84,6 @@ def weight_files(stage: str, weights: str | None, fine_weights: str | None) -> l
     return files
 
 
-
-
 def transfer_cells(cells: np.ndarray, source: Region, target: Region) -> np.ndarray:
     """20 cm cells of `source`'s frame -> the 20 cm cells of `target`'s frame their centres fall in (only those
     inside `target`'s grid, i.e. in the overlap). One cell each: consecutive tiles' grids differ by a fraction of
