@@ -2,22 +2,27 @@
 # Train the coarse stage on a lent GPU in one call of the `device` tool (the session's GPU minutes are few: one
 # prepared call, no set-up there). The GPU machine has python3 with torch, numpy, scipy, matplotlib and tqdm but
 # neither Embree nor trimesh, and sees only this repository plus what `carry` names, 64 MiB in all, so the data
-# travels packed (hgca_core/training/packed.py, ~60 kB a scene):
+# travels packed (hgca_core/training/packed.py, ~50 kB a scene):
 #
 #   here:  hgca synth --pack /work/data/synth7f --out gpu_data/synth7f          (gpu_data/ is git-ignored)
-#          du -sh gpu_data; git ls-files -z | xargs -0 du -cb | tail -1          (the two under 64 MiB together)
+#          du -sb gpu_data; git ls-files -z | xargs -0 du -cb | tail -1         (the two under 64 MiB together)
 #   there: run(command="bash scripts/device_train.sh", carry=["gpu_data"], timeout_s=600)
 #
-# What comes back in $OUT: coarse_gpu.pt (the EMA weights with their training record: continue with
-# `hgca train coarse --init-from`, compare with benchmarks/val_cut.py and `hgca eval-real`), curve.png, the
-# run's history (history.json) and the log. Settings by environment: DATA (packed folders, space-separated;
-# default every folder in gpu_data/, validation on the first one's val split), MINUTES (training budget,
-# default 7), BATCH (chains per step, default 6, the paper's), LR, INIT (weights to start from), TURN (share of
-# inputs turned by a random yaw, default 0), FROZEN=1 (--frozen-bn: BatchNorm keeps INIT's running statistics),
-# CUT_FREE=1 (--cut-free-loss: the free-space weight also on what a cut input's uncut scan saw empty), DISTILL=MU
-# (--distill: cut inputs' targets move MU of the way to the probabilities of TEACHER, default INIT), ABOVE=1
-# (--distill-above: only the cells at and above the cut move), DEVICE
-# (default cuda; cpu runs the same path here, as tests/test_device_script.py does).
+# Several runs share the one GPU in a call (three bf16 runs at batch 6 kept an H200 99 % busy with 2 GB each in
+# session 27): VARIANTS="e:DISTILL=1,CUT_FREE=1 n:DISTILL=1 p" trains three side by side, each `name` or
+# `name:KEY=V,...` with KEY one of the settings below; the default is one run named coarse_gpu. What comes back in
+# $OUT, two files a run (the device tool returns at most 8 files, so at most 3 runs): <name>.pt (the EMA weights
+# with their training record: continue with `hgca train coarse --init-from`, compare with benchmarks/val_cut.py
+# and `hgca eval-real`) and <name>.history.json, beside device_train.log (every run's lines, prefixed [name]) and
+# curves.png. Settings by environment, for every run unless its variant overrides them: DATA (packed folders,
+# space-separated; default every folder in gpu_data/, validation on the first one's val split), MINUTES
+# (training budget, default 7), BATCH (chains per step, default 6, the paper's), LR, INIT (weights to start
+# from), TURN (share of inputs turned by a random yaw, default 0), FROZEN=1 (--frozen-bn: BatchNorm keeps INIT's
+# running statistics), CUT_FREE=1 (--cut-free-loss: the free-space weight also on what a cut input's uncut scan
+# saw empty), DISTILL=MU (--distill: cut inputs' targets move MU of the way to the probabilities of TEACHER,
+# default INIT), ABOVE=1 (--distill-above: only the cells at and above the cut move); and for the call: DEVICE
+# (default cuda; cpu runs the same path here, as tests/test_device_script.py does), THREADS (CPU threads a run,
+# default the cores shared out), RUN (the runs' checkpoint folders, default /tmp/hgca_device_run/<name>).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:?set OUT to the folder that comes back}
@@ -28,22 +33,56 @@ LR=${LR:-1.5e-4}
 TURN=${TURN:-0}
 INIT=${INIT:-hgca_core/weights/coarse.pt}
 DATA=${DATA:-$(find gpu_data -mindepth 1 -maxdepth 1 -type d 2>/dev/null | sort | tr '\n' ' ')}
-FLAGS=()
-[ "${FROZEN:-0}" = 1 ] && FLAGS+=(--frozen-bn)
-[ "${CUT_FREE:-0}" = 1 ] && FLAGS+=(--cut-free-loss)
-[ "${DISTILL:-0}" != 0 ] && FLAGS+=(--distill "$DISTILL")
-[ -n "${TEACHER:-}" ] && FLAGS+=(--teacher "$TEACHER")
-[ "${ABOVE:-0}" = 1 ] && FLAGS+=(--distill-above)
+VARIANTS=${VARIANTS:-coarse_gpu}
 PY=${PY:-python3}
 RUN=${RUN:-/tmp/hgca_device_run}
-if [ -z "${DATA// /}" ]; then
-  echo "device_train: no packed data: pack a dataset into gpu_data/<name> and carry gpu_data" >&2
-  exit 2
-fi
+KEYS=" MINUTES BATCH LR TURN INIT FROZEN CUT_FREE DISTILL TEACHER ABOVE "
+fail() { echo "device_train: $*" >&2; exit 2; }
+[ -n "${DATA// /}" ] || fail "no packed data: pack a dataset into gpu_data/<name> and carry gpu_data"
+read -r -a RUNS <<< "$VARIANTS"
+[ "${#RUNS[@]}" -le 3 ] || fail "VARIANTS names ${#RUNS[@]} runs; at most 3 fit the device tool's 8 returned files"
+NAMES=()
+for v in "${RUNS[@]}"; do
+  name=${v%%:*}
+  if ! [[ $name =~ ^[A-Za-z0-9_-]+$ ]] || [[ " ${NAMES[*]-} " == *" $name "* ]]; then
+    fail "variant name '$name' in VARIANTS is empty, repeated or not made of letters, digits, _ and -"
+  fi
+  if [[ $v == *:* ]]; then
+    IFS=, read -r -a kv <<< "${v#*:}"
+    for a in "${kv[@]}"; do
+      [[ $a == *=* && $KEYS == *" ${a%%=*} "* ]] || fail "'$a' in variant '$name': expected KEY=V, KEY one of$KEYS"
+    done
+  fi
+  NAMES+=("$name")
+done
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
-mkdir -p "$OUT" "$RUN"
+SHARE=$(( $(nproc) / ${#RUNS[@]} ))
+export OMP_NUM_THREADS=${THREADS:-$(( SHARE > 0 ? SHARE : 1 ))}
+mkdir -p "$OUT"
+
+train_one() {  # one variant; called in a subshell, so its settings stay its own
+  local name=${1%%:*} a kv=() flags=()
+  if [[ $1 == *:* ]]; then
+    IFS=, read -r -a kv <<< "${1#*:}"
+    for a in "${kv[@]}"; do export "${a%%=*}=${a#*=}"; done
+  fi
+  [ "${FROZEN:-0}" = 1 ] && flags+=(--frozen-bn)
+  [ "${CUT_FREE:-0}" = 1 ] && flags+=(--cut-free-loss)
+  [ "${DISTILL:-0}" != 0 ] && flags+=(--distill "$DISTILL")
+  [ -n "${TEACHER:-}" ] && flags+=(--teacher "$TEACHER")
+  [ "${ABOVE:-0}" = 1 ] && flags+=(--distill-above)
+  mkdir -p "$RUN/$name"
+  # shellcheck disable=SC2086  # DATA is a list of folders
+  "$PY" -m hgca_core.cli train coarse --data $DATA --out "$RUN/$name" --device "$DEVICE" --batch "$BATCH" \
+    --minutes "$MINUTES" --init-from "$INIT" --free-space --free-weight 8 --cut 0.5 --focus 0.5 --lr "$LR" \
+    --turn "$TURN" --precision bf16 --val-every "$MINUTES" --no-progress --export "$OUT/$name.pt" \
+    ${flags[@]+"${flags[@]}"} 2>&1 | sed -u "s/^/[$name] /"
+  return "${PIPESTATUS[0]}"
+}
+
 {
   echo "data: $DATA"
+  echo "runs: ${RUNS[*]} ($OMP_NUM_THREADS CPU threads each)"
   "$PY" - "$DEVICE" <<'EOF'
 import sys, torch, numpy
 dev = sys.argv[1]
@@ -51,18 +90,32 @@ print("torch", torch.__version__, "numpy", numpy.__version__, "cuda", torch.vers
 if dev.startswith("cuda"):
     print("gpu", torch.cuda.get_device_name(0), "bf16", torch.cuda.is_bf16_supported())
 EOF
-  # shellcheck disable=SC2086  # DATA is a list of folders
-  "$PY" -m hgca_core.cli train coarse --data $DATA --out "$RUN" --device "$DEVICE" --batch "$BATCH" \
-    --minutes "$MINUTES" --init-from "$INIT" --free-space --free-weight 8 --cut 0.5 --focus 0.5 --lr "$LR" \
-    --turn "$TURN" --precision bf16 --val-every "$MINUTES" --no-progress --export "$OUT/coarse_gpu.pt" ${FLAGS[@]+"${FLAGS[@]}"}
-} 2>&1 | tee "$OUT/device_train.log"
-cp "$RUN/curve.png" "$OUT/" 2>/dev/null || true
-"$PY" - "$RUN/ckpt.pt" "$OUT/history.json" <<'EOF'
-import json, sys, torch
-ck = torch.load(sys.argv[1], map_location="cpu", weights_only=True)
-st = ck["state"]
-json.dump({"step": st["step"], "elapsed_s": st["elapsed_s"], "sessions": st["sessions"],
-           "history": st["history"]}, open(sys.argv[2], "w"), indent=1)
-steps = [h["step_s"] for h in st["history"] if h.get("kind") == "train" and "step_s" in h]
-print(f"steps {st['step']}, step time (mean of 10-step means) {sum(steps) / max(len(steps), 1):.3f} s")
+  pids=()
+  for v in "${RUNS[@]}"; do ( train_one "$v" ) & pids+=($!); done
+  rc=0
+  for p in "${pids[@]}"; do wait "$p" || rc=$?; done
+  "$PY" - "$RUN" "$OUT" "$DEVICE" "${NAMES[@]}" <<'EOF'
+import json, sys
+from pathlib import Path
+import torch
+from hgca_core.training.trainer import plot_histories
+run, out, device, names = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], sys.argv[4:]
+runs = {}
+for name in names:
+    ck = run / name / "ckpt.pt"
+    if not ck.exists():
+        print(f"[{name}] no checkpoint: the run failed before its first save")
+        continue
+    st = torch.load(ck, map_location="cpu", weights_only=True)["state"]
+    record = {"step": st["step"], "elapsed_s": st["elapsed_s"], "sessions": st["sessions"], "history": st["history"]}
+    (out / f"{name}.history.json").write_text(json.dumps(record, indent=1))
+    runs[name] = st["history"]
+    steps = [h["step_s"] for h in st["history"] if h.get("kind") == "train" and "step_s" in h]
+    print(f"[{name}] steps {st['step']}, step time (mean of 10-step means) {sum(steps) / max(len(steps), 1):.3f} s")
+if runs:
+    where = torch.cuda.get_device_name(0) if device.startswith("cuda") else "cpu"
+    plot_histories(runs, out / "curves.png", f"coarse, {where}")
 EOF
+  exit "$rc"
+} 2>&1 | tee "$OUT/device_train.log"
+exit "${PIPESTATUS[0]}"

@@ -40,16 +40,48 @@ def test_device_script_trains_on_packed_data_and_returns_the_weights(tiny_datase
                     "FROZEN": "1", "CUT_FREE": "1", "DISTILL": "0.5", "ABOVE": "1",
                     "TEACHER": str(WEIGHTS_DIR / "coarse.pt")}, tmp_path)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
-    assert {p.name for p in out.iterdir()} >= {"coarse_gpu.pt", "curve.png", "history.json", "device_train.log"}
+    assert {p.name for p in out.iterdir()} == {"coarse_gpu.pt", "coarse_gpu.history.json", "curves.png",
+                                               "device_train.log"}
     meta = load_file(out / "coarse_gpu.pt")["meta"]
     assert meta["steps"] > 0 and str(packed) in meta["data"]
-    history = json.loads((out / "history.json").read_text())
+    history = json.loads((out / "coarse_gpu.history.json").read_text())
     assert history["step"] == meta["steps"] and history["sessions"][-1]["device"] == "cpu"
     recipe = history["sessions"][-1]["recipe"]
     assert recipe["free_weight"] == 8.0 and recipe["frozen_bn"] is True and recipe["cut_free_loss"] is True
     assert recipe["distill"] == 0.5 and recipe["distill_above"] is True and recipe["teacher"] == str(WEIGHTS_DIR / "coarse.pt")
     assert recipe["teacher_sha256"] == file_digest(WEIGHTS_DIR / "coarse.pt")
     assert any(h["kind"] == "val" for h in history["history"])
+    assert "[coarse_gpu] " in (out / "device_train.log").read_text()
+
+
+def test_device_script_trains_variants_side_by_side_each_with_its_own_settings(tiny_dataset, tmp_path):
+    """Runs in one call share the GPU; a variant's settings must reach its run alone, and the files that come back
+    stay within the device tool's 8."""
+    packed = tmp_path / "gpu_data" / "tiny"
+    assert main(["synth", "--pack", str(tiny_dataset), "--out", str(packed)]) == 0
+    out = tmp_path / "out"
+    r = run_script({"DATA": str(packed), "OUT": str(out), "MINUTES": "0.05", "BATCH": "2", "CUT_FREE": "1",
+                    "VARIANTS": "d:DISTILL=0.5,ABOVE=1,LR=3e-4 plain"}, tmp_path)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert {p.name for p in out.iterdir()} == {"d.pt", "d.history.json", "plain.pt", "plain.history.json",
+                                               "curves.png", "device_train.log"}
+    sd = json.loads((out / "d.history.json").read_text())["sessions"][-1]
+    sp = json.loads((out / "plain.history.json").read_text())["sessions"][-1]
+    rd, rp = sd["recipe"], sp["recipe"]
+    assert rd["distill"] == 0.5 and rd["distill_above"] is True and sd["lr"] == 3e-4
+    assert rp["distill"] == 0 and rp["distill_above"] is False and sp["lr"] == 1.5e-4
+    assert rd["cut_free_loss"] is True and rp["cut_free_loss"] is True  # the shared setting reaches both
+    assert load_file(out / "d.pt")["meta"]["steps"] > 0 and load_file(out / "plain.pt")["meta"]["steps"] > 0
+
+
+@pytest.mark.parametrize("variants, says", [("a b c d", "at most 3"), ("a:DISTIL=1", "'DISTIL=1' in variant 'a'"),
+                                            ("a a", "repeated"), ("a/b", "not made of")])
+def test_device_script_refuses_variants_it_cannot_run_or_return(variants, says, tmp_path):
+    packed = tmp_path / "gpu_data" / "empty"
+    packed.mkdir(parents=True)
+    r = run_script({"DATA": str(packed), "OUT": str(tmp_path / "out"), "VARIANTS": variants}, tmp_path)
+    assert r.returncode == 2 and says in r.stderr, r.stderr
+    assert not (tmp_path / "out").exists()
 
 
 def test_device_script_without_packed_data_says_so(tmp_path):

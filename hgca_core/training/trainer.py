@@ -329,21 +329,31 @@ def _cpu(x: Any) -> Any:
 
 def plot_history(history: list[dict], path: Path, title: str) -> None:
     """Loss and validation IoU against steps, one PNG, so progress across sessions is visible."""
+    plot_histories({title: history}, path, title)
+
+
+def plot_histories(runs: dict[str, list[dict]], path: Path, title: str) -> None:
+    """Several runs' loss and validation curves on shared axes (runs trained side by side on one GPU)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    tr = [h for h in history if h["kind"] == "train"]
-    va = [h for h in history if h["kind"] == "val"]
     fig, ax = plt.subplots(1, 2, figsize=(10, 4))
-    if tr:
-        ax[0].plot([h["step"] for h in tr], [h["loss"] for h in tr], lw=1)
+    key = None
+    for name, history in runs.items():
+        tr = [h for h in history if h["kind"] == "train"]
+        va = [h for h in history if h["kind"] == "val"]
+        label = name if len(runs) > 1 else None
+        if tr:
+            ax[0].plot([h["step"] for h in tr], [h["loss"] for h in tr], lw=1, label=label)
+        key = key or next((k for k in ("val_iou", "val_cd") if va and k in va[0]), None)
+        if key and va:
+            ax[1].plot([h["step"] for h in va], [h.get(key, float("nan")) for h in va], "o-", label=label)
     ax[0].set(xlabel="step", ylabel="training loss", title=f"{title}: loss")
-    key = next((k for k in ("val_iou", "val_cd") if va and k in va[0]), None)
-    if key:
-        ax[1].plot([h["step"] for h in va], [h[key] for h in va], "o-")
     ax[1].set(xlabel="step", ylabel=key or "validation", title=f"{title}: validation")
+    if len(runs) > 1:
+        ax[1].legend()
     fig.tight_layout()
     atomic_write(path, lambda f: fig.savefig(f, dpi=80, format="png"))
     plt.close(fig)
