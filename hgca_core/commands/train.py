@@ -127,16 +127,19 @@ def _run_file(args: argparse.Namespace, ckpt: Path) -> dict | None:
     return load_file(ckpt)
 
 
+def _last_recipe(args: argparse.Namespace, run_file: dict | None) -> dict:
+    """What the resumed run's last session trained with (empty for a new run)."""
+    if not (args.resume and run_file is not None):
+        return {}
+    sessions = (run_file.get("state") or {}).get("sessions") or [{}]
+    return {**sessions[-1].get("recipe", {}), "precision": sessions[-1].get("precision")}
+
+
 def resolve_recipe(args: argparse.Namespace, run_file: dict | None) -> dict:
     """Fill the recipe options left out: a resumed run keeps what its last session trained with (so leaving an
     option out of a resume command does not change the recipe), a new run takes the defaults. Returns the
     options taken from the run."""
-    last: dict = {}
-    if args.resume and run_file is not None:
-        sessions = (run_file.get("state") or {}).get("sessions") or [{}]
-        last = {**sessions[-1].get("recipe", {}), "precision": sessions[-1].get("precision")}
-    # a teacher taken from the run must still be the file the run distilled from (`_teacher` checks)
-    args.teacher_sha256 = last.get("teacher_sha256") if args.teacher is None else None
+    last = _last_recipe(args, run_file)
     taken = {}
     for opt, (key, default) in RECIPE_OPTIONS.items():
         if getattr(args, opt) is None:
@@ -162,10 +165,11 @@ def _init_config(args: argparse.Namespace) -> dict | None:
     return config
 
 
-def _teacher(args: argparse.Namespace, cfg) -> tuple[str, str] | None:
+def _teacher(args: argparse.Namespace, cfg, recorded: str | None) -> tuple[str, str] | None:
     """The --distill teacher's path and sha256, checked: coarse weights of the same architecture and inputs and,
-    on a resume that takes the teacher from the run, the same file the run started with (shipping a fine-tune
-    overwrites the weights it was distilled from, and a resume must not quietly distil from the student)."""
+    on a resume that takes the teacher from the run, the same file the run started with, `recorded` its digest
+    then (shipping a fine-tune overwrites the weights it was distilled from, and a resume must not quietly distil
+    from the student)."""
     from hgca_core.errors import InputError
 
     if not args.distill:
@@ -183,7 +187,6 @@ def _teacher(args: argparse.Namespace, cfg) -> tuple[str, str] | None:
     path = args.teacher or args.init_from
     if not path:
         raise InputError("--distill needs a teacher: give --teacher WEIGHTS (or --init-from)")
-    recorded = getattr(args, "teacher_sha256", None)
     digest = file_digest(path)
     if recorded and digest != recorded:
         raise InputError(f"the run distilled from this teacher when its sha256 was {recorded[:12]}; the file is "
@@ -196,10 +199,10 @@ def _teacher(args: argparse.Namespace, cfg) -> tuple[str, str] | None:
     return str(Path(path).resolve()), digest
 
 
-def build_task(args: argparse.Namespace, run_file: dict | None):
+def build_task(args: argparse.Namespace, run_file: dict | None, teacher_sha256: str | None = None):
     """The task for the stage; a resumed run (and an export without training) keeps the architecture the run
     was started with, a run started --init-from takes the file's architecture (with --free-space switched on when
-    asked)."""
+    asked). `teacher_sha256`: the digest a resumed run recorded for the teacher it takes from the run."""
     saved = run_file["config"] if run_file is not None else None
     init = None if saved else _init_config(args)
     free = bool(getattr(args, "free_space", False))
@@ -242,7 +245,7 @@ def build_task(args: argparse.Namespace, run_file: dict | None):
 
             raise InputError("--frozen-bn keeps the running statistics of the weights a run starts from: it needs "
                              "--init-from (or --resume of a run with a checkpoint)")
-        teacher, teacher_sha256 = _teacher(args, cfg) or (None, None)
+        teacher, teacher_sha256 = _teacher(args, cfg, teacher_sha256) or (None, None)
         return CoarseTask(args.data, cfg, crop=args.crop or 64, focus_share=args.focus,
                           free_weight=args.free_weight, cut_share=args.cut, cut_free_loss=bool(args.cut_free_loss),
                           turn_share=args.turn, frozen_bn=bool(args.frozen_bn), distill=args.distill,
@@ -297,7 +300,9 @@ def run(args: argparse.Namespace) -> int:
             flag = f"--{k.replace('_', '-')}"
             said.append((flag if v else f"no {flag}") if isinstance(v, bool) else f"{flag} {v}")
         print("resuming with the run's " + ", ".join(said), file=sys.stderr)
-    task = build_task(args, run_file)
+    # a teacher taken from the run must still be the file the run distilled from (`_teacher` checks)
+    recorded = _last_recipe(args, run_file).get("teacher_sha256") if "teacher" in taken else None
+    task = build_task(args, run_file, teacher_sha256=recorded)
     del run_file   # the trainer reads the checkpoint itself (optimiser, chains)
     if args.minutes > 0 or args.max_steps:
         state = train(task, out, args.minutes, resume=args.resume, batch=args.batch, buffer_size=args.buffer,
