@@ -61,7 +61,7 @@ def test_device_script_trains_variants_side_by_side_each_with_its_own_settings(t
     assert main(["synth", "--pack", str(tiny_dataset), "--out", str(packed)]) == 0
     out = tmp_path / "out"
     r = run_script({"DATA": str(packed), "OUT": str(out), "MINUTES": "0.05", "BATCH": "2", "CUT_FREE": "1",
-                    "VARIANTS": "d:DISTILL=0.5,ABOVE=1,LR=3e-4 plain"}, tmp_path)
+                    "VARIANTS": "d:DISTILL=0.5,ABOVE=1,LR=3e-4,BATCH=3 plain"}, tmp_path)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert {p.name for p in out.iterdir()} == {"d.pt", "d.history.json", "plain.pt", "plain.history.json",
                                                "curves.png", "device_train.log"}
@@ -70,6 +70,7 @@ def test_device_script_trains_variants_side_by_side_each_with_its_own_settings(t
     rd, rp = sd["recipe"], sp["recipe"]
     assert rd["distill"] == 0.5 and rd["distill_above"] is True and sd["lr"] == 3e-4
     assert rp["distill"] == 0 and rp["distill_above"] is False and sp["lr"] == 1.5e-4
+    assert sd["batch"] == 3 and sp["batch"] == 2
     assert rd["cut_free_loss"] is True and rp["cut_free_loss"] is True  # the shared setting reaches both
     assert load_file(out / "d.pt")["meta"]["steps"] > 0 and load_file(out / "plain.pt")["meta"]["steps"] > 0
 

@@ -114,6 +114,7 @@ def _session(s: dict) -> str:
             f"{' (' + hardware + ')' if hardware else ''}, {s['threads']} thread(s), "
             f"world size {s['world_size']}, {s.get('precision', 'fp32')} GEMMs"
             + (f", learning rate {s['lr']:g}" if "lr" in s else "")
+            + (f", {s['batch']} chains a step" if "batch" in s else "")   # recorded from session 27 on
             + "".join(f", {k.replace('_', ' ')} {v}" for k, v in s.get("recipe", {}).items()))
 
 

@@ -306,7 +306,7 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
                               "wall_s": round(time.time() - session_start, 1), "world_size": world,
                               "device": dev.type, "device_name": device_name(dev), "cpu": cpu_name(),
                               "threads": torch.get_num_threads(), "precision": precision,
-                              "lr": optim.param_groups[0]["lr"],
+                              "lr": optim.param_groups[0]["lr"], "batch": batch,
                               "train_samples": [Path(f).name for f in train_files],
                               "train_folders": sorted({str(Path(f).parents[1]) for f in train_files}),
                               "recipe": dict(getattr(task, "recipe", lambda: {})())})
