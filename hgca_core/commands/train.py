@@ -135,11 +135,10 @@ def _last_recipe(args: argparse.Namespace, run_file: dict | None) -> dict:
     return {**sessions[-1].get("recipe", {}), "precision": sessions[-1].get("precision")}
 
 
-def resolve_recipe(args: argparse.Namespace, run_file: dict | None) -> dict:
-    """Fill the recipe options left out: a resumed run keeps what its last session trained with (so leaving an
-    option out of a resume command does not change the recipe), a new run takes the defaults. Returns the
-    options taken from the run."""
-    last = _last_recipe(args, run_file)
+def resolve_recipe(args: argparse.Namespace, last: dict) -> dict:
+    """Fill the recipe options left out: a resumed run keeps what its last session trained with (`last`, so
+    leaving an option out of a resume command does not change the recipe), a new run takes the defaults. Returns
+    the options taken from the run."""
     taken = {}
     for opt, (key, default) in RECIPE_OPTIONS.items():
         if getattr(args, opt) is None:
@@ -293,7 +292,8 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out or f"runs/{args.stage.replace('-', '_')}")
     ckpt = out / "ckpt.pt"
     run_file = _run_file(args, ckpt)
-    taken = resolve_recipe(args, run_file)
+    last = _last_recipe(args, run_file)
+    taken = resolve_recipe(args, last)
     if taken:
         said = []
         for k, v in taken.items():
@@ -301,8 +301,7 @@ def run(args: argparse.Namespace) -> int:
             said.append((flag if v else f"no {flag}") if isinstance(v, bool) else f"{flag} {v}")
         print("resuming with the run's " + ", ".join(said), file=sys.stderr)
     # a teacher taken from the run must still be the file the run distilled from (`_teacher` checks)
-    recorded = _last_recipe(args, run_file).get("teacher_sha256") if "teacher" in taken else None
-    task = build_task(args, run_file, teacher_sha256=recorded)
+    task = build_task(args, run_file, teacher_sha256=last.get("teacher_sha256") if "teacher" in taken else None)
     del run_file   # the trainer reads the checkpoint itself (optimiser, chains)
     if args.minutes > 0 or args.max_steps:
         state = train(task, out, args.minutes, resume=args.resume, batch=args.batch, buffer_size=args.buffer,

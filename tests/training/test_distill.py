@@ -5,9 +5,11 @@ import pytest
 import torch
 
 from hgca_core.cli import main
+from hgca_core.io.digest import file_digest
 from hgca_core.models.gca import GCAConfig, GCAKernel
 from hgca_core.models.weights import load_file, save_weights
 from hgca_core.training import coarse
+from hgca_core.training.card import write_model_card
 from hgca_core.training.coarse import CoarseLoss, CoarseTask
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -133,8 +135,6 @@ def test_distill_options_need_a_cut_a_teacher_and_are_kept_on_resume(dataset, tm
 def test_a_resume_refuses_a_teacher_overwritten_since_the_run_started(dataset, tmp_path, capsys):
     """Shipping a fine-tune overwrites the weights it distilled from: a resume that takes the teacher's path from
     the run must notice (exit 2, checkpoint untouched), and distils from the new file only when told to."""
-    from hgca_core.io.digest import file_digest
-
     base = BASE + ["--data", str(dataset)]
     teacher = tmp_path / "teacher.pt"
     assert main(base + ["--out", str(tmp_path / "a"), "--free-space", "--max-steps", "1", "--export",
@@ -155,8 +155,6 @@ def test_a_resume_refuses_a_teacher_overwritten_since_the_run_started(dataset, t
     assert main(base + ["--out", str(out), "--resume", "--max-steps", "2", "--teacher", str(teacher)]) == 0
     sessions = load_file(out / "ckpt.pt")["state"]["sessions"]
     assert [s["recipe"]["teacher_sha256"] for s in sessions] == [first, file_digest(teacher)]
-    from hgca_core.training.card import write_model_card
-
     shipped = tmp_path / "weights"                     # the card names each session's teacher by its digest
     shipped.mkdir()
     assert main(base + ["--out", str(out), "--minutes", "0", "--export", str(shipped / "coarse.pt")]) == 0
