@@ -5,6 +5,7 @@ Used by `hgca demo` (and previews) so a PNG of a completion needs no GPU, displa
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import trimesh
@@ -36,6 +37,16 @@ def render_mesh(mesh: trimesh.Trimesh, path: str | Path, points: np.ndarray | No
     """
     from PIL import Image
 
+    image = mesh_image(mesh, points, colour_by, size, eye, target, fov_deg, samples, seed, marked)
+    Image.fromarray(image).save(path)
+
+
+def mesh_image(mesh: trimesh.Trimesh, points: np.ndarray | None = None, colour_by: np.ndarray | None = None,
+               size: tuple[int, int] = (1200, 800), eye: np.ndarray | None = None, target: np.ndarray | None = None,
+               fov_deg: float = 50.0, samples: int = 1_500_000, seed: int = 0, marked: np.ndarray | None = None,
+               point_rgb: tuple[float, float, float] = (245.0, 200.0, 40.0)) -> np.ndarray:
+    """`render_mesh`'s picture as an (h, w, 3) uint8 array, for panels side by side (`gallery`); `point_rgb`
+    colours `points` (yellow by default: input points over a completion)."""
     w, h = size
     lo, hi = mesh.bounds if len(mesh.vertices) else (np.zeros(3), np.ones(3))
     target = (lo + hi) / 2 if target is None else np.asarray(target, float)
@@ -77,13 +88,40 @@ def render_mesh(mesh: trimesh.Trimesh, path: str | Path, points: np.ndarray | No
             t = np.clip(value / 0.5, 0, 1)[:, None]
             base = (1 - t) * base + t * np.array([70.0, 130.0, 230.0])
         splat(pts, base * shade[:, None], radius=2)
-    for cloud, rgb, bias in ((points, [245.0, 200.0, 40.0], 0.0), (marked, [220.0, 30.0, 30.0], MARK_BIAS)):
+    for cloud, rgb, bias in ((points, list(point_rgb), 0.0), (marked, [220.0, 30.0, 30.0], MARK_BIAS)):
         if cloud is not None and len(cloud):
             p = np.asarray(cloud, float)
             if len(p) > 200_000:
                 p = p[np.random.default_rng(seed).choice(len(p), 200_000, replace=False)]
             splat(p, np.tile(rgb, (len(p), 1)), radius=1, bias=bias)
-    Image.fromarray(image.reshape(h, w, 3).clip(0, 255).astype(np.uint8)).save(path)
+    return image.reshape(h, w, 3).clip(0, 255).astype(np.uint8)
+
+
+def gallery(panels: Sequence[tuple[str, np.ndarray]], path: str | Path, columns: int = 4, title: str = "") -> None:
+    """Write `panels` ((caption, image) pairs of one size) as one PNG, `columns` a row, each captioned."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    try:
+        font = ImageFont.load_default(size=16)
+    except TypeError:           # Pillow < 10.1: the fixed bitmap font
+        font = ImageFont.load_default()
+    if not panels:
+        raise ValueError("gallery: no panels")
+    h, w = panels[0][1].shape[:2]
+    if any(img.shape[:2] != (h, w) for _, img in panels):
+        raise ValueError("gallery: panels differ in size")
+    caption = 22
+    top = caption if title else 0
+    rows = -(-len(panels) // columns)
+    sheet = Image.new("RGB", (columns * w, top + rows * (h + caption)), "white")
+    draw = ImageDraw.Draw(sheet)
+    if title:
+        draw.text((6, 2), title, fill=(0, 0, 0), font=font)
+    for i, (text, img) in enumerate(panels):
+        x, y = (i % columns) * w, top + (i // columns) * (h + caption)
+        draw.text((x + 6, y + 2), text, fill=(0, 0, 0), font=font)
+        sheet.paste(Image.fromarray(img), (x, y + caption))
+    sheet.save(path)
 
 
 def render_closeup(mesh: trimesh.Trimesh, eye: np.ndarray, target: np.ndarray, size: tuple[int, int] = (480, 360),

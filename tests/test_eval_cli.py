@@ -46,10 +46,21 @@ def test_eval_full_stage_table(small_split, small_fine, tmp_path):
     cmd = [sys.executable, "-m", "hgca_core.cli", "eval", "--data", str(small_split), "--split", "val",
            "--stage", "full", "--methods", "input,hgca,hgca-full", "--fine-weights", str(small_fine),
            "--samples", "2", "--t1", "2", "--t2", "2", "--out", str(out)]
-    res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    png = tmp_path / "scene.png"
+    res = subprocess.run(cmd + ["--render", str(png)], capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     rows = json.loads(out.read_text())["rows"]
     assert set(rows) == {"input", "hGCA coarse (planner)", "hGCA (10 cm voxels)", "hGCA (implicit)"}
+    # the rendering: ground truth, input, then the three model rows' first completions, 4 panels a row
+    from PIL import Image
+
+    sheet = np.asarray(Image.open(png).convert("RGB"))
+    assert sheet.shape == (22 + 2 * (420 + 22), 4 * 640, 3)
+    panel = lambda i: sheet[22 + (i // 4) * 442 + 22:22 + (i // 4) * 442 + 442, (i % 4) * 640:(i % 4 + 1) * 640]
+    for i in range(5):                     # each drawn panel holds a picture, the slots after them are blank
+        assert (panel(i) < 200).any(axis=2).mean() > 0.01, i
+    for i in range(5, 8):
+        assert (panel(i) == 255).all(), i
     for name, r in rows.items():
         assert 0.0 <= r["iou"] <= 1.0 and np.isfinite(r["resim_min"]) and r["seconds_per_completion"] > 0, name
     assert rows["hGCA (10 cm voxels)"]["k"] == 2 and np.isfinite(rows["hGCA (10 cm voxels)"]["tmd"])
@@ -121,6 +132,14 @@ def test_eval_scores_what_complete_ships(small_split):
         assert got["input"][0][key] == want_input[key], key
 
 
+def test_eval_render_wants_a_png(small_split, tmp_path):
+    cmd = [sys.executable, "-m", "hgca_core.cli", "eval", "--data", str(small_split), "--split", "val",
+           "--methods", "input", "--render", str(tmp_path / "scene.jpg")]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2 and "scene.jpg" in res.stderr and "PNG" in res.stderr
+    assert not (tmp_path / "scene.jpg").exists()
+
+
 def test_eval_full_stage_without_fine_weights_is_a_clear_error(small_split, tmp_path):
     cmd = [sys.executable, "-m", "hgca_core.cli", "eval", "--data", str(small_split), "--split", "val",
            "--stage", "full", "--methods", "hgca-full", "--fine-weights", str(tmp_path / "none.pt")]
@@ -139,3 +158,19 @@ def test_eval_weights_flags_choose_the_model_files():
     assert not swapped["hgca"].coarse.cfg.use_planner and swapped["gca"].coarse.cfg.use_planner
     default = load_method_models(["gca", "hgca"], None)
     assert default["hgca"].coarse.cfg.use_planner and not default["gca"].coarse.cfg.use_planner
+
+
+def test_gallery_places_each_panel_under_its_caption(tmp_path):
+    from PIL import Image
+
+    from hgca_core.render import gallery
+
+    red, blue = np.zeros((30, 40, 3), np.uint8), np.zeros((30, 40, 3), np.uint8)
+    red[..., 0], blue[..., 2] = 255, 255
+    gallery([("a", red), ("b", blue), ("c", red)], tmp_path / "g.png", columns=2, title="t")
+    sheet = np.asarray(Image.open(tmp_path / "g.png").convert("RGB"))
+    assert sheet.shape == (22 + 2 * (30 + 22), 80, 3)
+    assert (sheet[44:74, :40] == [255, 0, 0]).all() and (sheet[44:74, 40:] == [0, 0, 255]).all()
+    assert (sheet[96:126, :40] == [255, 0, 0]).all() and (sheet[96:126, 40:] == 255).all()
+    with pytest.raises(ValueError, match="size"):
+        gallery([("a", red), ("b", blue[:20])], tmp_path / "h.png")

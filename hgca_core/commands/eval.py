@@ -31,6 +31,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     add_free_space_argument(p, " for the model rows (compare runs to ablate it)")
     p.add_argument("--out", default=None, help="write the rows as JSON and the table as .md next to it")
+    p.add_argument("--render", default=None, metavar="PNG",
+                   help="also write a PNG of the first scene: its ground truth, input and each row's first "
+                        "completion from one viewpoint (grey where the input lies, blue where it was generated)")
     p.add_argument("--reuse", nargs="+", default=None, metavar="JSON",
                    help="copy rows of earlier `--out` files on the same samples (e.g. the slow Poisson baseline) "
                         "into the table, for methods not run now; a later file's row wins over an earlier one's")
@@ -54,14 +57,19 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"unknown methods {sorted(unknown)}; choose from {', '.join(METHODS)}")
     files = split_files(args.data, args.split)[: args.count]
     refuse_packed(files, "hgca eval")
+    if args.render and Path(args.render).suffix.lower() != ".png":
+        raise InputError(f"--render writes a PNG, not {Path(args.render).suffix or 'a file without suffix'}",
+                         args.render)
     gemm_dtype = resolve_precision(args.precision)
     models = load_method_models(methods, args.fine_weights, args.weights, args.noplanner_weights)
     rows_of = {m: [m] for m in methods}
     rows_of["hgca-full"] = ["hgca-10cm", "hgca-implicit"]
     results: dict[str, list[dict]] = {r: [] for m in methods for r in rows_of[m]}
     timings: dict[str, list[float]] = {r: [] for m in methods for r in rows_of[m]}
-    for path in tqdm(files, desc=f"eval {args.split}", unit="scene"):
-        for row, (res, secs) in evaluate_methods(path, methods, models, args).items():
+    kept: dict = {}        # the first scene's first completion per row, for --render
+    for i, path in enumerate(tqdm(files, desc=f"eval {args.split}", unit="scene")):
+        for row, (res, secs) in evaluate_methods(path, methods, models, args,
+                                                 kept if args.render and i == 0 else None).items():
             results[row].append(res)
             timings[row].append(secs)
     names = {"input": ("input", "20cm^3 points"), "poisson": ("Poisson (Open3D)", "mesh"),
@@ -75,6 +83,9 @@ def run(args: argparse.Namespace) -> int:
     rows = dict(sorted(rows.items(), key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order)))
     table = format_table(rows)
     print(table)
+    if args.render and files:
+        render_scene(files[0], [(names[r][0], m) for r, m in kept.items()], args.render, args.seed)
+        print(f"rendering of {files[0].name}: {args.render}")
     for name, r in rows.items():
         origin = f" (from {r['reused_from']})" if "reused_from" in r else ""
         print(f"{name}: {r['seconds_per_completion']:.1f} s per completion{origin}")
@@ -110,9 +121,11 @@ def load_method_models(methods: list[str], fine_weights: str | None, weights: st
     return models
 
 
-def evaluate_methods(path: Path, methods: list[str], models: dict, args: argparse.Namespace) -> dict:
+def evaluate_methods(path: Path, methods: list[str], models: dict, args: argparse.Namespace,
+                     keep: dict | None = None) -> dict:
     """{row: (metrics of the k completions of one sample, seconds per completion)} for each method's rows; the
-    seconds are the method's own (making the completion and its mesh), not the scoring's.
+    seconds are the method's own (making the completion and its mesh), not the scoring's. `keep`, when given,
+    receives each row's first mesh ({row: trimesh}), the one scored first.
 
     Model rows run the product's region-frame core (`pipeline.complete_local`) on the sample's input, which the
     dataset stores in its region frame, and score the meshes it returns: the coarse stage's cube-face mesh for
@@ -176,7 +189,45 @@ def evaluate_methods(path: Path, methods: list[str], models: dict, args: argpars
             done, clock = core(m, "coarse")
             out[m] = (evaluate_sample(sample, [r.mesh for r in done], [r.coarse_cells for r in done]),
                       clock.total() / k)
+        if keep is not None:
+            keep.update({m: mesh} if m in ("input", "poisson") else
+                        {"hgca-10cm": vox[0], "hgca-implicit": done[0].mesh} if m == "hgca-full" else
+                        {m: meshes[0] if m == "hgca" and "hgca-full" in methods else done[0].mesh})
     return out
+
+
+def render_scene(path: Path, rows: list[tuple[str, "trimesh.Trimesh"]], png: str | Path, seed: int = 0) -> None:
+    """One PNG of a test scene: the ground-truth surface, the input points, then each row's mesh, all from one
+    viewpoint above the street's near side; meshes grey where they meet the input points, turning blue up to 50 cm
+    away (the colouring of `hgca complete`'s previews and the Blender material)."""
+    import numpy as np
+    import trimesh
+
+    from hgca_core.geometry.nearest import PointIndex
+    from hgca_core.geometry.region import Region
+    from hgca_core.render import gallery, mesh_image
+    from hgca_core.synth.dataset import load_sample
+
+    sample = load_sample(path)
+    size = Region.from_tuple(sample["region"]).size
+    ground = float(np.asarray(sample["ground_z"]))
+    pts = np.asarray(sample["input_points"], dtype=np.float64)
+    target = np.array([size[0] / 2, size[1] / 2, ground + 2.0])
+    eye = target + np.array([-0.4, -0.62, 0.45]) * float(np.linalg.norm(size[:2]))
+    view = dict(size=(640, 420), eye=eye, target=target, samples=600_000, seed=seed)
+    empty = trimesh.Trimesh()
+    panels = [("ground truth", mesh_image(empty, np.asarray(sample["gt_surface"]), point_rgb=(110.0, 110.0, 110.0),
+                                          **view)),
+              (f"input ({len(pts):,} points)", mesh_image(empty, pts, **view))]
+    index = PointIndex(pts)
+    for name, mesh in rows:
+        if name == "input":
+            continue
+        # a 20 cm cell's corners lie up to 35 cm from the points inside it: grey to 20 cm, full blue from 50 cm
+        near = (np.clip(index.distances(np.asarray(mesh.vertices)) - 0.2, 0.0, 0.3) / 0.6
+                if len(mesh.vertices) else None)
+        panels.append((name, mesh_image(mesh, colour_by=near, **view)))
+    gallery(panels, png, columns=4, title=f"{path.parent.parent.name}/{path.parent.name}/{path.name}, sample seed {seed}")
 
 
 def reused_rows(path: str, files: list[str], split: str, samples: int, skip: set[str]) -> dict:

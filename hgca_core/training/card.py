@@ -145,6 +145,8 @@ def write_model_card(weights_dir: Path = WEIGHTS_DIR) -> Path:
         parts += [_section(path, blob), ""]
     for path in sorted(weights_dir.glob("eval_*.md")):
         parts += [f"## Evaluation: `{path.stem}`", "", path.read_text(), ""]
+        if path.with_suffix(".png").exists():   # `hgca eval --render`: the first scene, each row's first completion
+            parts += [f"![{path.stem}: the first scene]({path.stem}.png)", ""]
         js = path.with_suffix(".json")
         if js.exists():
             info = json.loads(js.read_text())

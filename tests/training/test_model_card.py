@@ -32,6 +32,9 @@ def test_card_renders_weights_metadata_and_eval_provenance(tmp_path):
     assert "Scenes (data/synth2, test split): sample_2000000.npz; k = 3 samples; T1 = default; free space off." in card
     assert "- hGCA coarse (planner): 12.5 s per completion" in card
     assert "The GCA row is not like-for-like." in card
+    assert "eval_test.png" not in card                                   # no rendering beside the table: no link
+    (tmp_path / "eval_test.png").write_bytes(b"\x89PNG")
+    assert "![eval_test: the first scene](eval_test.png)" in write_model_card(tmp_path).read_text()
     assert "fine.pt" not in card.split("Card written")[1].split("## Evaluation")[0]   # only the files present
     # the intro's dataset lists come from the files' metadata, not from typed text
     assert "Trained on it last: `coarse.pt` (each warm-started" in card
