@@ -121,7 +121,7 @@ def gallery(panels: Sequence[tuple[str, np.ndarray]], path: str | Path, columns:
         x, y = (i % columns) * w, top + (i // columns) * (h + caption)
         draw.text((x + 6, y + 2), text, fill=(0, 0, 0), font=font)
         sheet.paste(Image.fromarray(img), (x, y + caption))
-    sheet.save(path)
+    sheet.quantize(colors=256).save(path, optimize=True)   # a preview: a palette halves the file
 
 
 def render_closeup(mesh: trimesh.Trimesh, eye: np.ndarray, target: np.ndarray, size: tuple[int, int] = (480, 360),
