@@ -8,6 +8,13 @@
 #          du -sb gpu_data; git ls-files -z | xargs -0 du -cb | tail -1         (the two under 64 MiB together)
 #   there: run(command="bash scripts/device_train.sh", carry=["gpu_data"], timeout_s=600)
 #
+# More scenes than one call carries (64 MiB with the repository): the machine stays warm 30 s after a call and keeps
+# what a call wrote outside the repository, so a first call moves one batch of packed folders aside and the training
+# call, right after it, carries the next and trains on both:
+#   run(command="STASH_ONLY=1 bash scripts/device_train.sh", carry=["gpu_data"])     # gpu_data/* -> $STASH
+#   (here: swap gpu_data for the next batch of packed folders, named apart from the first's)
+#   run(command="bash scripts/device_train.sh", carry=["gpu_data"], timeout_s=600)   # DATA: gpu_data/* and $STASH/*
+#
 # Several runs share the one GPU in a call (three bf16 runs at batch 6 kept an H200 99 % busy with 2 GB each in
 # session 27): VARIANTS="e:DISTILL=1,CUT_FREE=1 n:DISTILL=1 p" trains three side by side, each `name` or
 # `name:KEY=V,...` with KEY one of the settings below; the default is one run named coarse_gpu. What comes back in
@@ -15,14 +22,16 @@
 # with their training record: continue with `hgca train coarse --init-from`, compare with benchmarks/val_cut.py
 # and `hgca eval-real`) and <name>.history.json, beside device_train.log (every run's lines, prefixed [name]) and
 # curves.png. Settings by environment, for every run unless its variant overrides them: DATA (packed folders,
-# space-separated; default every folder in gpu_data/, validation on the first one's val split), MINUTES
-# (training budget, default 7), BATCH (chains per step, default 6, the paper's), LR, INIT (weights to start
-# from), TURN (share of inputs turned by a random yaw, default 0), FROZEN=1 (--frozen-bn: BatchNorm keeps INIT's
-# running statistics), CUT_FREE=1 (--cut-free-loss: the free-space weight also on what a cut input's uncut scan
-# saw empty), DISTILL=MU (--distill: cut inputs' targets move MU of the way to the probabilities of TEACHER,
+# space-separated; default every folder in gpu_data/ and $STASH, those with a val split first: validation reads
+# the first one's), MINUTES (training budget, default 7), BATCH (chains per step, default 6, the paper's), LR,
+# INIT (weights to start from), TURN (share of inputs turned by a random yaw, default 0), FROZEN=1 (--frozen-bn:
+# BatchNorm keeps INIT's running statistics), CUT_FREE=1 (--cut-free-loss: the free-space weight also on what a
+# cut input's uncut scan saw empty), DISTILL=MU (--distill: cut inputs' targets move MU of the way to the probabilities of TEACHER,
 # default INIT), ABOVE=1 (--distill-above: only the cells at and above the cut move); and for the call: DEVICE
 # (default cuda; cpu runs the same path here, as tests/test_device_script.py does), THREADS (CPU threads a run,
-# default the cores shared out), RUN (the runs' checkpoint folders, default /tmp/hgca_device_run/<name>).
+# default the cores shared out), RUN (the runs' checkpoint folders, default /tmp/hgca_device_run/<name>), STASH
+# (where STASH_ONLY=1 puts the folders of PACKED, default gpu_data, and where the default DATA looks too, default
+# /tmp/hgca_stash).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:?set OUT to the folder that comes back}
@@ -32,12 +41,27 @@ BATCH=${BATCH:-6}
 LR=${LR:-1.5e-4}
 TURN=${TURN:-0}
 INIT=${INIT:-hgca_core/weights/coarse.pt}
-DATA=${DATA:-$(find gpu_data -mindepth 1 -maxdepth 1 -type d 2>/dev/null | sort | tr '\n' ' ')}
+PACKED=${PACKED:-gpu_data}
+STASH=${STASH:-/tmp/hgca_stash}
+fail() { echo "device_train: $*" >&2; exit 2; }
+if [ "${STASH_ONLY:-0}" = 1 ]; then  # the first of two calls: set this batch aside for the training call
+  mkdir -p "$STASH"
+  for d in "$PACKED"/*/; do
+    [ -d "$d" ] || fail "no packed data in $PACKED/ to set aside"
+    [ ! -e "$STASH/$(basename "$d")" ] || fail "$STASH/$(basename "$d") exists already: name each batch's folders apart"
+    cp -r "$d" "$STASH/"
+  done
+  echo "set aside in $STASH:"; du -sh "$STASH"/*; exit 0
+fi
+if [ -z "${DATA:-}" ]; then  # every packed folder, those with a val split first (validation reads the first's)
+  ALL=$(find "$PACKED" "$STASH" -mindepth 1 -maxdepth 1 -type d 2>/dev/null | sort)
+  DATA=$(for d in $ALL; do [ -d "$d/val" ] && echo "$d"; done; for d in $ALL; do [ -d "$d/val" ] || echo "$d"; done)
+  DATA=$(echo $DATA)
+fi
 VARIANTS=${VARIANTS:-coarse_gpu}
 PY=${PY:-python3}
 RUN=${RUN:-/tmp/hgca_device_run}
 KEYS=" MINUTES BATCH LR TURN INIT FROZEN CUT_FREE DISTILL TEACHER ABOVE "
-fail() { echo "device_train: $*" >&2; exit 2; }
 [ -n "${DATA// /}" ] || fail "no packed data: pack a dataset into gpu_data/<name> and carry gpu_data"
 read -r -a RUNS <<< "$VARIANTS"
 [ "${#RUNS[@]}" -le 3 ] || fail "VARIANTS names ${#RUNS[@]} runs; at most 3 fit the device tool's 8 returned files"

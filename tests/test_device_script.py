@@ -25,7 +25,8 @@ def run_script(env: dict, tmp_path: Path) -> subprocess.CompletedProcess:
     site = tmp_path / "site"
     site.mkdir(exist_ok=True)
     (site / "sitecustomize.py").write_text(f"import sys\nfor m in {ABSENT_THERE!r}:\n    sys.modules[m] = None\n")
-    base = {k: v for k, v in os.environ.items() if not k.startswith(("DATA", "OUT", "RUN", "MINUTES"))}
+    skip = ("DATA", "OUT", "RUN", "MINUTES", "PACKED", "STASH")
+    base = {k: v for k, v in os.environ.items() if not k.startswith(skip)}
     return subprocess.run(["bash", str(SCRIPT)], env={**base, "PY": sys.executable, "DEVICE": "cpu",
                                                        "RUN": str(tmp_path / "run"), "OMP_NUM_THREADS": "1",
                                                        "PYTHONPATH": str(site), **env},
@@ -88,3 +89,27 @@ def test_device_script_refuses_variants_it_cannot_run_or_return(variants, says, 
 def test_device_script_without_packed_data_says_so(tmp_path):
     r = run_script({"DATA": " ", "OUT": str(tmp_path / "out")}, tmp_path)
     assert r.returncode == 2 and "no packed data" in r.stderr
+
+
+def test_device_script_sets_a_batch_aside_and_trains_on_both_batches_the_val_one_first(tiny_dataset, tmp_path):
+    """Two calls on the warm machine: the first moves its carried folders aside (STASH_ONLY=1), the second carries
+    the next batch and, with DATA left out, trains on every folder of both, validating on a folder with a val
+    split, whichever batch holds it."""
+    import shutil
+
+    first, second, stash = tmp_path / "batch1", tmp_path / "batch2", tmp_path / "stash"
+    assert main(["synth", "--pack", str(tiny_dataset), "--out", str(first / "tiny")]) == 0
+    env = {"PACKED": str(first), "STASH": str(stash), "OUT": str(tmp_path / "out1"), "STASH_ONLY": "1"}
+    r = run_script(env, tmp_path)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert sorted(p.name for p in (stash / "tiny").rglob("*")) == sorted(p.name for p in (first / "tiny").rglob("*"))
+    again = run_script(env, tmp_path)                     # the same folder name twice would mix two batches
+    assert again.returncode == 2 and "exists already" in again.stderr
+    (second / "a_train_only").mkdir(parents=True)         # sorts first, but holds no val split
+    shutil.copytree(first / "tiny" / "train", second / "a_train_only" / "train")
+    out = tmp_path / "out2"
+    r = run_script({"PACKED": str(second), "STASH": str(stash), "OUT": str(out), "MINUTES": "0.05", "BATCH": "2"},
+                   tmp_path)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    data = load_file(out / "coarse_gpu.pt")["meta"]["data"]
+    assert data.index(str(stash / "tiny")) < data.index(str(second / "a_train_only")), data

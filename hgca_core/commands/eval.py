@@ -227,7 +227,8 @@ def render_scene(path: Path, rows: list[tuple[str, "trimesh.Trimesh"]], png: str
         near = (np.clip(index.distances(np.asarray(mesh.vertices)) - 0.2, 0.0, 0.3) / 0.6
                 if len(mesh.vertices) else None)
         panels.append((name, mesh_image(mesh, colour_by=near, **view)))
-    gallery(panels, png, columns=4, title=f"{path.parent.parent.name}/{path.parent.name}/{path.name}, sample seed {seed}")
+    title = f"{path.parent.parent.name}/{path.parent.name}/{path.name}, sample seed {seed}"
+    gallery(panels, png, columns=4, title=title)
 
 
 def reused_rows(path: str, files: list[str], split: str, samples: int, skip: set[str]) -> dict:
