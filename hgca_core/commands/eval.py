@@ -83,9 +83,6 @@ def run(args: argparse.Namespace) -> int:
     rows = dict(sorted(rows.items(), key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order)))
     table = format_table(rows)
     print(table)
-    if args.render and files:
-        render_scene(files[0], [(names[r][0], m) for r, m in kept.items()], args.render, args.seed)
-        print(f"rendering of {files[0].name}: {args.render}")
     for name, r in rows.items():
         origin = f" (from {r['reused_from']})" if "reused_from" in r else ""
         print(f"{name}: {r['seconds_per_completion']:.1f} s per completion{origin}")
@@ -98,10 +95,13 @@ def run(args: argparse.Namespace) -> int:
                                                or "shipped", "fine": args.fine_weights or "shipped"},
                                    "precision": precision_name(gemm_dtype)}, indent=1))
         out.with_suffix(".md").write_text(table + "\n")
-        if out.resolve().parent == WEIGHTS_DIR:  # results beside the weights go on the card
-            from hgca_core.training.card import write_model_card
+    if args.render and files:   # after the results are written: a rendering never costs the table
+        render_scene(files[0], [(names[r][0], m) for r, m in kept.items()], args.render, args.seed)
+        print(f"rendering of {files[0].name}: {args.render}")
+    if args.out and Path(args.out).resolve().parent == WEIGHTS_DIR:  # results beside the weights go on the card
+        from hgca_core.training.card import write_model_card
 
-            write_model_card()
+        write_model_card()   # after the rendering, which the card shows when it lies beside the table
     return 0
 
 
