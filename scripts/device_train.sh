@@ -9,11 +9,12 @@
 #   there: run(command="bash scripts/device_train.sh", carry=["gpu_data"], timeout_s=600)
 #
 # More scenes than one call carries (64 MiB with the repository): the machine stays warm 30 s after a call and keeps
-# what a call wrote outside the repository, so a first call moves one batch of packed folders aside and the training
-# call, right after it, carries the next and trains on both:
-#   run(command="STASH_ONLY=1 bash scripts/device_train.sh", carry=["gpu_data"])     # gpu_data/* -> $STASH
-#   (here: swap gpu_data for the next batch of packed folders, named apart from the first's)
-#   run(command="bash scripts/device_train.sh", carry=["gpu_data"], timeout_s=600)   # DATA: gpu_data/* and $STASH/*
+# what a call wrote outside the repository, so the first calls move one batch of packed folders each aside and the
+# training call, right after them, carries the last batch and trains on all. Each batch in its own git-ignored folder
+# here (gpu_data, gpu_data_b, ...; folder names inside them all different), named by PACKED:
+#   run(command="STASH_ONLY=1 bash scripts/device_train.sh", carry=["gpu_data"])                  # -> $STASH
+#   run(command="STASH_ONLY=1 PACKED=gpu_data_b bash scripts/device_train.sh", carry=["gpu_data_b"])
+#   run(command="PACKED=gpu_data_c bash scripts/device_train.sh", carry=["gpu_data_c"], timeout_s=600)
 #
 # Several runs share the one GPU in a call (three bf16 runs at batch 6 kept an H200 99 % busy with 2 GB each in
 # session 27): VARIANTS="e:DISTILL=1,CUT_FREE=1 n:DISTILL=1 p" trains three side by side, each `name` or
