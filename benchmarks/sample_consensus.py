@@ -23,18 +23,19 @@ REPO = Path(__file__).resolve().parents[1]
 
 from hgca_core.commands.eval_real import DEFAULT_REAL, default_items  # noqa: E402
 from hgca_core.geometry.freespace import confident, observed_empty  # noqa: E402
+from hgca_core.geometry.keys import pack, unpack  # noqa: E402
 from hgca_core.geometry.region import BELOW_GROUND, Region  # noqa: E402
-from hgca_core.geometry.voxel import COARSE, voxelize  # noqa: E402
-from hgca_core.metrics.realscan import cut_scores, generated_cells  # noqa: E402
-from hgca_core.real_eval import input_rays  # noqa: E402
+from hgca_core.geometry.voxel import COARSE  # noqa: E402
+from hgca_core.metrics.realscan import cut_scores  # noqa: E402
+from hgca_core.real_eval import height_cut, input_rays  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "sample_consensus"
 
 
 def consensus(cell_sets: list[np.ndarray], m: int) -> np.ndarray:
-    """The cells that at least `m` of the sets hold."""
-    u, count = np.unique(np.concatenate(cell_sets), axis=0, return_counts=True)
-    return u[count >= m]
+    """The cells that at least `m` of the sets hold (each set row-unique, as a completion's cells are), sorted."""
+    keys, count = np.unique(pack(np.concatenate(cell_sets)), return_counts=True)
+    return unpack(keys[count >= m], batched=False)
 
 
 def run_input(item: dict, k: int, cut: float, weights: str | None) -> dict:
@@ -48,9 +49,7 @@ def run_input(item: dict, k: int, cut: float, weights: str | None) -> dict:
     shape = region.grid_shape(COARSE)
     empty = observed_empty(local, region.to_local(origins), index, shape)
     core = confident(empty)
-    keep = local[:, 2] < BELOW_GROUND + cut
-    cut_cells = voxelize(local[keep & inside], COARSE, region.size)
-    away = generated_cells(voxelize(local[~keep & inside], COARSE, region.size), cut_cells, shape)
+    keep, cut_cells, away = height_cut(local, inside, region, cut)
     t = time.time()
     done = hgca_core.complete(pts[keep], region=region, origins=origins, samples=k, seed=0, stage="coarse",
                               origin_index=index[keep], weights=weights)

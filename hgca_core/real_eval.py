@@ -60,6 +60,19 @@ def _mesh_cells(mesh, region: Region, seed: int) -> np.ndarray:
     return voxelize(sample_surface(local, SPACING, seed), COARSE, region.size)
 
 
+def height_cut(local: np.ndarray, inside: np.ndarray, region: Region, h: float | None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """One case of an input in `region`'s frame: (mask of the points kept, the kept points' 20 cm cells in the
+    region, the real cells cut away or None). `h` None keeps every point; else the points `h` m or more above the
+    estimated ground go, and a cell that still holds a point below the cut does not count as cut away."""
+    keep = np.ones(len(local), dtype=bool) if h is None else local[:, 2] < BELOW_GROUND + h
+    cells = voxelize(local[keep & inside], COARSE, region.size)
+    if h is None:
+        return keep, cells, None
+    away = voxelize(local[~keep & inside], COARSE, region.size)
+    return keep, cells, generated_cells(away, cells, region.grid_shape(COARSE))
+
+
 class Runner:
     """Runs each method on one input case and keeps sample 0's mesh of the best row for the renderings."""
 
@@ -159,14 +172,11 @@ def evaluate_input(item: dict, methods: list[str], cuts: list[float], full_cuts:
         if done and case in done.get("cases", {}):
             result["cases"][case] = done["cases"][case]
             continue
-        keep = np.ones(len(pts), dtype=bool) if h is None else local[:, 2] < ground + h
+        keep, case_cells, away = height_cut(local, inside, region, h)
         case_pts = pts[keep]
-        case_cells = voxelize(local[keep & inside], COARSE, region.size)
         entry: dict[str, Any] = {"points": int((keep & inside).sum()), "rows": {}}
         if h is not None:
             cut_z = ground + h
-            away = voxelize(local[~keep & inside], COARSE, region.size)
-            away = generated_cells(away, case_cells, shape)  # a cell holding points below the cut is not cut away
             entry.update({"cut_height": h, "cut_z_region": cut_z, "cut_away_cells": len(away)})
         full = "hgca-full" in methods and (h is None or any(abs(h - c) < 1e-9 for c in full_cuts))
         meshes: dict[str, Any] = {}

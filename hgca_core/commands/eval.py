@@ -189,10 +189,14 @@ def evaluate_methods(path: Path, methods: list[str], models: dict, args: argpars
             done, clock = core(m, "coarse")
             out[m] = (evaluate_sample(sample, [r.mesh for r in done], [r.coarse_cells for r in done]),
                       clock.total() / k)
-        if keep is not None:
-            keep.update({m: mesh} if m in ("input", "poisson") else
-                        {"hgca-10cm": vox[0], "hgca-implicit": done[0].mesh} if m == "hgca-full" else
-                        {m: meshes[0] if m == "hgca" and "hgca-full" in methods else done[0].mesh})
+        if keep is None:
+            continue
+        if m in ("input", "poisson"):
+            keep[m] = mesh
+        elif m == "hgca-full":
+            keep.update({"hgca-10cm": vox[0], "hgca-implicit": done[0].mesh})
+        else:   # gca, hgca: the mesh scored above (hgca's voxel mesh of hgca-full's cells when both run)
+            keep[m] = meshes[0] if m == "hgca" and "hgca-full" in methods else done[0].mesh
     return out
 
 
