@@ -3,8 +3,9 @@
 The real-scan benchmark counts a generated cell in space the input's rays crossed as a certain error. This measures
 what that count says of a perfect completion: per synthetic val scene, the share of the ground-truth 20 cm cells the
 input does not hold (what a perfect model would generate) that lie in the observed free space
-(`geometry.freespace.observed_empty`) and in its core (`geometry.freespace.confident`, the free space less its
-one-cell rim), for the scene's own scans and for its first sweep alone (the real benchmark's single sweeps).
+(`geometry.freespace.observed_empty`), in its core (`geometry.freespace.confident`, the free space less its
+one-cell rim) and in its swept cells (`geometry.freespace.swept`: rays crossed at least half of the cell's 5 cm
+sub-cells), for the scene's own scans and for its first sweep alone (the real benchmark's single sweeps).
 Writes benchmarks/results/freespace_floor.{md,json} and a section through one scene (.png).
 """
 from __future__ import annotations
@@ -19,7 +20,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 
-from hgca_core.geometry.freespace import confident, dense, observed_empty  # noqa: E402
+from hgca_core.geometry.freespace import HALF, confident, dense, observed_empty, swept  # noqa: E402
 from hgca_core.geometry.region import Region, ground_at  # noqa: E402
 from hgca_core.geometry.voxel import COARSE, cell_centers, voxelize  # noqa: E402
 from hgca_core.synth.dataset import draw_recipe, load_sample  # noqa: E402
@@ -39,8 +40,10 @@ def grids(sample: dict, single: bool) -> dict:
     if single:
         pts = pts[idx == 0]
     rays, ray_scan = input_rays(sample, 0 if single else None)
-    free = observed_empty(rays, np.asarray(sample["input_origins"], np.float64), ray_scan, shape)
+    origins = np.asarray(sample["input_origins"], np.float64)
+    free = observed_empty(rays, origins, ray_scan, shape)
     return {"region": region, "points": pts, "free": free, "core": confident(free),
+            "swept": swept(rays, origins, ray_scan, shape) >= HALF,
             "truth": dense(np.asarray(sample["gt_occ20"], np.int64), shape)}
 
 
@@ -48,7 +51,7 @@ def floor(sample: dict, g: dict, cut: float | None = None) -> dict:
     """Shares of the truth's cells that the input `g` misses in its free space and its core. With `cut`: the input
     cut `cut` m above the ground and the truth it misses above the cut, against the free space of the whole input
     `g` (as the real benchmark's height cuts)."""
-    region, pts, free, core = g["region"], g["points"], g["free"], g["core"]
+    region, pts, free, core, half = g["region"], g["points"], g["free"], g["core"], g["swept"]
     shape = free.shape
     if cut is not None:
         pts = pts[pts[:, 2] < ground_at(sample["ground_height"], pts[:, :2]) + cut]
@@ -59,10 +62,12 @@ def floor(sample: dict, g: dict, cut: float | None = None) -> dict:
         low = c[centre[:, 2] < ground_at(sample["ground_height"], centre[:, :2]) + cut]
         unseen[low[:, 0], low[:, 1], low[:, 2]] = False
     n = int(unseen.sum())
-    return {"unseen_truth": n, "free_cells": int(free.sum()), "core_cells": int(core.sum()),
-            "in_free": int((unseen & free).sum()), "in_core": int((unseen & core).sum()),
-            "in_free_pct": 100 * float((unseen & free).sum()) / max(n, 1),
-            "in_core_pct": 100 * float((unseen & core).sum()) / max(n, 1)}
+    out = {"unseen_truth": n, "free_cells": int(free.sum()), "core_cells": int(core.sum()),
+           "swept_cells": int(half.sum())}
+    for name, grid in (("free", free), ("core", core), ("swept", half)):
+        out[f"in_{name}"] = int((unseen & grid).sum())
+        out[f"in_{name}_pct"] = 100 * out[f"in_{name}"] / max(n, 1)
+    return out
 
 
 def section(sample: dict, g: dict, png: Path) -> None:
@@ -114,29 +119,31 @@ def main() -> int:
         first = grids(s, True)
         rows.append({"scene": f.name, "profile": profile, "scans": int(len(s["input_origins"])),
                      "all": floor(s, grids(s, False)), "first": floor(s, first), "first_cut2": floor(s, first, 2.0)})
-        print(f.name, profile, rows[-1]["first"]["in_free_pct"], rows[-1]["first"]["in_core_pct"], flush=True)
+        print(f.name, profile, *(round(rows[-1]["first"][f"in_{m}_pct"], 2) for m in ("free", "core", "swept")),
+              flush=True)
         if f == files[0]:
             section(s, first, out.with_suffix(".png"))
+    cases = (("all", "all scans"), ("first", "first sweep"), ("first_cut2", "above a 2 m cut"))
+    measures = (("free", "in free"), ("core", "in core"), ("swept", "swept"))
     lines = ["# Ground truth in the observed free space", "",
              f"Synthetic val scenes of `{args.data}` ({len(files)}): the ground-truth 20 cm cells that the input does "
              "not hold (what a perfect completion would generate), and the share of them that the real-scan "
              "benchmark would count as errors: in the observed free space (every ray of the input, from sample "
              "format 3 also those to hits beyond the region, walked to 0.4 m short of their hit, the 26 cells around "
-             "every hit excluded), and in its core (free cells whose six face neighbours are free too). First sweep: "
+             "every hit excluded), in its core (free cells whose six face neighbours are free too), and swept (free "
+             "cells whose volume the rays crossed at least half of, counted on 5 cm sub-cells). First sweep: "
              "the scene's first scan alone, as the real benchmark's single sweeps. Above a 2 m cut: the first sweep "
              "cut 2 m above the ground, the truth it misses above the cut, against the whole sweep's free space (as "
              "the real benchmark's height cuts).", "",
-             "| scene | profile | scans | unseen truth cells | in free, all scans (%) | in core, all scans (%) "
-             "| in free, first sweep (%) | in core, first sweep (%) | above a 2 m cut: in free (%) | in core (%) |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "| scene | profile | scans | unseen truth cells | "
+             + " | ".join(f"{c}: {m} (%)" for _, c in cases for _, m in measures) + " |",
+             "|---|---|---:|---:|" + "---:|" * (len(cases) * len(measures))]
     for r in rows:
-        a, b, c = r["all"], r["first"], r["first_cut2"]
-        lines.append(f"| {r['scene']} | {r['profile']} | {r['scans']} | {a['unseen_truth']:,} | {a['in_free_pct']:.2f} "
-                     f"| {a['in_core_pct']:.2f} | {b['in_free_pct']:.2f} | {b['in_core_pct']:.2f} "
-                     f"| {c['in_free_pct']:.2f} | {c['in_core_pct']:.2f} |")
-    lines += ["", "Per profile, first sweep (mean [min-max] over its scenes):", "",
-              "| profile | scenes | in free (%) | in core (%) | above a 2 m cut: in free (%) | in core (%) |",
-              "|---|---:|---:|---:|---:|---:|"]
+        lines.append(f"| {r['scene']} | {r['profile']} | {r['scans']} | {r['all']['unseen_truth']:,} | "
+                     + " | ".join(f"{r[c]['in_' + m + '_pct']:.2f}" for c, _ in cases for m, _ in measures) + " |")
+    lines += ["", "Per profile, first sweep and above its 2 m cut (mean [min-max] over its scenes):", "",
+              "| profile | scenes | " + " | ".join(f"{c}: {m} (%)" for _, c in cases[1:] for _, m in measures) + " |",
+              "|---|---:|" + "---:|" * (2 * len(measures))]
 
     def spread(group: list[dict], case: str, key: str) -> str:
         v = np.array([r[case][key] for r in group])
@@ -144,9 +151,8 @@ def main() -> int:
 
     groups = [(prof, [r for r in rows if r["profile"] == prof]) for prof in sorted({r["profile"] for r in rows})]
     for prof, group in groups + [("all", rows)]:
-        lines.append(f"| {prof} | {len(group)} | {spread(group, 'first', 'in_free_pct')} | "
-                     f"{spread(group, 'first', 'in_core_pct')} | {spread(group, 'first_cut2', 'in_free_pct')} | "
-                     f"{spread(group, 'first_cut2', 'in_core_pct')} |")
+        lines.append(f"| {prof} | {len(group)} | "
+                     + " | ".join(spread(group, c, f"in_{m}_pct") for c, _ in cases[1:] for m, _ in measures) + " |")
     lines += ["", f"Section: `{out.with_suffix('.png').name}` ({files[0].name}). Run time {time.time() - t0:.0f} s."]
     out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     out.with_suffix(".json").write_text(json.dumps({"data": args.data, "rows": rows}, indent=1))

@@ -19,6 +19,8 @@ from hgca_core.errors import InputError
 from hgca_core.geometry.voxel import COARSE, lower_corner, voxelize
 
 STOP_SHORT = 0.4      # metres before the hit where a ray stops proving emptiness
+SUB = 4               # `swept`: 5 cm sub-cells, 64 to a 20 cm cell
+HALF = SUB ** 3 // 2  # `swept` counts from which rays crossed at least half a cell
 SHIFT = -lower_corner(COARSE)  # 20 cm cell c spans [c * 0.2 - 0.05, c * 0.2 + 0.15)
 CHUNK_EVENTS = 8_000_000  # crossings per chunk: bounds memory at a few hundred MB
 
@@ -56,24 +58,24 @@ def _clip(o: np.ndarray, e: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple
     return o + enter[:, None] * d, o + leave[:, None] * d, keep
 
 
-def _cell(p: np.ndarray) -> np.ndarray:
-    return np.floor((p + SHIFT) / COARSE).astype(np.int64)
+def _cell(p: np.ndarray, size: float = COARSE) -> np.ndarray:
+    return np.floor((p + SHIFT) / size).astype(np.int64)
 
 
-def _mark_crossings(start: np.ndarray, end: np.ndarray, grid: np.ndarray) -> None:
+def _mark_crossings(start: np.ndarray, end: np.ndarray, grid: np.ndarray, size: float = COARSE) -> None:
     """Mark in `grid` every cell the segments start->end touch: their start cells and, for every crossing
     of a cell boundary plane, the cell entered there.
 
     Along a ray the k-th crossing of axis a's planes is at t_k = t_0 + k dt, so the entered cell's other
     two coordinates are floor(C + k E) with per-ray C, E: a few per-ray numbers repeated per crossing, no
     sort. The segments lie inside the grid (clipped by the caller); indices are clamped to it only against
-    rounding at its faces."""
+    rounding at its faces. `size`: the grid's cell (any size whose cells nest in the 20 cm ones: 20 / n cm)."""
     shape = np.asarray(grid.shape)
     flat = grid.reshape(-1)
     strides = (int(shape[1] * shape[2]), int(shape[2]), 1)
     top = shape - 1
 
-    s_cell, e_cell = _cell(start), _cell(end)
+    s_cell, e_cell = _cell(start, size), _cell(end, size)
     first = np.clip(s_cell, 0, top)
     flat[first[:, 0] * strides[0] + first[:, 1] * strides[1] + first[:, 2]] = True
     d = end - start
@@ -88,14 +90,14 @@ def _mark_crossings(start: np.ndarray, end: np.ndarray, grid: np.ndarray) -> Non
         da = d[rays, axis]
         step = np.sign(da)
         entered0 = s_cell[rays, axis] + step
-        t0 = (np.where(step > 0, entered0, entered0 + 1) * COARSE - SHIFT - start[rays, axis]) / da
-        dt = COARSE / np.abs(da)
+        t0 = (np.where(step > 0, entered0, entered0 + 1) * size - SHIFT - start[rays, axis]) / da
+        dt = size / np.abs(da)
         index = np.repeat(entered0 * strides[axis], counts) + k * np.repeat(step * strides[axis], counts)
         for b in range(3):
             if b == axis:
                 continue
-            db = d[rays, b] / COARSE
-            c = np.repeat((start[rays, b] + SHIFT) / COARSE + t0 * db, counts)
+            db = d[rays, b] / size
+            c = np.repeat((start[rays, b] + SHIFT) / size + t0 * db, counts)
             c += k * np.repeat(dt * db, counts)
             np.floor(c, out=c)
             np.clip(c, 0, top[b], out=c)
@@ -104,22 +106,22 @@ def _mark_crossings(start: np.ndarray, end: np.ndarray, grid: np.ndarray) -> Non
         flat[index.astype(np.int64)] = True
 
 
-def observed_empty(points: np.ndarray, origins: np.ndarray, origin_index: np.ndarray | None,
-                   grid_shape: tuple[int, int, int], stop_short: float = STOP_SHORT) -> np.ndarray:
-    """Dense bool grid (20 cm cells, region frame) of cells observed empty.
-
-    `points` (N, 3) are hits and `origins` (S, 3) sensor positions, both in the region frame;
-    `origin_index` (N,) names each point's origin (None: all from origins[0]). Every hit in `points` counts
-    for the "next to a hit" rule, inside the region or not.
-    """
+def _rays(points: np.ndarray, origins: np.ndarray, origin_index: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(hits (N, 3), each hit's origin (N, 3)), the origin index checked."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     org = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
     idx = np.zeros(len(pts), dtype=np.int64) if origin_index is None else np.asarray(origin_index, np.int64)
     if len(idx) != len(pts) or (len(idx) and (idx.min() < 0 or idx.max() >= len(org))):
         raise InputError(f"origin_index must name one of {len(org)} origins for each of {len(pts)} points")
-    shape = tuple(int(v) for v in grid_shape)
-    grid = np.zeros(shape, dtype=bool)
-    o = org[idx]
+    return pts, org[idx]
+
+
+def _walk(pts: np.ndarray, o: np.ndarray, shape: tuple[int, ...], size: float, stop_short: float) -> np.ndarray:
+    """Dense bool grid of `size` cells (covering the 20 cm grid `shape`) every ray o -> pts touches until
+    `stop_short` metres before its hit."""
+    n = int(round(COARSE / size))
+    fine = tuple(int(v) * n for v in shape)
+    grid = np.zeros(fine, dtype=bool)
     ray = pts - o
     length = np.linalg.norm(ray, axis=1)
     far = length > stop_short
@@ -130,12 +132,45 @@ def observed_empty(points: np.ndarray, origins: np.ndarray, origin_index: np.nda
     start, end, keep = _clip(o, end, lo, hi)
     start, end = start[keep], end[keep]
     if len(start):
-        cum = np.cumsum(np.abs(_cell(end) - _cell(start)).sum(axis=1) + 1)
+        cum = np.cumsum(np.abs(_cell(end, size) - _cell(start, size)).sum(axis=1) + 1)
         cuts = np.searchsorted(cum, np.arange(CHUNK_EVENTS, cum[-1], CHUNK_EVENTS))
         for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(start)]):
             if b > a:
-                _mark_crossings(start[a:b], end[a:b], grid)
-    return grid & ~dense(voxelize(pts, COARSE), shape, dilate=1)
+                _mark_crossings(start[a:b], end[a:b], grid, size)
+    return grid
+
+
+def observed_empty(points: np.ndarray, origins: np.ndarray, origin_index: np.ndarray | None,
+                   grid_shape: tuple[int, int, int], stop_short: float = STOP_SHORT) -> np.ndarray:
+    """Dense bool grid (20 cm cells, region frame) of cells observed empty.
+
+    `points` (N, 3) are hits and `origins` (S, 3) sensor positions, both in the region frame;
+    `origin_index` (N,) names each point's origin (None: all from origins[0]). Every hit in `points` counts
+    for the "next to a hit" rule, inside the region or not.
+    """
+    pts, o = _rays(points, origins, origin_index)
+    shape = tuple(int(v) for v in grid_shape)
+    return _walk(pts, o, shape, COARSE, stop_short) & ~dense(voxelize(pts, COARSE), shape, dilate=1)
+
+
+def swept(points: np.ndarray, origins: np.ndarray, origin_index: np.ndarray | None,
+          grid_shape: tuple[int, int, int], sub: int = SUB, stop_short: float = STOP_SHORT) -> np.ndarray:
+    """(X, Y, Z) uint8 grid: per 20 cm cell, how many of its sub^3 sub-cells (20 / sub cm) the rays crossed
+    (arguments as `observed_empty`; cells next to a hit count 0, as there).
+
+    Why: a completion cell says "surface somewhere in these 20 cm". A ray through the cell disproves that only
+    where it passed; a ray grazing a ground cell's top leaves its bottom unseen, which is why a perfect
+    completion puts 1-12 % of its cells in `observed_empty` (`benchmarks/results/freespace_floor.md`). The more
+    of a cell's volume the rays swept, the less room is left for a surface in it: `swept(...) >= sub ** 3 // 2`
+    asks that rays crossed at least half of it (`HALF`)."""
+    if not 1 <= sub <= 8:
+        raise ValueError("sub must be 1..8 (sub-cells of 20 / sub cm)")
+    pts, o = _rays(points, origins, origin_index)
+    shape = tuple(int(v) for v in grid_shape)
+    fine = _walk(pts, o, shape, COARSE / sub, stop_short)
+    counts = fine.reshape(shape[0], sub, shape[1], sub, shape[2], sub).sum(axis=(1, 3, 5), dtype=np.int64)
+    counts[dense(voxelize(pts, COARSE), shape, dilate=1)] = 0
+    return counts.astype(np.uint8)
 
 
 def confident(free: np.ndarray) -> np.ndarray:

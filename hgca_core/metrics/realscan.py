@@ -9,7 +9,9 @@
   space are errors.
 Each share is also given for the free space's core (`geometry.freespace.confident`, the free cells whose six
 neighbours are free): the rim holds true surface (grazing rays over the ground), so even a perfect completion
-scores a few % in the whole free space and ~0 in the core (`benchmarks/results/freespace_floor.md`).
+scores a few % in the whole free space and ~0 in the core (`benchmarks/results/freespace_floor.md`); and, with a
+`swept` grid, for the cells whose volume the rays crossed at least half of (`geometry.freespace.swept`, 5 cm
+sub-cells): what rays disproved rather than grazed, also ~0 for a perfect completion, in the rim as in the core.
 All cells are 20 cm cells in the region frame (`hgca_core.geometry.voxel`).
 """
 from __future__ import annotations
@@ -51,11 +53,14 @@ def above(cells: np.ndarray, z: float) -> np.ndarray:
     return cell_centers(np.asarray(cells).reshape(-1, 3), COARSE)[:, 2] >= z
 
 
-def _shares(gen: np.ndarray, empty: np.ndarray, core: np.ndarray | None, prefix: str = "") -> dict[str, float]:
-    """Counts and shares of `gen` in the free space and in its core (NaN shares when nothing was generated)."""
+def _shares(gen: np.ndarray, empty: np.ndarray, core: np.ndarray | None, prefix: str = "",
+            swept: np.ndarray | None = None) -> dict[str, float]:
+    """Counts and shares of `gen` in the free space, in its core and (given) in the swept cells (NaN shares when
+    nothing was generated)."""
     core = confident(empty) if core is None else core
     out = {}
-    for name, grid in (("empty", empty), ("core", core)):
+    grids = (("empty", empty), ("core", core)) + ((("swept", swept),) if swept is not None else ())
+    for name, grid in grids:
         bad = int(in_grid(gen, grid).sum())
         out[f"{prefix}in_{name}"] = bad
         out[f"{prefix}{name}_share"] = bad / len(gen) if len(gen) else float("nan")
@@ -63,20 +68,22 @@ def _shares(gen: np.ndarray, empty: np.ndarray, core: np.ndarray | None, prefix:
 
 
 def free_space_scores(cells: np.ndarray, input_cells: np.ndarray, empty: np.ndarray,
-                      core: np.ndarray | None = None) -> dict[str, float]:
-    """Generated cells and the share of them in observed-empty space and in its core (`core`: the
-    `confident(empty)` grid, computed here when None)."""
+                      core: np.ndarray | None = None, swept: np.ndarray | None = None) -> dict[str, float]:
+    """Generated cells and the share of them in observed-empty space, in its core (`core`: the
+    `confident(empty)` grid, computed here when None) and in `swept` (bool grid: rays crossed half a cell or more;
+    None: not scored)."""
     gen = generated_cells(cells, input_cells, empty.shape)
-    return {"generated": len(gen), **_shares(gen, empty, core)}
+    return {"generated": len(gen), **_shares(gen, empty, core, swept=swept)}
 
 
 def cut_scores(cells: np.ndarray, cut_input_cells: np.ndarray, cut_away: np.ndarray, cut_z: float,
-               empty: np.ndarray, core: np.ndarray | None = None) -> dict[str, float]:
-    """Height-cut scores of one completion of the cut input (`empty`, `core`: the whole input's)."""
+               empty: np.ndarray, core: np.ndarray | None = None, swept: np.ndarray | None = None
+               ) -> dict[str, float]:
+    """Height-cut scores of one completion of the cut input (`empty`, `core`, `swept`: the whole input's)."""
     gen = generated_cells(cells, cut_input_cells, empty.shape)
     up = gen[above(gen, cut_z)]
     return {"recall": recall_within_one(cut_away, cells, empty.shape), "generated_above": len(up),
-            **_shares(up, empty, core, "above_")}
+            **_shares(up, empty, core, "above_", swept)}
 
 
 def summarise(per_sample: Sequence[Mapping[str, float]]) -> dict[str, dict[str, float]]:

@@ -7,15 +7,16 @@ import numpy as np
 import pytest
 
 from hgca_core.errors import InputError
-from hgca_core.geometry.freespace import STOP_SHORT, confident, observed_empty, ray_origins
+from hgca_core.geometry.freespace import HALF, STOP_SHORT, confident, observed_empty, ray_origins, swept
 from hgca_core.geometry.voxel import COARSE, voxelize
 
 V, S = 0.2, 0.05  # cell size, shift: cell c spans [c V - S, c V + V - S)
 
 
-def naive_walk(o: np.ndarray, e: np.ndarray, shape: tuple[int, int, int]) -> set[tuple[int, int, int]]:
-    """Cells the segment o->e passes through, by Amanatides & Woo, one ray at a time in plain Python,
-    restricted to the grid."""
+def naive_walk(o: np.ndarray, e: np.ndarray, shape: tuple[int, int, int], V: float = V
+               ) -> set[tuple[int, int, int]]:
+    """Cells (of size V, nested in the 20 cm ones) the segment o->e passes through, by Amanatides & Woo, one ray
+    at a time in plain Python, restricted to the grid."""
     d = e - o
     cell = [math.floor((o[a] + S) / V) for a in range(3)]
     last = [math.floor((e[a] + S) / V) for a in range(3)]
@@ -40,21 +41,28 @@ def naive_walk(o: np.ndarray, e: np.ndarray, shape: tuple[int, int, int]) -> set
         remaining -= 1
 
 
-def naive_observed_empty(points, origins, index, shape, stop_short=STOP_SHORT) -> np.ndarray:
-    grid = np.zeros(shape, dtype=bool)
+def naive_observed_empty(points, origins, index, shape, stop_short=STOP_SHORT, sub: int = 1) -> np.ndarray:
+    """The free space walked cell by cell; with `sub` > 1 the count of (20 / sub) cm sub-cells crossed per 20 cm
+    cell instead."""
+    fine = tuple(n * sub for n in shape)
+    grid = np.zeros(fine, dtype=bool)
     for p, i in zip(points, index):
         o = origins[i]
         length = np.linalg.norm(p - o)
         if length <= stop_short:
             continue
-        for c in naive_walk(o, p - (p - o) * (stop_short / length), shape):
+        for c in naive_walk(o, p - (p - o) * (stop_short / length), fine, V / sub):
             grid[c] = True
+    out = grid if sub == 1 else np.zeros(shape, dtype=np.int64)
+    if sub > 1:
+        for c in np.argwhere(grid):
+            out[tuple(c // sub)] += 1
     hits = voxelize(points, COARSE)
     for c in hits:
         lo, hi = np.maximum(c - 1, 0), np.minimum(c + 2, shape)
         if np.all(lo < hi):
-            grid[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = False
-    return grid
+            out[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = 0
+    return out
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -71,6 +79,40 @@ def test_matches_naive_walk(seed):
     want = naive_observed_empty(pts, origins, index, shape)
     assert want.sum() > 200  # a real comparison, not two empty grids
     np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("sub", [2, 4])
+def test_swept_counts_match_a_naive_walk_of_sub_cells(sub):
+    rng = np.random.default_rng(sub)
+    shape = (12, 10, 6)
+    size = np.array(shape) * V
+    origins = np.array([[1.2, 1.0, 0.9], [-1.0, 0.5, 0.6]])
+    pts = rng.uniform(-1.0, size + 1.0, (400, 3))
+    index = rng.integers(0, len(origins), len(pts))
+    got = swept(pts, origins, index, shape, sub=sub)
+    want = naive_observed_empty(pts, origins, index, shape, sub=sub)
+    assert got.dtype == np.uint8 and want.max() >= sub ** 2 and (want > 0).sum() > 50
+    np.testing.assert_array_equal(got, want)
+    # any sub-cell crossed <=> the 20 cm cell crossed: the same free space as observed_empty's
+    np.testing.assert_array_equal(got > 0, observed_empty(pts, origins, index, shape))
+
+
+def test_swept_tells_grazed_ground_from_air_the_rays_cross():
+    """The ring scan of `test_grazing_rays_put_ground_in_the_free_space_but_not_in_its_core`: rays to the far rings
+    cross a thin slice of the ground cells between the rings, rays through the air near the sensor whole cells."""
+    shape = (200, 200, 20)
+    ground_z = 1.0
+    origin = np.array([[20.0, 20.0, ground_z + 1.8]])
+    az = np.radians(np.arange(0.0, 360.0, 0.4))
+    r, a = np.meshgrid(np.array([4.0, 6.0, 9.0, 13.0, 18.0]), az)
+    pts = np.c_[20.0 + (r * np.cos(a)).ravel(), 20.0 + (r * np.sin(a)).ravel(), np.full(r.size, ground_z)]
+    counts = swept(pts, origin, None, shape)
+    free = observed_empty(pts, origin, None, shape)
+    ground = np.zeros(shape, dtype=bool)
+    ground[:, :, int(np.floor((ground_z + S) / V))] = True
+    assert (free & ground).sum() > 100                        # the cell measure counts grazed ground as seen empty
+    assert (counts[free & ground] < HALF).all()               # rays swept at most a slice of any ground cell
+    assert (counts >= HALF).sum() > 500                       # but half or more of air cells near the sensor
 
 
 def test_street_like_scene():

@@ -1,0 +1,157 @@
+"""How often is a free-space "violation" really wrong? (run by hand): `python benchmarks/freespace_calibration.py`.
+
+The real-scan benchmark scores a completion without ground truth: generated cells where the input's rays passed
+count as errors. `freespace_floor.py` measures what this says of the truth itself; this measures what it says of a
+model's completion, on synthetic val sweeps where the truth is known: the coarse stage completes each scene's first
+sweep (the real benchmark's single sweeps), whole and cut 2 m above the ground, and every generated cell each
+measure flags (in the free space, its rim, its core, its swept cells) is checked against the ground truth. A measure
+whose flagged cells are mostly true geometry (porous crowns, grazed ground, thin poles) reads its floor, not the
+model's errors.
+Writes <out>.md and <out>.json (default benchmarks/results/freespace_calibration).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+from freespace_floor import grids  # noqa: E402
+from hgca_core.geometry.freespace import dense  # noqa: E402
+from hgca_core.geometry.region import ground_at  # noqa: E402
+from hgca_core.geometry.voxel import COARSE, cell_centers, voxelize  # noqa: E402
+
+OUT = REPO / "benchmarks" / "results" / "freespace_calibration"
+MEASURES = ("free", "rim", "core", "swept")
+CUT = 2.0  # m above the ground, as the real benchmark's height cut
+
+
+def measures(g: dict) -> dict[str, np.ndarray]:
+    """The flagging grids of one input (`freespace_floor.grids`): the free space, its rim, its core, its swept cells."""
+    return {"free": g["free"], "rim": g["free"] & ~g["core"], "core": g["core"], "swept": g["swept"]}
+
+
+def classify(generated: np.ndarray, truth: np.ndarray, flags: dict[str, np.ndarray]) -> dict[str, dict[str, int]]:
+    """Per measure (and "all"): generated cells flagged, those not in the truth, and those farther than one cell
+    from it. `generated`, `truth` and every flag grid are dense bool grids of one shape."""
+    near = dense(np.argwhere(truth), truth.shape, dilate=1)
+    out = {}
+    for name, grid in {"all": np.ones_like(generated), **flags}.items():
+        m = generated & grid
+        out[name] = {"cells": int(m.sum()), "wrong": int((m & ~truth).sum()), "far": int((m & ~near).sum())}
+    return out
+
+
+def above_cut(cells: np.ndarray, ground_height, cut: float) -> np.ndarray:
+    """Per 20 cm cell: its centre lies `cut` m or more above the scene's ground."""
+    c = cell_centers(cells, COARSE)
+    return c[:, 2] >= ground_at(ground_height, c[:, :2]) + cut
+
+
+def scene(path: Path, models, samples: int) -> dict:
+    """Counts of one val scene's first sweep, whole and cut, summed over `samples` completions."""
+    from hgca_core.pipeline import complete_local
+    from hgca_core.synth.dataset import load_sample
+    from hgca_core.synth.rays import input_rays
+
+    s = load_sample(path)
+    g = grids(s, True)
+    region, shape = g["region"], g["free"].shape
+    rays, _ = input_rays(s, 0)
+    origin = np.asarray(s["input_origins"], np.float64)[:1]
+    flags = measures(g)
+    out: dict[str, dict] = {}
+    for case in ("whole", "cut"):
+        pts = rays
+        if case == "cut":
+            pts = rays[rays[:, 2] < ground_at(s["ground_height"], rays[:, :2]) + CUT]
+        inside = np.all((pts >= 0) & (pts < region.size), axis=1)
+        given = dense(voxelize(pts[inside], COARSE, region.size), shape)
+        res = complete_local(pts, region, models, samples=samples, seed=0, origins=origin,
+                             origin_index=np.zeros(len(pts), np.int64))
+        for r in res:
+            gen = dense(r.coarse_cells, shape) & ~given
+            if case == "cut":
+                c = np.argwhere(gen)
+                low = c[~above_cut(c, s["ground_height"], CUT)]
+                gen[low[:, 0], low[:, 1], low[:, 2]] = False
+            for name, v in classify(gen, g["truth"], flags).items():
+                acc = out.setdefault(case, {}).setdefault(name, {"cells": 0, "wrong": 0, "far": 0})
+                for k in acc:
+                    acc[k] += v[k]
+    return out
+
+
+def table(total: dict) -> list[str]:
+    lines = ["| case | measure | flagged cells | share of generated (%) | not in the truth (%) | more than one cell "
+             "from the truth (%) | of the wrong cells in the free space, flagged (%) |",
+             "|---|---|---:|---:|---:|---:|---:|"]
+    names = {"whole": "single sweep, whole", "cut": f"single sweep, above a {CUT:g} m cut"}
+    for case, rows in total.items():
+        n_all, wrong_free = rows["all"]["cells"], rows["free"]["wrong"]
+        for name in ("all", *MEASURES):
+            r = rows[name]
+            pct = lambda a, b: f"{100 * a / b:.1f}" if b else "-"  # noqa: E731
+            lines.append(f"| {names[case]} | {'generated' if name == 'all' else name} | {r['cells']:,} | "
+                         f"{pct(r['cells'], n_all)} | {pct(r['wrong'], r['cells'])} | {pct(r['far'], r['cells'])} | "
+                         f"{'' if name == 'all' else pct(r['wrong'], wrong_free)} |")
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", default="data/synth2f", help="dataset folder with a val split (hgca synth)")
+    p.add_argument("--count", type=int, default=16, help="val scenes")
+    p.add_argument("--samples", type=int, default=1, help="completions a scene (seeds 0..)")
+    p.add_argument("--weights", default=None, help="coarse weights (default: the shipped coarse.pt)")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--out", default=str(OUT), help="results stem (.md, .json)")
+    args = p.parse_args(argv)
+    files = sorted((Path(args.data) / "val").glob("sample_*.npz"))[: args.count]
+    if not files:
+        print(f"no val samples under {args.data}/val (make them with `hgca synth --split val`)", file=sys.stderr)
+        return 2
+    import torch
+
+    from hgca_core.pipeline import load_models
+
+    torch.set_num_threads(args.threads)
+    models = load_models("coarse", args.weights)
+    t0 = time.time()
+    per_scene, total = {}, {}
+    for f in files:
+        per_scene[f.name] = scene(f, models, args.samples)
+        for case, rows in per_scene[f.name].items():
+            for name, v in rows.items():
+                acc = total.setdefault(case, {}).setdefault(name, {"cells": 0, "wrong": 0, "far": 0})
+                for k in acc:
+                    acc[k] += v[k]
+        print(f.name, flush=True)
+    lines = ["# Free-space measures against the ground truth", "",
+             f"`python benchmarks/freespace_calibration.py --data {args.data} --count {len(files)} --samples "
+             f"{args.samples}{f' --weights {args.weights}' if args.weights else ''}`: the coarse stage "
+             f"({args.weights or 'the shipped coarse.pt'}) completes the first sweep of {len(files)} synthetic val "
+             "scenes, whole and cut, as `hgca eval-real` completes the real sweeps; each measure's flagged generated "
+             "cells (generated: completion cells the input does not hold; above the cut only, for the cut) are "
+             "checked against the scene's ground-truth 20 cm cells. Measures: free (the observed free space, "
+             "`geometry.freespace.observed_empty`), rim (free, not core), core (free cells with six free "
+             "neighbours), swept (free cells whose 5 cm sub-cells the rays crossed half or more of, "
+             "`geometry.freespace.swept`). Summed over scenes and samples.", "", *table(total), "",
+             f"Run time {time.time() - t0:.0f} s, {args.threads} thread(s)."]
+    out = Path(args.out)
+    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    out.with_suffix(".json").write_text(json.dumps({"data": args.data, "weights": args.weights,
+                                                    "samples": args.samples, "cut": CUT, "total": total,
+                                                    "scenes": per_scene}, indent=1) + "\n")
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
