@@ -104,6 +104,26 @@ def table(total: dict) -> list[str]:
     return lines
 
 
+def by_profile(per_scene: dict[str, dict]) -> list[str]:
+    """Per sensor profile (each val scene's seed draws one): the share of the growth above the cut that the free
+    space flags, and the model's wrong cells in the whole sweep's free space as a share of what it generates."""
+    from hgca_core.synth.dataset import draw_recipe
+
+    groups: dict[str, list[dict]] = {}
+    for name, rows in per_scene.items():
+        groups.setdefault(draw_recipe(int(Path(name).stem.split("_")[1]))[0], []).append(rows)
+    lines = ["| profile | scenes | above the cut: generated | flagged in the free space (%) | whole sweep: generated | "
+             "wrong and in the free space (%) |", "|---|---:|---:|---:|---:|---:|"]
+    for prof, group in sorted(groups.items()):
+        up = sum(r["cut"]["all"]["cells"] for r in group)
+        up_free = sum(r["cut"]["free"]["cells"] for r in group)
+        whole = sum(r["whole"]["all"]["cells"] for r in group)
+        wrong = sum(r["whole"]["free"]["wrong"] for r in group)
+        lines.append(f"| {prof} | {len(group)} | {up:,} | {100 * up_free / max(up, 1):.1f} | {whole:,} | "
+                     f"{100 * wrong / max(whole, 1):.2f} |")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", default="data/synth2f", help="dataset folder with a val split (hgca synth)")
@@ -143,6 +163,7 @@ def main(argv: list[str] | None = None) -> int:
              "`geometry.freespace.observed_empty`), rim (free, not core), core (free cells with six free "
              "neighbours), swept (free cells whose 5 cm sub-cells the rays crossed half or more of, "
              "`geometry.freespace.swept`). Summed over scenes and samples.", "", *table(total), "",
+             "Per sensor profile:", "", *by_profile(per_scene), "",
              f"Run time {time.time() - t0:.0f} s, {args.threads} thread(s)."]
     out = Path(args.out)
     out.with_suffix(".md").write_text("\n".join(lines) + "\n")

@@ -33,3 +33,14 @@ def test_table_rows_and_shares():
     assert lines[2] == "| single sweep, whole | generated | 200 | 100.0 | 25.0 | 10.0 |  |"
     assert lines[3] == "| single sweep, whole | free | 10 | 5.0 | 20.0 | 10.0 | 100.0 |"
     assert lines[-1] == "| single sweep, whole | swept | 0 | 0.0 | - | - | 0.0 |"
+
+
+def test_by_profile_groups_scenes_by_the_profile_their_seed_draws():
+    def rows(up, up_free, whole, wrong):
+        return {"cut": {"all": {"cells": up}, "free": {"cells": up_free}},
+                "whole": {"all": {"cells": whole}, "free": {"wrong": wrong}}}
+    # val seeds 1,000,000 and 1,000,003 draw hdl64, 1,000,001 hdl32 (docs/data/synth2f_recipe.json)
+    per_scene = {"sample_1000000.npz": rows(100, 10, 1000, 10), "sample_1000003.npz": rows(300, 10, 1000, 0),
+                 "sample_1000001.npz": rows(50, 0, 500, 5)}
+    lines = fc.by_profile(per_scene)
+    assert lines[2:] == ["| hdl32 | 1 | 50 | 0.0 | 500 | 1.00 |", "| hdl64 | 2 | 400 | 5.0 | 2,000 | 0.50 |"]
