@@ -126,16 +126,18 @@ def by_profile(per_scene: dict[str, dict]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--data", default="data/synth2f", help="dataset folder with a val split (hgca synth)")
+    p.add_argument("--data", nargs="+", default=["data/synth2f"],
+                   help="dataset folders with a val split (hgca synth); their val scenes in the order given")
     p.add_argument("--count", type=int, default=16, help="val scenes")
     p.add_argument("--samples", type=int, default=1, help="completions a scene (seeds 0..)")
     p.add_argument("--weights", default=None, help="coarse weights (default: the shipped coarse.pt)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", default=str(OUT), help="results stem (.md, .json)")
     args = p.parse_args(argv)
-    files = sorted((Path(args.data) / "val").glob("sample_*.npz"))[: args.count]
+    files = [f for d in args.data for f in sorted((Path(d) / "val").glob("sample_*.npz"))][: args.count]
     if not files:
-        print(f"no val samples under {args.data}/val (make them with `hgca synth --split val`)", file=sys.stderr)
+        print(f"no val samples under {' '.join(args.data)} (make them with `hgca synth --split val`)",
+              file=sys.stderr)
         return 2
     import torch
 
@@ -154,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
                     acc[k] += v[k]
         print(f.name, flush=True)
     lines = ["# Free-space measures against the ground truth", "",
-             f"`python benchmarks/freespace_calibration.py --data {args.data} --count {len(files)} --samples "
+             f"`python benchmarks/freespace_calibration.py --data {' '.join(args.data)} --count {len(files)} --samples "
              f"{args.samples}{f' --weights {args.weights}' if args.weights else ''}`: the coarse stage "
              f"({args.weights or 'the shipped coarse.pt'}) completes the first sweep of {len(files)} synthetic val "
              "scenes, whole and cut, as `hgca eval-real` completes the real sweeps; each measure's flagged generated "

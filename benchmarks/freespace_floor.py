@@ -101,13 +101,15 @@ def section(sample: dict, g: dict, png: Path) -> None:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--data", default="data/synth2", help="dataset folder with a val split (hgca synth)")
+    p.add_argument("--data", nargs="+", default=["data/synth2"],
+                   help="dataset folders with a val split (hgca synth); their val scenes in the order given")
     p.add_argument("--count", type=int, default=16, help="val scenes")
     p.add_argument("--out", default=str(OUT), help="results stem (.md, .json, .png)")
     args = p.parse_args()
-    files = sorted((Path(args.data) / "val").glob("sample_*.npz"))[: args.count]
+    files = [f for d in args.data for f in sorted((Path(d) / "val").glob("sample_*.npz"))][: args.count]
     if not files:
-        print(f"no val samples under {args.data}/val (make them with `hgca synth --split val`)", file=sys.stderr)
+        print(f"no val samples under {' '.join(args.data)} (make them with `hgca synth --split val`)",
+              file=sys.stderr)
         return 2
     t0 = time.time()
     rows = []
@@ -126,8 +128,8 @@ def main() -> int:
     cases = (("all", "all scans"), ("first", "first sweep"), ("first_cut2", "above a 2 m cut"))
     measures = (("free", "in free"), ("core", "in core"), ("swept", "swept"))
     lines = ["# Ground truth in the observed free space", "",
-             f"Synthetic val scenes of `{args.data}` ({len(files)}): the ground-truth 20 cm cells that the input does "
-             "not hold (what a perfect completion would generate), and the share of them that the real-scan "
+             f"Synthetic val scenes of `{' '.join(args.data)}` ({len(files)}): the ground-truth 20 cm cells that the "
+             "input does not hold (what a perfect completion would generate), and the share of them that the real-scan "
              "benchmark would count as errors: in the observed free space (every ray of the input, from sample "
              "format 3 also those to hits beyond the region, walked to 0.4 m short of their hit, the 26 cells around "
              "every hit excluded), in its core (free cells whose six face neighbours are free too), and swept (free "

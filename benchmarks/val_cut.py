@@ -13,7 +13,7 @@ import argparse
 import subprocess
 import sys
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -21,24 +21,29 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 
 
-def first_sweeps(data: Path, split: str, count: int) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
+def first_sweeps(data: Path, split: str, count: int, profiles: Sequence[str] | None = None
+                 ) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
     """(sample stem, points (N, 3) region frame, sensor origin (1, 3)) of the first sweep (scan index 0) of the first
-    `count` scenes of a split: every hit the sample kept, beyond the region too (format 3 on), as a real sweep
-    holds them."""
+    `count` scenes of a split (with `profiles`, of those whose seed draws one of these sensor profiles): every hit
+    the sample kept, beyond the region too (format 3 on), as a real sweep holds them."""
+    from hgca_core.synth.dataset import draw_recipe
     from hgca_core.synth.rays import input_rays
     from hgca_core.training.data import split_files
 
-    for path in split_files(str(data), split)[:count]:
+    files = split_files(str(data), split)
+    if profiles:
+        files = [f for f in files if draw_recipe(int(Path(f).stem.split("_")[1]))[0] in profiles]
+    for path in files[:count]:
         with np.load(path, allow_pickle=False) as z:
             points = input_rays(z, scan=0)[0]
             origin = np.asarray(z["input_origins"], dtype=np.float64)[:1]
         yield Path(path).stem, points, origin
 
 
-def write_first_sweeps(data: Path, count: int, folder: Path) -> list[Path]:
-    """`first_sweeps` of the first `count` val scenes as NPZ scans with their sensor origin."""
+def write_first_sweeps(data: Path, count: int, folder: Path, profiles: Sequence[str] | None = None) -> list[Path]:
+    """`first_sweeps` of the first `count` val scenes (of `profiles`) as NPZ scans with their sensor origin."""
     out = []
-    for stem, points, origin in first_sweeps(data, "val", count):
+    for stem, points, origin in first_sweeps(data, "val", count, profiles):
         target = folder / f"{stem}_sweep0.npz"
         np.savez(target, points=points, origins=origin, origin_index=np.zeros(len(points), np.int64))
         out.append(target)
@@ -52,11 +57,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--weights", default=None, help="coarse weights (default: the shipped coarse.pt)")
     p.add_argument("--samples", type=int, default=3)
     p.add_argument("--cuts", default="2.0")
+    p.add_argument("--profiles", default="", help="comma list: only val scenes of these sensor profiles (e.g. "
+                   "av2,hdl32, the real logs' sensors; default every scene; freespace_calibration.md shows how much "
+                   "the above-cut share depends on the profile)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", required=True, help="results JSON (the table goes to .md beside it)")
     args = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
-        scans = write_first_sweeps(Path(args.data), args.count, Path(tmp))
+        profiles = [v.strip() for v in args.profiles.split(",") if v.strip()]
+        scans = write_first_sweeps(Path(args.data), args.count, Path(tmp), profiles)
+        if not scans:
+            print(f"no val scenes of {profiles or 'any profile'} in {args.data}", file=sys.stderr)
+            return 2
         # a process of its own, as `hgca eval-real` runs: the CLI sets torch's OpenMP policy before torch loads
         cmd = [sys.executable, "-c", "import sys; from hgca_core.cli import main; sys.exit(main())", "eval-real",
                "--threads", str(args.threads), "--methods", "hgca", "--samples", str(args.samples),

@@ -1,0 +1,31 @@
+"""benchmarks/val_cut.py: the first sweeps it scores, optionally of some sensor profiles only."""
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+import val_cut  # noqa: E402
+
+
+def _sample(path: Path, k: int) -> None:
+    pts = np.arange(12, dtype=np.float64).reshape(4, 3) + k
+    np.savez(path, input_points=pts, input_scan_index=np.array([0, 0, 1, 1]),
+             input_far_points=pts[:1] + 100, input_far_scan_index=np.array([0]),
+             input_origins=np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]) + k)
+
+
+def test_first_sweeps_keep_scan_zero_and_filter_by_profile(tmp_path):
+    val = tmp_path / "val"
+    val.mkdir()
+    # val seeds 1,000,000 and 1,000,003 draw hdl64, 1,000,001 and 1,000,002 hdl32 (docs/data/synth2f_recipe.json)
+    for k in range(4):
+        _sample(val / f"sample_{1_000_000 + k}.npz", k)
+    every = list(val_cut.first_sweeps(tmp_path, "val", 3))
+    assert [s for s, _, _ in every] == ["sample_1000000", "sample_1000001", "sample_1000002"]
+    stem, pts, origin = every[1]
+    np.testing.assert_array_equal(pts, np.array([[1.0, 2, 3], [4, 5, 6], [101, 102, 103]]))  # scan 0, far hit too
+    np.testing.assert_array_equal(origin, [[2.0, 3.0, 4.0]])
+    hdl64 = [s for s, _, _ in val_cut.first_sweeps(tmp_path, "val", 4, ["hdl64"])]
+    assert hdl64 == ["sample_1000000", "sample_1000003"]
+    assert val_cut.write_first_sweeps(tmp_path, 4, tmp_path, ["waymo"]) == []
