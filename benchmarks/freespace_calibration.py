@@ -54,8 +54,9 @@ def above_cut(cells: np.ndarray, ground_height, cut: float) -> np.ndarray:
     return c[:, 2] >= ground_at(ground_height, c[:, :2]) + cut
 
 
-def scene(path: Path, models, samples: int) -> dict:
-    """Counts of one val scene's first sweep, whole and cut, summed over `samples` completions."""
+def scene(path: Path, models, samples: int, png: Path | None = None) -> dict:
+    """Counts of one val scene's first sweep, whole and cut, summed over `samples` completions; with `png`, the
+    first completion of the cut drawn there (`draw`)."""
     from hgca_core.pipeline import complete_local
     from hgca_core.synth.dataset import load_sample
     from hgca_core.synth.rays import input_rays
@@ -81,11 +82,45 @@ def scene(path: Path, models, samples: int) -> dict:
                 c = np.argwhere(gen)
                 low = c[~above_cut(c, s["ground_height"], CUT)]
                 gen[low[:, 0], low[:, 1], low[:, 2]] = False
+            if case == "cut" and png is not None and r is res[0]:
+                draw(png, gen, g["truth"], g["free"], given, path.name)
             for name, v in classify(gen, g["truth"], flags).items():
                 acc = out.setdefault(case, {}).setdefault(name, {"cells": 0, "wrong": 0, "far": 0})
                 for k in acc:
                     acc[k] += v[k]
     return out
+
+
+def draw(png: Path, gen: np.ndarray, truth: np.ndarray, free: np.ndarray, given: np.ndarray, title: str) -> None:
+    """Plan view of a cut's completion, each column showing its top-most cell: the cut input black, the truth it
+    misses grey, generated cells blue within one cell of the truth, yellow within one cell but in the free space,
+    orange farther in space no ray saw, red farther in the free space (what the count flags)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    near = dense(np.argwhere(truth), truth.shape, dilate=1)
+    layers = [(truth & ~given & ~gen, (0.8, 0.8, 0.8)), (given, (0.0, 0.0, 0.0)),
+              (gen & near & ~free, (0.2, 0.45, 0.9)), (gen & near & free, (0.95, 0.8, 0.1)),
+              (gen & ~near & ~free, (1.0, 0.55, 0.1)), (gen & ~near & free, (0.85, 0.05, 0.05))]
+    z = np.arange(truth.shape[2])
+    best = np.full(truth.shape[:2], -1)
+    img = np.ones((*best.shape, 3))
+    for mask, rgb in layers:   # later layers win ties: errors drawn over what they cover
+        top = np.where(mask, z, -1).max(axis=2)
+        win = (top >= 0) & (top >= best)
+        img[win], best[win] = rgb, top[win]
+    fig, ax = plt.subplots(figsize=(9, 9.6))
+    ax.imshow(img.transpose(1, 0, 2), origin="lower", interpolation="nearest",
+              extent=(0, best.shape[0] * COARSE, 0, best.shape[1] * COARSE))
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"{title}: first sweep cut {CUT:g} m up and completed, seen from above\nblack: cut input; grey: "
+                 "missed truth; generated: blue within a cell of the truth, yellow the same\nin the free space, "
+                 "orange farther in space no ray saw, red farther in the free space (flagged errors)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(png, dpi=90)
+    plt.close(fig)
 
 
 def table(total: dict) -> list[str]:
@@ -132,7 +167,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--samples", type=int, default=1, help="completions a scene (seeds 0..)")
     p.add_argument("--weights", default=None, help="coarse weights (default: the shipped coarse.pt)")
     p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--out", default=str(OUT), help="results stem (.md, .json)")
+    p.add_argument("--out", default=str(OUT), help="results stem (.md, .json, .png)")
+    p.add_argument("--render-profile", default="av2", help="the first scene of this sensor profile is drawn (.png)")
     args = p.parse_args(argv)
     files = [f for d in args.data for f in sorted((Path(d) / "val").glob("sample_*.npz"))][: args.count]
     if not files:
@@ -145,10 +181,16 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(args.threads)
     models = load_models("coarse", args.weights)
+    from hgca_core.synth.dataset import draw_recipe
+
     t0 = time.time()
-    per_scene, total = {}, {}
+    out = Path(args.out)
+    per_scene, total, drawn = {}, {}, None
     for f in files:
-        per_scene[f.name] = scene(f, models, args.samples)
+        png = None
+        if drawn is None and draw_recipe(int(f.stem.split("_")[1]))[0] == args.render_profile:
+            png = drawn = out.with_suffix(".png")
+        per_scene[f.name] = scene(f, models, args.samples, png)
         for case, rows in per_scene[f.name].items():
             for name, v in rows.items():
                 acc = total.setdefault(case, {}).setdefault(name, {"cells": 0, "wrong": 0, "far": 0})
@@ -166,8 +208,8 @@ def main(argv: list[str] | None = None) -> int:
              "neighbours), swept (free cells whose 5 cm sub-cells the rays crossed half or more of, "
              "`geometry.freespace.swept`). Summed over scenes and samples.", "", *table(total), "",
              "Per sensor profile:", "", *by_profile(per_scene), "",
+             *([f"Drawn: `{drawn.name}` (the first {args.render_profile} scene's cut, sample 0)."] if drawn else []),
              f"Run time {time.time() - t0:.0f} s, {args.threads} thread(s)."]
-    out = Path(args.out)
     out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     out.with_suffix(".json").write_text(json.dumps({"data": args.data, "weights": args.weights,
                                                     "samples": args.samples, "cut": CUT, "total": total,
