@@ -3,9 +3,12 @@
 A ray from the sensor to a return proves the space it crossed empty (the beam went through). We walk every
 ray from its sensor origin to `stop_short` metres before its hit over the region's 20 cm grid, exactly (every
 cell the segment enters, Amanatides-Woo style), and drop cells next to any hit (26-neighbourhood), since a
-grazing ray near a surface says little about the surface's own cell. A completion that puts geometry in
-these cells is certainly wrong there: the sensor saw through it. Used by `hgca eval-real`, and meant as a
-model input later, so it is vectorised: every boundary crossing of every ray is one array element, and each
+grazing ray near a surface says little about the surface's own cell. Geometry in these cells contradicts a
+ray, yet a ray that crossed only part of a cell (over the ground between rings, through a porous crown)
+leaves room for a surface in the rest: on synthetic single sweeps 80 % of the completion cells found there
+are true (`benchmarks/results/freespace_calibration.md`). `swept` says how much of each cell the rays crossed,
+walking the same rays over 5 cm sub-cells. The model reads the free space as an input and `hgca eval-real`
+scores with it, so it is vectorised: every boundary crossing of every ray is one array element, and each
 crossing names the cell it enters on its own (no sort), marked in a dense grid.
 
 Cells follow the project's voxeliser (`hgca_core.geometry.voxel`): a 20 cm cell c holds region-frame points
@@ -160,11 +163,12 @@ def swept(points: np.ndarray, origins: np.ndarray, origin_index: np.ndarray | No
 
     Why: a completion cell says "surface somewhere in these 20 cm". A ray through the cell disproves that only
     where it passed; a ray grazing a ground cell's top leaves its bottom unseen, which is why a perfect
-    completion puts 1-12 % of its cells in `observed_empty` (`benchmarks/results/freespace_floor.md`). The more
+    completion of a single sweep puts 1-14 % of its cells in `observed_empty` and 0-1.5 % in cells swept half
+    (`benchmarks/results/freespace_floor_val64.md`). The more
     of a cell's volume the rays swept, the less room is left for a surface in it: `swept(...) >= sub ** 3 // 2`
     asks that rays crossed at least half of it (`HALF`)."""
-    if not 1 <= sub <= 8:
-        raise ValueError("sub must be 1..8 (sub-cells of 20 / sub cm)")
+    if not 1 <= sub <= 6:
+        raise ValueError("sub must be 1..6 (sub-cells of 20 / sub cm; at most 216 to a cell, one uint8)")
     pts, o = _rays(points, origins, origin_index)
     shape = tuple(int(v) for v in grid_shape)
     fine = _walk(pts, o, shape, COARSE / sub, stop_short)
