@@ -22,10 +22,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from freespace_floor import grids  # noqa: E402
+from freespace_floor import clear_below, grids, under_cut  # noqa: E402
 from hgca_core.geometry.freespace import dense  # noqa: E402
-from hgca_core.geometry.region import ground_at  # noqa: E402
-from hgca_core.geometry.voxel import COARSE, cell_centers, voxelize  # noqa: E402
+from hgca_core.geometry.voxel import COARSE, voxelize  # noqa: E402
+from hgca_core.synth.dataset import draw_recipe, sample_seed  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "freespace_calibration"
 MEASURES = ("free", "rim", "core", "swept")
@@ -37,10 +37,17 @@ def measures(g: dict) -> dict[str, np.ndarray]:
     return {"free": g["free"], "rim": g["free"] & ~g["core"], "core": g["core"], "swept": g["swept"]}
 
 
-def classify(generated: np.ndarray, truth: np.ndarray, flags: dict[str, np.ndarray]) -> dict[str, dict[str, int]]:
+def near_truth(truth: np.ndarray) -> np.ndarray:
+    """The cells within one cell (26-neighbourhood) of a true cell."""
+    return dense(np.argwhere(truth), truth.shape, dilate=1)
+
+
+def classify(generated: np.ndarray, truth: np.ndarray, flags: dict[str, np.ndarray],
+             near: np.ndarray | None = None) -> dict[str, dict[str, int]]:
     """Per measure (and "all"): generated cells flagged, those not in the truth, and those farther than one cell
-    from it. `generated`, `truth` and every flag grid are dense bool grids of one shape."""
-    near = dense(np.argwhere(truth), truth.shape, dilate=1)
+    from it (`near`: `near_truth(truth)`, computed here when None). `generated`, `truth` and every flag grid are
+    dense bool grids of one shape."""
+    near = near_truth(truth) if near is None else near
     out = {}
     for name, grid in {"all": np.ones_like(generated), **flags}.items():
         m = generated & grid
@@ -48,10 +55,12 @@ def classify(generated: np.ndarray, truth: np.ndarray, flags: dict[str, np.ndarr
     return out
 
 
-def above_cut(cells: np.ndarray, ground_height, cut: float) -> np.ndarray:
-    """Per 20 cm cell: its centre lies `cut` m or more above the scene's ground."""
-    c = cell_centers(cells, COARSE)
-    return c[:, 2] >= ground_at(ground_height, c[:, :2]) + cut
+def accumulate(into: dict, rows: dict[str, dict[str, int]]) -> None:
+    """Add `classify`'s counts `rows` into `into` (same layout), measure by measure."""
+    for name, v in rows.items():
+        acc = into.setdefault(name, {"cells": 0, "wrong": 0, "far": 0})
+        for k in acc:
+            acc[k] += v[k]
 
 
 def scene(path: Path, models, samples: int, png: Path | None = None) -> dict:
@@ -66,12 +75,12 @@ def scene(path: Path, models, samples: int, png: Path | None = None) -> dict:
     region, shape = g["region"], g["free"].shape
     rays, _ = input_rays(s, 0)
     origin = np.asarray(s["input_origins"], np.float64)[:1]
-    flags = measures(g)
+    flags, near = measures(g), near_truth(g["truth"])
     out: dict[str, dict] = {}
     for case in ("whole", "cut"):
         pts = rays
         if case == "cut":
-            pts = rays[rays[:, 2] < ground_at(s["ground_height"], rays[:, :2]) + CUT]
+            pts = rays[under_cut(rays, s["ground_height"], CUT)]
         inside = np.all((pts >= 0) & (pts < region.size), axis=1)
         given = dense(voxelize(pts[inside], COARSE, region.size), shape)
         res = complete_local(pts, region, models, samples=samples, seed=0, origins=origin,
@@ -79,27 +88,23 @@ def scene(path: Path, models, samples: int, png: Path | None = None) -> dict:
         for r in res:
             gen = dense(r.coarse_cells, shape) & ~given
             if case == "cut":
-                c = np.argwhere(gen)
-                low = c[~above_cut(c, s["ground_height"], CUT)]
-                gen[low[:, 0], low[:, 1], low[:, 2]] = False
-            if case == "cut" and png is not None and r is res[0]:
-                draw(png, gen, g["truth"], g["free"], given, path.name)
-            for name, v in classify(gen, g["truth"], flags).items():
-                acc = out.setdefault(case, {}).setdefault(name, {"cells": 0, "wrong": 0, "far": 0})
-                for k in acc:
-                    acc[k] += v[k]
+                clear_below(gen, s["ground_height"], CUT)
+                if png is not None and r is res[0]:
+                    draw(png, gen, g["truth"], near, g["free"], given, path.name)
+            accumulate(out.setdefault(case, {}), classify(gen, g["truth"], flags, near))
     return out
 
 
-def draw(png: Path, gen: np.ndarray, truth: np.ndarray, free: np.ndarray, given: np.ndarray, title: str) -> None:
+def draw(png: Path, gen: np.ndarray, truth: np.ndarray, near: np.ndarray, free: np.ndarray, given: np.ndarray,
+         title: str) -> None:
     """Plan view of a cut's completion, each column showing its top-most cell: the cut input black, the truth it
     misses grey, generated cells blue within one cell of the truth, yellow within one cell but in the free space,
-    orange farther in space no ray saw, red farther in the free space (what the count flags)."""
+    orange farther in space no ray saw, red farther in the free space (what the count flags). `near`:
+    `near_truth(truth)`."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    near = dense(np.argwhere(truth), truth.shape, dilate=1)
     layers = [(truth & ~given & ~gen, (0.8, 0.8, 0.8)), (given, (0.0, 0.0, 0.0)),
               (gen & near & ~free, (0.2, 0.45, 0.9)), (gen & near & free, (0.95, 0.8, 0.1)),
               (gen & ~near & ~free, (1.0, 0.55, 0.1)), (gen & ~near & free, (0.85, 0.05, 0.05))]
@@ -142,11 +147,9 @@ def table(total: dict) -> list[str]:
 def by_profile(per_scene: dict[str, dict]) -> list[str]:
     """Per sensor profile (each val scene's seed draws one): the share of the growth above the cut that the free
     space flags, and the model's wrong cells in the whole sweep's free space as a share of what it generates."""
-    from hgca_core.synth.dataset import draw_recipe
-
     groups: dict[str, list[dict]] = {}
     for name, rows in per_scene.items():
-        groups.setdefault(draw_recipe(int(Path(name).stem.split("_")[1]))[0], []).append(rows)
+        groups.setdefault(draw_recipe(sample_seed(name))[0], []).append(rows)
     lines = ["| profile | scenes | above the cut: generated | flagged in the free space (%) | whole sweep: generated | "
              "wrong and in the free space (%) |", "|---|---:|---:|---:|---:|---:|"]
     for prof, group in sorted(groups.items()):
@@ -181,21 +184,16 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(args.threads)
     models = load_models("coarse", args.weights)
-    from hgca_core.synth.dataset import draw_recipe
-
     t0 = time.time()
     out = Path(args.out)
     per_scene, total, drawn = {}, {}, None
     for f in files:
         png = None
-        if drawn is None and draw_recipe(int(f.stem.split("_")[1]))[0] == args.render_profile:
+        if drawn is None and draw_recipe(sample_seed(f))[0] == args.render_profile:
             png = drawn = out.with_suffix(".png")
         per_scene[f.name] = scene(f, models, args.samples, png)
         for case, rows in per_scene[f.name].items():
-            for name, v in rows.items():
-                acc = total.setdefault(case, {}).setdefault(name, {"cells": 0, "wrong": 0, "far": 0})
-                for k in acc:
-                    acc[k] += v[k]
+            accumulate(total.setdefault(case, {}), rows)
         print(f.name, flush=True)
     lines = ["# Free-space measures against the ground truth", "",
              f"`python benchmarks/freespace_calibration.py --data {' '.join(args.data)} --count {len(files)} --samples "

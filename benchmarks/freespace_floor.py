@@ -23,7 +23,7 @@ REPO = Path(__file__).resolve().parents[1]
 from hgca_core.geometry.freespace import HALF, confident, dense, observed_empty, swept  # noqa: E402
 from hgca_core.geometry.region import Region, ground_at  # noqa: E402
 from hgca_core.geometry.voxel import COARSE, cell_centers, voxelize  # noqa: E402
-from hgca_core.synth.dataset import draw_recipe, load_sample  # noqa: E402
+from hgca_core.synth.dataset import draw_recipe, load_sample, sample_seed  # noqa: E402
 from hgca_core.synth.rays import input_rays  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "freespace_floor"
@@ -47,6 +47,20 @@ def grids(sample: dict, single: bool) -> dict:
             "truth": dense(np.asarray(sample["gt_occ20"], np.int64), shape)}
 
 
+def under_cut(p: np.ndarray, ground_height, cut: float) -> np.ndarray:
+    """Per region-frame point (a hit, a cell centre): below `cut` m above the scene's ground (`ground_height`, a
+    sample's ground), as the real benchmark cuts its inputs."""
+    return p[:, 2] < ground_at(ground_height, p[:, :2]) + cut
+
+
+def clear_below(grid: np.ndarray, ground_height, cut: float) -> None:
+    """Unset, in a dense 20 cm grid, the cells whose centre lies under the cut (`under_cut`): what is left lies
+    above it."""
+    c = np.argwhere(grid)
+    low = c[under_cut(cell_centers(c, COARSE), ground_height, cut)]
+    grid[low[:, 0], low[:, 1], low[:, 2]] = False
+
+
 def floor(sample: dict, g: dict, cut: float | None = None) -> dict:
     """Shares of the truth's cells that the input `g` misses in its free space and its core. With `cut`: the input
     cut `cut` m above the ground and the truth it misses above the cut, against the free space of the whole input
@@ -54,13 +68,10 @@ def floor(sample: dict, g: dict, cut: float | None = None) -> dict:
     region, pts, free, core, half = g["region"], g["points"], g["free"], g["core"], g["swept"]
     shape = free.shape
     if cut is not None:
-        pts = pts[pts[:, 2] < ground_at(sample["ground_height"], pts[:, :2]) + cut]
+        pts = pts[under_cut(pts, sample["ground_height"], cut)]
     unseen = g["truth"] & ~dense(voxelize(pts, COARSE, region.size), shape)
     if cut is not None:
-        c = np.argwhere(unseen)
-        centre = cell_centers(c, COARSE)
-        low = c[centre[:, 2] < ground_at(sample["ground_height"], centre[:, :2]) + cut]
-        unseen[low[:, 0], low[:, 1], low[:, 2]] = False
+        clear_below(unseen, sample["ground_height"], cut)
     n = int(unseen.sum())
     out = {"unseen_truth": n, "free_cells": int(free.sum()), "core_cells": int(core.sum()),
            "swept_cells": int(half.sum())}
@@ -115,7 +126,7 @@ def main() -> int:
     rows = []
     out = Path(args.out)
     for f in files:
-        seed = int(f.stem.split("_")[1])
+        seed = sample_seed(f)
         s = load_sample(f)
         profile, _ = draw_recipe(seed)
         first = grids(s, True)

@@ -26,13 +26,13 @@ def first_sweeps(data: Path, split: str, count: int, profiles: Sequence[str] | N
     """(sample stem, points (N, 3) region frame, sensor origin (1, 3)) of the first sweep (scan index 0) of the first
     `count` scenes of a split (with `profiles`, of those whose seed draws one of these sensor profiles): every hit
     the sample kept, beyond the region too (format 3 on), as a real sweep holds them."""
-    from hgca_core.synth.dataset import draw_recipe
+    from hgca_core.synth.dataset import draw_recipe, sample_seed
     from hgca_core.synth.rays import input_rays
     from hgca_core.training.data import split_files
 
     files = split_files(str(data), split)
     if profiles:
-        files = [f for f in files if draw_recipe(int(Path(f).stem.split("_")[1]))[0] in profiles]
+        files = [f for f in files if draw_recipe(sample_seed(f))[0] in profiles]
     for path in files[:count]:
         with np.load(path, allow_pickle=False) as z:
             points = input_rays(z, scan=0)[0]

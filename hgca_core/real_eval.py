@@ -272,7 +272,7 @@ def format_tables(results: dict) -> str:
              "completion of a synthetic single sweep scores 0.9-10 % in the free space and at most 0.14 % in the "
              "core (`freespace_floor.md`). Swept: in the free cells whose volume the rays crossed at least half of "
              "(counted on 5 cm sub-cells): what the rays disproved rather than grazed; a perfect completion of a "
-             "synthetic single sweep scores 0-1 % there (`freespace_floor_format3.md`).", "",
+             "synthetic single sweep scores 0-1.5 % there (`freespace_floor_val64.md`).", "",
              "| input | method | k | generated cells | in observed empty (%) ↓ | in its core (%) ↓ "
              "| swept (%) ↓ | s / completion |",
              "|---|---|---:|---:|---:|---:|---:|---:|"]

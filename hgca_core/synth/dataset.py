@@ -322,6 +322,11 @@ def sample_path(out_dir: str | os.PathLike, split: str, seed: int) -> Path:
     return Path(out_dir, split, f"sample_{seed:07d}.npz")
 
 
+def sample_seed(path: str | os.PathLike) -> int:
+    """The seed a sample file is named by (`sample_path`'s inverse): with `draw_recipe`, its sensor profile."""
+    return int(Path(path).stem.split("_")[1])
+
+
 def _build_one(job: tuple[str, str, int, int | None, Quality, int]) -> tuple[int, float]:
     out_dir, split, seed, n_scans, quality, generator = job
     t = time.perf_counter()
