@@ -23,15 +23,15 @@
 # with their training record: continue with `hgca train coarse --init-from`, compare with benchmarks/val_cut.py
 # and `hgca eval-real`) and <name>.history.json, beside device_train.log (every run's lines, prefixed [name]) and
 # curves.png. Settings by environment, for every run unless its variant overrides them: DATA (packed folders,
-# space-separated; default every folder in gpu_data/ and $STASH, those with a val split first: validation reads
-# the first one's), MINUTES (training budget, default 7), BATCH (chains per step, default 6, the paper's), LR,
-# INIT (weights to start from), TURN (share of inputs turned by a random yaw, default 0), FROZEN=1 (--frozen-bn:
-# BatchNorm keeps INIT's running statistics), CUT_FREE=1 (--cut-free-loss: the free-space weight also on what a
-# cut input's uncut scan saw empty), DISTILL=MU (--distill: cut inputs' targets move MU of the way to the probabilities of TEACHER,
-# default INIT), ABOVE=1 (--distill-above: only the cells at and above the cut move); and for the call: DEVICE
-# (default cuda; cpu runs the same path here, as tests/test_device_script.py does), THREADS (CPU threads a run,
-# default the cores shared out), RUN (the runs' checkpoint folders, default /tmp/hgca_device_run/<name>), STASH
-# (where STASH_ONLY=1 puts the folders of PACKED, default gpu_data, and where the default DATA looks too, default
+# space-separated; default every folder in gpu_data/ and $STASH, those with a val split first: validation reads the
+# first one's, which may hold the val split alone), MINUTES (training budget, default 7), BATCH (chains per step,
+# default 6, the paper's), LR, INIT (weights to start from), TURN (share of inputs turned by a random yaw, default 0),
+# FROZEN=1 (--frozen-bn: BatchNorm keeps INIT's running statistics), CUT_FREE=1 (--cut-free-loss: the free-space weight
+# also on what a cut input's uncut scan saw empty), DISTILL=MU (--distill: cut inputs' targets move MU of the way to the
+# probabilities of TEACHER, default INIT), ABOVE=1 (--distill-above: only the cells at and above the cut move); and for
+# the call: DEVICE (default cuda; cpu runs the same path here, as tests/test_device_script.py does), THREADS (CPU
+# threads a run, default the cores shared out), RUN (the runs' checkpoint folders, default /tmp/hgca_device_run/<name>),
+# STASH (where STASH_ONLY=1 puts the folders of PACKED, default gpu_data, and where the default DATA looks too, default
 # /tmp/hgca_stash).
 set -euo pipefail
 cd "$(dirname "$0")/.."

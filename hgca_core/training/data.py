@@ -24,14 +24,18 @@ def split_files(data: str | Path | Sequence[str | Path], split: str) -> list[Pat
 
     `data` may name several dataset folders (newer scenes built beside a dataset with `hgca synth --first`):
     the train split is then the union of theirs, in the order given, and any other split is the first
-    folder's, so that validation compares like with like across runs that add data."""
+    folder's, so that validation compares like with like across runs that add data. The first of several folders
+    may hold only a val split (the validation scenes alone, packed apart from the training batches)."""
     folders = [data] if isinstance(data, (str, Path)) else list(data)
     out = []
-    for folder in folders if split == "train" else folders[:1]:
+    for i, folder in enumerate(folders if split == "train" else folders[:1]):
         files = sorted(Path(folder, split).glob("sample_*.npz"))
-        if not files:
+        if not files and not (split == "train" and i == 0 and len(folders) > 1
+                              and any(Path(folder, "val").glob("sample_*.npz"))):
             raise InputError(f"no samples in {Path(folder, split)}; make them with `hgca synth --split {split}`")
         out += files
+    if not out:
+        raise InputError(f"no samples in the {split} split of {', '.join(map(str, folders))}")
     return out
 
 

@@ -215,8 +215,10 @@ def test_signal_handlers_come_back_when_a_step_raises(tiny_dataset, tmp_path, mo
 
 def test_several_data_folders_train_on_the_union_and_validate_on_the_first(tiny_dataset, tmp_path):
     """`--data A B`: B's train samples (built with `hgca synth --first`) join A's; val stays A's, so runs that add
-    data are selected on the same scenes; a folder without a train split is an error, not silently skipped."""
+    data are selected on the same scenes; a folder without a train split is an error, not silently skipped, except
+    a first folder that holds the val split alone."""
     import shutil
+    from pathlib import Path
 
     import numpy as np
 
@@ -233,6 +235,14 @@ def test_several_data_folders_train_on_the_union_and_validate_on_the_first(tiny_
     assert split_files(both, "val") == split_files(tiny_dataset, "val")
     with pytest.raises(InputError, match="no samples in"):
         split_files([str(tiny_dataset), str(tmp_path / "empty")], "train")
+    val_only = tmp_path / "val_only"                      # validation scenes packed apart from the training batches
+    shutil.copytree(Path(tiny_dataset) / "val", val_only / "val")
+    assert split_files([str(val_only), str(more)], "train") == split_files(str(more), "train")
+    assert split_files([str(val_only), str(more)], "val") == sorted((val_only / "val").glob("sample_*.npz"))
+    with pytest.raises(InputError, match="no samples in"):   # only the first folder, the validation one, may lack it
+        split_files([str(more), str(val_only)], "train")
+    with pytest.raises(InputError, match="no samples in"):
+        split_files(str(val_only), "train")
     def run(out, data):
         cmd = [sys.executable, "-m", "hgca_core.cli", "train", "coarse-noplanner", "--data", *data, "--out", str(out),
                "--max-steps", "1", "--batch", "1", "--buffer", "1", "--crop", "24", "--channels", "8,8,16,16,16",
