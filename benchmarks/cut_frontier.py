@@ -1,0 +1,98 @@
+"""Recall against the growth in seen-empty space above a 2 m cut, of weights scored before (run by hand):
+`python benchmarks/cut_frontier.py --row shipped=VAL.json,REAL.json --row e=... --out benchmarks/results/F.json`.
+
+Why: every fine-tune so far that put less of its above-cut growth where the rays saw empty also grew less and
+recovered less of the cut-away cells (`recipe_s24.md` ... `recipe_s30.md`), so a lower share alone is not progress.
+One plot per input set (the av2-profile synthetic val sweeps of `val_cut.py --profiles av2`, each real log of
+`hgca eval-real`) puts every row at (2 m recall, above-cut share): a recipe that helps lies below and to the right
+of the shipped weights, not on the line the others trace. The rows' files come from `val_cut.py` and `hgca
+eval-real` with `--cuts` holding 2.0; `keep_sweep.scores` reads them.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from keep_sweep import scores  # noqa: E402  (benchmarks reuse each other's readers)
+
+CUT = "cut_2"
+
+
+def points(rows: dict[str, dict], val_name: str = "synthetic val sweeps"
+           ) -> dict[str, dict[str, tuple[float, float, float]]]:
+    """{input set: {label: (recall %, above-cut share %, cells grown above)}}; val sweeps averaged into one set."""
+    out: dict[str, dict[str, tuple[float, float, float]]] = {}
+    for label, sc in rows.items():
+        val = [v[CUT] for k, v in sc.items() if k.startswith("val/")]
+        if val:
+            out.setdefault(val_name, {})[label] = tuple(
+                sum(v[f] for v in val) / len(val) * s for f, s in
+                (("recall", 100), ("above_empty_share", 100), ("generated_above", 1)))
+        for k, v in sc.items():
+            if not k.startswith("val/"):
+                c = v[CUT]
+                out.setdefault(k, {})[label] = (100 * c["recall"], 100 * c["above_empty_share"], c["generated_above"])
+    return out
+
+
+def table(pts: dict[str, dict[str, tuple[float, float, float]]]) -> str:
+    sets = list(pts)
+    head = " | ".join(f"{s}: recall % / above-cut in obs. empty % / cells above" for s in sets)
+    lines = [f"| weights | {head} |", "|---|" + "---|" * len(sets)]
+    for label in next(iter(pts.values())):
+        cells = " | ".join("{:.1f} / {:.1f} / {:,.0f}".format(*pts[s][label]) if label in pts[s] else "-"
+                           for s in sets)
+        lines.append(f"| {label} | {cells} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(pts: dict[str, dict[str, tuple[float, float, float]]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(pts), figsize=(4.2 * len(pts), 4), squeeze=False)
+    for ax, (name, rows) in zip(axes[0], pts.items()):
+        for i, (label, (rec, share, _)) in enumerate(rows.items()):
+            ax.plot(rec, share, "*" if i == 0 else "o", ms=13 if i == 0 else 7, color=f"C{i}", label=label)
+        ax.set_title(name, fontsize=9)
+        ax.set_xlabel("2 m recall (%) ↑")
+        ax.set_ylabel("above-cut growth in observed empty (%) ↓")
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--row", action="append", required=True, metavar="LABEL=VAL.json,REAL.json",
+                   help="one weights file's val_cut.py and eval-real results (repeatable; the first is the reference)")
+    p.add_argument("--val-name", default="synthetic val sweeps",
+                   help="what the rows' val files hold, for the table and plot (e.g. 'av2-profile val sweeps')")
+    p.add_argument("--out", required=True, help="results JSON (.md and .png beside it)")
+    args = p.parse_args(argv)
+    rows = {}
+    for item in args.row:
+        label, _, files = item.rpartition("=")
+        val, _, real = files.partition(",")
+        if not label or not real:
+            p.error(f"--row {item!r}: expected LABEL=VAL.json,REAL.json")
+        rows[label] = scores(json.loads(Path(val).read_text()), json.loads(Path(real).read_text()))
+    pts = points(rows, args.val_name)
+    out = Path(args.out)
+    out.write_text(json.dumps({"rows": args.row, "val_name": args.val_name, "points": pts}, indent=1))
+    out.with_suffix(".md").write_text("# Recall against above-cut growth in observed empty space (cut 2 m, k = 3)\n\n"
+                                      + table(pts) + f"\nRendering: `{out.with_suffix('.png').name}`.\n")
+    plot(pts, out.with_suffix(".png"))
+    print(out.with_suffix(".md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
