@@ -6,7 +6,7 @@ recovered less of the cut-away cells (`recipe_s24.md` ... `recipe_s30.md`), so a
 One plot per input set (the av2-profile synthetic val sweeps of `val_cut.py --profiles av2`, each real log of
 `hgca eval-real`) puts every row at (2 m recall, above-cut share): a recipe that helps lies below and to the right
 of the shipped weights, not on the line the others trace. The rows' files come from `val_cut.py` and `hgca
-eval-real` with `--cuts` holding 2.0; `keep_sweep.scores` reads them.
+eval-real` with `--cuts` holding 2.0; `keep_sweep.known_rows` reads them.
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from keep_sweep import scores  # noqa: E402  (benchmarks reuse each other's readers)
+from keep_sweep import known_rows  # noqa: E402  (benchmarks reuse each other's readers)
 
 CUT = "cut_2"
 
@@ -77,13 +77,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="what the rows' val files hold, for the table and plot (e.g. 'av2-profile val sweeps')")
     p.add_argument("--out", required=True, help="results JSON (.md and .png beside it)")
     args = p.parse_args(argv)
-    rows = {}
-    for item in args.row:
-        label, _, files = item.rpartition("=")
-        val, _, real = files.partition(",")
-        if not label or not real:
-            p.error(f"--row {item!r}: expected LABEL=VAL.json,REAL.json")
-        rows[label] = scores(json.loads(Path(val).read_text()), json.loads(Path(real).read_text()))
+    try:
+        rows = known_rows(args.row)
+    except ValueError as e:   # a malformed --row (or results file that is not JSON)
+        p.error(f"--row {e}")
     pts = points(rows, args.val_name)
     out = Path(args.out)
     out.write_text(json.dumps({"rows": args.row, "val_name": args.val_name, "points": pts}, indent=1))

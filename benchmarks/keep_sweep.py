@@ -62,8 +62,10 @@ def known_rows(items: list[str]) -> dict[str, dict]:
     """`scores` of rows scored before by val_cut.py and `hgca eval-real`, each given as LABEL=VAL.json,REAL.json."""
     rows = {}
     for item in items:
-        label, files = item.rsplit("=", 1)
-        val, real = files.split(",")
+        label, _, files = item.rpartition("=")
+        val, _, real = files.partition(",")
+        if not label or not val or not real:
+            raise ValueError(f"{item!r}: expected LABEL=VAL.json,REAL.json")
         rows[label] = scores(json.loads(Path(val).read_text()), json.loads(Path(real).read_text()))
     return rows
 
