@@ -66,18 +66,17 @@ KEYS=" MINUTES BATCH LR TURN INIT FROZEN CUT_FREE DISTILL TEACHER ABOVE "
 [ -n "${DATA// /}" ] || fail "no packed data: pack a dataset into gpu_data/<name> and carry gpu_data"
 read -r -a RUNS <<< "$VARIANTS"
 [ "${#RUNS[@]}" -le 3 ] || fail "VARIANTS names ${#RUNS[@]} runs; at most 3 fit the device tool's 8 returned files"
+settings() { [[ $1 != *:* ]] || tr , '\n' <<< "${1#*:}"; }  # a variant's KEY=V items, one a line
 NAMES=()
 for v in "${RUNS[@]}"; do
   name=${v%%:*}
   if ! [[ $name =~ ^[A-Za-z0-9_-]+$ ]] || [[ " ${NAMES[*]-} " == *" $name "* ]]; then
     fail "variant name '$name' in VARIANTS is empty, repeated or not made of letters, digits, _ and -"
   fi
-  if [[ $v == *:* ]]; then
-    IFS=, read -r -a kv <<< "${v#*:}"
-    for a in "${kv[@]}"; do
-      [[ $a == *=* && $KEYS == *" ${a%%=*} "* ]] || fail "'$a' in variant '$name': expected KEY=V, KEY one of$KEYS"
-    done
-  fi
+  mapfile -t kv < <(settings "$v")
+  for a in ${kv[@]+"${kv[@]}"}; do
+    [[ $a == *=* && $KEYS == *" ${a%%=*} "* ]] || fail "'$a' in variant '$name': expected KEY=V, KEY one of$KEYS"
+  done
   NAMES+=("$name")
 done
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
@@ -86,11 +85,9 @@ export OMP_NUM_THREADS=${THREADS:-$(( SHARE > 0 ? SHARE : 1 ))}
 mkdir -p "$OUT"
 
 train_one() {  # one variant; called in a subshell, so its settings stay its own
-  local name=${1%%:*} a kv=() flags=()
-  if [[ $1 == *:* ]]; then
-    IFS=, read -r -a kv <<< "${1#*:}"
-    for a in "${kv[@]}"; do export "${a%%=*}=${a#*=}"; done
-  fi
+  local name=${1%%:*} a kv flags=()
+  mapfile -t kv < <(settings "$1")
+  for a in ${kv[@]+"${kv[@]}"}; do export "${a%%=*}=${a#*=}"; done
   [ "${FROZEN:-0}" = 1 ] && flags+=(--frozen-bn)
   [ "${CUT_FREE:-0}" = 1 ] && flags+=(--cut-free-loss)
   [ "${DISTILL:-0}" != 0 ] && flags+=(--distill "$DISTILL")
