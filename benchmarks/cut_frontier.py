@@ -21,35 +21,50 @@ from keep_sweep import known_rows  # noqa: E402  (benchmarks reuse each other's 
 CUT = "cut_2"
 
 
-def points(rows: dict[str, dict], val_name: str = "synthetic val sweeps"
-           ) -> dict[str, dict[str, tuple[float, float, float]]]:
-    """{input set: {label: (recall %, above-cut share %, cells grown above)}}; val sweeps averaged into one set."""
-    out: dict[str, dict[str, tuple[float, float, float]]] = {}
+Point = tuple  # (recall %, above-cut share %, cells grown above, standard error of the share % or None, samples k)
+
+
+def _sem(cuts: list[dict]) -> float | None:
+    """Standard error (%) of the mean of the cuts' above-cut shares, each known to its own standard error."""
+    sems = [c.get("above_empty_sem") for c in cuts]
+    return None if None in sems else 100 * float(sum(e * e for e in sems)) ** 0.5 / len(sems)
+
+
+def points(rows: dict[str, dict], val_name: str = "synthetic val sweeps") -> dict[str, dict[str, Point]]:
+    """{input set: {label: Point}}; val sweeps averaged into one set. The standard error says which gaps the k
+    samples can tell apart: a real log's share moves 1-2 points from one draw of k = 3 to the next."""
+    out: dict[str, dict[str, Point]] = {}
     for label, sc in rows.items():
         val = [v[CUT] for k, v in sc.items() if k.startswith("val/")]
         if val:
-            out.setdefault(val_name, {})[label] = tuple(
+            out.setdefault(val_name, {})[label] = (*(
                 sum(v[f] for v in val) / len(val) * s for f, s in
-                (("recall", 100), ("above_empty_share", 100), ("generated_above", 1)))
+                (("recall", 100), ("above_empty_share", 100), ("generated_above", 1))),
+                _sem(val), min(v.get("k", 0) for v in val))
         for k, v in sc.items():
             if not k.startswith("val/"):
                 c = v[CUT]
-                out.setdefault(k, {})[label] = (100 * c["recall"], 100 * c["above_empty_share"], c["generated_above"])
+                out.setdefault(k, {})[label] = (100 * c["recall"], 100 * c["above_empty_share"], c["generated_above"],
+                                                _sem([c]), c.get("k", 0))
     return out
 
 
-def table(pts: dict[str, dict[str, tuple[float, float, float]]]) -> str:
+def _cell(p: Point) -> str:
+    rec, share, cells, sem, k = p
+    return f"{rec:.1f} / {share:.1f}{'' if sem is None else f' ± {sem:.1f}'} / {cells:,.0f} / {k}"
+
+
+def table(pts: dict[str, dict[str, Point]]) -> str:
     sets = list(pts)
-    head = " | ".join(f"{s}: recall % / above-cut in obs. empty % / cells above" for s in sets)
+    head = " | ".join(f"{s}: recall % / above-cut in obs. empty % ± s.e. / cells above / k" for s in sets)
     lines = [f"| weights | {head} |", "|---|" + "---|" * len(sets)]
     for label in next(iter(pts.values())):
-        cells = " | ".join("{:.1f} / {:.1f} / {:,.0f}".format(*pts[s][label]) if label in pts[s] else "-"
-                           for s in sets)
+        cells = " | ".join(_cell(pts[s][label]) if label in pts[s] else "-" for s in sets)
         lines.append(f"| {label} | {cells} |")
     return "\n".join(lines) + "\n"
 
 
-def plot(pts: dict[str, dict[str, tuple[float, float, float]]], path: Path) -> None:
+def plot(pts: dict[str, dict[str, Point]], path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -57,8 +72,9 @@ def plot(pts: dict[str, dict[str, tuple[float, float, float]]], path: Path) -> N
 
     fig, axes = plt.subplots(1, len(pts), figsize=(4.2 * len(pts), 4), squeeze=False)
     for ax, (name, rows) in zip(axes[0], pts.items()):
-        for i, (label, (rec, share, _)) in enumerate(rows.items()):
-            ax.plot(rec, share, "*" if i == 0 else "o", ms=13 if i == 0 else 7, color=f"C{i}", label=label)
+        for i, (label, (rec, share, _, sem, _)) in enumerate(rows.items()):
+            ax.errorbar(rec, share, yerr=sem, fmt="*" if i == 0 else "o", ms=13 if i == 0 else 7, color=f"C{i}",
+                        capsize=3, label=label)
         ax.set_title(name, fontsize=9)
         ax.set_xlabel("2 m recall (%) ↑")
         ax.set_ylabel("above-cut growth in observed empty (%) ↓")
@@ -84,7 +100,9 @@ def main(argv: list[str] | None = None) -> int:
     pts = points(rows, args.val_name)
     out = Path(args.out)
     out.write_text(json.dumps({"rows": args.row, "val_name": args.val_name, "points": pts}, indent=1))
-    out.with_suffix(".md").write_text("# Recall against above-cut growth in observed empty space (cut 2 m, k = 3)\n\n"
+    out.with_suffix(".md").write_text("# Recall against above-cut growth in observed empty space (cut 2 m)\n\n"
+                                      "Means over k samples (k in each cell); ± the standard error of the share's "
+                                      "mean over the samples (val: of the sweeps' mean).\n\n"
                                       + table(pts) + f"\nRendering: `{out.with_suffix('.png').name}`.\n")
     plot(pts, out.with_suffix(".png"))
     print(out.with_suffix(".md").read_text())

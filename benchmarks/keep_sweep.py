@@ -20,6 +20,8 @@ import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import numpy as np
+
 REPO = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-c", "import sys; from hgca_core.cli import main; sys.exit(main())"]
 
@@ -82,8 +84,13 @@ def scores(val: dict, real: dict) -> dict:
         for case, c in res["cases"].items():
             if case.startswith("cut_"):
                 s = c["rows"]["hgca"]["summary"]
+                shares = [p["above_empty_share"] for p in c["rows"]["hgca"].get("per_sample", [])]
                 row[case] = {"recall": mean(s, "recall"), "generated_above": mean(s, "generated_above"),
-                             "above_empty_share": mean(s, "above_empty_share")}
+                             "above_empty_share": mean(s, "above_empty_share"), "k": len(shares),
+                             # standard error of the mean over the k samples: one sample's share swings by
+                             # several points (shipped weights on AV2 7fab: 5.1-10.4 %, recipe_s31.md)
+                             "above_empty_sem": float(np.std(shares, ddof=1) / np.sqrt(len(shares)))
+                             if len(shares) > 1 else None}
         out[name] = row
     return out
 

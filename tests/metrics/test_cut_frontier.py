@@ -7,14 +7,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import cut_frontier  # noqa: E402
 
 
-def _result(path: Path, inputs: dict[str, tuple[float, float, float]]) -> str:
-    """A val_cut.py / eval-real JSON holding, per input, mean (recall, above-cut share, cells above) of cut 2 m."""
+def _result(path: Path, inputs: dict[str, tuple[float, float, float]], swing: float = 0.0) -> str:
+    """A val_cut.py / eval-real JSON holding, per input, mean (recall, above-cut share, cells above) of cut 2 m,
+    over two samples whose shares lie `swing` either side of the mean."""
     def s(v):
         return {"min": v, "mean": v, "max": v, "spread": 0.0}
 
     doc = {"inputs": {name: {"cases": {
         "full": {"rows": {"hgca": {"summary": {"empty_share": s(0.05)}}}},
-        "cut_2": {"rows": {"hgca": {"summary": {"recall": s(r), "above_empty_share": s(a), "generated_above": s(g)}}}},
+        "cut_2": {"rows": {"hgca": {
+            "summary": {"recall": s(r), "above_empty_share": s(a), "generated_above": s(g)},
+            "per_sample": [{"above_empty_share": a - swing}, {"above_empty_share": a + swing}]}}},
     }} for name, (r, a, g) in inputs.items()}}
     path.write_text(json.dumps(doc))
     return str(path)
@@ -25,18 +28,35 @@ def test_val_sweeps_are_averaged_real_logs_kept_apart_and_every_row_is_drawn(tmp
     for label, shift in (("shipped", 0.0), ("candidate", 0.1)):
         val = _result(tmp_path / f"val_{label}.json", {"sample_1": (0.6 + shift, 0.10, 100.0),
                                                         "sample_2": (0.4 + shift, 0.20, 300.0)})
-        real = _result(tmp_path / f"real_{label}.json", {"av2_log": (0.45, 0.08 + shift, 50.0)})
+        real = _result(tmp_path / f"real_{label}.json", {"av2_log": (0.45, 0.08 + shift, 50.0)}, swing=0.01)
         rows += ["--row", f"{label}={val},{real}"]
     out = tmp_path / "frontier.json"
     assert cut_frontier.main([*rows, "--val-name", "av2 val", "--out", str(out)]) == 0
     pts = json.loads(out.read_text())["points"]
     val = pts["av2 val"]
-    assert [round(x, 6) for x in val["shipped"]] == [50.0, 15.0, 200.0]
-    assert [round(x, 6) for x in val["candidate"]] == [60.0, 15.0, 200.0]
-    assert [round(x, 6) for x in pts["av2_log"]["candidate"]] == [45.0, 18.0, 50.0]
+    assert [round(x, 6) for x in val["shipped"]] == [50.0, 15.0, 200.0, 0.0, 2]
+    assert [round(x, 6) for x in val["candidate"]] == [60.0, 15.0, 200.0, 0.0, 2]
+    # two samples 1 point either side of 18 %: standard deviation 1.414, over sqrt(2) -> 1.0
+    assert [round(x, 6) for x in pts["av2_log"]["candidate"]] == [45.0, 18.0, 50.0, 1.0, 2]
     md = out.with_suffix(".md").read_text()
-    assert "| candidate | 60.0 / 15.0 / 200 | 45.0 / 18.0 / 50 |" in md
+    assert "| candidate | 60.0 / 15.0 ± 0.0 / 200 / 2 | 45.0 / 18.0 ± 1.0 / 50 / 2 |" in md
     assert out.with_suffix(".png").stat().st_size > 10_000
+
+
+def test_the_standard_error_of_averaged_val_sweeps_and_results_without_samples(tmp_path):
+    import pytest
+
+    # two sweeps with standard errors 1 and 2 points: their mean's is sqrt(1 + 4) / 2
+    rows = {"w": {"val/a": {"cut_2": {"recall": 0.5, "above_empty_share": 0.1, "generated_above": 10.0, "k": 3,
+                                      "above_empty_sem": 0.01}},
+                  "val/b": {"cut_2": {"recall": 0.5, "above_empty_share": 0.1, "generated_above": 10.0, "k": 6,
+                                      "above_empty_sem": 0.02}},
+                  "log": {"cut_2": {"recall": 0.4, "above_empty_share": 0.2, "generated_above": 5.0, "k": 1,
+                                    "above_empty_sem": None}}}}
+    pts = cut_frontier.points(rows, "val")
+    assert pts["val"]["w"][3] == pytest.approx(5 ** 0.5 / 2) and pts["val"]["w"][4] == 3
+    assert pts["log"]["w"][3] is None  # one sample: no spread to measure
+    assert "| w | 50.0 / 10.0 ± 1.1 / 10 / 3 | 40.0 / 20.0 / 5 / 1 |" in cut_frontier.table(pts)
 
 
 def test_a_row_without_two_files_is_refused(tmp_path, capsys):
