@@ -103,6 +103,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--export", nargs="?", const=True, default=None, metavar="PATH",
                    help="after training, write the trained (EMA) weights with their training record: to PATH, or "
                         "without PATH as the shipped hgca_core/weights/<stage>.pt and re-render the model card")
+    p.add_argument("--best", action="store_true",
+                   help="with --export: the weights of the run's best validation score (<out>/best.pt, written "
+                        "whenever validation improves) instead of the last step's")
     p.add_argument("--blend-with", default=None, metavar="WEIGHTS",
                    help="coarse, with --export: write (1 - T) * WEIGHTS + T * the run's weights, a fine-tune "
                         "interpolated back toward the weights it started from (WiSE-FT; benchmarks/blend_sweep.py)")
@@ -280,9 +283,11 @@ def run(args: argparse.Namespace) -> int:
 
     from hgca_core.errors import InputError
     from hgca_core.hardware import resolve_device
-    from hgca_core.training.trainer import train
+    from hgca_core.training.trainer import BEST, train
 
     resolve_device(args.device)   # a bad --device fails before any data is read
+    if args.best and not args.export:
+        raise InputError("--best goes with --export")
     if (args.blend_with is None) != (args.blend_t is None) or (args.blend_with and not args.export):
         raise InputError("--blend-with and --blend-t go together, with --export")
     if args.blend_with and not args.stage.startswith("coarse"):
@@ -310,7 +315,10 @@ def run(args: argparse.Namespace) -> int:
         last_val = next((h for h in reversed(state["history"]) if h["kind"] == "val"), {})
         print(json.dumps({"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1), **last_val}))
     if args.export:
-        print(f"wrote {export(args, task, ckpt)}")
+        if args.best and not (out / BEST).exists():
+            raise InputError(f"no {BEST} in {out}: the run has not validated since best-score weights were kept; "
+                             "train on (a validation writes it) or export the last step without --best")
+        print(f"wrote {export(args, task, out / BEST if args.best else ckpt)}")
     return 0
 
 

@@ -308,3 +308,45 @@ def test_export_blended_toward_the_weights_the_run_started_from(tiny_dataset, tm
                 ["--blend-with", str(a), "--blend-t", "2", "--export", str(tmp_path / "x.pt")]):
         done = run("--minutes", "0", *bad)
         assert done.returncode == 2 and not (tmp_path / "x.pt").exists(), done.stderr
+
+
+def test_the_best_validation_weights_are_kept_beside_the_last(tiny_dataset, tmp_path, monkeypatch):
+    """best.pt holds the average of the step whose validation scored best (here the second of three), with the
+    record up to that step, and loads as coarse weights; ckpt.pt still holds the last step."""
+    task = _task(tiny_dataset)
+    scores = iter([0.5, 0.7, 0.6])
+    monkeypatch.setattr(task, "validate", lambda model: {"val_iou": next(scores)})
+    out = tmp_path / "run"
+    s = train(task, out, minutes=5, max_steps=3, batch=1, buffer_size=1, progress=False, val_every_min=0)
+    assert [h["val_iou"] for h in s["history"] if h["kind"] == "val"] == [0.5, 0.7, 0.6]
+    best, last = load_file(out / "best.pt"), load_file(out / "ckpt.pt")
+    assert s["best_val"] == {"key": "val_iou", "value": 0.7, "step": 2} == best["state"]["best_val"]
+    assert best["state"]["step"] == 2 and last["state"]["step"] == 3
+    assert [ses["steps"] for ses in best["state"]["sessions"]] == [2]   # the session as far as the weights go
+    assert best["ema"]["n"] == 2 and last["ema"]["n"] == 3
+    assert any(not torch.equal(best["ema"]["model"][k], last["ema"]["model"][k]) for k in last["ema"]["model"])
+    model, meta = load_coarse(out / "best.pt")
+    assert meta["steps"] == 2 and all(torch.equal(v, best["ema"]["model"][f"model.{k}"])
+                                      for k, v in model.state_dict().items())
+    # a resumed session that never beats 0.7 leaves best.pt alone
+    monkeypatch.setattr(task, "validate", lambda model: {"val_iou": 0.65})
+    train(task, out, minutes=5, max_steps=1, resume=True, batch=1, buffer_size=1, progress=False)
+    assert load_file(out / "best.pt")["state"]["step"] == 2
+
+
+def test_export_best_writes_the_best_steps_weights_and_refuses_a_run_without_them(tiny_dataset, tmp_path):
+    def run(out, *extra):
+        cmd = [sys.executable, "-m", "hgca_core.cli", "train", "coarse-noplanner", "--data", str(tiny_dataset),
+               "--out", str(out), "--batch", "1", "--buffer", "1", "--crop", "24",
+               "--channels", "8,8,16,16,16", "--threads", "1", "--no-progress", *extra]
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+
+    done = run(tmp_path / "r", "--max-steps", "2", "--minutes", "5", "--export", str(tmp_path / "w.pt"), "--best")
+    assert done.returncode == 0, done.stderr
+    w = load_file(tmp_path / "w.pt")
+    assert w["meta"]["steps"] == load_file(tmp_path / "r" / "best.pt")["state"]["step"] == 2
+    (tmp_path / "r" / "best.pt").unlink()   # a run from before best-score weights were kept
+    done = run(tmp_path / "r", "--minutes", "0", "--export", str(tmp_path / "x.pt"), "--best")
+    assert done.returncode == 2 and "no best.pt in" in done.stderr and not (tmp_path / "x.pt").exists()
+    done = run(tmp_path / "r", "--minutes", "0", "--best")
+    assert done.returncode == 2 and "--best goes with --export" in done.stderr
