@@ -20,7 +20,7 @@ import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import numpy as np
+from paired_eval import standard_error  # benchmarks reuse each other's helpers
 
 REPO = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-c", "import sys; from hgca_core.cli import main; sys.exit(main())"]
@@ -89,8 +89,7 @@ def scores(val: dict, real: dict) -> dict:
                              "above_empty_share": mean(s, "above_empty_share"), "k": len(shares),
                              # standard error of the mean over the k samples: one sample's share swings by
                              # several points (shipped weights on AV2 7fab: 5.1-10.4 %, recipe_s31.md)
-                             "above_empty_sem": float(np.std(shares, ddof=1) / np.sqrt(len(shares)))
-                             if len(shares) > 1 else None}
+                             "above_empty_sem": standard_error(shares) if len(shares) > 1 else None}
         out[name] = row
     return out
 

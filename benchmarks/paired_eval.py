@@ -18,6 +18,16 @@ KEYS = {"iou": 100.0, "resim_min": 10.0, "street_cd_min": 10.0}   # metric -> sc
 ROW = "hGCA coarse (planner)"
 
 
+def standard_error(values: list[float]) -> float:
+    """Standard error of the mean (sample standard deviation over sqrt(n); NaN for fewer than two values): how far
+    a mean over n scenes, or over k samples, may move on a re-draw."""
+    n = len(values)
+    if n < 2:
+        return float("nan")
+    mean = sum(values) / n
+    return math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1) / n)
+
+
 def paired(candidate: dict, base: dict, row: str = ROW) -> dict[str, dict]:
     """{metric: {mean, diff, se, lower, n}} of candidate - base on the scenes both scored."""
     if candidate["files"] != base["files"]:
@@ -29,8 +39,8 @@ def paired(candidate: dict, base: dict, row: str = ROW) -> dict[str, dict]:
         d = [scale * (a - b) for a, b in zip(x, y)]
         n = len(d)
         mean = sum(d) / n
-        se = math.sqrt(sum((v - mean) ** 2 for v in d) / (n - 1) / n) if n > 1 else float("nan")
-        out[key] = {"mean": scale * sum(x) / n, "diff": mean, "se": se, "lower": sum(v < 0 for v in d), "n": n}
+        out[key] = {"mean": scale * sum(x) / n, "diff": mean, "se": standard_error(d), "lower": sum(v < 0 for v in d),
+                    "n": n}
     return out
 
 

@@ -254,7 +254,7 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
         key = next((k for k in VAL_KEYS if k in metrics), None)
         value = float(metrics[key]) if key else float("nan")
         best = state.get("best_val")
-        if not np.isfinite(value) or (best and best["key"] == key and not _better(key, value, best["value"])):
+        if not np.isfinite(value) or (best and not _better(key, value, best["value"])):
             return
         state["best_val"] = {"key": key, "value": value, "step": state["step"]}
         record = {**state, "sessions": [*state["sessions"], session_record()]}
