@@ -89,7 +89,8 @@ def _split(args: argparse.Namespace) -> int:
         raise InputError("--style applies to --seed only; a split mixes styles by seed")
     if args.workers < 1:
         raise InputError(f"--workers must be at least 1, got {args.workers}")
-    from hgca_core.synth.dataset import DEFAULT_QUALITY, QUICK_QUALITY, build_split
+    from hgca_core.synth.dataset import DEFAULT_QUALITY, QUICK_QUALITY
+    from hgca_core.synth.splits import build_split
 
     t0 = time.perf_counter()
     paths = build_split(args.out, args.split, args.count, n_scans=args.scans, workers=args.workers,
