@@ -6,7 +6,8 @@ recovered less of the cut-away cells (`recipe_s24.md` ... `recipe_s30.md`), so a
 One plot per input set (the av2-profile synthetic val sweeps of `val_cut.py --profiles av2`, each real log of
 `hgca eval-real`) puts every row at (2 m recall, above-cut share): a recipe that helps lies below and to the right
 of the shipped weights, not on the line the others trace. The rows' files come from `val_cut.py` and `hgca
-eval-real` with `--cuts` holding 2.0; `keep_sweep.known_rows` reads them.
+eval-real` with `--cuts` holding 2.0; `keep_sweep.known_rows` reads them, pooling runs of other seeds given as
+A.json+B.json (`keep_sweep.pooled`).
 """
 from __future__ import annotations
 
@@ -88,7 +89,8 @@ def plot(pts: dict[str, dict[str, Point]], path: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--row", action="append", required=True, metavar="LABEL=VAL.json,REAL.json",
-                   help="one weights file's val_cut.py and eval-real results (repeatable; the first is the reference)")
+                   help="one weights file's val_cut.py and eval-real results (repeatable; the first is the reference); "
+                        "either may be A.json+B.json, runs of the same weights with disjoint seeds, pooled")
     p.add_argument("--val-name", default="synthetic val sweeps",
                    help="what the rows' val files hold, for the table and plot (e.g. 'av2-profile val sweeps')")
     p.add_argument("--out", required=True, help="results JSON (.md and .png beside it)")

@@ -61,15 +61,51 @@ def scored(folder: Path, tag: str) -> dict:
 
 
 def known_rows(items: list[str]) -> dict[str, dict]:
-    """`scores` of rows scored before by val_cut.py and `hgca eval-real`, each given as LABEL=VAL.json,REAL.json."""
+    """`scores` of rows scored before by val_cut.py and `hgca eval-real`, each given as LABEL=VAL.json,REAL.json;
+    either may be A.json+B.json, runs of the same weights with other seeds (`pooled`)."""
     rows = {}
     for item in items:
         label, _, files = item.rpartition("=")
         val, _, real = files.partition(",")
         if not label or not val or not real:
             raise ValueError(f"{item!r}: expected LABEL=VAL.json,REAL.json")
-        rows[label] = scores(json.loads(Path(val).read_text()), json.loads(Path(real).read_text()))
+        rows[label] = scores(pooled(val), pooled(real))
     return rows
+
+
+def pooled(spec: str) -> dict:
+    """One results file, or several joined by '+': runs of the same command on the same weights with disjoint
+    seeds (`--seed 0 --samples 6`, then `--seed 6 --samples 6`), read as one run of all their samples, every
+    summary recomputed over the pooled per-sample scores. Why: a real log's above-cut share swings several points
+    between samples, so telling weights apart takes more samples than one scoring run affords."""
+    from hgca_core.metrics.realscan import summarise
+
+    paths = spec.split("+")
+    docs = [json.loads(Path(p).read_text()) for p in paths]
+    if len(docs) == 1:
+        return docs[0]
+    first = docs[0]
+    ranges = []
+    for path, d in zip(paths, docs):
+        cfg = d.get("config", {})
+        same = {k: v for k, v in cfg.items() if k not in ("seed", "samples", "full_samples", "threads")}
+        want = {k: v for k, v in first.get("config", {}).items() if k not in ("seed", "samples", "full_samples",
+                                                                              "threads")}
+        if same != want or set(d["inputs"]) != set(first["inputs"]):
+            raise ValueError(f"{path}: not the same command on the same inputs as {paths[0]}; cannot pool")
+        ranges.append((int(cfg.get("seed", 0)), int(cfg.get("seed", 0)) + int(cfg.get("samples", 0))))
+    ranges.sort()
+    if any(a[1] > b[0] for a, b in zip(ranges, ranges[1:])):
+        raise ValueError(f"{spec}: the runs' seeds overlap ({ranges}), so pooling would count samples twice")
+    out = json.loads(json.dumps(first))
+    for name, res in out["inputs"].items():
+        for case, c in res["cases"].items():
+            for method, row in c["rows"].items():
+                samples = [s for d in docs for s in d["inputs"][name]["cases"][case]["rows"][method]["per_sample"]]
+                row.update(per_sample=samples, k=len(samples), summary=summarise(samples))
+    out["config"] = {**first.get("config", {}), "seeds": [list(r) for r in ranges],
+                     "samples": sum(b - a for a, b in ranges)}
+    return out
 
 
 def mean(summary: dict, key: str) -> float:

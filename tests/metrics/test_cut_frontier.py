@@ -65,3 +65,40 @@ def test_a_row_without_two_files_is_refused(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         cut_frontier.main(["--row", "shipped=only_one.json", "--out", str(tmp_path / "f.json")])
     assert e.value.code == 2 and "expected LABEL=VAL.json,REAL.json" in capsys.readouterr().err
+
+
+def _run(path: Path, seed: int, shares: list[float], inputs=("av2_log",), t1=None) -> str:
+    """An eval-real JSON of len(shares) samples from `seed` on: each sample's recall 0.4 + its share."""
+    per = [{"recall": 0.4 + a, "generated_above": 100.0 * (i + 1), "above_empty_share": a} for i, a in enumerate(shares)]
+    whole = [{"empty_share": 0.05} for _ in shares]
+    doc = {"config": {"cuts": [2.0], "samples": len(shares), "seed": seed, "threads": 1, "t1": t1},
+           "inputs": {name: {"cases": {"full": {"rows": {"hgca": {"per_sample": whole, "summary": {}}}},
+                                       "cut_2": {"rows": {"hgca": {"per_sample": per, "summary": {}}}}}}
+                      for name in inputs}}
+    path.write_text(json.dumps(doc))
+    return str(path)
+
+
+def test_runs_of_other_seeds_pool_into_one_score_and_refuse_what_would_not_be_one(tmp_path):
+    import pytest
+
+    from keep_sweep import pooled
+
+    a = _run(tmp_path / "a.json", 0, [0.10, 0.12])
+    b = _run(tmp_path / "b.json", 2, [0.14, 0.16])
+    both = pooled(f"{a}+{b}")
+    row = both["inputs"]["av2_log"]["cases"]["cut_2"]["rows"]["hgca"]
+    assert row["k"] == 4 and both["config"]["samples"] == 4 and both["config"]["seeds"] == [[0, 2], [2, 4]]
+    assert row["summary"]["above_empty_share"]["mean"] == pytest.approx(0.13)
+    assert row["summary"]["recall"]["min"] == pytest.approx(0.50) and row["summary"]["recall"]["max"] == pytest.approx(0.56)
+    # the frontier reads the pooled row: mean 13 %, standard error of four samples 0.02 apart: 2.582 / 2 = 1.291
+    pts = cut_frontier.points(cut_frontier.known_rows([f"w={a}+{b},{a}+{b}"]))
+    assert pts["av2_log"]["w"][1] == pytest.approx(13.0) and pts["av2_log"]["w"][4] == 4
+    assert pts["av2_log"]["w"][3] == pytest.approx(100 * (0.02 * (5 / 3) ** 0.5) / 2)
+    assert pooled(a) == json.loads(Path(a).read_text())   # one file reads as it is
+    with pytest.raises(ValueError, match="overlap"):
+        pooled(f"{a}+{_run(tmp_path / 'c.json', 1, [0.2, 0.2])}")
+    with pytest.raises(ValueError, match="cannot pool"):
+        pooled(f"{a}+{_run(tmp_path / 'd.json', 2, [0.2, 0.2], t1=20)}")
+    with pytest.raises(ValueError, match="cannot pool"):
+        pooled(f"{a}+{_run(tmp_path / 'e.json', 2, [0.2, 0.2], inputs=('other_log',))}")
