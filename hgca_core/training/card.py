@@ -56,7 +56,8 @@ implicit surfaces. Limits: trained on synthetic content only, on 2 CPU cores, fo
 paper (400k), so completions are rough; on real scans (Argoverse 2: `benchmarks/results/real_scans_s12.md`; the
 nuScenes sweep read without the car's own returns since session 21: `real_scans_s21_nuscenes.md`) the coarse
 stage finds 40-49 % of the real cells cut away 2 m above the ground (8.5-10.8 % of what it grows above the cut lies
-where the whole scans' rays passed), and 5.6-8.4 % of what it generates on the whole input lies in
+where the whole scans' rays passed; with 12 samples a log, `recipe_s32.md`: 45.4 / 48.9 / 38.0 % and 8.4 / 11.2 /
+10.8 % on AV2 7fab / adcf / nuScenes, each share +-0.4-0.6), and 5.6-8.4 % of what it generates on the whole input lies in
 space the input rays saw empty, none in that space's core (the ground truth of simulated single sweeps of these
 sensors scores 5.8 % (av2) and 7.6 % (hdl32) by the first count: `benchmarks/results/freespace_floor_val64.md`). On 64
 simulated single sweeps, where the truth is known, 80 % of the whole-input cells this count flags are true geometry
