@@ -85,13 +85,15 @@ def pooled(spec: str) -> dict:
     if len(docs) == 1:
         return docs[0]
     first = docs[0]
+    free = ("seed", "samples", "full_samples", "threads")   # what may differ between runs that pool
+
+    def command(d: dict) -> dict:
+        return {k: v for k, v in d.get("config", {}).items() if k not in free}
+
     ranges = []
     for path, d in zip(paths, docs):
         cfg = d.get("config", {})
-        same = {k: v for k, v in cfg.items() if k not in ("seed", "samples", "full_samples", "threads")}
-        want = {k: v for k, v in first.get("config", {}).items() if k not in ("seed", "samples", "full_samples",
-                                                                              "threads")}
-        if same != want or set(d["inputs"]) != set(first["inputs"]):
+        if command(d) != command(first) or set(d["inputs"]) != set(first["inputs"]):
             raise ValueError(f"{path}: not the same command on the same inputs as {paths[0]}; cannot pool")
         ranges.append((int(cfg.get("seed", 0)), int(cfg.get("seed", 0)) + int(cfg.get("samples", 0))))
     ranges.sort()
@@ -101,8 +103,10 @@ def pooled(spec: str) -> dict:
     for name, res in out["inputs"].items():
         for case, c in res["cases"].items():
             for method, row in c["rows"].items():
-                samples = [s for d in docs for s in d["inputs"][name]["cases"][case]["rows"][method]["per_sample"]]
-                row.update(per_sample=samples, k=len(samples), summary=summarise(samples))
+                runs = [d["inputs"][name]["cases"][case]["rows"][method] for d in docs]
+                samples = [s for r in runs for s in r.get("per_sample", [])]
+                if samples:   # a row without per-sample scores keeps the first run's summary
+                    row.update(per_sample=samples, k=len(samples), summary=summarise(samples))
     out["config"] = {**first.get("config", {}), "seeds": [list(r) for r in ranges],
                      "samples": sum(b - a for a, b in ranges)}
     return out
