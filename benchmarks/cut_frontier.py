@@ -65,6 +65,22 @@ def table(pts: dict[str, dict[str, Point]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def agreement(pts: dict[str, dict[str, Point]], val_name: str) -> dict[str, tuple[float, float, int]]:
+    """{input set: (Spearman rank correlation of recall, of above-cut share, rows)} between the val sweeps and each
+    other set, over the rows both hold. Why: selecting on the val sweeps helps only where they rank weights as the
+    real logs do; with fewer than 4 rows a rank correlation says nothing, so none is given."""
+    from scipy.stats import spearmanr
+
+    val = pts.get(val_name, {})
+    out = {}
+    for name, rows in pts.items():
+        both = [k for k in rows if k in val and name != val_name]
+        if len(both) >= 4:
+            rho = [float(spearmanr([val[k][i] for k in both], [rows[k][i] for k in both])[0]) for i in (0, 1)]
+            out[name] = (rho[0], rho[1], len(both))
+    return out
+
+
 def plot(pts: dict[str, dict[str, Point]], path: Path) -> None:
     import matplotlib
 
@@ -97,15 +113,21 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         rows = known_rows(args.row)
-    except ValueError as e:   # a malformed --row (or results file that is not JSON)
+    except (ValueError, OSError) as e:   # a malformed --row, a results file missing or not JSON
         p.error(f"--row {e}")
     pts = points(rows, args.val_name)
+    ranks = agreement(pts, args.val_name)
     out = Path(args.out)
-    out.write_text(json.dumps({"rows": args.row, "val_name": args.val_name, "points": pts}, indent=1))
+    out.write_text(json.dumps({"rows": args.row, "val_name": args.val_name, "points": pts, "rank_agreement": ranks},
+                              indent=1))
+    said = "".join(f"| {n} | {r:+.2f} | {s:+.2f} | {k} |\n" for n, (r, s, k) in ranks.items())
+    said = ("\nDo the val sweeps rank the weights as each input set does? Spearman rank correlation over the rows "
+            "(1: the same order, 0: unrelated):\n\n| input set | recall | above-cut share | rows |\n|---|---:|---:|---:|\n"
+            + said) if said else ""
     out.with_suffix(".md").write_text("# Recall against above-cut growth in observed empty space (cut 2 m)\n\n"
                                       "Means over k samples (k in each cell); ± the standard error of the share's "
                                       "mean over the samples (val: of the sweeps' mean).\n\n"
-                                      + table(pts) + f"\nRendering: `{out.with_suffix('.png').name}`.\n")
+                                      + table(pts) + said + f"\nRendering: `{out.with_suffix('.png').name}`.\n")
     plot(pts, out.with_suffix(".png"))
     print(out.with_suffix(".md").read_text())
     return 0

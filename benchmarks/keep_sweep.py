@@ -85,7 +85,8 @@ def pooled(spec: str) -> dict:
     if len(docs) == 1:
         return docs[0]
     first = docs[0]
-    free = ("seed", "samples", "full_samples", "threads")   # what may differ between runs that pool
+    # what may differ between runs that pool: not the weights' digests (`weights_sha256`), only where they lay
+    free = ("seed", "samples", "full_samples", "threads", "weights")
 
     def command(d: dict) -> dict:
         return {k: v for k, v in d.get("config", {}).items() if k not in free}

@@ -2,6 +2,7 @@
 small untrained weights (the real numbers come from benchmarks/results/real_scans.md)."""
 from __future__ import annotations
 
+import hashlib
 import json
 import subprocess
 import sys
@@ -76,6 +77,10 @@ def test_eval_real_command(tmp_path, small_weights):
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     doc = json.loads(out.read_text())
+    # the results name the weights each model row ran with, by digest (no fine weights: no hgca-full row)
+    digest = hashlib.sha256(Path(small_weights).read_bytes()).hexdigest()
+    assert doc["config"]["weights"] == {"coarse": str(small_weights), "noplanner": str(small_weights)}
+    assert doc["config"]["weights_sha256"] == {"coarse": digest, "noplanner": digest}
     entry = doc["inputs"]["street"]
     assert set(entry["cases"]) == {"full", "cut_0.6", "cut_1", }
     assert doc["waymo_protocol"]["applicable"] is False

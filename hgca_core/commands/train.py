@@ -344,7 +344,9 @@ def export(args: argparse.Namespace, task, ckpt: Path) -> Path:
             with tempfile.TemporaryDirectory() as tmp:
                 run_weights = save_weights(Path(tmp) / f"{ckpt.parent.name}.pt", module.model, meta)
                 blob = blend_files(args.blend_with, run_weights, args.blend_t)
-            blob["meta"]["blend"]["b"]["file"] = str(ckpt)
+            from hgca_core.io.digest import file_digest
+
+            blob["meta"]["blend"]["b"].update(file=str(ckpt), sha256=file_digest(ckpt))   # not the temporary file
             dest = save_file(blob, target)
         else:
             dest = save_weights(target, module.model, meta)

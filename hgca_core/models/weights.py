@@ -30,6 +30,7 @@ from torch import nn
 
 from hgca_core.errors import InputError
 from hgca_core.io.atomic import atomic_write
+from hgca_core.io.digest import file_digest
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel
 from hgca_core.models.config import Config
@@ -109,8 +110,7 @@ def blend_files(a: str | os.PathLike, b: str | os.PathLike, t: float) -> dict:
         if kind is None or checkpoint:
             raise InputError("not an hgca weights file (export a checkpoint with `hgca train --export` first)", str(f))
     ka, kb = blobs[0]["kind"], blobs[1]["kind"]
-    ca, cb = ({k: v for k, v in bl["config"].items() if k != "keep"} for bl in blobs)
-    if ka != kb or ca != cb or "autoencoder" in blobs[0]:
+    if ka != kb or "autoencoder" in blobs[0] or _architecture(ka, blobs[0]) != _architecture(kb, blobs[1]):
         raise InputError(f"cannot blend: {ka} and {kb} weights of different architectures (or fine weights, whose "
                          "autoencoders differ)", str(b))
     sa, sb = blobs[0]["state_dict"], blobs[1]["state_dict"]
@@ -120,10 +120,18 @@ def blend_files(a: str | os.PathLike, b: str | os.PathLike, t: float) -> dict:
              for k, v in sa.items()}
     def source(f: str | os.PathLike, blob: dict) -> dict:
         m = _meta(blob)
-        return {"file": str(f), **{k: m[k] for k in ("steps", "train_wall_s", "data", "sessions") if k in m}}
+        return {"file": str(f), "sha256": file_digest(f),
+                **{k: m[k] for k in ("steps", "train_wall_s", "data", "sessions") if k in m}}
 
     meta = {**_meta(blobs[0]), "blend": {"t": t, "a": source(a, blobs[0]), "b": source(b, blobs[1])}}
     return {**blobs[0], "state_dict": state, "meta": meta}
+
+
+def _architecture(kind: str, blob: dict) -> dict:
+    """The config as this version reads it (fields a file predates filled in), less the sampling settings
+    (`keep`, `bias`), which do not change the tensors and which a blend takes from its first file."""
+    cfg = KINDS[kind].config.from_dict(blob["config"]).to_dict()
+    return {k: v for k, v in cfg.items() if k not in ("keep", "bias")}
 
 
 # -- reading ----------------------------------------------------------------------------------------------------

@@ -67,11 +67,12 @@ def test_a_row_without_two_files_is_refused(tmp_path, capsys):
     assert e.value.code == 2 and "expected LABEL=VAL.json,REAL.json" in capsys.readouterr().err
 
 
-def _run(path: Path, seed: int, shares: list[float], inputs=("av2_log",), t1=None) -> str:
+def _run(path: Path, seed: int, shares: list[float], inputs=("av2_log",), t1=None, digest="ab12", file="w.pt") -> str:
     """An eval-real JSON of len(shares) samples from `seed` on: each sample's recall 0.4 + its share."""
     per = [{"recall": 0.4 + a, "generated_above": 100.0 * (i + 1), "above_empty_share": a} for i, a in enumerate(shares)]
     whole = [{"empty_share": 0.05} for _ in shares]
-    doc = {"config": {"cuts": [2.0], "samples": len(shares), "seed": seed, "threads": 1, "t1": t1},
+    doc = {"config": {"cuts": [2.0], "samples": len(shares), "seed": seed, "threads": 1, "t1": t1,
+                      "weights": {"coarse": file}, "weights_sha256": {"coarse": digest}},
            "inputs": {name: {"cases": {"full": {"rows": {"hgca": {"per_sample": whole, "summary": {}}}},
                                        "cut_2": {"rows": {"hgca": {"per_sample": per, "summary": {}}}}}}
                       for name in inputs}}
@@ -102,3 +103,22 @@ def test_runs_of_other_seeds_pool_into_one_score_and_refuse_what_would_not_be_on
         pooled(f"{a}+{_run(tmp_path / 'd.json', 2, [0.2, 0.2], t1=20)}")
     with pytest.raises(ValueError, match="cannot pool"):
         pooled(f"{a}+{_run(tmp_path / 'e.json', 2, [0.2, 0.2], inputs=('other_log',))}")
+    with pytest.raises(ValueError, match="cannot pool"):   # other weights under the same name
+        pooled(f"{a}+{_run(tmp_path / 'f.json', 2, [0.2, 0.2], digest='cd34')}")
+    moved = pooled(f"{a}+{_run(tmp_path / 'g.json', 2, [0.2, 0.2], file='/elsewhere/w.pt')}")   # same weights
+    assert moved["config"]["samples"] == 4
+
+
+def test_rank_agreement_between_val_and_each_input_set():
+    """Spearman over the rows: +1 where a set orders the weights as the val sweeps do, -1 reversed; none below 4
+    rows (too few to rank) and none for the val set itself."""
+    import pytest
+
+    val = {f"w{i}": (50.0 + i, 5.0 + i, 0.0, None, 3) for i in range(5)}
+    same = {f"w{i}": (40.0 + 2 * i, 9.0 + 0.5 * i, 0.0, None, 6) for i in range(5)}
+    reversed_share = {f"w{i}": (40.0 + i, 12.0 - i, 0.0, None, 6) for i in range(5)}
+    few = {f"w{i}": (40.0 + i, 9.0, 0.0, None, 6) for i in range(3)}
+    ranks = cut_frontier.agreement({"val": val, "log_a": same, "log_b": reversed_share, "log_c": few}, "val")
+    assert set(ranks) == {"log_a", "log_b"}
+    assert ranks["log_a"] == pytest.approx((1.0, 1.0, 5))
+    assert ranks["log_b"] == pytest.approx((1.0, -1.0, 5))

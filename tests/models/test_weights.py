@@ -1,5 +1,6 @@
 """The one weights module: round trips for every kind, the packaged files, and refusals that name the file and
 say what it is (a pickle that would run code, the wrong kind of weights, a config that does not fit)."""
+import hashlib
 import os
 import pickle
 
@@ -183,12 +184,26 @@ def test_blend_interpolates_tensor_by_tensor_and_refuses_what_does_not_fit(files
         for k, v in blob["state_dict"].items():
             want = ((1 - t) * a_sd[k].float() + t * b_sd[k].float()).half() if k in floats else a_sd[k]
             assert v.dtype == a_sd[k].dtype and torch.equal(v, want), (t, k)
-        assert blob["meta"]["blend"]["t"] == t and blob["meta"]["blend"]["b"] == {"file": str(b), "steps": 7,
-                                                                                   "data": "d2"}
+        digest = hashlib.sha256(b.read_bytes()).hexdigest()   # the source named by content, not only by path
+        assert blob["meta"]["blend"]["t"] == t and blob["meta"]["blend"]["b"] == {"file": str(b), "sha256": digest,
+                                                                                   "steps": 7, "data": "d2"}
     mid = save_file(blend_files(files["coarse"], b, 0.5), tmp_path / "mid.pt")
     model, meta = load_coarse(mid)                           # a blend loads like any coarse weights
     assert meta["blend"]["a"]["file"] == str(files["coarse"])
     assert not torch.equal(model.state_dict()[floats[0]], load_coarse(b)[0].state_dict()[floats[0]])
+
+    # a file written before a config field existed (the shipped coarse.pt has no `bias`) is the same architecture;
+    # sampling settings come from the first file
+    older = load_file(b)
+    del older["config"]["bias"]
+    older["config"]["keep"] = 0.4
+    older = save_file(older, tmp_path / "older.pt")
+    assert blend_files(files["coarse"], older, 0.5)["config"] == load_file(files["coarse"])["config"]
+    assert blend_files(older, files["coarse"], 0.5)["config"]["keep"] == 0.4
+    changed = load_file(b)
+    changed["config"]["pe_axes"] = "x" if changed["config"]["pe_axes"] != "x" else "y"
+    with pytest.raises(InputError, match="different architectures"):   # same tensor shapes, other meaning
+        blend_files(files["coarse"], save_file(changed, tmp_path / "axes.pt"), 0.5)
 
     wider = save_weights(tmp_path / "w.pt", GCAKernel(GCAConfig(channels=(8, 8, 16, 16, 32), steps=3)))
     with pytest.raises(InputError, match="different architectures"):

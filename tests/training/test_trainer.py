@@ -1,3 +1,4 @@
+import hashlib
 import json
 import os
 import subprocess
@@ -304,6 +305,7 @@ def test_export_blended_toward_the_weights_the_run_started_from(tiny_dataset, tm
     assert torch.equal(mix["state_dict"][k], want)
     assert mix["meta"]["blend"]["t"] == 0.25 and mix["meta"]["blend"]["b"]["file"] == str(tmp_path / "r" / "ckpt.pt")
     assert mix["meta"]["blend"]["b"]["sessions"] == plain["meta"]["sessions"]
+    assert mix["meta"]["blend"]["b"]["sha256"] == hashlib.sha256((tmp_path / "r" / "ckpt.pt").read_bytes()).hexdigest()
     for bad in (["--blend-with", str(a)], ["--blend-t", "0.5", "--export", str(tmp_path / "x.pt")],
                 ["--blend-with", str(a), "--blend-t", "2", "--export", str(tmp_path / "x.pt")]):
         done = run("--minutes", "0", *bad)
