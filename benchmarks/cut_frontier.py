@@ -89,8 +89,10 @@ def plot(pts: dict[str, dict[str, Point]], path: Path) -> None:
 
     fig, axes = plt.subplots(1, len(pts), figsize=(4.2 * len(pts), 4), squeeze=False)
     for ax, (name, rows) in zip(axes[0], pts.items()):
+        colours = [f"C{i}" for i in range(10)] if len(rows) <= 10 else list(plt.cm.tab20.colors)  # none repeated
         for i, (label, (rec, share, _, sem, _)) in enumerate(rows.items()):
-            ax.errorbar(rec, share, yerr=sem, fmt="*" if i == 0 else "o", ms=13 if i == 0 else 7, color=f"C{i}",
+            ax.errorbar(rec, share, yerr=sem, fmt="*" if i == 0 else "o", ms=13 if i == 0 else 7,
+                        color=colours[i % len(colours)],
                         capsize=3, label=label)
         ax.set_title(name, fontsize=9)
         ax.set_xlabel("2 m recall (%) ↑")

@@ -49,8 +49,15 @@ def test_eval_full_stage_table(small_split, small_fine, tmp_path):
     png = tmp_path / "scene.png"
     res = subprocess.run(cmd + ["--render", str(png)], capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
-    rows = json.loads(out.read_text())["rows"]
+    doc = json.loads(out.read_text())
+    rows = doc["rows"]
     assert set(rows) == {"input", "hGCA coarse (planner)", "hGCA (10 cm voxels)", "hGCA (implicit)"}
+    # the weights the model rows ran with, named by content: the shipped coarse.pt and the given fine weights
+    from hgca_core.io.digest import file_digest
+    from hgca_core.models.weights import shipped
+
+    assert doc["weights"] == {"coarse": str(shipped("coarse")), "fine": str(small_fine)}
+    assert doc["weights_sha256"] == {"coarse": file_digest(shipped("coarse")), "fine": file_digest(small_fine)}
     # the rendering: ground truth, input, then the three model rows' first completions, 4 panels a row
     from PIL import Image
 

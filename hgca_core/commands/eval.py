@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
 
     from hgca_core.errors import InputError
     from hgca_core.metrics.evaluate import aggregate, format_table
-    from hgca_core.models.weights import WEIGHTS_DIR
+    from hgca_core.models.weights import WEIGHTS_DIR, weights_record
     from hgca_core.nn.conv import precision_name, resolve_precision
     from hgca_core.training.data import split_files
     from hgca_core.training.packed import refuse_packed
@@ -91,8 +91,8 @@ def run(args: argparse.Namespace) -> int:
         out.write_text(json.dumps({"data": str(args.data), "split": args.split, "files": [p.name for p in files],
                                    "rows": rows,
                                    "samples": args.samples, "t1": args.t1, "free_space": args.free_space,
-                                   "weights": {"hgca": args.weights or "shipped", "gca": args.noplanner_weights
-                                               or "shipped", "fine": args.fine_weights or "shipped"},
+                                   **weights_record(methods, args.weights, args.fine_weights,
+                                                    args.noplanner_weights),
                                    "precision": precision_name(gemm_dtype)}, indent=1))
         out.with_suffix(".md").write_text(table + "\n")
     if args.render and files:   # after the results are written: a rendering never costs the table

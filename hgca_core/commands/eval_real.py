@@ -110,13 +110,15 @@ def run(args: argparse.Namespace) -> int:
     if not out.parent.is_dir():
         raise InputError("output folder does not exist", str(out.parent))
     torch.set_num_threads(max(1, args.threads))
+    from hgca_core.models.weights import weights_record
     from hgca_core.real_eval import WAYMO_NA, evaluate_input, format_tables
 
     items = inputs_of(args)
     config = {"methods": methods, "cuts": cuts, "full_cuts": full_cuts, "samples": args.samples,
               "full_samples": args.full_samples or args.samples, "seed": args.seed, "threads": args.threads,
               "t1": args.t1, "t2": args.t2, "precision": args.precision, "free_space": args.free_space,
-              "yaw_deg": args.yaw, **weights_used(args, methods)}
+              "yaw_deg": args.yaw,
+              **weights_record(methods, args.weights, args.fine_weights, args.noplanner_weights)}
     results = {"config": config, "inputs": {}, "waymo_protocol": {"applicable": False, "reason": WAYMO_NA}}
     earlier = _earlier(out, config) if args.resume else {}
     total = time.time() - float(earlier.get("total_seconds") or 0.0)
@@ -140,19 +142,6 @@ def run(args: argparse.Namespace) -> int:
 
 RESUME_KEYS = ("samples", "full_samples", "seed", "t1", "t2", "precision", "free_space",
                "weights_sha256")  # must match to resume
-
-
-def weights_used(args: argparse.Namespace, methods: list[str]) -> dict:
-    """{"weights": role -> path, "weights_sha256": role -> digest} for the models `methods` run: what a results
-    file was made with, so runs pooled or resumed are checked to be of the same weights, not of the same path."""
-    from hgca_core.io.digest import file_digest
-    from hgca_core.models.weights import shipped
-
-    roles = {"coarse": ("hgca", "hgca-full"), "fine": ("hgca-full",), "noplanner": ("gca",)}
-    given = {"coarse": args.weights, "fine": args.fine_weights, "noplanner": args.noplanner_weights}
-    default = {"coarse": "coarse", "fine": "fine", "noplanner": "coarse-noplanner"}
-    files = {r: str(given[r] or shipped(default[r])) for r, ms in roles.items() if set(ms) & set(methods)}
-    return {"weights": files, "weights_sha256": {r: file_digest(f) for r, f in files.items()}}
 
 
 def _earlier(out: Path, config: dict) -> dict:

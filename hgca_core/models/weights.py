@@ -96,6 +96,17 @@ def save_weights(path: str | os.PathLike, model: nn.Module, meta: dict[str, Any]
     return save_file(blob, path)
 
 
+def weights_record(methods: list[str], coarse: str | os.PathLike | None = None, fine: str | os.PathLike | None = None,
+                   noplanner: str | os.PathLike | None = None) -> dict:
+    """{"weights": role -> path, "weights_sha256": role -> digest} of the files the evaluation `methods` run (hgca,
+    hgca-full, gca; None: the shipped file): a results file names its weights by content, so runs that are pooled or
+    resumed are checked to be of the same weights, not merely of the same path."""
+    roles = {"coarse": (("hgca", "hgca-full"), coarse, "coarse"), "fine": (("hgca-full",), fine, "fine"),
+             "noplanner": (("gca",), noplanner, "coarse-noplanner")}
+    files = {r: str(given or shipped(stage)) for r, (ms, given, stage) in roles.items() if set(ms) & set(methods)}
+    return {"weights": files, "weights_sha256": {r: file_digest(f) for r, f in files.items()}}
+
+
 def blend_files(a: str | os.PathLike, b: str | os.PathLike, t: float) -> dict:
     """Weights `(1 - t) * a + t * b`, tensor by tensor: a fine-tune interpolated back toward the weights it started
     from (WiSE-FT, Wortsman et al. 2022), which keeps more of the fine-tune's gain off its training distribution.
