@@ -55,11 +55,16 @@ def _cell(p: Point) -> str:
     return f"{rec:.1f} / {share:.1f}{'' if sem is None else f' ± {sem:.1f}'} / {cells:,.0f} / {k}"
 
 
+def _labels(pts: dict[str, dict[str, Point]]) -> list[str]:
+    """Every row's label once, in the order given (a row scored on the real logs only is in no val set)."""
+    return list(dict.fromkeys(label for rows in pts.values() for label in rows))
+
+
 def table(pts: dict[str, dict[str, Point]]) -> str:
     sets = list(pts)
     head = " | ".join(f"{s}: recall % / above-cut in obs. empty % ± s.e. / cells above / k" for s in sets)
     lines = [f"| weights | {head} |", "|---|" + "---|" * len(sets)]
-    for label in next(iter(pts.values())):
+    for label in _labels(pts):
         cells = " | ".join(_cell(pts[s][label]) if label in pts[s] else "-" for s in sets)
         lines.append(f"| {label} | {cells} |")
     return "\n".join(lines) + "\n"
@@ -87,28 +92,39 @@ def plot(pts: dict[str, dict[str, Point]], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    labels = _labels(pts)   # one colour a row in every panel, none repeated, the first (reference) a star
+    colours = [f"C{i}" for i in range(10)] if len(labels) <= 10 else list(plt.cm.tab20.colors)
     fig, axes = plt.subplots(1, len(pts), figsize=(4.2 * len(pts), 4), squeeze=False)
     for ax, (name, rows) in zip(axes[0], pts.items()):
-        colours = [f"C{i}" for i in range(10)] if len(rows) <= 10 else list(plt.cm.tab20.colors)  # none repeated
-        for i, (label, (rec, share, _, sem, _)) in enumerate(rows.items()):
+        for label, (rec, share, _, sem, _) in rows.items():
+            i = labels.index(label)
             ax.errorbar(rec, share, yerr=sem, fmt="*" if i == 0 else "o", ms=13 if i == 0 else 7,
-                        color=colours[i % len(colours)],
-                        capsize=3, label=label)
+                        color=colours[i % len(colours)], capsize=3, label=label)
         ax.set_title(name, fontsize=9)
         ax.set_xlabel("2 m recall (%) ↑")
         ax.set_ylabel("above-cut growth in observed empty (%) ↓")
         ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=7)
+    axes[0][0].legend(*_legend(axes[0]), fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _legend(axes) -> tuple[list, list[str]]:
+    """Handles and labels of every panel's rows, each label once (no panel need hold them all)."""
+    seen: dict[str, object] = {}
+    for ax in axes:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            seen.setdefault(lab, h)
+    return list(seen.values()), list(seen)
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--row", action="append", required=True, metavar="LABEL=VAL.json,REAL.json",
                    help="one weights file's val_cut.py and eval-real results (repeatable; the first is the reference); "
-                        "either may be A.json+B.json, runs of the same weights with disjoint seeds, pooled")
+                        "either may be A.json+B.json, runs of the same weights with disjoint seeds, pooled; VAL.json "
+                        "may be left out (LABEL=,REAL.json) for weights scored on the real logs only")
     p.add_argument("--val-name", default="synthetic val sweeps",
                    help="what the rows' val files hold, for the table and plot (e.g. 'av2-profile val sweeps')")
     p.add_argument("--out", required=True, help="results JSON (.md and .png beside it)")

@@ -62,14 +62,15 @@ def scored(folder: Path, tag: str) -> dict:
 
 def known_rows(items: list[str]) -> dict[str, dict]:
     """`scores` of rows scored before by val_cut.py and `hgca eval-real`, each given as LABEL=VAL.json,REAL.json;
-    either may be A.json+B.json, runs of the same weights with other seeds (`pooled`)."""
+    either may be A.json+B.json, runs of the same weights with other seeds (`pooled`). VAL may be left out
+    (LABEL=,REAL.json) for weights scored on the real logs only."""
     rows = {}
     for item in items:
         label, _, files = item.rpartition("=")
-        val, _, real = files.partition(",")
-        if not label or not val or not real:
-            raise ValueError(f"{item!r}: expected LABEL=VAL.json,REAL.json")
-        rows[label] = scores(pooled(val), pooled(real))
+        val, comma, real = files.partition(",")
+        if not label or not comma or not real:
+            raise ValueError(f"{item!r}: expected LABEL=VAL.json,REAL.json (VAL.json may be left out)")
+        rows[label] = scores(pooled(val) if val else {"inputs": {}}, pooled(real))
     return rows
 
 

@@ -122,3 +122,14 @@ def test_rank_agreement_between_val_and_each_input_set():
     assert set(ranks) == {"log_a", "log_b"}
     assert ranks["log_a"] == pytest.approx((1.0, 1.0, 5))
     assert ranks["log_b"] == pytest.approx((1.0, -1.0, 5))
+
+
+def test_a_row_scored_on_the_real_logs_only_is_drawn_and_tabled_there(tmp_path):
+    val = _result(tmp_path / "val.json", {"sample_1": (0.6, 0.10, 100.0)})
+    real = _result(tmp_path / "real.json", {"av2_log": (0.45, 0.08, 50.0)})
+    other = _result(tmp_path / "real_b.json", {"av2_log": (0.50, 0.07, 60.0)})
+    out = tmp_path / "f.json"
+    assert cut_frontier.main(["--row", f"ref={val},{real}", "--row", f"b=,{other}", "--out", str(out)]) == 0
+    pts = json.loads(out.read_text())["points"]
+    assert set(pts["synthetic val sweeps"]) == {"ref"} and set(pts["av2_log"]) == {"ref", "b"}
+    assert "| b | - | 50.0 / 7.0 ± 0.0 / 60 / 2 |" in out.with_suffix(".md").read_text()
