@@ -14,14 +14,14 @@ from pathlib import Path
 STAGES = ("coarse", "coarse-noplanner", "autoencoder", "fine")
 
 
-def _share(text: str) -> float:
-    """A share in [0, 1] (argparse type)."""
+def _share(text: str, open_ends: bool = False) -> float:
+    """A share in [0, 1], or in (0, 1) with `open_ends` (argparse type)."""
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"must be between 0 and 1, got {value}")
+    if not (0.0 < value < 1.0 if open_ends else 0.0 <= value <= 1.0):
+        raise argparse.ArgumentTypeError(f"must be {'strictly ' if open_ends else ''}between 0 and 1, got {value}")
     return value
 
 
@@ -90,6 +90,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--autoencoder", default=None, help="fine: autoencoder weights (default: the shipped ones)")
     p.add_argument("--lr", type=float, default=None,
                    help="Adam learning rate (default 5e-4; with --resume: the run's own, or this one from now on)")
+    p.add_argument("--ema-decay", type=_decay, default=None, metavar="D",
+                   help="decay of the weights' moving average that exports and validation use (default 0.999, about "
+                        "the last 1,000 steps; with --resume: the run's own, or this one from now on): closer to 1 "
+                        "averages over more steps, as neighbouring checkpoints swing on real scans (recipe_s32.md)")
     p.add_argument("--val-every", type=float, default=10.0, help="minutes between validation runs")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (1 is fastest on a busy machine)")
     p.add_argument("--device", default="cpu",
@@ -278,6 +282,11 @@ def build_task(args: argparse.Namespace, run_file: dict | None, teacher_sha256: 
     return FineTask(args.data, cfg, autoencoder=args.autoencoder or str(shipped("autoencoder")))
 
 
+def _decay(text: str) -> float:
+    """A moving-average decay, strictly between 0 and 1 (argparse type)."""
+    return _share(text, open_ends=True)
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
 
@@ -311,7 +320,8 @@ def run(args: argparse.Namespace) -> int:
     if args.minutes > 0 or args.max_steps:
         state = train(task, out, args.minutes, resume=args.resume, batch=args.batch, buffer_size=args.buffer,
                       val_every_min=args.val_every, max_steps=args.max_steps, progress=not args.no_progress,
-                      device=args.device, init_from=args.init_from, precision=args.precision, lr=args.lr)
+                      device=args.device, init_from=args.init_from, precision=args.precision, lr=args.lr,
+                      ema_decay=args.ema_decay)
         last_val = next((h for h in reversed(state["history"]) if h["kind"] == "val"), {})
         print(json.dumps({"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1), **last_val}))
     if args.export:

@@ -125,6 +125,7 @@ def _session(s: dict) -> str:
             f"world size {s['world_size']}, {s.get('precision', 'fp32')} GEMMs"
             + (f", learning rate {s['lr']:g}" if "lr" in s else "")
             + (f", {s['batch']} chains a step" if "batch" in s else "")   # recorded from session 27 on
+            + (f", weight average decay {s['ema_decay']:g}" if "ema_decay" in s else "")   # from session 33 on
             + "".join(f", {k.replace('_', ' ')} {v}" for k, v in s.get("recipe", {}).items()))
 
 

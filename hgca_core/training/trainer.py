@@ -160,7 +160,7 @@ def _gather(obj: dict, rank: int, world: int) -> list[dict] | None:
 def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False, batch: int = 2,
           buffer_size: int = 8, lr: float | None = None, clip: float = 0.5, seed: int = 0,
           val_every_min: float = 10.0, ckpt_every_min: float = 5.0, max_steps: int | None = None,
-          progress: bool = True, ema_decay: float = 0.999, device: str = "cpu",
+          progress: bool = True, ema_decay: float | None = None, device: str = "cpu",
           init_from: str | os.PathLike | None = None, precision: str = "fp32") -> dict:
     """Train `task` for `minutes` of wall time (or `max_steps`), resuming from out_dir/ckpt.pt if asked.
 
@@ -220,9 +220,13 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
             state.setdefault("notes", []).append(
                 f"initialised from {init_from} ({meta.get('steps')} steps)"
                 + (", its free-space inputs new and zero-initialised" if meta.get("widened") else ""))
-    ema = EMA(module, ema_decay)  # a checkpoint from before the EMA existed starts it at its weights
-    if ema_state:
+    ema = EMA(module, 0.999 if ema_decay is None else ema_decay)  # a checkpoint from before the EMA existed
+    if ema_state:                                                   # starts it at its weights
         ema.load_state_dict(ema_state)
+        if ema_decay is not None and ema_decay != ema.decay:   # a longer (or shorter) average from here on
+            state.setdefault("notes", []).append(
+                f"weight average decay {ema_decay:g} from step {state['step']:,} on (was {ema.decay:g})")
+            ema.decay = ema_decay
     ddp = nn.parallel.DistributedDataParallel(module, device_ids=[dev.index] if dev.type == "cuda" else None) \
         if world > 1 else module
     module.train()
@@ -268,7 +272,7 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
                 "wall_s": round(time.time() - session_start, 1), "world_size": world,
                 "device": dev.type, "device_name": device_name(dev), "cpu": cpu_name(),
                 "threads": torch.get_num_threads(), "precision": precision,
-                "lr": optim.param_groups[0]["lr"], "batch": batch,
+                "lr": optim.param_groups[0]["lr"], "batch": batch, "ema_decay": ema.decay,
                 "train_samples": [Path(f).name for f in train_files],
                 "train_folders": sorted({str(Path(f).parents[1]) for f in train_files}),
                 "recipe": dict(getattr(task, "recipe", lambda: {})())}

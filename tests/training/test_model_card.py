@@ -12,7 +12,8 @@ def test_card_renders_weights_metadata_and_eval_provenance(tmp_path):
     torch.manual_seed(0)
     session = {"ended": "2026-11-23 10:45:24", "steps": 77, "wall_s": 12.5, "device": "cpu", "device_name": "EPYC",
                "threads": 1, "world_size": 1, "precision": "bf16", "recipe": {"crop": 64, "focus_share": 0.5}}
-    gpu = {**session, "device": "cuda", "device_name": "NVIDIA H200", "threads": 5, "lr": 1.5e-4, "batch": 6}
+    gpu = {**session, "device": "cuda", "device_name": "NVIDIA H200", "threads": 5, "lr": 1.5e-4, "batch": 6,
+           "ema_decay": 0.9998}
     meta = {"stage": "coarse", "data": "data/synth2", "crop": 64, "steps": 77, "train_wall_s": 12.5,
             "sessions": [session, gpu], "notes": ["selected on validation"], "train_samples": ["sample_0000003.npz"],
             "history_tail": [{"step": 77, "kind": "val", "val_iou": 0.5}]}
@@ -27,7 +28,7 @@ def test_card_renders_weights_metadata_and_eval_provenance(tmp_path):
     assert "training data: data/synth2 (train split): 1 samples, seeds 3-3" in card
     assert "77 steps in 12.5 s, device cpu (EPYC), 1 thread(s), world size 1, bf16 GEMMs, crop 64, focus share 0.5" in card
     assert ("device cuda (NVIDIA H200), 5 thread(s), world size 1, bf16 GEMMs, learning rate 0.00015, 6 chains a step, "
-            "crop 64") in card                                        # the batch, recorded from session 27 on
+            "weight average decay 0.9998, crop 64") in card           # the batch (session 27 on), the decay (33 on)
     assert "- note: selected on validation" in card and "step 77: val_iou 0.5000" in card
     assert "Scenes (data/synth2, test split): sample_2000000.npz; k = 3 samples; T1 = default; free space off." in card
     assert "- hGCA coarse (planner): 12.5 s per completion" in card

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from hgca_core.models.gca import GCAConfig
-from hgca_core.models.weights import load_coarse, load_file, trained_weights
+from hgca_core.models.weights import load_coarse, load_file, save_file, trained_weights
 from hgca_core.training.coarse import CoarseTask
 from hgca_core.training.trainer import EMA, train
 
@@ -352,3 +352,28 @@ def test_export_best_writes_the_best_steps_weights_and_refuses_a_run_without_the
     assert done.returncode == 2 and "no best.pt in" in done.stderr and not (tmp_path / "x.pt").exists()
     done = run(tmp_path / "r", "--minutes", "0", "--best")
     assert done.returncode == 2 and "--best goes with --export" in done.stderr
+
+
+def test_a_resumed_run_takes_a_new_weight_average_decay_and_records_it(tiny_dataset, tmp_path):
+    """`--ema-decay` on a resume averages over a longer window from that step on (notes and session say so, the
+    checkpoint keeps it); without it the run keeps its own; a decay outside (0, 1) is refused (exit 2)."""
+    out = tmp_path / "run"
+    s = train(_task(tiny_dataset), out, minutes=5, max_steps=2, batch=2, buffer_size=3, progress=False)
+    assert s["sessions"][-1]["ema_decay"] == 0.999 and load_file(out / "ckpt.pt")["ema"]["decay"] == 0.999
+    ck = load_file(out / "ckpt.pt")
+    ck["ema"]["n"] = 10**6          # as if long past the warm-up, so the step's update uses the decay itself
+    save_file(ck, out / "ckpt.pt")
+    before = ck["ema"]["model"]
+    s = train(_task(tiny_dataset), out, minutes=5, max_steps=1, resume=True, batch=2, buffer_size=3,
+              progress=False, ema_decay=0.9999)
+    ck = load_file(out / "ckpt.pt")
+    assert ck["ema"]["decay"] == 0.9999 and s["notes"] == ["weight average decay 0.9999 from step 2 on (was 0.999)"]
+    k = next(n for n, v in before.items() if v.is_floating_point() and (v - ck["model"][n]).abs().max() > 1e-3)
+    for decay, close in ((0.9999, True), (0.999, False)):   # moved 1e-4 of the way to the live weights, not 1e-3
+        want = before[k].lerp(ck["model"][k], 1 - decay)
+        assert torch.allclose(ck["ema"]["model"][k], want, rtol=0, atol=1e-7) == close, decay
+    s = train(_task(tiny_dataset), out, minutes=5, max_steps=1, resume=True, batch=2, buffer_size=3, progress=False)
+    assert [ses["ema_decay"] for ses in s["sessions"]] == [0.999, 0.9999, 0.9999] and len(s["notes"]) == 1
+    res = subprocess.run([sys.executable, "-m", "hgca_core.cli", "train", "coarse", "--data", str(tiny_dataset),
+                          "--out", str(tmp_path / "x"), "--ema-decay", "1"], capture_output=True, text=True)
+    assert res.returncode == 2 and "strictly between 0 and 1" in res.stderr
