@@ -60,6 +60,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--profiles", default="", help="comma list: only val scenes of these sensor profiles (e.g. "
                    "av2,hdl32, the real logs' sensors; default every scene; freespace_calibration.md shows how much "
                    "the above-cut share depends on the profile)")
+    p.add_argument("--yaw", type=float, default=0.0,
+                   help="turn the scored region this many degrees about the sensor (`hgca eval-real --yaw`): the "
+                        "synthetic streets run along the region's x axis, as the nuScenes street does, while the AV2 "
+                        "streets cross the city-frame grid at -32 and 19 deg (violation_anatomy_s21_shipped.md)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", required=True, help="results JSON (the table goes to .md beside it)")
     args = p.parse_args(argv)
@@ -73,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         cmd = [sys.executable, "-c", "import sys; from hgca_core.cli import main; sys.exit(main())", "eval-real",
                "--threads", str(args.threads), "--methods", "hgca", "--samples", str(args.samples),
                "--cuts", args.cuts, "--no-render", *(["--weights", args.weights] if args.weights else []),
+               "--yaw", str(args.yaw),
                "--out", args.out, *map(str, scans)]
         return subprocess.run(cmd, check=False).returncode
 

@@ -29,3 +29,16 @@ def test_first_sweeps_keep_scan_zero_and_filter_by_profile(tmp_path):
     hdl64 = [s for s, _, _ in val_cut.first_sweeps(tmp_path, "val", 4, ["hdl64"])]
     assert hdl64 == ["sample_1000000", "sample_1000003"]
     assert val_cut.write_first_sweeps(tmp_path, 4, tmp_path, ["waymo"]) == []
+
+
+def test_the_region_turn_reaches_eval_real(tmp_path, monkeypatch):
+    """`--yaw` is passed to `hgca eval-real`, which turns the scored region about the sensor (0 by default)."""
+    from types import SimpleNamespace
+
+    ran = []
+    monkeypatch.setattr(val_cut, "write_first_sweeps", lambda *a: [tmp_path / "s.npz"])
+    monkeypatch.setattr(val_cut.subprocess, "run", lambda cmd, check: ran.append(cmd) or SimpleNamespace(returncode=0))
+    for extra, want in (([], "0.0"), (["--yaw", "30"], "30.0")):
+        assert val_cut.main(["--data", str(tmp_path), "--out", str(tmp_path / "v.json"), *extra]) == 0
+        cmd = ran[-1]
+        assert "eval-real" in cmd and cmd[cmd.index("--yaw") + 1] == want
