@@ -109,15 +109,15 @@ def load_method_models(methods: list[str], fine_weights: str | None, weights: st
                        noplanner_weights: str | None = None) -> dict:
     """`pipeline.Models` per model-based method: gca = the no-planner weights, hgca / hgca-full = the planner
     weights (with the fine stage when hgca-full is asked for), shipped unless named, loaded once for the split."""
-    from hgca_core.models.weights import shipped
+    from hgca_core.models.weights import weights_files
     from hgca_core.pipeline import load_models
 
+    files = weights_files(methods, weights, fine_weights, noplanner_weights)   # the files `weights_record` names
     models = {}
-    if "gca" in methods:
-        models["gca"] = load_models("coarse", noplanner_weights or shipped("coarse-noplanner"))
-    if "hgca" in methods or "hgca-full" in methods:
-        models["hgca"] = load_models("full" if "hgca-full" in methods else "coarse", weights or shipped("coarse"),
-                                     fine_weights)
+    if "noplanner" in files:
+        models["gca"] = load_models("coarse", files["noplanner"])
+    if "coarse" in files:
+        models["hgca"] = load_models("full" if "fine" in files else "coarse", files["coarse"], files.get("fine"))
     return models
 
 

@@ -96,14 +96,22 @@ def save_weights(path: str | os.PathLike, model: nn.Module, meta: dict[str, Any]
     return save_file(blob, path)
 
 
-def weights_record(methods: list[str], coarse: str | os.PathLike | None = None, fine: str | os.PathLike | None = None,
-                   noplanner: str | os.PathLike | None = None) -> dict:
-    """{"weights": role -> path, "weights_sha256": role -> digest} of the files the evaluation `methods` run (hgca,
-    hgca-full, gca; None: the shipped file): a results file names its weights by content, so runs that are pooled or
-    resumed are checked to be of the same weights, not merely of the same path."""
+def weights_files(methods: list[str], coarse: str | os.PathLike | None = None, fine: str | os.PathLike | None = None,
+                  noplanner: str | os.PathLike | None = None) -> dict[str, str]:
+    """{role: path} of the files the evaluation `methods` run (coarse for hgca and hgca-full, fine for hgca-full,
+    noplanner for gca), each the one given or else the shipped file: the one place that decides it, for loading
+    and for the record of what was loaded."""
     roles = {"coarse": (("hgca", "hgca-full"), coarse, "coarse"), "fine": (("hgca-full",), fine, "fine"),
              "noplanner": (("gca",), noplanner, "coarse-noplanner")}
-    files = {r: str(given or shipped(stage)) for r, (ms, given, stage) in roles.items() if set(ms) & set(methods)}
+    return {r: str(given or shipped(stage)) for r, (ms, given, stage) in roles.items() if set(ms) & set(methods)}
+
+
+def weights_record(methods: list[str], coarse: str | os.PathLike | None = None, fine: str | os.PathLike | None = None,
+                   noplanner: str | os.PathLike | None = None) -> dict:
+    """{"weights": role -> path, "weights_sha256": role -> digest} of `weights_files`: a results file names its
+    weights by content, so runs that are pooled or resumed are checked to be of the same weights, not merely of
+    the same path."""
+    files = weights_files(methods, coarse, fine, noplanner)
     return {"weights": files, "weights_sha256": {r: file_digest(f) for r, f in files.items()}}
 
 

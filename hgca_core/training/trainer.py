@@ -46,6 +46,9 @@ class Task(Protocol):
     def validate(self, loss_module: nn.Module, seed: int = 0) -> dict: ...
 
 
+EMA_DECAY = 0.999   # the weight average's default: about the last 1,000 steps
+
+
 class EMA:
     """Exponential moving average of a module's weights and floating buffers (integer ones, e.g. BatchNorm's batch
     count, are copied), with the usual warm-up decay min(decay, (1 + n) / (10 + n)) so short runs are averaged
@@ -53,7 +56,7 @@ class EMA:
     does): copied, they are the live model's last ~10 batches, and the coarse chain's growth on real scans swung
     with them from one checkpoint to the next (`hgca_core.training.precise_bn`, session 15)."""
 
-    def __init__(self, module: nn.Module, decay: float = 0.999) -> None:
+    def __init__(self, module: nn.Module, decay: float = EMA_DECAY) -> None:
         self.decay, self.n = decay, 0
         self.module = copy.deepcopy(module).eval()
         for p in self.module.parameters():
@@ -220,8 +223,8 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
             state.setdefault("notes", []).append(
                 f"initialised from {init_from} ({meta.get('steps')} steps)"
                 + (", its free-space inputs new and zero-initialised" if meta.get("widened") else ""))
-    ema = EMA(module, 0.999 if ema_decay is None else ema_decay)  # a checkpoint from before the EMA existed
-    if ema_state:                                                   # starts it at its weights
+    ema = EMA(module, EMA_DECAY if ema_decay is None else ema_decay)  # a checkpoint from before the EMA
+    if ema_state:                                                       # existed starts it at its weights
         ema.load_state_dict(ema_state)
         if ema_decay is not None and ema_decay != ema.decay:   # a longer (or shorter) average from here on
             state.setdefault("notes", []).append(
