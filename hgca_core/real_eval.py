@@ -77,22 +77,23 @@ class Runner:
     """Runs each method on one input case and keeps sample 0's mesh of the best row for the renderings."""
 
     def __init__(self, args, region: Region, origins: np.ndarray) -> None:
-        from hgca_core.models.weights import shipped
+        from hgca_core.models.weights import weights_files
 
         self.args, self.region, self.origins = args, region, origins
-        self.noplanner = args.noplanner_weights or str(shipped("coarse-noplanner"))
+        # the files `weights_record` digests for the results' config: loaded from the same one decision
+        self.files = weights_files(["hgca-full", "gca"], args.weights, args.fine_weights, args.noplanner_weights)
         self.k = args.samples
         self.kf = args.full_samples or args.samples
         self.index: np.ndarray | None = None
 
-    def _complete(self, pts: np.ndarray, samples: int, seed: int, stage: str, weights: str | None):
+    def _complete(self, pts: np.ndarray, samples: int, seed: int, stage: str, role: str):
         """`hgca_core.complete` of `pts`, each point's ray from its own sensor origin (`self.index`, set per case
         by `cells`), as `hgca complete` does for the same scans."""
         import hgca_core
 
         return hgca_core.complete(pts, region=self.region, origins=self.origins, samples=samples, seed=seed,
-                                  stage=stage, t1=self.args.t1, t2=self.args.t2, weights=weights,
-                                  fine_weights=self.args.fine_weights, precision=self.args.precision,
+                                  stage=stage, t1=self.args.t1, t2=self.args.t2, weights=self.files[role],
+                                  fine_weights=self.files["fine"], precision=self.args.precision,
                                   origin_index=self.index, free_space=getattr(self.args, "free_space", "auto"))
 
     def cells(self, method: str, pts: np.ndarray, full: bool, index: np.ndarray | None = None) -> dict[str, Any]:
@@ -112,13 +113,13 @@ class Runner:
             mesh.vertices = region.to_world(mesh.vertices)
             return {"poisson": ([_mesh_cells(mesh, region, args.seed)], time.time() - t, mesh)}
         if method == "gca":
-            res = self._complete(pts, self.k, args.seed, "coarse", self.noplanner)
+            res = self._complete(pts, self.k, args.seed, "coarse", "noplanner")
             return {"gca": ([r.coarse_cells for r in res], (time.time() - t) / self.k, res[0].mesh)}
         # hgca (+ hgca-full): the full stage's coarse cells are the coarse row's samples (same seeds)
         rows: dict[str, Any] = {}
         coarse, meshes, seconds_full = [], [], 0.0
         if full:
-            res = self._complete(pts, self.kf, args.seed, "full", args.weights)
+            res = self._complete(pts, self.kf, args.seed, "full", "coarse")
             seconds_full = (time.time() - t) / self.kf
             coarse += [r.coarse_cells for r in res]
             cells_full = [_mesh_cells(r.mesh, region, args.seed + i) for i, r in enumerate(res)]
@@ -128,7 +129,7 @@ class Runner:
         t = time.time()
         extra = self.k - len(coarse)
         if extra > 0:
-            res = self._complete(pts, extra, args.seed + len(coarse), "coarse", args.weights)
+            res = self._complete(pts, extra, args.seed + len(coarse), "coarse", "coarse")
             coarse += [r.coarse_cells for r in res]
             meshes = meshes or [res[0].mesh]
             seconds_coarse = (time.time() - t) / extra

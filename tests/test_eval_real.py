@@ -233,3 +233,30 @@ def test_eval_real_completes_with_each_points_own_sensor_origin(tmp_path, small_
     assert seen[0][0] == len(pts) and seen[1][0] < len(pts)
     for n, index in seen:
         assert index is not None and len(index) == n and (index == 1).all()
+
+
+def test_eval_real_runs_the_weights_its_results_name(tmp_path, small_weights, monkeypatch):
+    """Each completion loads the file the results' config names for its row (one decision, `weights_files`): the
+    given no-planner weights for GCA, the shipped coarse file for hGCA when none is given (by its path, so the
+    record's digest is of the file that ran)."""
+    import hgca_core
+    from hgca_core.cli import main
+    from hgca_core.models.weights import shipped
+
+    s = tiny_sample(3)
+    scan = tmp_path / "street.npz"
+    np.savez(scan, points=s["input_points"].astype(np.float64), origins=[[3.0, 3.0, 3.0]])
+    seen = []
+    real = hgca_core.complete
+
+    def spy(points, **kw):
+        seen.append(str(kw["weights"]))
+        return real(points, **kw)
+
+    monkeypatch.setattr(hgca_core, "complete", spy)
+    out = tmp_path / "real.json"
+    assert main(["eval-real", str(scan), "--out", str(out), "--methods", "gca,hgca", "--samples", "1",
+                 "--noplanner-weights", str(small_weights), "--t1", "1", "--cuts", "1.0", "--threads", "1", "--no-render"]) == 0
+    named = json.loads(out.read_text())["config"]["weights"]
+    assert named == {"coarse": str(shipped("coarse")), "noplanner": str(small_weights)}
+    assert sorted(seen) == sorted([named["noplanner"], named["coarse"]] * 2)  # two cases, one call a row each
