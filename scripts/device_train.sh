@@ -29,7 +29,8 @@
 # FROZEN=1 (--frozen-bn: BatchNorm keeps INIT's running statistics), CUT_FREE=1 (--cut-free-loss: the free-space weight
 # also on what a cut input's uncut scan saw empty), DISTILL=MU (--distill: cut inputs' targets move MU of the way to the
 # probabilities of TEACHER, default INIT), ABOVE=1 (--distill-above: only the cells at and above the cut move); and for
-# the call: DEVICE (default cuda; cpu runs the same path here, as tests/test_device_script.py does), THREADS (CPU
+# the call: RESUME=1 (a later call on the still-warm machine continues each VARIANTS name's run of an earlier call
+# from its checkpoint in RUN, for MINUTES more, keeping the run's recipe, lr and teacher; carry the same data), DEVICE (default cuda; cpu runs the same path here, as tests/test_device_script.py does), THREADS (CPU
 # threads a run, default the cores shared out), RUN (the runs' checkpoint folders, default /tmp/hgca_device_run/<name>),
 # STASH (where STASH_ONLY=1 puts the folders of PACKED, default gpu_data, and where the default DATA looks too, default
 # /tmp/hgca_stash).
@@ -93,12 +94,17 @@ train_one() {  # one variant; called in a subshell, so its settings stay its own
   [ "${DISTILL:-0}" != 0 ] && flags+=(--distill "$DISTILL")
   [ -n "${TEACHER:-}" ] && flags+=(--teacher "$TEACHER")
   [ "${ABOVE:-0}" = 1 ] && flags+=(--distill-above)
+  local start=(--init-from "$INIT" --free-space --free-weight 8 --cut 0.5 --focus 0.5 --lr "$LR" --turn "$TURN")
+  if [ "${RESUME:-0}" = 1 ]; then  # the run of an earlier call on this warm machine, with the recipe it had
+    [ -f "$RUN/$name/ckpt.pt" ] || { echo "[$name] RESUME=1 but no $RUN/$name/ckpt.pt: the machine was given back"\
+      "(or another VARIANTS name); start it without RESUME" >&2; return 2; }
+    start=(--resume) flags=()
+  fi
   mkdir -p "$RUN/$name"
   # shellcheck disable=SC2086  # DATA is a list of folders
   "$PY" -m hgca_core.cli train coarse --data $DATA --out "$RUN/$name" --device "$DEVICE" --batch "$BATCH" \
-    --minutes "$MINUTES" --init-from "$INIT" --free-space --free-weight 8 --cut 0.5 --focus 0.5 --lr "$LR" \
-    --turn "$TURN" --precision bf16 --val-every "$MINUTES" --no-progress --export "$OUT/$name.pt" \
-    ${flags[@]+"${flags[@]}"} 2>&1 | sed -u "s/^/[$name] /"
+    --minutes "$MINUTES" "${start[@]}" --precision bf16 --val-every "$MINUTES" --no-progress \
+    --export "$OUT/$name.pt" ${flags[@]+"${flags[@]}"} 2>&1 | sed -u "s/^/[$name] /"
   return "${PIPESTATUS[0]}"
 }
 

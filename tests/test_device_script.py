@@ -113,3 +113,26 @@ def test_device_script_sets_a_batch_aside_and_trains_on_both_batches_the_val_one
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     data = load_file(out / "coarse_gpu.pt")["meta"]["data"]
     assert data.index(str(stash / "tiny")) < data.index(str(second / "a_train_only")), data
+
+
+def test_device_script_resume_continues_each_run_with_its_own_recipe(tiny_dataset, tmp_path):
+    """A later call on the warm machine (RESUME=1) trains each variant's run on from its checkpoint, with the recipe
+    the run started with even though the call names none of it; a name without a run is refused, not restarted."""
+    packed = tmp_path / "gpu_data" / "tiny"
+    assert main(["synth", "--pack", str(tiny_dataset), "--out", str(packed)]) == 0
+    first = run_script({"DATA": str(packed), "OUT": str(tmp_path / "o1"), "MINUTES": "0.05", "BATCH": "2",
+                        "VARIANTS": "a:TURN=0.5,CUT_FREE=1,LR=3e-4"}, tmp_path)
+    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
+    steps = json.loads((tmp_path / "o1" / "a.history.json").read_text())["step"]
+    out = tmp_path / "o2"
+    r = run_script({"DATA": str(packed), "OUT": str(out), "MINUTES": "0.05", "BATCH": "2", "VARIANTS": "a",
+                    "RESUME": "1"}, tmp_path)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    history = json.loads((out / "a.history.json").read_text())
+    assert len(history["sessions"]) == 2 and history["step"] > steps
+    last = history["sessions"][-1]
+    assert last["recipe"]["turn_share"] == 0.5 and last["recipe"]["cut_free_loss"] is True and last["lr"] == 3e-4
+    assert load_file(out / "a.pt")["meta"]["steps"] == history["step"]
+    missing = run_script({"DATA": str(packed), "OUT": str(tmp_path / "o3"), "MINUTES": "0.05", "VARIANTS": "b",
+                          "RESUME": "1"}, tmp_path)
+    assert missing.returncode == 2 and "RESUME=1 but no" in missing.stderr + missing.stdout
