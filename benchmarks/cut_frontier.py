@@ -123,8 +123,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--row", action="append", required=True, metavar="LABEL=VAL.json,REAL.json",
                    help="one weights file's val_cut.py and eval-real results (repeatable; the first is the reference); "
-                        "either may be A.json+B.json, runs of the same weights with disjoint seeds, pooled; VAL.json "
-                        "may be left out (LABEL=,REAL.json) for weights scored on the real logs only")
+                        "either may be A.json+B.json, runs of the same weights with disjoint seeds, pooled; either "
+                        "may be left out, not both: LABEL=,REAL.json (scored on the real logs only), LABEL=VAL.json, "
+                        "(screened out on the val sweeps)")
     p.add_argument("--val-name", default="synthetic val sweeps",
                    help="what the rows' val files hold, for the table and plot (e.g. 'av2-profile val sweeps')")
     p.add_argument("--out", required=True, help="results JSON (.md and .png beside it)")

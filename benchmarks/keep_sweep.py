@@ -62,15 +62,17 @@ def scored(folder: Path, tag: str) -> dict:
 
 def known_rows(items: list[str]) -> dict[str, dict]:
     """`scores` of rows scored before by val_cut.py and `hgca eval-real`, each given as LABEL=VAL.json,REAL.json;
-    either may be A.json+B.json, runs of the same weights with other seeds (`pooled`). VAL may be left out
-    (LABEL=,REAL.json) for weights scored on the real logs only."""
+    either may be A.json+B.json, runs of the same weights with other seeds (`pooled`). Either may be left out,
+    not both: LABEL=,REAL.json for weights scored on the real logs only, LABEL=VAL.json, for weights the val
+    sweeps screened out before the real logs' slower scoring."""
     rows = {}
+    none = {"inputs": {}}
     for item in items:
         label, _, files = item.rpartition("=")
         val, comma, real = files.partition(",")
-        if not label or not comma or not real:
-            raise ValueError(f"{item!r}: expected LABEL=VAL.json,REAL.json (VAL.json may be left out)")
-        rows[label] = scores(pooled(val) if val else {"inputs": {}}, pooled(real))
+        if not label or not comma or not (val or real):
+            raise ValueError(f"{item!r}: expected LABEL=VAL.json,REAL.json (either may be left out, not both)")
+        rows[label] = scores(pooled(val) if val else none, pooled(real) if real else none)
     return rows
 
 

@@ -65,6 +65,9 @@ def test_a_row_without_two_files_is_refused(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         cut_frontier.main(["--row", "shipped=only_one.json", "--out", str(tmp_path / "f.json")])
     assert e.value.code == 2 and "expected LABEL=VAL.json,REAL.json" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        cut_frontier.main(["--row", "shipped=,", "--out", str(tmp_path / "f.json")])
+    assert e.value.code == 2 and "not both" in capsys.readouterr().err
 
 
 def _run(path: Path, seed: int, shares: list[float], inputs=("av2_log",), t1=None, digest="ab12", file="w.pt") -> str:
@@ -133,3 +136,18 @@ def test_a_row_scored_on_the_real_logs_only_is_drawn_and_tabled_there(tmp_path):
     pts = json.loads(out.read_text())["points"]
     assert set(pts["synthetic val sweeps"]) == {"ref"} and set(pts["av2_log"]) == {"ref", "b"}
     assert "| b | - | 50.0 / 7.0 ± 0.0 / 60 / 2 |" in out.with_suffix(".md").read_text()
+
+
+def test_a_row_screened_on_the_val_sweeps_only_is_drawn_there_and_ranked_nowhere_else(tmp_path):
+    rows, outs = [], {}
+    for i in range(4):
+        val = _result(tmp_path / f"val{i}.json", {"sample_1": (0.5 + 0.05 * i, 0.05 + 0.01 * i, 100.0)})
+        real = _result(tmp_path / f"real{i}.json", {"av2_log": (0.40 + 0.05 * i, 0.08 + 0.01 * i, 50.0)})
+        rows += ["--row", f"w{i}={val},{real}"]
+    screened = _result(tmp_path / "val_s.json", {"sample_1": (0.9, 0.01, 120.0)})
+    out = tmp_path / "f.json"
+    assert cut_frontier.main([*rows, "--row", f"s={screened},", "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert "s" in doc["points"]["synthetic val sweeps"] and "s" not in doc["points"]["av2_log"]
+    assert doc["rank_agreement"]["av2_log"][2] == 4          # ranked over the rows both sets hold
+    assert "| s | 90.0 / 1.0 ± 0.0 / 120 / 2 | - |" in out.with_suffix(".md").read_text()
