@@ -7,7 +7,7 @@ point or two between draws, so candidates are screened first on `val_cut.py`'s v
 (session 33-34, `recipe_s34.md`): as they are (yaw 0), whose recall ranks weights as every real log does, and with the
 region turned 30 deg (`--yaw 30`), whose above-cut share ranks them as the AV2 logs do (their streets cross the grid).
 Each row is scored in both settings (results `PREFIX_val_NAME.json` and `PREFIX_valyaw30_NAME.json`; files that exist
-are read, not scored again, so a screen resumes and a row scored earlier costs nothing), then judged against the
+and complete are read, not scored again, so a screen resumes and a row scored earlier costs nothing), then judged against the
 thresholds given, written down before the screen runs: the table (`PREFIX_screen.md`) says which clause each row fails.
 """
 from __future__ import annotations
@@ -29,13 +29,24 @@ def result_file(prefix: str, tag: str, name: str) -> Path:
     return Path(f"{prefix}_{tag}_{name}.json")
 
 
+def complete(path: Path, count: int, samples: int) -> bool:
+    """Whether a results file holds every sweep's cut case with `samples` samples: `hgca eval-real` saves after each
+    input, so a screen stopped midway leaves a file that must be scored again, not read."""
+    try:
+        inputs = json.loads(path.read_text())["inputs"]
+        return len(inputs) >= count and all(
+            len(v["cases"]["cut_2"]["rows"]["hgca"]["per_sample"]) >= samples for v in inputs.values())
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+
+
 def commands(rows: dict[str, str], prefix: str, data: str, count: int, samples: int) -> list[list[str]]:
-    """val_cut.py commands for every (row, setting) whose results file is not there yet."""
+    """val_cut.py commands for every (row, setting) whose results file is not there yet or is incomplete."""
     cmds = []
     for name, weights in rows.items():
         for tag, yaw in SETTINGS.items():
             out = result_file(prefix, tag, name)
-            if not out.exists():
+            if not complete(out, count, samples):
                 cmds.append([sys.executable, str(REPO / "benchmarks" / "val_cut.py"), "--data", data, "--count",
                              str(count), "--samples", str(samples), "--threads", "1", "--yaw", f"{yaw:g}",
                              "--weights", weights, "--out", str(out)])

@@ -29,7 +29,7 @@ def test_each_row_is_scored_in_both_settings_once_and_judged_by_the_clauses_it_f
     for n in ("a", "b"):
         (tmp_path / f"{n}.pt").write_bytes(b"w")
     prefix = str(tmp_path / "s")
-    args = ["--row", f"a={tmp_path / 'a.pt'}", "--row", f"b={tmp_path / 'b.pt'}", "--prefix", prefix,
+    args = ["--count", "2", "--samples", "2", "--row", f"a={tmp_path / 'a.pt'}", "--row", f"b={tmp_path / 'b.pt'}", "--prefix", prefix,
             "--recall-min", "71", "--share-max", "7.1", "--yaw30-share-max", "5.8"]
     assert screen.main(args) == 0
     assert sorted(ran) == [("a", 0.0), ("a", 30.0), ("b", 0.0), ("b", 30.0)]
@@ -43,6 +43,12 @@ def test_each_row_is_scored_in_both_settings_once_and_judged_by_the_clauses_it_f
     scores.update({("c", 0.0): (0.8, 0.02, 50.0), ("c", 30.0): (0.7, 0.02, 50.0)})
     assert screen.main([*args, "--row", f"c={tmp_path / 'c.pt'}"]) == 0
     assert sorted(ran) == [("c", 0.0), ("c", 30.0)]
+    ran.clear()                                     # a file a stopped screen left with one sweep of two is scored again
+    doc = json.loads(Path(prefix + "_valyaw30_b.json").read_text())
+    doc["inputs"].pop("s2")
+    Path(prefix + "_valyaw30_b.json").write_text(json.dumps(doc))
+    assert screen.main(args) == 0
+    assert ran == [("b", 30.0)]
 
 
 def test_a_failed_scoring_or_a_bad_row_stops_the_screen(tmp_path, monkeypatch, capsys):
