@@ -1,14 +1,15 @@
 """Screen coarse weights on the synthetic val sweeps before the real logs (run by hand):
-`python benchmarks/screen.py --data data/synth2f --row t=runs/t.pt --row c=runs/c.pt --prefix benchmarks/results/recipe_s35
---recall-min 71 --share-max 7.1 --yaw30-share-max 5.8`.
+`python benchmarks/screen.py --data data/synth2f --row t=runs/t.pt --row c=runs/c.pt
+--prefix benchmarks/results/recipe_s35 --recall-min 71 --share-max 7.1 --yaw30-share-max 5.8`.
 
 Why: scoring a weights file on the three real logs takes 7.5 min a process and their above-cut shares swing by a
 point or two between draws, so candidates are screened first on `val_cut.py`'s val sweeps, scored in two settings
 (session 33-34, `recipe_s34.md`): as they are (yaw 0), whose recall ranks weights as every real log does, and with the
 region turned 30 deg (`--yaw 30`), whose above-cut share ranks them as the AV2 logs do (their streets cross the grid).
 Each row is scored in both settings (results `PREFIX_val_NAME.json` and `PREFIX_valyaw30_NAME.json`; files that exist
-and complete are read, not scored again, so a screen resumes and a row scored earlier costs nothing), then judged against the
-thresholds given, written down before the screen runs: the table (`PREFIX_screen.md`) says which clause each row fails.
+and are complete are read, not scored again, so a screen resumes and a row scored earlier costs nothing), then judged
+against the thresholds given, written down before the screen runs: the table (`PREFIX_screen.md`) says which clause
+each row fails.
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cut_frontier import points  # noqa: E402  (benchmarks reuse each other's readers)
+from cut_frontier import CUT, points  # noqa: E402  (benchmarks reuse each other's readers)
 from keep_sweep import known_rows, run_all  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -35,7 +36,7 @@ def complete(path: Path, count: int, samples: int) -> bool:
     try:
         inputs = json.loads(path.read_text())["inputs"]
         return len(inputs) >= count and all(
-            len(v["cases"]["cut_2"]["rows"]["hgca"]["per_sample"]) >= samples for v in inputs.values())
+            len(v["cases"][CUT]["rows"]["hgca"]["per_sample"]) >= samples for v in inputs.values())
     except (OSError, ValueError, KeyError, TypeError):
         return False
 
@@ -54,7 +55,8 @@ def commands(rows: dict[str, str], prefix: str, data: str, count: int, samples: 
 
 
 def verdicts(rows: dict[str, str], prefix: str, rule: dict[str, float | None]) -> dict[str, dict]:
-    """{row: {"val": (recall %, share %, cells above), "valyaw30": (...), "fails": [clauses]}} from the results files."""
+    """{row: {"val": (recall %, share %, cells above), "valyaw30": (...), "fails": [clauses]}} from the results
+    files."""
     out = {}
     for name in rows:
         got = {}

@@ -30,7 +30,8 @@
 # also on what a cut input's uncut scan saw empty), DISTILL=MU (--distill: cut inputs' targets move MU of the way to the
 # probabilities of TEACHER, default INIT), ABOVE=1 (--distill-above: only the cells at and above the cut move); and for
 # the call: RESUME=1 (a later call on the still-warm machine continues each VARIANTS name's run of an earlier call
-# from its checkpoint in RUN, for MINUTES more, keeping the run's recipe, lr and teacher; carry the same data), DEVICE (default cuda; cpu runs the same path here, as tests/test_device_script.py does), THREADS (CPU
+# from its checkpoint in RUN, for MINUTES more, keeping the run's recipe, lr and teacher; carry the same data),
+# DEVICE (default cuda; cpu runs the same path here, as tests/test_device_script.py does), THREADS (CPU
 # threads a run, default the cores shared out), RUN (the runs' checkpoint folders, default /tmp/hgca_device_run/<name>),
 # STASH (where STASH_ONLY=1 puts the folders of PACKED, default gpu_data, and where the default DATA looks too, default
 # /tmp/hgca_stash).

@@ -15,9 +15,10 @@ SCORES = {("a", 0.0): (0.72, 0.05, 100.0), ("a", 30.0): (0.60, 0.04, 90.0),
 def _fake_scoring(ran, scores):
     def run_all(cmds, n):
         for c in cmds:
-            out, yaw, weights = Path(c[c.index("--out") + 1]), float(c[c.index("--yaw") + 1]), c[c.index("--weights") + 1]
-            ran.append((Path(weights).stem, yaw))
-            r, a, g = scores[(Path(weights).stem, yaw)]
+            out, yaw = Path(c[c.index("--out") + 1]), float(c[c.index("--yaw") + 1])
+            name = Path(c[c.index("--weights") + 1]).stem
+            ran.append((name, yaw))
+            r, a, g = scores[(name, yaw)]
             _result(out, {"s1": (r - 0.1, a, g), "s2": (r + 0.1, a, g)})
         return True
     return run_all
@@ -29,8 +30,8 @@ def test_each_row_is_scored_in_both_settings_once_and_judged_by_the_clauses_it_f
     for n in ("a", "b"):
         (tmp_path / f"{n}.pt").write_bytes(b"w")
     prefix = str(tmp_path / "s")
-    args = ["--count", "2", "--samples", "2", "--row", f"a={tmp_path / 'a.pt'}", "--row", f"b={tmp_path / 'b.pt'}", "--prefix", prefix,
-            "--recall-min", "71", "--share-max", "7.1", "--yaw30-share-max", "5.8"]
+    args = ["--count", "2", "--samples", "2", "--row", f"a={tmp_path / 'a.pt'}", "--row", f"b={tmp_path / 'b.pt'}",
+            "--prefix", prefix, "--recall-min", "71", "--share-max", "7.1", "--yaw30-share-max", "5.8"]
     assert screen.main(args) == 0
     assert sorted(ran) == [("a", 0.0), ("a", 30.0), ("b", 0.0), ("b", 30.0)]
     doc = json.loads(Path(prefix + "_screen.json").read_text())["screen"]
