@@ -30,7 +30,8 @@
 # also on what a cut input's uncut scan saw empty), DISTILL=MU (--distill: cut inputs' targets move MU of the way to the
 # probabilities of TEACHER, default INIT), ABOVE=1 (--distill-above: only the cells at and above the cut move); and for
 # the call: RESUME=1 (a later call on the still-warm machine continues each VARIANTS name's run of an earlier call
-# from its checkpoint in RUN, for MINUTES more, keeping the run's recipe, lr and teacher; carry the same data),
+# from its checkpoint in RUN, for MINUTES more, keeping the run's recipe, lr and teacher, and saying which of a
+# variant's settings other than MINUTES and BATCH it ignores; carry the same data),
 # DEVICE (default cuda; cpu runs the same path here, as tests/test_device_script.py does), THREADS (CPU
 # threads a run, default the cores shared out), RUN (the runs' checkpoint folders, default /tmp/hgca_device_run/<name>),
 # STASH (where STASH_ONLY=1 puts the folders of PACKED, default gpu_data, and where the default DATA looks too, default
@@ -100,6 +101,9 @@ train_one() {  # one variant; called in a subshell, so its settings stay its own
     [ -f "$RUN/$name/ckpt.pt" ] || { echo "[$name] RESUME=1 but no $RUN/$name/ckpt.pt: the machine was given back"\
       "(or another VARIANTS name); start it without RESUME" >&2; return 2; }
     start=(--resume) flags=()
+    for a in ${kv[@]+"${kv[@]}"}; do  # only the budget and the batch are the call's; the rest is the run's own
+      case ${a%%=*} in MINUTES|BATCH) ;; *) echo "[$name] RESUME=1 keeps the run's recipe: $a ignored" >&2 ;; esac
+    done
   fi
   mkdir -p "$RUN/$name"
   # shellcheck disable=SC2086  # DATA is a list of folders

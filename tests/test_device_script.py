@@ -117,7 +117,7 @@ def test_device_script_sets_a_batch_aside_and_trains_on_both_batches_the_val_one
 
 def test_device_script_resume_continues_each_run_with_its_own_recipe(tiny_dataset, tmp_path):
     """A later call on the warm machine (RESUME=1) trains each variant's run on from its checkpoint, with the recipe
-    the run started with even though the call names none of it; a name without a run is refused, not restarted."""
+    the run started with, saying so of a setting the call names; a name without a run is refused, not restarted."""
     packed = tmp_path / "gpu_data" / "tiny"
     assert main(["synth", "--pack", str(tiny_dataset), "--out", str(packed)]) == 0
     first = run_script({"DATA": str(packed), "OUT": str(tmp_path / "o1"), "MINUTES": "0.05", "BATCH": "2",
@@ -125,9 +125,10 @@ def test_device_script_resume_continues_each_run_with_its_own_recipe(tiny_datase
     assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
     steps = json.loads((tmp_path / "o1" / "a.history.json").read_text())["step"]
     out = tmp_path / "o2"
-    r = run_script({"DATA": str(packed), "OUT": str(out), "MINUTES": "0.05", "BATCH": "2", "VARIANTS": "a",
+    r = run_script({"DATA": str(packed), "OUT": str(out), "MINUTES": "0.05", "BATCH": "2", "VARIANTS": "a:TURN=0",
                     "RESUME": "1"}, tmp_path)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "[a] RESUME=1 keeps the run's recipe: TURN=0 ignored" in r.stdout + r.stderr   # said, not silently dropped
     history = json.loads((out / "a.history.json").read_text())
     assert len(history["sessions"]) == 2 and history["step"] > steps
     last = history["sessions"][-1]
