@@ -19,7 +19,8 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cut_frontier import CUT, points  # noqa: E402  (benchmarks reuse each other's readers)
+import val_cut  # noqa: E402  (benchmarks reuse each other's readers)
+from cut_frontier import CUT, points  # noqa: E402
 from keep_sweep import known_rows, run_all  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -48,9 +49,7 @@ def commands(rows: dict[str, str], prefix: str, data: str, count: int, samples: 
         for tag, yaw in SETTINGS.items():
             out = result_file(prefix, tag, name)
             if not complete(out, count, samples):
-                cmds.append([sys.executable, str(REPO / "benchmarks" / "val_cut.py"), "--data", data, "--count",
-                             str(count), "--samples", str(samples), "--threads", "1", "--yaw", f"{yaw:g}",
-                             "--weights", weights, "--out", str(out)])
+                cmds.append(val_cut.command(weights, out, data, samples, count=count, yaw=yaw))
     return cmds
 
 

@@ -50,6 +50,13 @@ def write_first_sweeps(data: Path, count: int, folder: Path, profiles: Sequence[
     return out
 
 
+def command(weights: str | Path, out: str | Path, data: str, samples: int, count: int = 4, yaw: float = 0.0,
+            threads: int = 1) -> list[str]:
+    """This script's command line, as the benchmarks that run it in subprocesses (keep_sweep, screen) build it."""
+    return [sys.executable, str(Path(__file__).resolve()), "--data", data, "--count", str(count), "--samples",
+            str(samples), "--threads", str(threads), "--yaw", f"{yaw:g}", "--weights", str(weights), "--out", str(out)]
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", default=str(REPO / "data" / "synth2"), help="dataset folder with a val split")

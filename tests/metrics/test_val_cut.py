@@ -42,3 +42,21 @@ def test_the_region_turn_reaches_eval_real(tmp_path, monkeypatch):
         assert val_cut.main(["--data", str(tmp_path), "--out", str(tmp_path / "v.json"), *extra]) == 0
         cmd = ran[-1]
         assert "eval-real" in cmd and cmd[cmd.index("--yaw") + 1] == want
+
+
+def test_the_command_other_benchmarks_build_is_one_this_script_runs(tmp_path, monkeypatch):
+    """`command` (keep_sweep's and screen's subprocess line) names this file and options its parser takes, and each
+    of them reaches the sweeps written or `hgca eval-real`."""
+    from types import SimpleNamespace
+
+    ran, wrote = [], []
+    monkeypatch.setattr(val_cut, "write_first_sweeps", lambda *a: wrote.append(a) or [tmp_path / "s.npz"])
+    monkeypatch.setattr(val_cut.subprocess, "run", lambda cmd, check: ran.append(cmd) or SimpleNamespace(returncode=0))
+    cmd = val_cut.command(tmp_path / "w.pt", tmp_path / "v.json", str(tmp_path), 5, count=7, yaw=30, threads=2)
+    assert Path(cmd[1]) == Path(val_cut.__file__).resolve()
+    assert val_cut.main(cmd[2:]) == 0
+    assert wrote[-1][:2] == (tmp_path, 7)
+    real = ran[-1]
+    for flag, want in (("--samples", "5"), ("--yaw", "30.0"), ("--threads", "2"), ("--weights", str(tmp_path / "w.pt")),
+                       ("--out", str(tmp_path / "v.json"))):
+        assert real[real.index(flag) + 1] == want, flag
