@@ -24,7 +24,6 @@ import val_cut  # benchmarks reuse each other's helpers
 from paired_eval import standard_error
 
 REPO = Path(__file__).resolve().parents[1]
-CLI = [sys.executable, "-c", "import sys; from hgca_core.cli import main; sys.exit(main())"]
 
 
 def variant(weights: str | None, keep: float, folder: Path, field: str = "keep") -> Path:
@@ -40,8 +39,8 @@ def variant(weights: str | None, keep: float, folder: Path, field: str = "keep")
 def jobs(w: Path, tag: str, folder: Path, data: str, samples: int) -> list[list[str]]:
     """The two scoring commands of one weights file: val sweeps, then the real logs."""
     val = val_cut.command(w, folder / f"val_{tag}.json", data, samples)
-    real = [*CLI, "eval-real", "--threads", "1", "--methods", "hgca", "--samples", str(samples), "--cuts", "2.0,1.5",
-            "--no-render", "--weights", str(w), "--out", str(folder / f"real_{tag}.json")]
+    real = [*val_cut.CLI, "eval-real", "--threads", "1", "--methods", "hgca", "--samples", str(samples), "--cuts",
+            "2.0,1.5", "--no-render", "--weights", str(w), "--out", str(folder / f"real_{tag}.json")]
     return [val, real]
 
 

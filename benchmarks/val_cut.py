@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+# the `hgca` CLI in a process of its own, as a user runs it: the CLI sets torch's OpenMP policy before torch loads
+CLI = [sys.executable, "-c", "import sys; from hgca_core.cli import main; sys.exit(main())"]
 
 
 def first_sweeps(data: Path, split: str, count: int, profiles: Sequence[str] | None = None
@@ -80,12 +82,9 @@ def main(argv: list[str] | None = None) -> int:
         if not scans:
             print(f"no val scenes of {profiles or 'any profile'} in {args.data}", file=sys.stderr)
             return 2
-        # a process of its own, as `hgca eval-real` runs: the CLI sets torch's OpenMP policy before torch loads
-        cmd = [sys.executable, "-c", "import sys; from hgca_core.cli import main; sys.exit(main())", "eval-real",
-               "--threads", str(args.threads), "--methods", "hgca", "--samples", str(args.samples),
+        cmd = [*CLI, "eval-real", "--threads", str(args.threads), "--methods", "hgca", "--samples", str(args.samples),
                "--cuts", args.cuts, "--no-render", *(["--weights", args.weights] if args.weights else []),
-               "--yaw", str(args.yaw),
-               "--out", args.out, *map(str, scans)]
+               "--yaw", str(args.yaw), "--out", args.out, *map(str, scans)]
         return subprocess.run(cmd, check=False).returncode
 
 
