@@ -130,13 +130,18 @@ def main(argv: list[str] | None = None) -> int:
                    help="what the rows' val files hold, for the table and plot (e.g. 'av2-profile val sweeps')")
     p.add_argument("--out", required=True, help="results JSON (.md and .png beside it)")
     args = p.parse_args(argv)
+    out = Path(args.out)
+    if out.suffix != ".json":   # the .md and .png are named from it: without the suffix the JSON has none
+        p.error(f"--out {out}: name a .json file (the .md and .png are written beside it)")
+    read = {Path(f).resolve() for r in args.row for f in r.partition("=")[2].replace("+", ",").split(",") if f}
+    if {out.resolve(), out.with_suffix(".md").resolve()} & read:
+        p.error(f"--out {out}: would overwrite one of the --row results it reads")
     try:
         rows = known_rows(args.row)
     except (ValueError, OSError) as e:   # a malformed --row, a results file missing or not JSON
         p.error(f"--row {e}")
     pts = points(rows, args.val_name)
     ranks = agreement(pts, args.val_name)
-    out = Path(args.out)
     out.write_text(json.dumps({"rows": args.row, "val_name": args.val_name, "points": pts, "rank_agreement": ranks},
                               indent=1))
     said = "".join(f"| {n} | {r:+.2f} | {s:+.2f} | {k} |\n" for n, (r, s, k) in ranks.items())

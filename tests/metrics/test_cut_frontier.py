@@ -151,3 +151,17 @@ def test_a_row_screened_on_the_val_sweeps_only_is_drawn_there_and_ranked_nowhere
     assert "s" in doc["points"]["synthetic val sweeps"] and "s" not in doc["points"]["av2_log"]
     assert doc["rank_agreement"]["av2_log"][2] == 4          # ranked over the rows both sets hold
     assert "| s | 90.0 / 1.0 ± 0.0 / 120 / 2 | - |" in out.with_suffix(".md").read_text()
+
+
+def test_an_out_that_is_not_json_or_is_an_input_is_refused_before_anything_is_written(tmp_path, capsys):
+    import pytest
+
+    val = _result(tmp_path / "val.json", {"sample_1": (0.6, 0.10, 100.0)})
+    real = _result(tmp_path / "real.json", {"av2_log": (0.45, 0.08, 50.0)})
+    before = Path(real).read_text()
+    for out, said in ((tmp_path / "frontier", "name a .json file"), (Path(real), "would overwrite")):
+        with pytest.raises(SystemExit) as e:
+            cut_frontier.main(["--row", f"ref={val},{real}", "--out", str(out)])
+        assert e.value.code == 2 and said in capsys.readouterr().err
+    assert Path(real).read_text() == before and not (tmp_path / "frontier").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["real.json", "val.json"]
