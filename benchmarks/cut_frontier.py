@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     if out.suffix != ".json":   # the .md and .png are named from it: without the suffix the JSON has none
         p.error(f"--out {out}: name a .json file (the .md and .png are written beside it)")
     read = {Path(f).resolve() for r in args.row for f in r.partition("=")[2].replace("+", ",").split(",") if f}
-    if {out.resolve(), out.with_suffix(".md").resolve()} & read:
+    if out.resolve() in read:
         p.error(f"--out {out}: would overwrite one of the --row results it reads")
     try:
         rows = known_rows(args.row)
