@@ -17,7 +17,10 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from keep_sweep import known_rows  # noqa: E402  (benchmarks reuse each other's readers)
+from keep_sweep import known_rows, row_files  # noqa: E402  (benchmarks reuse each other's readers)
+
+from hgca_core.errors import InputError  # noqa: E402
+from hgca_core.io.paths import check_outputs  # noqa: E402
 
 CUT = "cut_2"
 
@@ -133,13 +136,14 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     if out.suffix != ".json":   # the .md and .png are named from it: without the suffix the JSON has none
         p.error(f"--out {out}: name a .json file (the .md and .png are written beside it)")
-    read = {Path(f).resolve() for r in args.row for f in r.partition("=")[2].replace("+", ",").split(",") if f}
-    if out.resolve() in read:
-        p.error(f"--out {out}: would overwrite one of the --row results it reads")
     try:
         rows = known_rows(args.row)
     except (ValueError, OSError) as e:   # a malformed --row, a results file missing or not JSON
         p.error(f"--row {e}")
+    try:   # the project's one output check: never an input (by path or inode), a writable folder
+        check_outputs([out, out.with_suffix(".md"), out.with_suffix(".png")], row_files(args.row))
+    except InputError as e:
+        p.error(f"--out {e}")
     pts = points(rows, args.val_name)
     ranks = agreement(pts, args.val_name)
     out.write_text(json.dumps({"rows": args.row, "val_name": args.val_name, "points": pts, "rank_agreement": ranks},

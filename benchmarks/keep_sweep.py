@@ -64,15 +64,23 @@ def known_rows(items: list[str]) -> dict[str, dict]:
     either may be A.json+B.json, runs of the same weights with other seeds (`pooled`). Either may be left out,
     not both: LABEL=,REAL.json for weights scored on the real logs only, LABEL=VAL.json, for weights the val
     sweeps screened out before the real logs' slower scoring."""
-    rows = {}
     none = {"inputs": {}}
-    for item in items:
-        label, _, files = item.rpartition("=")
-        val, comma, real = files.partition(",")
-        if not label or not comma or not (val or real):
-            raise ValueError(f"{item!r}: expected LABEL=VAL.json,REAL.json (either may be left out, not both)")
-        rows[label] = scores(pooled(val) if val else none, pooled(real) if real else none)
-    return rows
+    return {label: scores(pooled(val) if val else none, pooled(real) if real else none)
+            for label, val, real in map(_row, items)}
+
+
+def _row(item: str) -> tuple[str, str, str]:
+    """(label, val spec, real spec) of one LABEL=VAL.json,REAL.json; ValueError when it is not one."""
+    label, _, files = item.rpartition("=")
+    val, comma, real = files.partition(",")
+    if not label or not comma or not (val or real):
+        raise ValueError(f"{item!r}: expected LABEL=VAL.json,REAL.json (either may be left out, not both)")
+    return label, val, real
+
+
+def row_files(items: list[str]) -> list[str]:
+    """Every results file the rows `known_rows` reads name, pooled ones each on its own."""
+    return [f for item in items for spec in _row(item)[1:] if spec for f in spec.split("+")]
 
 
 def pooled(spec: str) -> dict:
