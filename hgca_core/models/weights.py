@@ -137,13 +137,19 @@ def blend_files(a: str | os.PathLike, b: str | os.PathLike, t: float) -> dict:
         raise InputError("cannot blend: the files' tensors differ in names or shapes", str(b))
     state = {k: (((1 - t) * v.float() + t * sb[k].float()).to(v.dtype) if v.is_floating_point() else v)
              for k, v in sa.items()}
-    def source(f: str | os.PathLike, blob: dict) -> dict:
-        m = _meta(blob)
-        return {"file": str(f), "sha256": file_digest(f),
-                **{k: m[k] for k in ("steps", "train_wall_s", "data", "sessions") if k in m}}
-
-    meta = {**_meta(blobs[0]), "blend": {"t": t, "a": source(a, blobs[0]), "b": source(b, blobs[1])}}
+    meta = {**_meta(blobs[0]), "blend": {"t": t, "a": lineage(a, _meta(blobs[0])), "b": lineage(b, _meta(blobs[1]))}}
     return {**blobs[0], "state_dict": state, "meta": meta}
+
+
+LINEAGE_KEYS = ("steps", "train_wall_s", "data", "sessions", "notes", "blend", "init")
+
+
+def lineage(path: str | os.PathLike, meta: dict) -> dict:
+    """The record of the weights at `path` that a file made from them keeps (a blend's two sources, a run's
+    `--init-from`): content digest, steps, wall time, data, sessions and notes, and their own blend or start,
+    nested. Why: a file's card must name every session and device its tensors come from, not only the last
+    run's (a blend of a blend, or a fine-tune of one, lost the earlier hardware and steps before session 37)."""
+    return {"file": str(path), "sha256": file_digest(path), **{k: meta[k] for k in LINEAGE_KEYS if k in meta}}
 
 
 def _architecture(kind: str, blob: dict) -> dict:
@@ -353,7 +359,9 @@ def load_into(model: nn.Module, path: str | os.PathLike) -> dict:
     if checkpoint:
         sd = {k.removeprefix("model."): v for k, v in trained_weights(blob).items()}
         state = blob.get("state") if isinstance(blob.get("state"), dict) else {}
-        meta = {"kind": kind, "steps": state.get("step"), "checkpoint": p}
+        meta = {"kind": kind, "steps": state.get("step"), "checkpoint": p,
+                **({"train_wall_s": round(state["elapsed_s"], 1)} if "elapsed_s" in state else {}),
+                **{k: state[k] for k in ("sessions", "notes", "init") if k in state}}
     else:
         sd, meta = blob["state_dict"], _meta(blob)
     source = build(kind, blob.get("config"), sd, p).state_dict()   # the file is consistent in itself

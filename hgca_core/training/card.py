@@ -97,13 +97,7 @@ def _section(path: Path, blob: dict) -> str:
              f"- steps: {meta.get('steps')}, summed step wall time: {meta.get('train_wall_s')} s "
              f"over {len(sessions)} session(s)"]
     lines += [_session(s) for s in sessions]
-    blend = meta.get("blend")
-    if blend:
-        b = blend["b"]
-        lines.append(f"- blend: these tensors are `(1 - t) * a + t * b`, t = {blend['t']:g} "
-                     "(`hgca_core.models.weights.blend_files`, WiSE-FT), a = the training above, b = a fine-tune "
-                     f"from a on {b.get('data')}: {b.get('steps')} steps, {b.get('train_wall_s')} s of step wall time")
-        lines += [_session(s) for s in b.get("sessions", [])]
+    lines += _origins(meta, "")
     vals = [h for h in meta.get("history_tail", []) if h.get("kind") == "val"]
     trains = [h for h in meta.get("history_tail", []) if h.get("kind") == "train"]
     for note in meta.get("notes", []):
@@ -116,6 +110,39 @@ def _section(path: Path, blob: dict) -> str:
             scores = ", ".join(f"{k} {v:.4f}" for k, v in h.items() if k.startswith("val_"))
             lines.append(f"  - step {h['step']}: {scores}")
     return "\n".join(lines)
+
+
+def _origins(rec: dict, indent: str) -> list[str]:
+    """The weights a record's tensors came from besides its own sessions, nested (`weights.lineage`): the file
+    its run started from and the two files it is a blend of, each with its sessions, so every device and step
+    in a file's history is on the card."""
+    lines = []
+    init = rec.get("init")
+    if init:
+        lines.append(f"{indent}- started from {_named(init)}: {_trained(init)}")
+        lines += [indent + _session(s) for s in init.get("sessions", [])]
+        lines += [f"{indent}  - its note: {n}" for n in init.get("notes", [])]
+        lines += _origins(init, indent + "  ")
+    blend = rec.get("blend")
+    if blend:
+        a, b = blend["a"], blend["b"]
+        lines.append(f"{indent}- blend: these tensors are `(1 - t) * a + t * b`, t = {blend['t']:g} "
+                     f"(`hgca_core.models.weights.blend_files`, WiSE-FT), a = {_named(a)}, the training above, "
+                     f"b = {_named(b)}: {_trained(b)}")
+        lines += [indent + _session(s) for s in b.get("sessions", [])]
+        lines += [f"{indent}  - note of b: {n}" for n in b.get("notes", [])]
+        lines += _origins({"blend": a["blend"]} if "blend" in a else {}, indent + "  ")   # a's start is above
+        lines += _origins(b, indent + "  ")
+    return lines
+
+
+def _named(rec: dict) -> str:
+    return f"`{Path(rec['file']).name}` (sha256 {str(rec.get('sha256', ''))[:8]}...)"
+
+
+def _trained(rec: dict) -> str:
+    return (f"{rec.get('steps')} steps, {rec.get('train_wall_s')} s of step wall time on {rec.get('data')} over "
+            f"{len(rec.get('sessions', []))} session(s)")
 
 
 def _session(s: dict) -> str:

@@ -11,6 +11,7 @@ from hgca_testdata import tiny_sample
 from hgca_core.cli import main
 from hgca_core.geometry import freespace
 from hgca_core.geometry.voxel import COARSE, grid_shape
+from hgca_core.io.digest import file_digest
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig
 from hgca_core.models.gca import GCAConfig, GCAKernel
@@ -91,6 +92,7 @@ def test_train_coarse_free_space_warm_starts_from_old_weights_and_resumes(datase
     model, meta = load_coarse(tmp_path / "exported.pt")
     assert model.cfg.free_space is True and meta["steps"] == 5 and len(meta["sessions"]) == 2
     assert meta["data"] == str(dataset) and card.read_bytes() == card_before             # the card is untouched
+    assert meta["init"]["sha256"] == file_digest(tmp_path / "old.pt") and meta["init"]["steps"] == 123   # lineage
     capsys.readouterr()
     assert main(base[:2] + ["--data", str(dataset), "--out", str(tmp_path / "bad"), "--free-space", "--init-from",
                             str(tmp_path / "missing.pt"), "--max-steps", "1"]) == 2

@@ -67,6 +67,35 @@ def test_card_says_a_blend_is_one_and_lists_both_trainings(tmp_path):
     save_file(blend_files(a, b, 0.25), cards / "coarse.pt")
     card = write_model_card(cards).read_text()
     assert "- steps: 5," in card and "  - session ended 2026-11-23 11:00:00: 5 steps in 3.0 s" in card
-    assert "t = 0.25 (`hgca_core.models.weights.blend_files`, WiSE-FT), a = the training above, b = a fine-tune " \
-           "from a on d/synth7: 9 steps, 3.0 s of step wall time" in card
+    assert "t = 0.25 (`hgca_core.models.weights.blend_files`, WiSE-FT), a = `a.pt` (sha256 " in card
+    assert ", the training above, b = `b.pt` (sha256 " in card
+    assert "9 steps, 3.0 s of step wall time on d/synth7 over 1 session(s)" in card
     assert "  - session ended 2026-11-23 11:00:00: 9 steps in 3.0 s" in card
+
+
+def test_card_names_every_session_of_a_blend_of_a_blend_and_of_a_warm_start(tmp_path):
+    """Blend a blend with a run started from it: the card lists the sessions and devices of all four trainings
+    (before session 37 the inner blend's second source and the run's start were lost)."""
+    from hgca_core.models.weights import blend_files, lineage, load_file, save_file
+
+    def ses(day, steps, device="cpu", name=None):
+        return {"ended": f"2026-11-{day} 11:00:00", "steps": steps, "wall_s": 1.0, "device": device,
+                "threads": 2, "world_size": 1, "precision": "bf16", **({"device_name": name} if name else {})}
+
+    cfg = GCAConfig(channels=(8, 8, 16, 16, 16))
+    x = save_weights(tmp_path / "x.pt", GCAKernel(cfg), {"stage": "coarse", "data": "d/x", "steps": 11,
+                                                          "sessions": [ses(10, 11)]})
+    y = save_weights(tmp_path / "y.pt", GCAKernel(cfg), {"stage": "coarse", "data": "d/y", "steps": 12,
+                                                          "sessions": [ses(11, 12)]})
+    save_file(blend_files(x, y, 0.5), tmp_path / "we.pt")
+    z = save_weights(tmp_path / "z.pt", GCAKernel(cfg), {   # a run started from the blend, on a GPU
+        "stage": "coarse", "data": "d/z", "steps": 13, "sessions": [ses(12, 13, "cuda", "NVIDIA H200")],
+        "init": lineage(tmp_path / "we.pt", load_file(tmp_path / "we.pt")["meta"])})
+    cards = tmp_path / "card"
+    cards.mkdir()
+    save_file(blend_files(tmp_path / "we.pt", z, 0.3), cards / "coarse.pt")
+    card = write_model_card(cards).read_text()
+    for steps, day in ((11, 10), (12, 11), (13, 12)):
+        assert f"session ended 2026-11-{day} 11:00:00: {steps} steps" in card, steps
+    assert "device cuda (NVIDIA H200)" in card
+    assert "a = `we.pt`" in card and "b = `z.pt`" in card and "b = `y.pt`" in card and "started from `we.pt`" in card

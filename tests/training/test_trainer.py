@@ -172,6 +172,32 @@ def test_ema_averages_batchnorm_statistics_and_copies_the_batch_count():
     assert int(ema.module.num_batches_tracked) == 7
 
 
+def test_every_checkpoint_accounts_for_its_steps_in_sessions(tiny_dataset, tmp_path, monkeypatch):
+    """A checkpoint written mid-session lists that session so far (a run killed before its session ends, or a
+    checkpoint copied and exported mid-run, keeps the record of every step it holds), and the last one lists
+    each session once."""
+    import hgca_core.training.trainer as trainer
+
+    saved = []
+    real_save = trainer.save_file
+
+    def spy(obj, path):
+        if "optim" in obj:   # ckpt.pt, not best.pt
+            saved.append((obj["state"]["step"], [s["steps"] for s in obj["state"]["sessions"]]))
+        return real_save(obj, path)
+
+    monkeypatch.setattr(trainer, "save_file", spy)
+    out = tmp_path / "run"
+    train(_task(tiny_dataset), out, minutes=5, max_steps=4, batch=2, buffer_size=3, progress=False, ckpt_every_min=0)
+    assert len(saved) >= 3   # periodic checkpoints after steps 1-3, then the session's last
+    assert all(sum(steps) == step for step, steps in saved), saved
+    assert saved[-1] == (4, [4])
+    saved.clear()
+    train(_task(tiny_dataset), out, minutes=5, max_steps=2, resume=True, batch=2, buffer_size=3, progress=False,
+          ckpt_every_min=0)
+    assert all(sum(steps) == step for step, steps in saved) and saved[-1] == (6, [4, 2]), saved
+
+
 def test_sigterm_stops_after_the_step_with_a_checkpoint(tiny_dataset, tmp_path):
     import signal
     import time
