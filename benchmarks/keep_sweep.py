@@ -135,9 +135,11 @@ def scores(val: dict, real: dict) -> dict:
         for case, c in res["cases"].items():
             if case.startswith("cut_"):
                 s = c["rows"]["hgca"]["summary"]
-                shares = [p["above_empty_share"] for p in c["rows"]["hgca"].get("per_sample", [])]
+                samples = c["rows"]["hgca"].get("per_sample", [])
+                # a sample that grew nothing above the cut has no share (None); the summary's mean skips it too
+                shares = [p["above_empty_share"] for p in samples if p["above_empty_share"] is not None]
                 row[case] = {"recall": mean(s, "recall"), "generated_above": mean(s, "generated_above"),
-                             "above_empty_share": mean(s, "above_empty_share"), "k": len(shares),
+                             "above_empty_share": mean(s, "above_empty_share"), "k": len(samples),
                              # standard error of the mean over the k samples: one sample's share swings by
                              # several points (shipped weights on AV2 7fab: 5.1-10.4 %, recipe_s31.md)
                              "above_empty_sem": standard_error(shares) if len(shares) > 1 else None}

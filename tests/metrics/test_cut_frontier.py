@@ -165,3 +165,17 @@ def test_an_out_that_is_not_json_or_is_an_input_is_refused_before_anything_is_wr
         assert e.value.code == 2 and said in capsys.readouterr().err
     assert Path(real).read_text() == before and not (tmp_path / "frontier").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["real.json", "val.json"]
+
+
+def test_a_sample_that_grew_nothing_above_the_cut_has_no_share_to_average(tmp_path):
+    """Session 37: one of WE's 48 val completions grew no cell above the cut (share None in its results file):
+    the row's standard error is over the samples that have a share, and k still counts every sample."""
+    path = tmp_path / "val.json"
+    _result(path, {"sample_1": (0.1, 0.25, 10.0)}, swing=0.01)
+    doc = json.loads(path.read_text())
+    doc["inputs"]["sample_1"]["cases"]["cut_2"]["rows"]["hgca"]["per_sample"].append({"above_empty_share": None})
+    path.write_text(json.dumps(doc))
+    out = tmp_path / "frontier.json"
+    assert cut_frontier.main(["--row", f"w={path},", "--val-name", "val", "--out", str(out)]) == 0
+    rec, share, cells, sem, k = json.loads(out.read_text())["points"]["val"]["w"]
+    assert (round(share, 6), round(sem, 6), k) == (25.0, 1.0, 3)
