@@ -283,6 +283,15 @@ def _meta(blob: dict) -> dict:
     return blob["meta"] if isinstance(blob.get("meta"), dict) else {}
 
 
+def _checkpoint_meta(blob: dict, kind: str, path: str) -> dict:
+    """What a training checkpoint says of its run, in a weights file's meta terms (steps, wall time, sessions,
+    notes, start), for `load_coarse` and `load_into` alike."""
+    state = blob.get("state") if isinstance(blob.get("state"), dict) else {}
+    return {"kind": kind, "steps": state.get("step"), "checkpoint": path,
+            **({"train_wall_s": round(state["elapsed_s"], 1)} if "elapsed_s" in state else {}),
+            **{k: state[k] for k in ("sessions", "notes", "init") if k in state}}
+
+
 def load_coarse(path: str | os.PathLike | None = None, device: str | torch.device = "cpu") -> tuple[GCAKernel, dict]:
     """(coarse kernel in eval mode, float32, on `device`; meta) from weights or a coarse training checkpoint
     (default: the packaged coarse.pt); cached per file and device."""
@@ -297,8 +306,7 @@ def _load_coarse(key: Key, device: str) -> tuple[GCAKernel, dict]:
         raise _wrong_kind(path, kind, checkpoint, "coarse")
     if checkpoint:
         sd = {k.removeprefix("model."): v for k, v in trained_weights(blob).items()}
-        state = blob.get("state") if isinstance(blob.get("state"), dict) else {}
-        meta = {"kind": "coarse", "steps": state.get("step"), "checkpoint": path}
+        meta = _checkpoint_meta(blob, "coarse", path)
     else:
         sd, meta = blob["state_dict"], _meta(blob)
     return build("coarse", blob.get("config"), sd, path).to(device), meta
@@ -358,10 +366,7 @@ def load_into(model: nn.Module, path: str | os.PathLike) -> dict:
                          f"this is {what}", p)
     if checkpoint:
         sd = {k.removeprefix("model."): v for k, v in trained_weights(blob).items()}
-        state = blob.get("state") if isinstance(blob.get("state"), dict) else {}
-        meta = {"kind": kind, "steps": state.get("step"), "checkpoint": p,
-                **({"train_wall_s": round(state["elapsed_s"], 1)} if "elapsed_s" in state else {}),
-                **{k: state[k] for k in ("sessions", "notes", "init") if k in state}}
+        meta = _checkpoint_meta(blob, kind, p)
     else:
         sd, meta = blob["state_dict"], _meta(blob)
     source = build(kind, blob.get("config"), sd, p).state_dict()   # the file is consistent in itself

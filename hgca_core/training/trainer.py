@@ -241,7 +241,7 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
         the session ends or the file is exported mid-run (session 36's Y45 listed 1,242 of its 2,285 steps)."""
         ranks = _gather({"rng": _rng_state(dev), "buffer": buffer.state_dict()}, rank, world)
         if rank == 0:
-            record = {**state, "sessions": [*state["sessions"], session_record()]} if session_open else state
+            record = with_this_session() if session_open else state
             save_file({"model": _cpu(module.state_dict()), "optim": _cpu(optim.state_dict()), "state": record,
                        "ranks": ranks, "ema": _cpu(ema.state_dict()), "config": task.cfg.to_dict(),
                        "task": task.name}, ckpt_path)
@@ -268,9 +268,12 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
         if not np.isfinite(value) or (best and not _better(key, value, best["value"])):
             return
         state["best_val"] = {"key": key, "value": value, "step": state["step"]}
-        record = {**state, "sessions": [*state["sessions"], session_record()]}
-        save_file({"model": _cpu(module.state_dict()), "ema": _cpu(ema.state_dict()), "state": record,
+        save_file({"model": _cpu(module.state_dict()), "ema": _cpu(ema.state_dict()), "state": with_this_session(),
                    "config": task.cfg.to_dict(), "task": task.name}, out / BEST)
+
+    def with_this_session() -> dict:
+        """The run's state as a file written mid-session keeps it: the session so far listed with the others."""
+        return {**state, "sessions": [*state["sessions"], session_record()]}
 
     def session_record() -> dict:
         """This session so far, as the run's record (and the model card) lists it."""
