@@ -1,0 +1,47 @@
+#!/usr/bin/env bash
+# Rebuild the coarse fine-tunes' scenes on a new machine: nothing a session builds outside the repository outlives
+# it, and sessions 31-37 trained on folders that existed only on their machine. The folders, by name (DATA, default
+# data/), each a resumable `hgca synth` split build (re-running skips the scenes already written), in the order a
+# session needs them:
+#   v2f        the 16 val scenes of synth2f alone (generator 6, val seeds 1,000,000-15): the trainer's validation
+#              (a first --data folder holding only a val split) and benchmarks/val_cut.py's 16-scene set
+#   synth2cal  val seeds 16-63 (generator 6): val_cut.py --profiles av2 --count 8
+#   synth2f    the 8 format-3 test scenes (generator 6, test seeds 2,000,000-7): `hgca eval --split test`
+#   s6a..s6d   generator 6 train seeds 0-339, 340-679, 680-1,019, 1,020-1,359 (340 each)
+#   s7a        generator 7 train seeds 1,500-1,670 (171)
+# The 1,531 train scenes of s6a-s6d and s7a are the train set the shipped coarse.pt's last fine-tune saw (its card,
+# `generator 6 seeds 0-1,359 and generator 7 seeds 1,500-1,670`); recipes docs/data/synth2f_recipe.json (generator 6,
+# format 3) and synth7f_recipe.json (generator 7). About 5 s a scene with two workers on a 2-core AMD EPYC (session
+# 38): the val and test folders take 6 min, each train folder of 340 scenes 30 min.
+#
+#   bash scripts/build_train_data.sh                    # everything, ~2.5 h on 2 cores
+#   FOLDERS="v2f synth2cal s6a s7a" bash scripts/build_train_data.sh
+#   DRY_RUN=1 bash scripts/build_train_data.sh          # print the commands only
+set -euo pipefail
+cd "$(dirname "$0")/.."
+DATA=${DATA:-data}
+WORKERS=${WORKERS:-2}
+FOLDERS=${FOLDERS:-"v2f synth2cal synth2f s6a s6b s6c s6d s7a"}
+HGCA=${HGCA:-.venv/bin/hgca}
+
+args_for() {
+  case "$1" in
+    v2f) echo "--split val --count 16 --generator 6" ;;
+    synth2cal) echo "--split val --first 16 --count 48 --generator 6" ;;
+    synth2f) echo "--split test --count 8 --generator 6" ;;
+    s6a) echo "--split train --first 0 --count 340 --generator 6" ;;
+    s6b) echo "--split train --first 340 --count 340 --generator 6" ;;
+    s6c) echo "--split train --first 680 --count 340 --generator 6" ;;
+    s6d) echo "--split train --first 1020 --count 340 --generator 6" ;;
+    s7a) echo "--split train --first 1500 --count 171 --generator 7" ;;
+    *) echo "build_train_data.sh: unknown folder '$1' (known: v2f synth2cal synth2f s6a s6b s6c s6d s7a)" >&2; return 2 ;;
+  esac
+}
+
+for f in $FOLDERS; do
+  a=$(args_for "$f")
+  cmd="$HGCA synth $a --workers $WORKERS --out $DATA/$f"
+  if [ -n "${DRY_RUN:-}" ]; then echo "$cmd"; continue; fi
+  echo "[$(date -u +%H:%M:%S)] $cmd"
+  $cmd
+done
