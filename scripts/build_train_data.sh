@@ -11,10 +11,10 @@
 #   s7a        generator 7 train seeds 1,500-1,670 (171)
 # The 1,531 train scenes of s6a-s6d and s7a are the train set the shipped coarse.pt's last fine-tune saw (its card,
 # `generator 6 seeds 0-1,359 and generator 7 seeds 1,500-1,670`); recipes docs/data/synth2f_recipe.json (generator 6,
-# format 3) and synth7f_recipe.json (generator 7). About 5 s a scene with two workers on a 2-core AMD EPYC (session
-# 38): the val and test folders take 6 min, each train folder of 340 scenes 30 min.
+# format 3) and synth7f_recipe.json (generator 7). With two workers on a 2-core AMD EPYC (session 38): s7a's 171
+# scenes in 13 min (4.7 s a scene), s6a's 340 in 32 min and v2f + synth2cal in 8.5 min, those partly beside a scoring run.
 #
-#   bash scripts/build_train_data.sh                    # everything, ~2.5 h on 2 cores
+#   bash scripts/build_train_data.sh                    # everything (1,603 scenes), ~2 h on 2 cores
 #   FOLDERS="v2f synth2cal s6a s7a" bash scripts/build_train_data.sh
 #   DRY_RUN=1 bash scripts/build_train_data.sh          # print the commands only
 set -euo pipefail

@@ -6,9 +6,10 @@ import re
 import subprocess
 from pathlib import Path
 
+from hgca_core.synth.dataset import SPLITS
+
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scripts" / "build_train_data.sh"
-SPLIT_BASE = {"train": 0, "val": 1_000_000, "test": 2_000_000}   # hgca_core.synth.splits
 
 
 def dry_run(**env: str) -> subprocess.CompletedProcess:
@@ -24,7 +25,7 @@ def planned() -> dict[str, tuple[int, set[int]]]:
     for line in out.stdout.splitlines():
         flags = dict(re.findall(r"--(split|first|count|generator|out) (\S+)", line))
         first, count = int(flags.get("first", 0)), int(flags["count"])
-        base = SPLIT_BASE[flags["split"]]
+        base = SPLITS[flags["split"]]
         plan[Path(flags["out"]).name] = (int(flags["generator"]), set(range(base + first, base + first + count)))
     return plan
 
