@@ -21,7 +21,8 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 DATA=${DATA:-data}
 WORKERS=${WORKERS:-2}
-FOLDERS=${FOLDERS:-"v2f synth2cal synth2f s6a s6b s6c s6d s7a"}
+KNOWN="v2f synth2cal synth2f s6a s6b s6c s6d s7a"   # the case below, in build order
+FOLDERS=${FOLDERS:-$KNOWN}
 HGCA=${HGCA:-.venv/bin/hgca}
 
 args_for() {
@@ -34,7 +35,7 @@ args_for() {
     s6c) echo "--split train --first 680 --count 340 --generator 6" ;;
     s6d) echo "--split train --first 1020 --count 340 --generator 6" ;;
     s7a) echo "--split train --first 1500 --count 171 --generator 7" ;;
-    *) echo "build_train_data.sh: unknown folder '$1' (known: v2f synth2cal synth2f s6a s6b s6c s6d s7a)" >&2; return 2 ;;
+    *) echo "build_train_data.sh: unknown folder '$1' (known: $KNOWN)" >&2; return 2 ;;
   esac
 }
 
