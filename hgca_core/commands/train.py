@@ -43,7 +43,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "the union of their train splits, validate on the first one's val split")
     p.add_argument("--out", default=None, help="run folder (default runs/<stage>)")
     p.add_argument("--minutes", type=float, default=10.0, help="wall-time budget of this session (0: only --export)")
-    p.add_argument("--max-steps", type=int, default=None, help="stop after this many steps (tests)")
+    p.add_argument("--max-steps", type=int, default=None,
+                   help="stop after this many steps of this session (a resumed run counts from where it resumes)")
     p.add_argument("--resume", action="store_true", help="continue from <out>/ckpt.pt")
     p.add_argument("--batch", type=int, default=2,
                    help="chains per step (per rank under torchrun; the paper uses 6 for coarse, 3 for fine)")
