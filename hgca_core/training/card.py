@@ -63,8 +63,7 @@ grows above the cut lies where the whole scans' rays passed (+-0.3-0.5; session 
 7.7 / 10.1 / 12.4 %, session 12's 45.4 / 48.9 / 38.0 % and 8.4 / 11.2 / 10.8 %); 5.3 / 4.9 / 7.2 % of what it
 generates on the whole input lies in space the input rays saw empty (k = 3; session 33's 5.3 / 5.5 / 8.2 %), none in
 that space's core (the ground truth of simulated single sweeps of these sensors scores 5.8 % (av2) and 7.6 % (hdl32)
-by this count:
-`benchmarks/results/freespace_floor_val64.md`). On 64 simulated single sweeps, where the truth is known, 80 % of the
+by this count: `benchmarks/results/freespace_floor_val64.md`). On 64 simulated single sweeps, where the truth is known, 80 % of the
 whole-input cells this count flags for session 12's weights are true geometry (porous crowns, grazed ground, thin
 poles; the weights' own errors there are 1.2 % of what they generate), and 97 % of those it flags above a cut are
 wrong; with the av2 profile 10.8 % of the above-cut growth is flagged, more than on the real AV2 logs
@@ -75,9 +74,9 @@ last-step threshold, nor a shift of every step's logits (with the shipped or pre
 interpolation toward a plain fine-tune lowered session 12's weights' share (`keep_sweep.md`, `bias_sweep.md`,
 `bias_sweep_precise_bn.md`, `blend_sweep.md`); interpolation toward the distilled fine-tune lowers it on both AV2
 logs and raises it on the nuScenes sweep (`recipe_s33.md`); a fine-tune on turned inputs with the loss on cut-away
-cells the full scan saw empty (session 38) lowers the AV2 shares further and costs recall, most on AV2 adcf and
-nuScenes (-4.0 and -5.5 points at k = 12), which the 0.3 blend trades for AV2 shares 1.4 and 1.2 points lower
-(`recipe_s38.md`). How much the chain grows swings far within a few hundred
+cells the full scan saw empty (session 38) lowers the AV2 shares further and costs recall (alone, k = 6: 4.0 / 14.1 /
+9.2 points on AV2 7fab / adcf / nuScenes), and its 0.3 blend, the shipped file, keeps AV2 shares 1.4 and 1.2 points
+lower than session 33's for 1.2 / 4.0 / 5.5 points less recall (k = 12; `recipe_s38.md`). How much the chain grows swings far within a few hundred
 training steps (`real_scans_coarse_ft373.md`; checkpoints of one run 1,060 steps apart differ by 2.4-2.8 points on
 each real log, `recipe_s32.md`), so these weights are one selected point of that swing, not a settled optimum.
 Much of that swing is BatchNorm's statistics alone: with session 12's `coarse.pt`'s parameters and statistics averaged over
