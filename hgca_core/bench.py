@@ -3,7 +3,9 @@
 Each configuration runs in its own process (`python -m hgca_core.bench --worker JSON`), so its peak RSS
 (and `torch.cuda.max_memory_allocated` on a GPU) belongs to that run alone. It runs the product's own
 `pipeline.complete` (the world-frame wrapper around the region-frame core), so the times are what a user
-waits for. Stage times come from the pipeline's own progress events (`progress.StageClock`).
+waits for. Stage times come from the pipeline's own progress events (`progress.StageClock`). The weights are the
+shipped ones unless given; the result names them by path and sha256 (`models.weights.weights_record`), so two
+files are timed on one machine without swapping the shipped file.
 """
 from __future__ import annotations
 
@@ -53,7 +55,7 @@ def scene_inputs(width: float, seed: int = 4_000_000,
 
 
 def run_one(width: float, depth: float, stage: str, device: str, t1: int | None, seed: int,
-            precision: str = "auto") -> dict:
+            precision: str = "auto", weights: str | None = None, fine_weights: str | None = None) -> dict:
     """One completion with per-stage wall times (s) and peak memory (bytes)."""
     import torch
 
@@ -64,7 +66,8 @@ def run_one(width: float, depth: float, stage: str, device: str, t1: int | None,
     t_start = time.perf_counter()
     clock = StageClock()
     res = complete(pts, region=region, origins=origins, samples=1, seed=seed, stage=stage, device=device, t1=t1,
-                   progress=clock, precision=precision, origin_index=index)[0]
+                   progress=clock, precision=precision, origin_index=index, weights=weights,
+                   fine_weights=fine_weights)[0]
     t_mesh = time.perf_counter()
     from hgca_core.io import write_mesh
 
@@ -82,16 +85,24 @@ def run_one(width: float, depth: float, stage: str, device: str, t1: int | None,
     return {"width": width, "depth": depth, "stage": stage, "device": device, "precision": gemm, "points": int(len(pts)),
             "coarse_cells": int(len(res.coarse_cells)), "triangles": int(len(res.mesh.faces)),
             "seconds": round(total, 2), "stages_s": {k: round(v, 3) for k, v in stages.items()},
+            "steps": {k: clock.totals[k] for k in ("coarse", "fine") if k in clock.totals},
             "peak_rss_gib": round(rss / 2**30, 3), "gpu_peak_gib": None if gpu is None else round(gpu / 2**30, 3)}
 
 
 def run(widths: list[float], default: bool, stage: str, device: str, t1: int | None, out_dir: Path,
-        name: str, timeout: int = 3600, precision: str = "auto") -> dict:
+        name: str, timeout: int = 3600, precision: str = "auto", weights: str | None = None,
+        fine_weights: str | None = None) -> dict:
+    """Each configuration in its own worker process, with the weights of `weights_files` (given or shipped),
+    which the caller has checked to load."""
+    from hgca_core.models.weights import weights_record
+
+    record = weights_record(["hgca-full" if stage == "full" else "hgca"], weights, fine_weights)
+    files = record["weights"]
     configs = ([(38.4, 38.4)] if default else []) + [(w, 40.0) for w in widths]
     rows = []
     for width, depth in configs:
         job = json.dumps({"width": width, "depth": depth, "stage": stage, "device": device, "t1": t1, "seed": 0,
-                          "precision": precision})
+                          "precision": precision, "weights": files["coarse"], "fine_weights": files.get("fine")})
         proc = subprocess.run([sys.executable, "-m", "hgca_core.bench", "--worker", job], capture_output=True,
                               text=True, timeout=timeout)
         if proc.returncode != 0:
@@ -99,7 +110,8 @@ def run(widths: list[float], default: bool, stage: str, device: str, t1: int | N
         else:
             rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
         print(json.dumps(rows[-1]), flush=True)
-    result = {"machine": machine(), "stage": stage, "device": device, "t1": t1, "precision": precision, "rows": rows}
+    result = {"machine": machine(), "stage": stage, "device": device, "t1": t1, "precision": precision, **record,
+              "rows": rows}
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / f"{name}.json").write_text(json.dumps(result, indent=1))
     (out_dir / f"{name}.md").write_text(table(result))
@@ -116,7 +128,9 @@ def table(result: dict) -> str:
     lines = [f"Completion benchmark, stage {result['stage']}, device {result['device']}, T1 = {result['t1'] or 'default'}"
              + (f", sparse-conv GEMMs in {'/'.join(gemm)}" if gemm else ""),
              f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']} ({m['threads']} threads), {m['date']}"
-             + (f", GPU {m['gpu']}" if "gpu" in m else ""), "",
+             + (f", GPU {m['gpu']}" if "gpu" in m else ""),
+             *([f"Weights: " + ", ".join(f"{r} {Path(f).name} (sha256 {result['weights_sha256'][r][:8]})"
+                                        for r, f in result["weights"].items())] if "weights" in result else []), "",
              "| " + " | ".join(head) + " |", "|" + "|".join(["---:"] * len(head)) + "|"]
     for r in result["rows"]:
         if "error" in r:
@@ -156,7 +170,7 @@ def plot(result: dict, path: Path) -> None:
 def _worker(job: str) -> int:
     args = json.loads(job)
     print(json.dumps(run_one(args["width"], args["depth"], args["stage"], args["device"], args["t1"], args["seed"],
-                             args.get("precision", "auto"))))
+                             args.get("precision", "auto"), args.get("weights"), args.get("fine_weights"))))
     return 0
 
 

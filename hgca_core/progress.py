@@ -87,14 +87,16 @@ class Progress:
 class StageClock:
     """A progress callback that times the stages: the seconds since the previous event (or since the clock was
     made) are charged to the stage of the event that ends them. `hgca bench` and `hgca eval` read stage times
-    from the pipeline's own events this way."""
+    from the pipeline's own events this way, and each stage's event total (the coarse and fine step counts run)."""
 
     def __init__(self) -> None:
         self.seconds: dict[str, float] = {}
+        self.totals: dict[str, int] = {}
         self._last = time.perf_counter()
 
     def __call__(self, stage: str, step: int, total: int, message: str = "", sample: int = 0) -> None:
         now = time.perf_counter()
+        self.totals[stage] = total
         self.seconds[stage] = self.seconds.get(stage, 0.0) + (now - self._last)
         self._last = now
 

@@ -5,6 +5,7 @@ so each completion takes a few seconds; the coarse stage is enough to check wher
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import struct
 import subprocess
@@ -109,6 +110,29 @@ def test_bench_and_eval_share_the_step_and_device_checks(tmp_path):
     clear_error(hgca("bench", "--t1", "-1", "--out", tmp_path), "argument --t1")
     clear_error(hgca("bench", "--device", "tpu", "--out", tmp_path), "unknown device")
     clear_error(hgca("eval", "--t2", "-2", "--data", tmp_path), "argument --t2")
+
+
+def test_bench_times_the_weights_it_is_given(small_weights, tmp_path):
+    """`hgca bench --weights` runs the given file (its own 3 steps, not the shipped file's 30) and names it by
+    sha256 in the result; a file that is not weights is a clear error before any run writes anything."""
+    res = hgca("bench", "--widths", "", "--stage", "coarse", "--weights", small_weights, "--out", tmp_path / "r",
+               "--name", "b")
+    assert res.returncode == 0, res.stderr[-2000:]
+    result = json.loads((tmp_path / "r" / "b.json").read_text())
+    assert result["weights"] == {"coarse": str(small_weights)}
+    assert result["weights_sha256"]["coarse"] == hashlib.sha256(small_weights.read_bytes()).hexdigest()
+    (row,) = result["rows"]
+    assert "error" not in row and row["steps"] == {"coarse": 3} and row["coarse_cells"] > 0
+    assert f"coarse {small_weights.name} (sha256 {result['weights_sha256']['coarse'][:8]})" in res.stdout
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not weights")
+    clear_error(hgca("bench", "--widths", "", "--weights", bad, "--out", tmp_path / "r2"), "bad.pt")
+    assert not (tmp_path / "r2").exists()
+    named_like_a_result = tmp_path / "r" / "c.json"
+    named_like_a_result.write_bytes(small_weights.read_bytes())
+    clear_error(hgca("bench", "--widths", "", "--weights", named_like_a_result, "--out", tmp_path / "r",
+                     "--name", "c"), "would overwrite an input")
+    assert named_like_a_result.read_bytes() == small_weights.read_bytes()
 
 
 def test_t1_zero_means_the_weights_own_steps(small_weights, tmp_path):

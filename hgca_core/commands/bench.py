@@ -13,6 +13,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stage", choices=("coarse", "full"), default="coarse")
     p.add_argument("--device", type=device_arg, default="cpu")
     p.add_argument("--t1", type=steps_arg, default=None)
+    p.add_argument("--weights", default=None, help="coarse weights file (default: the shipped ones)")
+    p.add_argument("--fine-weights", default=None, help="fine weights file, stage full (default: the shipped ones)")
     add_precision_argument(p)
     p.add_argument("--out", default="benchmarks/results")
     p.add_argument("--name", default=None, help="result file stem (default completion_<stage>_<device>)")
@@ -20,11 +22,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from hgca_core.bench import run as bench_run
+    from hgca_core.errors import InputError
+    from hgca_core.io.paths import check_outputs
+    from hgca_core.pipeline import load_models
 
     widths = [float(w) for w in args.widths.split(",") if w.strip()]
     name = args.name or f"completion_{args.stage}_{args.device.split(':')[0]}"
-    result = bench_run(widths, not args.no_default, args.stage, args.device, args.t1, Path(args.out), name,
-                       precision=args.precision)
+    load_models(args.stage, args.weights, args.fine_weights, "cpu")   # a bad file fails here, before any run
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError("output folder is not a folder", str(out))
+    out.mkdir(parents=True, exist_ok=True)
+    check_outputs([out / f"{name}.{ext}" for ext in ("json", "md", "png")], [args.weights, args.fine_weights])
+    result = bench_run(widths, not args.no_default, args.stage, args.device, args.t1, out, name,
+                       precision=args.precision, weights=args.weights, fine_weights=args.fine_weights)
     from hgca_core.bench import table
 
     print(table(result))

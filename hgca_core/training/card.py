@@ -51,41 +51,40 @@ samples, of which there is less than one per 10 cm cell: a dense sample of the t
 there sit near that floor; the fine stage's 4.9-5.1 cm are on synth2's val crops (the shipped fine.pt's data), where
 that floor was not measured, and the previous first-split fine.pt scores 5.46 cm on the same crops.
 
-Intended use: completing street-level LiDAR (vehicle-mounted, 32-128 beams) into 20 cm geometry and 10 cm
-implicit surfaces. Limits: trained on synthetic content only, mostly on 2 CPU cores (one fine-tune in `coarse.pt`'s
-lineage ran 1,321 steps on an H200), for far fewer steps than the paper (400k), so completions are rough. Since
-session 39 `coarse.pt` is session 33's coarse weights blended 0.7 / 0.3 with a fine-tune of them on inputs turned by a
-random yaw, distilled toward them (its notes below; `benchmarks/results/recipe_s38.md`, `recipe_s39.md`); session
-33's were session 12's blended half and half with another distilled fine-tune. On real scans
-(`benchmarks/results/real_scans_s39.md`; 12 samples a log in `recipe_s38.md`) the coarse stage finds 45.1 / 41.0 /
-34.1 % of the real cells cut away 2 m above the ground (AV2 7fab / adcf / nuScenes) and 6.3 / 8.9 / 12.3 % of what it
-grows above the cut lies where the whole scans' rays passed (+-0.3-0.5; session 33's weights: 46.3 / 45.0 / 39.6 % and
-7.7 / 10.1 / 12.4 %, session 12's 45.4 / 48.9 / 38.0 % and 8.4 / 11.2 / 10.8 %); 5.3 / 4.9 / 7.2 % of what it
-generates on the whole input lies in space the input rays saw empty (k = 3; session 33's 5.3 / 5.5 / 8.2 %), none in
-that space's core (the ground truth of simulated single sweeps of these sensors scores 5.8 % (av2) and 7.6 % (hdl32)
-by this count: `benchmarks/results/freespace_floor_val64.md`). On 64 simulated single sweeps, where the truth is known, 80 % of the
-whole-input cells this count flags for session 12's weights are true geometry (porous crowns, grazed ground, thin
-poles; the weights' own errors there are 1.2 % of what they generate), and 97 % of those it flags above a cut are
-wrong; with the av2 profile 10.8 % of the above-cut growth is flagged, more than on the real AV2 logs
-(`freespace_calibration.md`). In the cells the rays swept half or more of (5 cm sub-cells, where the truth scores
-0.3 %) lie 0.8 / 0.3 / 0.0 % of the whole-input growth on the real sweeps (`real_scans_s39.md`). Most of the growth
-above a cut lies in open air 1-2 m up (`violation_anatomy_s14_shipped.md`, session 12's weights); neither a higher
-last-step threshold, nor a shift of every step's logits (with the shipped or precise BatchNorm statistics), nor
-interpolation toward a plain fine-tune lowered session 12's weights' share (`keep_sweep.md`, `bias_sweep.md`,
-`bias_sweep_precise_bn.md`, `blend_sweep.md`); interpolation toward the distilled fine-tune lowers it on both AV2
-logs and raises it on the nuScenes sweep (`recipe_s33.md`); a fine-tune on turned inputs with the loss on cut-away
-cells the full scan saw empty (session 38) lowers the AV2 shares further and costs recall (alone, k = 6: 4.0 / 14.1 /
-9.2 points on AV2 7fab / adcf / nuScenes), and its 0.3 blend, the shipped file, keeps AV2 shares 1.4 and 1.2 points
-lower than session 33's for 1.2 / 4.0 / 5.5 points less recall (k = 12; `recipe_s38.md`). How much the chain grows swings far within a few hundred
-training steps (`real_scans_coarse_ft373.md`; checkpoints of one run 1,060 steps apart differ by 2.4-2.8 points on
-each real log, `recipe_s32.md`), so these weights are one selected point of that swing, not a settled optimum.
-Much of that swing is BatchNorm's statistics alone: with session 12's `coarse.pt`'s parameters and statistics averaged over
-400 training batches (precise BN), the coarse stage grows 1.7-4.1x the cells above a 2 m cut on the real logs,
-recovers 54.9 / 57.0 / 55.6 % of the cut-away cells (AV2 7fab / adcf / nuScenes) and puts 16.3 / 17.7 / 16.9 % of
-that growth where the rays saw empty, while the whole input's share falls to 4.3 / 4.5 / 6.6 % and the synthetic val
-recall rises from 65.5 to 76.0 % (`precise_bn.md`); not shipped, as its above-cut share is twice those weights' own
-and the synthetic test IoU falls from 62.6 to 58.3-59.0 % (lower on all 8 scenes, with statistics from either
-generator).
+Intended use: completing street-level LiDAR (vehicle-mounted, 32-128 beams) into 20 cm geometry and 10 cm implicit
+surfaces. Limits: trained on synthetic content only, mostly on 2 CPU cores (one fine-tune in `coarse.pt`'s lineage ran
+1,321 steps on an H200), for far fewer steps than the paper (400k), so completions are rough. Since session 39
+`coarse.pt` is session 33's coarse weights blended 0.7 / 0.3 with a fine-tune of them on inputs turned by a random yaw,
+distilled toward them (its notes below; `benchmarks/results/recipe_s38.md`, `recipe_s39.md`); session 33's were session
+12's blended half and half with another distilled fine-tune. On real scans (`benchmarks/results/real_scans_s39.md`; 12
+samples a log in `recipe_s38.md`) the coarse stage finds 45.1 / 41.0 / 34.1 % of the real cells cut away 2 m above the
+ground (AV2 7fab / adcf / nuScenes) and 6.3 / 8.9 / 12.3 % of what it grows above the cut lies where the whole scans'
+rays passed (+-0.3-0.5; session 33's weights: 46.3 / 45.0 / 39.6 % and 7.7 / 10.1 / 12.4 %, session 12's 45.4 / 48.9 /
+38.0 % and 8.4 / 11.2 / 10.8 %); 5.3 / 4.9 / 7.2 % of what it generates on the whole input lies in space the input rays
+saw empty (k = 3; session 33's 5.3 / 5.5 / 8.2 %), none in that space's core (the ground truth of simulated single
+sweeps of these sensors scores 5.8 % (av2) and 7.6 % (hdl32) by this count:
+`benchmarks/results/freespace_floor_val64.md`). On 64 simulated single sweeps, where the truth is known, 80 % of the
+whole-input cells this count flags for session 12's weights are true geometry (porous crowns, grazed ground, thin poles;
+the weights' own errors there are 1.2 % of what they generate), and 97 % of those it flags above a cut are wrong; with
+the av2 profile 10.8 % of the above-cut growth is flagged, more than on the real AV2 logs (`freespace_calibration.md`).
+In the cells the rays swept half or more of (5 cm sub-cells, where the truth scores 0.3 %) lie 0.8 / 0.3 / 0.0 % of the
+whole-input growth on the real sweeps (`real_scans_s39.md`). Most of the growth above a cut lies in open air 1-2 m up
+(`violation_anatomy_s14_shipped.md`, session 12's weights); neither a higher last-step threshold, nor a shift of every
+step's logits (with the shipped or precise BatchNorm statistics), nor interpolation toward a plain fine-tune lowered
+session 12's weights' share (`keep_sweep.md`, `bias_sweep.md`, `bias_sweep_precise_bn.md`, `blend_sweep.md`);
+interpolation toward the distilled fine-tune lowers it on both AV2 logs and raises it on the nuScenes sweep
+(`recipe_s33.md`); a fine-tune on turned inputs with the loss on cut-away cells the full scan saw empty (session 38)
+lowers the AV2 shares further and costs recall (alone, k = 6: 4.0 / 14.1 / 9.2 points on AV2 7fab / adcf / nuScenes),
+and its 0.3 blend, the shipped file, keeps AV2 shares 1.4 and 1.2 points lower than session 33's for 1.2 / 4.0 / 5.5
+points less recall (k = 12; `recipe_s38.md`). How much the chain grows swings far within a few hundred training steps
+(`real_scans_coarse_ft373.md`; checkpoints of one run 1,060 steps apart differ by 2.4-2.8 points on each real log,
+`recipe_s32.md`), so these weights are one selected point of that swing, not a settled optimum. Much of that swing is
+BatchNorm's statistics alone: with session 12's `coarse.pt`'s parameters and statistics averaged over 400 training
+batches (precise BN), the coarse stage grows 1.7-4.1x the cells above a 2 m cut on the real logs, recovers 54.9 / 57.0 /
+55.6 % of the cut-away cells (AV2 7fab / adcf / nuScenes) and puts 16.3 / 17.7 / 16.9 % of that growth where the rays
+saw empty, while the whole input's share falls to 4.3 / 4.5 / 6.6 % and the synthetic val recall rises from 65.5 to 76.0
+% (`precise_bn.md`); not shipped, as its above-cut share is twice those weights' own and the synthetic test IoU falls
+from 62.6 to 58.3-59.0 % (lower on all 8 scenes, with statistics from either generator).
 """
 
 
