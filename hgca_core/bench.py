@@ -129,8 +129,8 @@ def table(result: dict) -> str:
              + (f", sparse-conv GEMMs in {'/'.join(gemm)}" if gemm else ""),
              f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']} ({m['threads']} threads), {m['date']}"
              + (f", GPU {m['gpu']}" if "gpu" in m else ""),
-             *([f"Weights: " + ", ".join(f"{r} {Path(f).name} (sha256 {result['weights_sha256'][r][:8]})"
-                                        for r, f in result["weights"].items())] if "weights" in result else []), "",
+             *(["Weights: " + ", ".join(f"{r} {Path(f).name} (sha256 {result['weights_sha256'][r][:8]})"
+                                       for r, f in result["weights"].items())] if "weights" in result else []), "",
              "| " + " | ".join(head) + " |", "|" + "|".join(["---:"] * len(head)) + "|"]
     for r in result["rows"]:
         if "error" in r:
