@@ -95,6 +95,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="decay of the weights' moving average that exports and validation use (default 0.999, about "
                         "the last 1,000 steps; with --resume: the run's own, or this one from now on): closer to 1 "
                         "averages over more steps, as neighbouring checkpoints swing on real scans (recipe_s32.md)")
+    p.add_argument("--seed", type=int, default=None, metavar="N",
+                   help="a new run's random streams: initial weights, crops, chains, infusion draws (default 0). "
+                        "Runs of one recipe that differ only in the seed measure its spread between runs; a resume "
+                        "continues the run's own streams and refuses another seed")
     p.add_argument("--val-every", type=float, default=10.0, help="minutes between validation runs")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (1 is fastest on a busy machine)")
     p.add_argument("--device", default="cpu",
@@ -322,7 +326,7 @@ def run(args: argparse.Namespace) -> int:
         state = train(task, out, args.minutes, resume=args.resume, batch=args.batch, buffer_size=args.buffer,
                       val_every_min=args.val_every, max_steps=args.max_steps, progress=not args.no_progress,
                       device=args.device, init_from=args.init_from, precision=args.precision, lr=args.lr,
-                      ema_decay=args.ema_decay)
+                      ema_decay=args.ema_decay, seed=args.seed)
         last_val = next((h for h in reversed(state["history"]) if h["kind"] == "val"), {})
         print(json.dumps({"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1), **last_val}))
     if args.export:

@@ -146,7 +146,7 @@ def _named(rec: dict) -> str:
 
 def _trained(rec: dict) -> str:
     return (f"{rec.get('steps')} steps, {rec.get('train_wall_s')} s of step wall time on {rec.get('data')} over "
-            f"{len(rec.get('sessions', []))} session(s)")
+            f"{len(rec.get('sessions', []))} session(s)" + (f", seed {rec['seed']}" if rec.get("seed") else ""))
 
 
 def _session(s: dict) -> str:

@@ -87,6 +87,7 @@ def run_record(ck: dict) -> dict:
     time, sessions, notes, the samples any session trained on, validation history and the last training logs."""
     st = ck["state"]
     return {"steps": st["step"], "train_wall_s": round(st["elapsed_s"], 1), "sessions": st["sessions"],
+            "seed": int(st.get("seed", 0)),
             "notes": st.get("notes", []), **({"init": st["init"]} if "init" in st else {}),
             "train_samples": sorted({n for ses in st["sessions"] for n in ses.get("train_samples", [])}),
             "history_tail": [h for h in st["history"] if h["kind"] == "val"]
@@ -161,7 +162,7 @@ def _gather(obj: dict, rank: int, world: int) -> list[dict] | None:
 
 
 def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False, batch: int = 2,
-          buffer_size: int = 8, lr: float | None = None, clip: float = 0.5, seed: int = 0,
+          buffer_size: int = 8, lr: float | None = None, clip: float = 0.5, seed: int | None = None,
           val_every_min: float = 10.0, ckpt_every_min: float = 5.0, max_steps: int | None = None,
           progress: bool = True, ema_decay: float | None = None, device: str = "cpu",
           init_from: str | os.PathLike | None = None, precision: str = "fp32") -> dict:
@@ -172,6 +173,10 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
     (torch seeded with seed + rank, numpy with seed + 7919 rank) and the checkpoint keeps each rank's streams
     and chains, so a resumed run continues every rank where it stopped: one process resumed gives bit for bit
     the run that never stopped. Validation runs on rank 0 on the CPU (it meshes and measures with numpy / scipy).
+
+    `seed` (default 0) starts a new run's streams (initial weights, crops, chains, infusion draws) and is recorded;
+    runs of one recipe that differ only in it measure the recipe's spread. A resume continues the run's own
+    streams: a different `seed` there is refused rather than silently ignored.
 
     `precision` 'bf16' runs the sparse convs' forward and backward GEMMs in bfloat16 (float32 accumulation,
     weights, gradients and optimiser state; `nn.conv.training_precision`); validation stays float32.
@@ -188,14 +193,22 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "ckpt.pt"
-    torch.manual_seed(seed + rank)            # seeds the CPU generator and every GPU's
+    start_seed = 0 if seed is None else int(seed)
+    if start_seed < 0:
+        raise InputError(f"the seed must be 0 or more, not {seed}")
+    torch.manual_seed(start_seed + rank)      # seeds the CPU generator and every GPU's
     module = task.build().to(dev)
     optim = torch.optim.Adam(module.parameters(), lr=LR if lr is None else lr)
-    buffer = ChainBuffer(buffer_size, task.new_example, task.cfg.steps, np.random.default_rng(seed + 7919 * rank), dev)
-    state = {"step": 0, "elapsed_s": 0.0, "history": [], "sessions": []}
+    buffer = ChainBuffer(buffer_size, task.new_example, task.cfg.steps,
+                         np.random.default_rng(start_seed + 7919 * rank), dev)
+    state = {"step": 0, "elapsed_s": 0.0, "history": [], "sessions": [], "seed": start_seed}
     ema_state = None
     if resume and ckpt_path.exists():
         ck = load_file(ckpt_path)
+        run_seed = int(ck["state"].get("seed", 0))    # runs from before the seed was recorded all used 0
+        if seed is not None and int(seed) != run_seed:
+            raise InputError(f"the run was started with seed {run_seed} and a resume continues its streams: leave "
+                             f"out the seed (or give {run_seed}), or start a new run with seed {seed}", ckpt_path)
         module.load_state_dict(ck["model"])
         optim.load_state_dict(ck["optim"])     # moves its state to the parameters' device
         state = ck["state"]
@@ -210,8 +223,8 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
                 buffer.load_state_dict(ranks[rank]["buffer"])
             _set_rng_state(ranks[rank]["rng"], dev)
         else:                                  # more ranks than the run was saved with: new streams of their own
-            torch.manual_seed(_stream_seed(seed, rank, state["step"]))
-            buffer.rng = np.random.default_rng(_stream_seed(seed + 1, rank, state["step"]))
+            torch.manual_seed(_stream_seed(run_seed, rank, state["step"]))
+            buffer.rng = np.random.default_rng(_stream_seed(run_seed + 1, rank, state["step"]))
         ema_state = ck.get("ema")
     else:
         if resume and rank == 0:

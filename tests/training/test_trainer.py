@@ -403,3 +403,33 @@ def test_a_resumed_run_takes_a_new_weight_average_decay_and_records_it(tiny_data
     res = subprocess.run([sys.executable, "-m", "hgca_core.cli", "train", "coarse", "--data", str(tiny_dataset),
                           "--out", str(tmp_path / "x"), "--ema-decay", "1"], capture_output=True, text=True)
     assert res.returncode == 2 and "strictly between 0 and 1" in res.stderr
+
+
+def test_the_seed_starts_a_new_runs_streams_and_a_resume_keeps_them(tiny_dataset, tmp_path, one_thread):
+    """Runs of one recipe measure its spread only if they can differ: --seed starts a new run's streams (initial
+    weights, crops, chains), the same seed gives the same run, the record and card keep it, and a resume that
+    names another seed is refused (exit 2) instead of being ignored while the checkpoint's streams go on."""
+    from hgca_core.training.card import _trained
+    from hgca_core.training.trainer import run_record
+
+    kw = dict(minutes=5, max_steps=2, batch=2, buffer_size=3, progress=False)
+    train(_task(tiny_dataset), tmp_path / "a", **kw)
+    train(_task(tiny_dataset), tmp_path / "b", seed=1, **kw)
+    train(_task(tiny_dataset), tmp_path / "c", seed=1, **kw)
+    a, b, c = (load_file(tmp_path / n / "ckpt.pt") for n in "abc")
+    assert any(not torch.equal(a["model"][k], b["model"][k]) for k in a["model"])
+    assert_identical(b["model"], c["model"])
+    assert (a["state"]["seed"], b["state"]["seed"]) == (0, 1)
+    assert run_record(b)["seed"] == 1 and _trained(run_record(b)).endswith(", seed 1")
+    assert "seed" not in _trained(run_record(a))
+
+    cmd = [sys.executable, "-m", "hgca_core.cli", "train", "coarse", "--data", str(tiny_dataset), "--out",
+           str(tmp_path / "b"), "--resume", "--max-steps", "1", "--batch", "2", "--buffer", "3", "--crop", "24",
+           "--threads", "1", "--minutes", "5", "--no-progress"]
+    done = subprocess.run([*cmd, "--seed", "2"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2 and "started with seed 1" in done.stderr and "ckpt.pt" in done.stderr
+    assert load_file(tmp_path / "b" / "ckpt.pt")["state"]["step"] == 2          # nothing trained, nothing written
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    st = load_file(tmp_path / "b" / "ckpt.pt")["state"]
+    assert (st["step"], st["seed"]) == (3, 1)
