@@ -82,9 +82,22 @@ def test_eval_full_stage_table(small_split, small_fine, tmp_path):
     res = subprocess.run(cmd[:8] + ["--methods", "input", "--samples", "2", "--reuse", str(out), "--out", str(again)],
                          capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
-    rows2 = json.loads(again.read_text())["rows"]
+    doc2 = json.loads(again.read_text())
+    rows2 = doc2["rows"]
     assert set(rows2) == set(rows) and "reused_from" not in rows2["input"]
     assert rows2["hGCA (implicit)"] == {**rows["hGCA (implicit)"], "reused_from": "eval.json"}
+    # the reused rows keep the weights they ran, by role, once (the input row runs none)
+    assert (doc2["weights"], doc2["weights_sha256"]) == (doc["weights"], doc["weights_sha256"])
+    # rows run now with other coarse weights than the reused rows' are refused before any scene runs
+    from hgca_core.models.weights import blend_files, save_file
+
+    other = save_file(blend_files(shipped("coarse"), shipped("coarse"), 0.5), tmp_path / "other.pt")
+    mixed = tmp_path / "mixed.json"
+    bad = subprocess.run([*cmd[:cmd.index("--methods")], "--methods", "hgca", "--weights", str(other), "--samples",
+                          "2", "--t1", "2", "--reuse", str(out), "--out", str(mixed)],
+                         capture_output=True, text=True, timeout=600)
+    assert bad.returncode == 2 and "other coarse weights" in bad.stderr and "eval.json" in bad.stderr
+    assert "eval val" not in bad.stderr and not mixed.exists()
     bad = subprocess.run(cmd[:8] + ["--methods", "input", "--samples", "3", "--reuse", str(out)],
                          capture_output=True, text=True, timeout=600)
     assert bad.returncode == 2 and "other samples" in bad.stderr

@@ -61,9 +61,17 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--render writes a PNG, not {Path(args.render).suffix or 'a file without suffix'}",
                          args.render)
     gemm_dtype = resolve_precision(args.precision)
-    models = load_method_models(methods, args.fine_weights, args.weights, args.noplanner_weights)
     rows_of = {m: [m] for m in methods}
     rows_of["hgca-full"] = ["hgca-10cm", "hgca-implicit"]
+    computed = {ROW_NAMES[r][0] for m in methods for r in rows_of[m]}
+    record = weights_record(methods, args.weights, args.fine_weights, args.noplanner_weights)
+    reused: dict = {}
+    for path in reversed(args.reuse or []):  # read and checked before any scene runs: a bad file costs nothing
+        old_rows, old_record = reused_rows(path, [p.name for p in files], args.split, args.samples,
+                                           computed | set(reused))
+        record = merge_weights(record, old_record, path)
+        reused = {**old_rows, **reused}      # the later files first in priority, as given
+    models = load_method_models(methods, args.fine_weights, args.weights, args.noplanner_weights)
     results: dict[str, list[dict]] = {r: [] for m in methods for r in rows_of[m]}
     timings: dict[str, list[float]] = {r: [] for m in methods for r in rows_of[m]}
     kept: dict = {}        # the first scene's first completion per row, for --render
@@ -72,14 +80,10 @@ def run(args: argparse.Namespace) -> int:
                                                  kept if args.render and i == 0 else None).items():
             results[row].append(res)
             timings[row].append(secs)
-    names = {"input": ("input", "20cm^3 points"), "poisson": ("Poisson (Open3D)", "mesh"),
-             "gca": ("GCA (no planner)", "20cm^3"), "hgca": ("hGCA coarse (planner)", "20cm^3"),
-             "hgca-10cm": ("hGCA (10 cm voxels)", "10cm^3"), "hgca-implicit": ("hGCA (implicit)", "implicit")}
-    rows = {names[r][0]: {**aggregate(results[r]), "representation": names[r][1],
-                          "seconds_per_completion": float(np.mean(timings[r]))} for r in results}
-    for path in reversed(args.reuse or []):  # rows computed now first in priority, then the later files
-        rows = {**reused_rows(path, [p.name for p in files], args.split, args.samples, set(rows)), **rows}
-    order = [v[0] for v in names.values()]     # the paper's row order, whichever file a row came from
+    rows = {ROW_NAMES[r][0]: {**aggregate(results[r]), "representation": ROW_NAMES[r][1],
+                              "seconds_per_completion": float(np.mean(timings[r]))} for r in results}
+    rows = {**reused, **rows}                  # rows computed now first in priority, then the reused files'
+    order = [v[0] for v in ROW_NAMES.values()]   # the paper's row order, whichever file a row came from
     rows = dict(sorted(rows.items(), key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order)))
     table = format_table(rows)
     print(table)
@@ -91,12 +95,11 @@ def run(args: argparse.Namespace) -> int:
         out.write_text(json.dumps({"data": str(args.data), "split": args.split, "files": [p.name for p in files],
                                    "rows": rows,
                                    "samples": args.samples, "t1": args.t1, "free_space": args.free_space,
-                                   **weights_record(methods, args.weights, args.fine_weights,
-                                                    args.noplanner_weights),
+                                   **record,
                                    "precision": precision_name(gemm_dtype)}, indent=1))
         out.with_suffix(".md").write_text(table + "\n")
     if args.render and files:   # after the results are written: a rendering never costs the table
-        render_scene(files[0], [(names[r][0], m) for r, m in kept.items()], args.render, args.seed)
+        render_scene(files[0], [(ROW_NAMES[r][0], m) for r, m in kept.items()], args.render, args.seed)
         print(f"rendering of {files[0].name}: {args.render}")
     if args.out and Path(args.out).resolve().parent == WEIGHTS_DIR:  # results beside the weights go on the card
         from hgca_core.training.card import write_model_card
@@ -235,8 +238,37 @@ def render_scene(path: Path, rows: list[tuple[str, "trimesh.Trimesh"]], png: str
     gallery(panels, png, columns=4, title=title)
 
 
-def reused_rows(path: str, files: list[str], split: str, samples: int, skip: set[str]) -> dict:
-    """Rows of an earlier eval on exactly the same samples, split and k, minus those computed now."""
+# row key -> (table name, representation); the weights roles (`weights.weights_files`) each row runs
+ROW_NAMES = {"input": ("input", "20cm^3 points"), "poisson": ("Poisson (Open3D)", "mesh"),
+             "gca": ("GCA (no planner)", "20cm^3"), "hgca": ("hGCA coarse (planner)", "20cm^3"),
+             "hgca-10cm": ("hGCA (10 cm voxels)", "10cm^3"), "hgca-implicit": ("hGCA (implicit)", "implicit")}
+ROW_ROLES = {"GCA (no planner)": ("noplanner",), "hGCA coarse (planner)": ("coarse",),
+             "hGCA (10 cm voxels)": ("coarse", "fine"), "hGCA (implicit)": ("coarse", "fine")}
+LEGACY_ROLES = {"hgca": "coarse", "gca": "noplanner"}   # results files before roles named weights by method
+
+
+def merge_weights(record: dict, old: dict, path: str) -> dict:
+    """The weights record of a table with reused rows: each role once, the run's own or the reused file's. A role
+    both ran with weights of another digest is refused (the table would mix two models under one name)."""
+    from hgca_core.errors import InputError
+
+    files, digests = dict(record["weights"]), dict(record["weights_sha256"])
+    for role, f in old["weights"].items():
+        was = old["weights_sha256"].get(role)
+        if role not in files:
+            files[role] = f
+            if was:
+                digests[role] = was
+        elif was and digests.get(role) and was != digests[role]:
+            raise InputError(f"the reused rows ran other {role} weights (sha256 {was[:12]}, {f}) than this run "
+                             f"(sha256 {digests[role][:12]}, {files[role]}): rerun those rows with these weights, "
+                             "or reuse a file made with them", path)
+    return {"weights": files, "weights_sha256": digests}
+
+
+def reused_rows(path: str, files: list[str], split: str, samples: int, skip: set[str]) -> tuple[dict, dict]:
+    """Rows of an earlier eval on exactly the same samples, split and k, minus those computed now, and the
+    weights record ({"weights", "weights_sha256"} by role) of the roles those rows ran."""
     import json
 
     from hgca_core.errors import InputError
@@ -256,4 +288,9 @@ def reused_rows(path: str, files: list[str], split: str, samples: int, skip: set
         if "seconds_per_scene" in r and "seconds_per_completion" not in r:  # files from before per-completion times
             r["seconds_per_completion"] = r.pop("seconds_per_scene") / max(1, int(r.get("k", 1)))
         rows[name] = r
-    return rows
+    roles = {role for name in rows for role in ROW_ROLES.get(name, ())}
+    named = old.get("weights") if isinstance(old.get("weights"), dict) else {}
+    named = {LEGACY_ROLES.get(k, k): v for k, v in named.items()}
+    digests = old.get("weights_sha256") if isinstance(old.get("weights_sha256"), dict) else {}
+    return rows, {"weights": {r: f for r, f in named.items() if r in roles},
+                  "weights_sha256": {r: d for r, d in digests.items() if r in roles}}
