@@ -93,7 +93,8 @@ def run(widths: list[float], default: bool, stage: str, device: str, t1: int | N
         name: str, timeout: int = 3600, precision: str = "auto", weights: str | None = None,
         fine_weights: str | None = None) -> dict:
     """Each configuration in its own worker process, with the weights of `weights_files` (given or shipped),
-    which the caller has checked to load."""
+    which the caller has checked to load, and writes `out_dir`/`name`.{json,md,png} into the folder the caller has
+    made and checked (`hgca bench`: `check_outputs`)."""
     from hgca_core.models.weights import weights_record
 
     record = weights_record(["hgca-full" if stage == "full" else "hgca"], weights, fine_weights)
@@ -112,7 +113,6 @@ def run(widths: list[float], default: bool, stage: str, device: str, t1: int | N
         print(json.dumps(rows[-1]), flush=True)
     result = {"machine": machine(), "stage": stage, "device": device, "t1": t1, "precision": precision, **record,
               "rows": rows}
-    out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / f"{name}.json").write_text(json.dumps(result, indent=1))
     (out_dir / f"{name}.md").write_text(table(result))
     plot(result, out_dir / f"{name}.png")

@@ -133,6 +133,12 @@ def test_bench_times_the_weights_it_is_given(small_weights, tmp_path):
     clear_error(hgca("bench", "--widths", "", "--weights", named_like_a_result, "--out", tmp_path / "r",
                      "--name", "c"), "would overwrite an input")
     assert named_like_a_result.read_bytes() == small_weights.read_bytes()
+    a_file = tmp_path / "r" / "b.md"                  # --out naming a file: refused, the file kept
+    kept = a_file.read_bytes()
+    clear_error(hgca("bench", "--widths", "", "--weights", small_weights, "--out", a_file), "is not a folder")
+    assert a_file.read_bytes() == kept
+    clear_error(hgca("bench", "--widths", "", "--weights", small_weights, "--out", a_file / "sub"),
+                "cannot make the output folder")
 
 
 def test_t1_zero_means_the_weights_own_steps(small_weights, tmp_path):

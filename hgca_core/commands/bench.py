@@ -30,9 +30,11 @@ def run(args: argparse.Namespace) -> int:
     name = args.name or f"completion_{args.stage}_{args.device.split(':')[0]}"
     load_models(args.stage, args.weights, args.fine_weights, "cpu")   # a bad file fails here, before any run
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise InputError("output folder is not a folder", str(out))
-    out.mkdir(parents=True, exist_ok=True)
+    if not out.exists():          # a new results folder is made (the default is benchmarks/results); what is there
+        try:                      # already, a file in its place or an unwritable folder, `check_outputs` judges
+            out.mkdir(parents=True)
+        except OSError as exc:
+            raise InputError(f"cannot make the output folder ({exc.strerror})", str(out)) from None
     check_outputs([out / f"{name}.{ext}" for ext in ("json", "md", "png")], [args.weights, args.fine_weights])
     result = bench_run(widths, not args.no_default, args.stage, args.device, args.t1, out, name,
                        precision=args.precision, weights=args.weights, fine_weights=args.fine_weights)
