@@ -249,7 +249,8 @@ LEGACY_ROLES = {"hgca": "coarse", "gca": "noplanner"}   # results files before r
 
 def merge_weights(record: dict, old: dict, path: str) -> dict:
     """The weights record of a table with reused rows: each role once, the run's own or the reused file's. A role
-    both ran with weights of another digest is refused (the table would mix two models under one name)."""
+    the reused rows ran with other weights (another digest) than this run is refused: the table would mix two
+    models under one name."""
     from hgca_core.errors import InputError
 
     files, digests = dict(record["weights"]), dict(record["weights_sha256"])

@@ -141,12 +141,12 @@ def blend_files(a: str | os.PathLike, b: str | os.PathLike, t: float) -> dict:
     return {**blobs[0], "state_dict": state, "meta": meta}
 
 
-LINEAGE_KEYS = ("steps", "train_wall_s", "data", "sessions", "notes", "blend", "init")
+LINEAGE_KEYS = ("steps", "train_wall_s", "data", "seed", "sessions", "notes", "blend", "init")
 
 
 def lineage(path: str | os.PathLike, meta: dict) -> dict:
     """The record of the weights at `path` that a file made from them keeps (a blend's two sources, a run's
-    `--init-from`): content digest, steps, wall time, data, sessions and notes, and their own blend or start,
+    `--init-from`): content digest, steps, wall time, data, seed, sessions and notes, and their own blend or start,
     nested. Why: a file's card must name every session and device its tensors come from, not only the last
     run's (a blend of a blend, or a fine-tune of one, lost the earlier hardware and steps before session 37)."""
     return {"file": str(path), "sha256": file_digest(path), **{k: meta[k] for k in LINEAGE_KEYS if k in meta}}

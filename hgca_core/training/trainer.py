@@ -188,14 +188,14 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
     (`weights.load_into`: new free-space inputs start at zero); the run's notes record it."""
     if precision not in ("fp32", "bf16"):
         raise InputError(f"training precision must be fp32 or bf16, not {precision!r}")
+    start_seed = 0 if seed is None else int(seed)
+    if start_seed < 0:
+        raise InputError(f"the seed must be 0 or more, not {seed}")
     train_dtype = torch.bfloat16 if precision == "bf16" else None
     rank, world, dev = _dist(device)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "ckpt.pt"
-    start_seed = 0 if seed is None else int(seed)
-    if start_seed < 0:
-        raise InputError(f"the seed must be 0 or more, not {seed}")
     torch.manual_seed(start_seed + rank)      # seeds the CPU generator and every GPU's
     module = task.build().to(dev)
     optim = torch.optim.Adam(module.parameters(), lr=LR if lr is None else lr)

@@ -422,6 +422,13 @@ def test_the_seed_starts_a_new_runs_streams_and_a_resume_keeps_them(tiny_dataset
     assert (a["state"]["seed"], b["state"]["seed"]) == (0, 1)
     assert run_record(b)["seed"] == 1 and _trained(run_record(b)).endswith(", seed 1")
     assert "seed" not in _trained(run_record(a))
+    from hgca_core.errors import InputError
+    from hgca_core.models.weights import lineage
+
+    with pytest.raises(InputError, match="seed must be 0 or more"):
+        train(_task(tiny_dataset), tmp_path / "neg", seed=-1, **kw)
+    assert not (tmp_path / "neg").exists()                                     # refused before the run folder
+    assert lineage(tmp_path / "b" / "ckpt.pt", run_record(b))["seed"] == 1     # a blend or start keeps it
 
     cmd = [sys.executable, "-m", "hgca_core.cli", "train", "coarse", "--data", str(tiny_dataset), "--out",
            str(tmp_path / "b"), "--resume", "--max-steps", "1", "--batch", "2", "--buffer", "3", "--crop", "24",
