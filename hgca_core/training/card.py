@@ -78,7 +78,13 @@ lowers the AV2 shares further and costs recall (alone, k = 6: 4.0 / 14.1 / 9.2 p
 and its 0.3 blend, the shipped file, keeps AV2 shares 1.4 and 1.2 points lower than session 33's for 1.2 / 4.0 / 5.5
 points less recall (k = 12; `recipe_s38.md`). How much the chain grows swings far within a few hundred training steps
 (`real_scans_coarse_ft373.md`; checkpoints of one run 1,060 steps apart differ by 2.4-2.8 points on each real log,
-`recipe_s32.md`), so these weights are one selected point of that swing, not a settled optimum. Much of that swing is
+`recipe_s32.md`), so these weights are one selected point of that swing, not a settled optimum. Runs that differ only
+in their seed swing as far: three runs of session 40's recipe on the same 1,460 scenes from the same start for the same
+1,372 steps (`hgca train --seed 0 / 1 / 2`), each blended 0.3 as the shipped file is, recover 44.5 / 42.8 / 39.5 % (AV2
+7fab), 43.5 / 40.1 / 38.1 % (adcf) and 41.5 / 32.3 / 26.2 % (nuScenes) of the cut-away cells and put 6.6 / 8.1 / 5.2,
+8.9 / 10.6 / 9.4 and 15.0 / 12.1 / 8.2 % of their above-cut growth where the rays saw empty (k = 6; standard deviation
+between the runs 1.4 / 0.9 / 3.4 points, against 0.5-0.6 within a run; `recipe_s41.md`), and the shipped file lies
+within that spread on every log. Much of the swing between checkpoints is
 BatchNorm's statistics alone: with session 12's `coarse.pt`'s parameters and statistics averaged over 400 training
 batches (precise BN), the coarse stage grows 1.7-4.1x the cells above a 2 m cut on the real logs, recovers 54.9 / 57.0 /
 55.6 % of the cut-away cells (AV2 7fab / adcf / nuScenes) and puts 16.3 / 17.7 / 16.9 % of that growth where the rays
