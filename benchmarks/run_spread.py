@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cut_frontier import points  # noqa: E402  (benchmarks reuse each other's readers)
+from cut_frontier import _legend, points  # noqa: E402  (benchmarks reuse each other's readers)
 from keep_sweep import known_rows  # noqa: E402
 
 from hgca_core.errors import InputError  # noqa: E402
@@ -108,9 +108,10 @@ def plot(result: dict[str, dict[str, dict]], path: Path) -> None:
         ax.set_xlabel("2 m recall (%) ↑")
         ax.set_ylabel("above-cut growth in observed empty (%) ↓")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+    # one legend under the panels: group names are long, and inside a panel they hide its points
+    fig.legend(*_legend(axes[0]), loc="lower center", ncol=1, fontsize=8, frameon=False)
     fig.suptitle("runs (o, ± s.e. of k samples) and their group mean (x, ± sd between runs)", fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.05 * len(names) + 0.02, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
