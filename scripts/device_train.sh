@@ -28,7 +28,9 @@
 # default 6, the paper's), LR, INIT (weights to start from), TURN (share of inputs turned by a random yaw, default 0),
 # FROZEN=1 (--frozen-bn: BatchNorm keeps INIT's running statistics), CUT_FREE=1 (--cut-free-loss: the free-space weight
 # also on what a cut input's uncut scan saw empty), DISTILL=MU (--distill: cut inputs' targets move MU of the way to the
-# probabilities of TEACHER, default INIT), ABOVE=1 (--distill-above: only the cells at and above the cut move); and for
+# probabilities of TEACHER, default INIT), ABOVE=1 (--distill-above: only the cells at and above the cut move), SEED (a
+# new run's --seed, default 0: VARIANTS="s0:SEED=0 s1:SEED=1 s2:SEED=2" trains three seeds of one recipe side by side,
+# whose spread `benchmarks/run_spread.py` measures); and for
 # the call: RESUME=1 (a later call on the still-warm machine continues each VARIANTS name's run of an earlier call
 # from its checkpoint in RUN, for MINUTES more, keeping the run's recipe, lr and teacher, and saying which of a
 # variant's settings other than MINUTES and BATCH it ignores; carry the same data),
@@ -65,7 +67,7 @@ fi
 VARIANTS=${VARIANTS:-coarse_gpu}
 PY=${PY:-python3}
 RUN=${RUN:-/tmp/hgca_device_run}
-KEYS=" MINUTES BATCH LR TURN INIT FROZEN CUT_FREE DISTILL TEACHER ABOVE "
+KEYS=" MINUTES BATCH LR TURN INIT FROZEN CUT_FREE DISTILL TEACHER ABOVE SEED "
 [ -n "${DATA// /}" ] || fail "no packed data: pack a dataset into gpu_data/<name> and carry gpu_data"
 read -r -a RUNS <<< "$VARIANTS"
 [ "${#RUNS[@]}" -le 3 ] || fail "VARIANTS names ${#RUNS[@]} runs; at most 3 fit the device tool's 8 returned files"
@@ -96,7 +98,8 @@ train_one() {  # one variant; called in a subshell, so its settings stay its own
   [ "${DISTILL:-0}" != 0 ] && flags+=(--distill "$DISTILL")
   [ -n "${TEACHER:-}" ] && flags+=(--teacher "$TEACHER")
   [ "${ABOVE:-0}" = 1 ] && flags+=(--distill-above)
-  local start=(--init-from "$INIT" --free-space --free-weight 8 --cut 0.5 --focus 0.5 --lr "$LR" --turn "$TURN")
+  local start=(--init-from "$INIT" --free-space --free-weight 8 --cut 0.5 --focus 0.5 --lr "$LR" --turn "$TURN"
+               --seed "${SEED:-0}")
   if [ "${RESUME:-0}" = 1 ]; then  # the run of an earlier call on this warm machine, with the recipe it had
     [ -f "$RUN/$name/ckpt.pt" ] || { echo "[$name] RESUME=1 but no $RUN/$name/ckpt.pt: the machine was given back"\
       "(or another VARIANTS name); start it without RESUME" >&2; return 2; }

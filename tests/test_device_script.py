@@ -137,3 +137,16 @@ def test_device_script_resume_continues_each_run_with_its_own_recipe(tiny_datase
     missing = run_script({"DATA": str(packed), "OUT": str(tmp_path / "o3"), "MINUTES": "0.05", "VARIANTS": "b",
                           "RESUME": "1"}, tmp_path)
     assert missing.returncode == 2 and "RESUME=1 but no" in missing.stderr + missing.stdout
+
+
+def test_device_script_trains_seeds_of_one_recipe_side_by_side(tiny_dataset, tmp_path):
+    """VARIANTS="s0:SEED=0 s1:SEED=1": runs that differ only in `hgca train --seed`, each recorded in its weights,
+    so a lent GPU can give the spread between runs of one recipe (benchmarks/run_spread.py)."""
+    packed = tmp_path / "gpu_data" / "tiny"
+    assert main(["synth", "--pack", str(tiny_dataset), "--out", str(packed)]) == 0
+    out = tmp_path / "o"
+    r = run_script({"DATA": str(packed), "OUT": str(out), "MINUTES": "0.05", "BATCH": "2",
+                    "VARIANTS": "s0:SEED=0 s1:SEED=1"}, tmp_path)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    metas = {n: load_file(out / f"{n}.pt")["meta"] for n in ("s0", "s1")}
+    assert (metas["s0"]["seed"], metas["s1"]["seed"]) == (0, 1)
