@@ -61,8 +61,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--render writes a PNG, not {Path(args.render).suffix or 'a file without suffix'}",
                          args.render)
     gemm_dtype = resolve_precision(args.precision)
-    rows_of = {m: [m] for m in methods}
-    rows_of["hgca-full"] = ["hgca-10cm", "hgca-implicit"]
+    rows_of = {m: list(ROWS_OF.get(m, (m,))) for m in methods}
     computed = {ROW_NAMES[r][0] for m in methods for r in rows_of[m]}
     record = weights_record(methods, args.weights, args.fine_weights, args.noplanner_weights)
     reused: dict = {}
@@ -238,12 +237,11 @@ def render_scene(path: Path, rows: list[tuple[str, "trimesh.Trimesh"]], png: str
     gallery(panels, png, columns=4, title=title)
 
 
-# row key -> (table name, representation); the weights roles (`weights.weights_files`) each row runs
+# row key -> (table name, representation); the weights a row runs are its method's (`weights.weights_files`)
 ROW_NAMES = {"input": ("input", "20cm^3 points"), "poisson": ("Poisson (Open3D)", "mesh"),
              "gca": ("GCA (no planner)", "20cm^3"), "hgca": ("hGCA coarse (planner)", "20cm^3"),
              "hgca-10cm": ("hGCA (10 cm voxels)", "10cm^3"), "hgca-implicit": ("hGCA (implicit)", "implicit")}
-ROW_ROLES = {"GCA (no planner)": ("noplanner",), "hGCA coarse (planner)": ("coarse",),
-             "hGCA (10 cm voxels)": ("coarse", "fine"), "hGCA (implicit)": ("coarse", "fine")}
+ROWS_OF = {"hgca-full": ("hgca-10cm", "hgca-implicit")}   # a method's rows; any other method is its one row
 LEGACY_ROLES = {"hgca": "coarse", "gca": "noplanner"}   # results files before roles named weights by method
 
 
@@ -289,7 +287,10 @@ def reused_rows(path: str, files: list[str], split: str, samples: int, skip: set
         if "seconds_per_scene" in r and "seconds_per_completion" not in r:  # files from before per-completion times
             r["seconds_per_completion"] = r.pop("seconds_per_scene") / max(1, int(r.get("k", 1)))
         rows[name] = r
-    roles = {role for name in rows for role in ROW_ROLES.get(name, ())}
+    from hgca_core.models.weights import weights_files
+
+    method = {name: next((m for m, rs in ROWS_OF.items() if key in rs), key) for key, (name, _) in ROW_NAMES.items()}
+    roles = set(weights_files([method[name] for name in rows if name in method]))   # the one role table
     named = old.get("weights") if isinstance(old.get("weights"), dict) else {}
     named = {LEGACY_ROLES.get(k, k): v for k, v in named.items()}
     digests = old.get("weights_sha256") if isinstance(old.get("weights_sha256"), dict) else {}
