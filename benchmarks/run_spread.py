@@ -14,12 +14,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import statistics
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cut_frontier import _legend, points  # noqa: E402  (benchmarks reuse each other's readers)
-from keep_sweep import known_rows  # noqa: E402
+from keep_sweep import pooled, scores  # noqa: E402
 
 from hgca_core.errors import InputError  # noqa: E402
 from hgca_core.io.paths import check_outputs  # noqa: E402
@@ -36,10 +37,7 @@ def parse_group(item: str) -> tuple[str, list[str]]:
 
 def _sd(values: list[float]) -> float | None:
     """Sample standard deviation (n - 1), None for a single run: one run says nothing about the spread."""
-    if len(values) < 2:
-        return None
-    m = sum(values) / len(values)
-    return math.sqrt(sum((v - m) ** 2 for v in values) / (len(values) - 1))
+    return statistics.stdev(values) if len(values) > 1 else None
 
 
 def spread(groups: dict[str, list[str]]) -> dict[str, dict[str, dict]]:
@@ -47,24 +45,25 @@ def spread(groups: dict[str, list[str]]) -> dict[str, dict[str, dict]]:
     deviation between its runs, the root mean square of the runs' own standard errors of the share (what one run's
     k samples resolve) and their ratio (about 1 where runs differ only by sampling; above, the runs themselves
     differ)."""
-    rows = {f"{g} #{i + 1}": known_rows([f"x=,{spec}"])["x"] for g, specs in groups.items()
-            for i, spec in enumerate(specs)}
-    pts = points(rows)
+    labels = {g: [f"{g} #{i + 1}" for i in range(len(specs))] for g, specs in groups.items()}
+    none = {"inputs": {}}   # real logs only: no val sweeps
+    pts = points({lab: scores(none, pooled(spec)) for g, specs in groups.items()
+                  for lab, spec in zip(labels[g], specs)})
     out: dict[str, dict[str, dict]] = {}
     for log, by_label in pts.items():
-        for g, specs in groups.items():
+        for g in groups:
             runs = [(lab, *by_label[lab][:2], by_label[lab][3], by_label[lab][4])
-                    for lab in (f"{g} #{i + 1}" for i in range(len(specs))) if lab in by_label]
+                    for lab in labels[g] if lab in by_label]
             if not runs:
                 continue
             recall, share = [r[1] for r in runs], [r[2] for r in runs]
             sems = [r[3] for r in runs if r[3] is not None]
-            within = math.sqrt(sum(s * s for s in sems) / len(sems)) if sems else None
+            within = math.sqrt(statistics.fmean(s * s for s in sems)) if sems else None
             between = _sd(share)
             out.setdefault(log, {})[g] = {
                 "runs": [dict(zip(("label", "recall", "share", "sem", "k"), r)) for r in runs],
-                "recall_mean": sum(recall) / len(recall), "recall_sd": _sd(recall),
-                "share_mean": sum(share) / len(share), "share_sd": between, "share_sem_within": within,
+                "recall_mean": statistics.fmean(recall), "recall_sd": _sd(recall),
+                "share_mean": statistics.fmean(share), "share_sd": between, "share_sem_within": within,
                 "ratio": between / within if between is not None and within else None}
     return out
 
@@ -127,13 +126,17 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--out {out}: name a .json file (the .md and .png are written beside it)")
     try:
         groups = dict(parse_group(g) for g in args.group)
-        files = [f for specs in groups.values() for spec in specs for f in spec.split("+")]
-        check_outputs([out, out.with_suffix(".md"), out.with_suffix(".png")], files)
-        result = spread(groups)
-    except (ValueError, OSError) as e:   # a malformed --group, a results file missing, not JSON or not poolable
+    except ValueError as e:
         p.error(f"--group {e}")
-    except InputError as e:
+    try:   # the project's one output check: never an input (by path or inode), a writable folder
+        check_outputs([out, out.with_suffix(".md"), out.with_suffix(".png")],
+                      [f for specs in groups.values() for spec in specs for f in spec.split("+")])
+    except InputError as e:   # before the ValueError below, which it is too: it was reported as a --group error
         p.error(f"--out {e}")
+    try:
+        result = spread(groups)
+    except (ValueError, OSError) as e:   # a results file missing, not JSON or not poolable
+        p.error(f"--group {e}")
     out.write_text(json.dumps({"groups": groups, "spread": result}, indent=1))
     out.with_suffix(".md").write_text(
         "# Spread between training runs of one recipe on the real logs (cut 2 m)\n\n"

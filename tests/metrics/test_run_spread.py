@@ -56,5 +56,6 @@ def test_bad_groups_and_an_output_over_an_input_are_refused(tmp_path, capsys):
         assert e.value.code == 2 and said in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:
         run_spread.main(["--group", f"A={a}", "--out", a])
-    assert e.value.code == 2 and "overwrite an input" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "error: --out" in err and "overwrite an input" in err
     assert json.loads(Path(a).read_text())["config"]["seed"] == 0     # the input kept
