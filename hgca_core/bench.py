@@ -86,7 +86,8 @@ def run_one(width: float, depth: float, stage: str, device: str, t1: int | None,
             "coarse_cells": int(len(res.coarse_cells)), "triangles": int(len(res.mesh.faces)),
             "seconds": round(total, 2), "stages_s": {k: round(v, 3) for k, v in stages.items()},
             "steps": {k: clock.totals[k] for k in ("coarse", "fine") if k in clock.totals},
-            "peak_rss_gib": round(rss / 2**30, 3), "gpu_peak_gib": None if gpu is None else round(gpu / 2**30, 3)}
+            "peak_rss_gib": round(rss / 2**30, 3), "gpu_peak_gib": None if gpu is None else round(gpu / 2**30, 3),
+            "minor_faults": resource.getrusage(resource.RUSAGE_SELF).ru_minflt}
 
 
 def run(widths: list[float], default: bool, stage: str, device: str, t1: int | None, out_dir: Path,
@@ -168,6 +169,10 @@ def plot(result: dict, path: Path) -> None:
 
 
 def _worker(job: str) -> int:
+    """One configuration, in a process set up as the CLI's (`tune_allocator`), so its times are a user's."""
+    from hgca_core.hardware import tune_allocator
+
+    tune_allocator()
     args = json.loads(job)
     print(json.dumps(run_one(args["width"], args["depth"], args["stage"], args["device"], args["t1"], args["seed"],
                              args.get("precision", "auto"), args.get("weights"), args.get("fine_weights"))))

@@ -15,6 +15,7 @@ import sys
 import warnings
 
 from hgca_core import __version__, interrupt
+from hgca_core.hardware import tune_allocator
 from hgca_core.errors import HgcaError, HgcaWarning
 
 COMMANDS = {
@@ -56,6 +57,9 @@ def _load(name: str, argv: list[str]):
 # (benchmarks/results/mesh_quality_s5.md). The variable is read once, when torch loads its OpenMP runtime, so it is
 # set before any command imports torch; a value the user set wins.
 OMP_DEFAULTS = {"OMP_WAIT_POLICY": "PASSIVE"}
+# Every command but `train` runs with glibc's allocator set up by `hardware.tune_allocator` (one arena): measured on
+# completions (`benchmarks/results/allocator_*.md`). Training keeps glibc's defaults: it was not measured with the
+# setting, and every recipe's step times so far were taken without it.
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -63,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     if "torch" not in sys.modules:
         for key, value in OMP_DEFAULTS.items():
             os.environ.setdefault(key, value)
+    if argv[:1] != ["train"]:
+        tune_allocator()
     previous = interrupt.install(argv[0] if argv[:1] and argv[0] in COMMANDS else "")
     try:
         return _main(argv)

@@ -5,8 +5,10 @@ commands that take `--device`; it sits outside both so that training never impor
 """
 from __future__ import annotations
 
+import ctypes
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -15,6 +17,50 @@ from hgca_core.errors import InputError
 
 if TYPE_CHECKING:
     import torch
+
+
+# glibc's mallopt parameter (<malloc.h>), our value, and the variables by which a user tunes glibc's allocator at
+# start-up (any of them set: `tune_allocator` leaves the allocator alone).
+M_ARENA_MAX = -8
+ALLOCATOR = {M_ARENA_MAX: 1}
+ALLOCATOR_ENV = ("MALLOC_ARENA_MAX", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
+# `HGCA_ALLOCATOR=system` keeps glibc's defaults (for A/B measurements, or a user who preloads another allocator).
+ALLOCATOR_SWITCH = "HGCA_ALLOCATOR"
+
+
+def allocator_tunable() -> bool:
+    """Whether `tune_allocator` may act: glibc on Linux, not switched off, no MALLOC_* tuning of the user's own."""
+    if os.environ.get(ALLOCATOR_SWITCH, "") == "system" or not sys.platform.startswith("linux"):
+        return False
+    if any(k in os.environ for k in ALLOCATOR_ENV):
+        return False
+    try:
+        return os.confstr("CS_GNU_LIBC_VERSION").startswith("glibc")
+    except (ValueError, OSError):
+        return False
+
+
+def tune_allocator() -> bool:
+    """Make glibc serve every thread from one arena; True if it took effect. Call it before the process starts
+    threads (the CLI does, before any command imports torch).
+
+    Why: glibc gives each new thread an arena of its own (up to 8 per core), and torch's OpenMP threads free
+    blocks there that the other threads never reuse, so they pile up. One arena took the peak RSS of a
+    default-region full completion from 2.55 to 2.31 GiB (40 x 120 m: 4.27 to 3.97 GiB) at the same time, measured
+    in fresh processes, interleaved (`benchmarks/completion_ab.py allocator`, `benchmarks/results/allocator_*.md`).
+    Keeping freed blocks (a 64 MiB mmap threshold) also cut the full stage's ~4.5 million page faults to ~1 million
+    and its time by a sixth, but took the peak past the 2.7 GiB budget in some runs
+    (`benchmarks/results/allocator_grid_s42.md`), so it is not set. Results do not change, only where memory comes
+    from. Only one-shot processes call this: the CLI (and with it the Blender add-on's jobs) and the bench worker;
+    Ray's workers keep glibc's defaults."""
+    if not allocator_tunable():
+        return False
+    try:
+        mallopt = ctypes.CDLL("libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    return all([bool(mallopt(param, value)) for param, value in ALLOCATOR.items()])
 
 
 def cpu_name() -> str:

@@ -18,3 +18,60 @@ def test_omp_wait_policy_defaults_to_passive(given: str | None, want: str) -> No
         env["OMP_WAIT_POLICY"] = given
     out = subprocess.run([sys.executable, "-c", PROBE], env=env, capture_output=True, text=True, timeout=60)
     assert out.stdout.strip().splitlines()[-1] == want, out.stderr
+
+
+# After the CLI's set-up, four threads allocate a block each; print how many arenas (heaps) glibc then holds.
+ARENA_PROBE = """
+import ctypes, os, sys, tempfile, threading
+import numpy as np
+from hgca_core import cli
+sys.argv = ['hgca', '--version']
+try:
+    cli.main()
+except SystemExit:
+    pass
+keep = []
+threads = [threading.Thread(target=lambda: keep.append(np.ones(1 << 17))) for _ in range(4)]
+for t in threads:
+    t.start()
+for t in threads:
+    t.join()
+libc = ctypes.CDLL("libc.so.6")
+libc.fdopen.restype, libc.fdopen.argtypes = ctypes.c_void_p, [ctypes.c_int, ctypes.c_char_p]
+libc.malloc_info.argtypes, libc.fclose.argtypes = [ctypes.c_int, ctypes.c_void_p], [ctypes.c_void_p]
+with tempfile.TemporaryFile() as f:
+    fp = libc.fdopen(os.dup(f.fileno()), b"w")
+    libc.malloc_info(0, fp)
+    libc.fclose(fp)
+    f.seek(0)
+    print(f.read().decode().count("<heap nr="))
+"""
+
+glibc_only = pytest.mark.skipif(not sys.platform.startswith("linux") or not os.confstr("CS_GNU_LIBC_VERSION"),
+                                reason="the allocator tuning is glibc's")
+
+
+def _arenas(**extra: str) -> int:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "HGCA_ALLOCATOR"}
+    env.update(extra)
+    out = subprocess.run([sys.executable, "-c", ARENA_PROBE], env=env, capture_output=True, text=True, timeout=60)
+    return int(out.stdout.strip().splitlines()[-1])
+
+
+@glibc_only
+def test_cli_serves_every_thread_from_one_arena() -> None:
+    """glibc's defaults give new threads arenas of their own; after the CLI's set-up they share one. A user's own
+    MALLOC_* setting, or HGCA_ALLOCATOR=system, is left alone."""
+    assert _arenas() == 1
+    assert _arenas(HGCA_ALLOCATOR="system") > 1
+    assert _arenas(MALLOC_TRIM_THRESHOLD_="1000000") > 1
+
+
+def test_tune_allocator_respects_the_switch(monkeypatch: pytest.MonkeyPatch) -> None:
+    from hgca_core import hardware
+
+    monkeypatch.setenv("HGCA_ALLOCATOR", "system")
+    assert hardware.tune_allocator() is False
+    monkeypatch.delenv("HGCA_ALLOCATOR")
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "1000")
+    assert hardware.tune_allocator() is False
