@@ -1,14 +1,13 @@
 """Completion time A/B in fresh processes, interleaved: glibc's allocator as the CLI sets it up against its defaults,
 or an earlier revision of the code against this one, on one machine in one sitting.
 
-    python benchmarks/completion_ab.py allocator [--pairs 5] [--stage coarse] [--width W] [--train-data DIR ...]
+    python benchmarks/completion_ab.py allocator [--pairs 5] [--stage coarse] [--width W]
     python benchmarks/completion_ab.py base REV [--pairs 3] [--stage coarse] [--width W]
 
 Each run is `hgca bench`'s worker on its default region (38.4 x 38.4 x 8 m, synthetic drive; or a 40 x W m strip)
 in its own process, so it pays what a user's one-shot command pays. `allocator`: this tree with
-`hardware.tune_allocator` ("tuned") and with `HGCA_ALLOCATOR=system` (glibc's defaults); with --train-data also
-`hgca train coarse` for --train-steps steps from scratch. `base REV`: REV checked out in a temporary git worktree with its own shipped weights, run by
-this venv, against this tree. Why interleaved (A B B A A B ...): this VM's speed drifts by up to ~35 % within an
+`hardware.tune_allocator` ("tuned") and with `HGCA_ALLOCATOR=system` (glibc's defaults). `base REV`: REV checked
+out in a temporary git worktree with its own shipped weights, run by this venv, against this tree. Why interleaved (A B B A A B ...): this VM's speed drifts by up to ~35 % within an
 hour, so a target such as "no worse than today" is only answered by the two codes side by side. Reported per side:
 each run's seconds, minor page faults (where the worker reports them) and peak RSS, medians, and a PNG of the runs
 in the order they ran.
@@ -18,12 +17,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -62,23 +59,6 @@ def completion_run(side: Side, stage: str, width: float | None = None) -> dict:
     row = json.loads(proc.stdout.strip().splitlines()[-1])
     return {k: row[k] for k in ("seconds", "stages_s", "minor_faults", "peak_rss_gib", "points", "coarse_cells")
             if k in row}
-
-
-def training_run(side: Side, data: list[str], steps: int) -> dict:
-    """`hgca train coarse` for `steps` steps from scratch in a fresh folder: wall seconds and the child's minor
-    faults (a difference of getrusage of the children)."""
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_minflt
-    with tempfile.TemporaryDirectory(prefix="hgca_ab_") as tmp:
-        cmd = [sys.executable, "-m", "hgca_core.cli", "train", "coarse", "--data", *data, "--out", f"{tmp}/run",
-               "--max-steps", str(steps), "--minutes", "30", "--batch", "6", "--threads", "2", "--free-space",
-               "--precision", "bf16", "--val-every", "1000", "--no-progress"]
-        t = time.perf_counter()
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=side.environ(), cwd=side.tree)
-        seconds = time.perf_counter() - t
-    if proc.returncode:
-        sys.exit(f"completion_ab.py: hgca train ({side.name}) failed: {proc.stderr.strip().splitlines()[-1:]}")
-    return {"seconds": round(seconds, 2),
-            "minor_faults": resource.getrusage(resource.RUSAGE_CHILDREN).ru_minflt - before}
 
 
 def alternate(sides: tuple[Side, Side], pairs: int) -> list[Side]:
@@ -171,8 +151,6 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="mode", required=True)
     a = sub.add_parser("allocator", help="this tree, tuned allocator vs glibc's defaults")
-    a.add_argument("--train-data", nargs="+", default=None, metavar="DIR", help="also A/B `hgca train coarse`")
-    a.add_argument("--train-steps", type=int, default=6)
     b = sub.add_parser("base", help="an earlier revision vs this tree")
     b.add_argument("rev")
     for q in (a, b):
@@ -199,9 +177,6 @@ def main(argv: list[str] | None = None) -> int:
             where = "default region" if args.width is None else f"40 x {args.width:g} m"
             blocks = {f"completion, stage {args.stage}, {where}":
                       run_block(sides, args.pairs, lambda s: completion_run(s, args.stage, args.width))}
-            if args.mode == "allocator" and args.train_data:
-                blocks[f"training, {args.train_steps} steps from scratch"] = run_block(
-                    sides, args.pairs, lambda s: training_run(s, args.train_data, args.train_steps))
         finally:
             if args.mode == "base":
                 subprocess.run(["git", "worktree", "remove", "--force", f"{tmp}/tree"], cwd=REPO, capture_output=True)

@@ -15,8 +15,8 @@ import sys
 import warnings
 
 from hgca_core import __version__, interrupt
-from hgca_core.hardware import tune_allocator
 from hgca_core.errors import HgcaError, HgcaWarning
+from hgca_core.hardware import tune_allocator
 
 COMMANDS = {
     "info": "print point count, bounds and attributes of scan files",

@@ -45,8 +45,8 @@ def tune_allocator() -> bool:
     threads (the CLI does, before any command imports torch).
 
     Why: glibc gives each new thread an arena of its own (up to 8 per core), and torch's OpenMP threads free
-    blocks there that the other threads never reuse, so they pile up. One arena took the peak RSS of a
-    default-region full completion from 2.55 to 2.31 GiB (40 x 120 m: 4.27 to 3.97 GiB) at the same time, measured
+    blocks there that the other threads never reuse, so they pile up. One arena took the median peak RSS of a
+    default-region full completion from 2.50 to 2.29 GiB (40 x 120 m: 4.38 to 4.04 GiB) at the same time, measured
     in fresh processes, interleaved (`benchmarks/completion_ab.py allocator`, `benchmarks/results/allocator_*.md`).
     Keeping freed blocks (a 64 MiB mmap threshold) also cut the full stage's ~4.5 million page faults to ~1 million
     and its time by a sixth, but took the peak past the 2.7 GiB budget in some runs
