@@ -77,7 +77,7 @@ def run_one(width: float, depth: float, stage: str, device: str, t1: int | None,
     total = time.perf_counter() - t_start
     stages = dict(clock.seconds)
     stages["write"] = time.perf_counter() - t_mesh
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    usage = resource.getrusage(resource.RUSAGE_SELF)   # peak RSS and page faults, one reading
     gpu = torch.cuda.max_memory_allocated() if device.startswith("cuda") else None
     from hgca_core.nn.conv import precision_name, resolve_precision
 
@@ -86,8 +86,8 @@ def run_one(width: float, depth: float, stage: str, device: str, t1: int | None,
             "coarse_cells": int(len(res.coarse_cells)), "triangles": int(len(res.mesh.faces)),
             "seconds": round(total, 2), "stages_s": {k: round(v, 3) for k, v in stages.items()},
             "steps": {k: clock.totals[k] for k in ("coarse", "fine") if k in clock.totals},
-            "peak_rss_gib": round(rss / 2**30, 3), "gpu_peak_gib": None if gpu is None else round(gpu / 2**30, 3),
-            "minor_faults": resource.getrusage(resource.RUSAGE_SELF).ru_minflt}
+            "peak_rss_gib": round(usage.ru_maxrss * 1024 / 2**30, 3), "minor_faults": usage.ru_minflt,
+            "gpu_peak_gib": None if gpu is None else round(gpu / 2**30, 3)}
 
 
 def run(widths: list[float], default: bool, stage: str, device: str, t1: int | None, out_dir: Path,
