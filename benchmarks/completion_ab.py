@@ -7,8 +7,9 @@ or an earlier revision of the code against this one, on one machine in one sitti
 Each run is `hgca bench`'s worker on its default region (38.4 x 38.4 x 8 m, synthetic drive; or a 40 x W m strip)
 in its own process, so it pays what a user's one-shot command pays. `allocator`: this tree with
 `hardware.tune_allocator` ("tuned") and with `HGCA_ALLOCATOR=system` (glibc's defaults). `base REV`: REV checked
-out in a temporary git worktree with its own shipped weights, run by this venv, against this tree. Why interleaved (A B B A A B ...): this VM's speed drifts by up to ~35 % within an
-hour, so a target such as "no worse than today" is only answered by the two codes side by side. Reported per side:
+out in a temporary git worktree with its own shipped weights, run by this venv, against this tree. Why interleaved
+(A B B A A B ...): this VM's speed drifts by up to ~35 % within an hour, so a target such as "no worse than today" is
+only answered by the two codes side by side. Reported per side:
 each run's seconds, minor page faults (where the worker reports them) and peak RSS, medians, and a PNG of the runs
 in the order they ran.
 """
