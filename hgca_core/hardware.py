@@ -50,9 +50,10 @@ def tune_allocator() -> bool:
     in fresh processes, interleaved (`benchmarks/completion_ab.py allocator`, `benchmarks/results/allocator_*.md`).
     Keeping freed blocks (a 64 MiB mmap threshold) also cut the full stage's ~4.5 million page faults to ~1 million
     and its time by a sixth, but took the peak past the 2.7 GiB budget in some runs
-    (`benchmarks/results/allocator_grid_s42.md`), so it is not set. Results do not change, only where memory comes
-    from. Only one-shot processes call this: the CLI (and with it the Blender add-on's jobs) and the bench worker;
-    Ray's workers keep glibc's defaults."""
+    (`benchmarks/results/allocator_grid_s42.md`), so it is not set; nor are torch's 2 MiB pages
+    (`THP_MEM_ALLOC_ENABLE`: 0.55 M faults, the time within the spread, +0.18 GiB, `huge_pages_full.md`). Results do
+    not change, only where memory comes from. Only one-shot processes call this: the CLI (and with it the Blender
+    add-on's jobs) and the bench worker; Ray's workers keep glibc's defaults."""
     if not allocator_tunable():
         return False
     try:

@@ -1,4 +1,5 @@
-"""The CLI's process environment: OpenMP threads wait passively unless the user says otherwise."""
+"""The CLI's process environment: OpenMP threads wait passively unless the user says otherwise; glibc serves every
+thread from one arena (but for `train`), unless switched off."""
 from __future__ import annotations
 
 import os
@@ -25,9 +26,8 @@ ARENA_PROBE = """
 import ctypes, os, sys, tempfile, threading
 import numpy as np
 from hgca_core import cli
-sys.argv = ['hgca', '--version']
 try:
-    cli.main()
+    cli.main(sys.argv[1:])
 except SystemExit:
     pass
 keep = []
@@ -51,10 +51,13 @@ glibc_only = pytest.mark.skipif(not sys.platform.startswith("linux") or not os.c
                                 reason="the allocator tuning is glibc's")
 
 
-def _arenas(**extra: str) -> int:
+def _arenas(*argv: str, **extra: str) -> int:
+    """glibc's heaps after `hgca ARGV` (default `--version`) set the probe process up."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "HGCA_ALLOCATOR"}
     env.update(extra)
-    out = subprocess.run([sys.executable, "-c", ARENA_PROBE], env=env, capture_output=True, text=True, timeout=60)
+    out = subprocess.run([sys.executable, "-c", ARENA_PROBE, *(argv or ("--version",))], env=env, capture_output=True,
+                         text=True, timeout=60)
+    assert out.stdout.strip(), out.stderr
     return int(out.stdout.strip().splitlines()[-1])
 
 
@@ -65,6 +68,12 @@ def test_cli_serves_every_thread_from_one_arena() -> None:
     assert _arenas() == 1
     assert _arenas(HGCA_ALLOCATOR="system") > 1
     assert _arenas(MALLOC_TRIM_THRESHOLD_="1000000") > 1
+
+
+@glibc_only
+def test_train_keeps_glibcs_arenas() -> None:
+    """`hgca train` keeps glibc's arenas (its recipes' step times were taken with them)."""
+    assert _arenas("train", "coarse", "--help") > 1
 
 
 def test_tune_allocator_respects_the_switch(monkeypatch: pytest.MonkeyPatch) -> None:

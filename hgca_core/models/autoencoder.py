@@ -215,8 +215,8 @@ class Autoencoder(nn.Module):
     def cell_features(self, cells4: torch.Tensor, latents: torch.Tensor) -> torch.Tensor:
         """Per-cell first-layer MLP features lin_h(h_c), h_c from the sparse convs (cells sorted by key)."""
         x = SparseTensor(cells4, latents.float(), check=False)
-        h = self.conv2(x.replace_feats(torch.relu(self.conv1(x).feats)))
-        h = torch.relu(h.feats + self.skip(x).feats)
+        h = self.conv2(x.replace_feats(torch.relu_(self.conv1(x).feats)))   # in place: maps of our own
+        h = torch.relu_(h.feats.add_(self.skip(x).feats))
         return self.lin_h(h)
 
     def blend(self, keys: torch.Tensor, hp: torch.Tensor, q: torch.Tensor,

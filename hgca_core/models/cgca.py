@@ -142,8 +142,9 @@ class CGCAKernel(nn.Module):
             u = self.up(SparseTensor(p.coords, h, 2, p.cache, check=False), x)  # reuses the down map
             # head(cat([feats, relu(u)])) with its first layer split by input block: no (M, 40) concatenation
             first, c = self.head[0], feats.shape[1]
-            hid = torch.addmm(first.bias, feats, first.weight[:, :c].T).addmm_(torch.relu(u.feats), first.weight[:, c:].T)
-            out = self.head[2](torch.relu(hid))
+            hid = torch.addmm(first.bias, feats, first.weight[:, :c].T)
+            hid.addmm_(torch.relu_(u.feats), first.weight[:, c:].T)     # u, hid: maps of our own, changed in place
+            out = self.head[2](torch.relu_(hid))
         return out[:, 0], out[:, 1:]
 
     def project(self, nbhd: torch.Tensor, state: torch.Tensor, z_state: torch.Tensor, x0: torch.Tensor,
@@ -168,15 +169,15 @@ class CGCAKernel(nn.Module):
             h = torch.addmm(lin.bias, pe, w_pe.T)
         if self.cfg.free_space and free is not None:
             rows = fs.at(free, nbhd).nonzero().squeeze(1)
-            h = h.index_add(0, rows, w[:, -1].expand(len(rows), -1))
+            h.index_add_(0, rows, w[:, -1].expand(len(rows), -1))
         nk = cs.pack(nbhd)
         for col, (cells, z) in enumerate(((state, z_state), (x0, z0))):
             keys, zs = _table(cells, z)
             idx = cs.lookup(nk, keys)
             rows = (idx >= 0).nonzero().squeeze(1)
             lat = w[:, 2 + col * k: 2 + (col + 1) * k]
-            h = h.index_add(0, rows, (zs[idx[rows]] @ lat.T) + w[:, col])   # membership flag + latent block
-        return torch.relu(h)
+            h.index_add_(0, rows, (zs[idx[rows]] @ lat.T) + w[:, col])   # membership flag + latent block
+        return torch.relu_(h)
 
 
 @torch.no_grad()

@@ -110,7 +110,9 @@ class GCAKernel(nn.Module):
             idx = pillar_index(x.coords, x.stride, hw)
             g = gamma.permute(0, 2, 3, 1).reshape(-1, c)[idx]
             b = beta.permute(0, 2, 3, 1).reshape(-1, c)[idx]
-            return x.replace_feats(x.feats * (1 + g) + b)
+            if torch.is_grad_enabled():
+                return x.replace_feats(x.feats * (1 + g) + b)
+            return x.replace_feats(x.feats.mul_(g.add_(1)).add_(b))     # inference: the U-Net's own map, in place
 
         return modulate
 

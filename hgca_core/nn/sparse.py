@@ -277,15 +277,29 @@ class SparseLinear(_ConvBase):
 
 # -- normalisation and activation -----------------------------------------------------------------
 class SparseBatchNorm(nn.Module):
-    """BatchNorm1d over the features of all active cells of the batch."""
+    """BatchNorm1d over the features of all active cells of the batch.
 
-    def __init__(self, channels: int, eps: float = 1e-5, momentum: float = 0.1, affine: bool = True) -> None:
+    `inplace`: the input's features are a fresh map that nothing else reads (a convolution's output). Then, at
+    inference on the CPU (running statistics, no autograd), they are normalised where they lie, bit for bit as
+    BatchNorm1d would: a fresh map costs a page fault per 4 KiB, which made BN + ReLU on a 890k x 32 map 9x slower
+    than in place (the fine stage's 10 cm maps). CUDA's caching allocator reuses its blocks, so CUDA keeps torch's
+    path, as does training (BN's backward needs its input)."""
+
+    def __init__(self, channels: int, eps: float = 1e-5, momentum: float = 0.1, affine: bool = True,
+                 inplace: bool = False) -> None:
         super().__init__()
         self.bn = nn.BatchNorm1d(channels, eps=eps, momentum=momentum, affine=affine)
+        self.inplace = inplace
 
     def forward(self, x: SparseTensor) -> SparseTensor:
-        return x.replace_feats(self.bn(x.feats))
-
+        bn, f = self.bn, x.feats
+        if (self.inplace and not bn.training and bn.running_mean is not None and f.is_cpu
+                and not torch.is_grad_enabled()):
+            spare = f.new_empty(0)
+            torch.ops.aten.native_batch_norm.out(f, bn.weight, bn.bias, bn.running_mean, bn.running_var, False, 0.0,
+                                                 bn.eps, out=f, save_mean=spare, save_invstd=spare.clone())
+            return x
+        return x.replace_feats(bn(f))
 
 class SparseReLU(nn.Module):
     def __init__(self, inplace: bool = False) -> None:

@@ -275,6 +275,30 @@ def test_norms(gen: torch.Generator) -> None:
     torch.testing.assert_close(z.var(0, unbiased=False), torch.ones(3), atol=1e-3, rtol=0)
 
 
+def test_inplace_norm_at_inference_is_batchnorm1d_bit_for_bit(gen: torch.Generator) -> None:
+    """`inplace` norms overwrite their input only at inference (eval, no autograd), with BatchNorm1d's exact result;
+    in training mode or with gradients on they leave it alone."""
+    coords = random_coords(gen, 2, 6, 0.5)
+    f = torch.randn(len(coords), 3, generator=gen) * 5 + 2
+    norm = SparseBatchNorm(3, inplace=True)
+    with torch.no_grad():
+        norm.bn.running_mean.copy_(torch.tensor([1.0, -2.0, 0.5]))
+        norm.bn.running_var.copy_(torch.tensor([4.0, 0.3, 2.0]))
+        norm.bn.weight.copy_(torch.tensor([0.7, 1.3, -0.2]))
+        norm.bn.bias.copy_(torch.tensor([0.1, 0.0, 3.0]))
+    want = norm.eval().bn(f)
+    x = SparseTensor(coords, f.clone())
+    with torch.no_grad():
+        y = norm(x)
+    assert y.feats.data_ptr() == x.feats.data_ptr() and torch.equal(y.feats, want)
+    for train, grad in ((False, True), (True, False)):
+        x = SparseTensor(coords, f.clone())
+        norm.train(train)
+        with torch.set_grad_enabled(grad):
+            y = norm(x)
+        assert torch.equal(x.feats, f) and y.feats.data_ptr() != x.feats.data_ptr()
+
+
 def test_empty_input(path: str) -> None:
     x = SparseTensor(torch.zeros((0, 4), dtype=torch.long), torch.zeros(0, 3))
     y = SubMConv3d(3, 4)(x)

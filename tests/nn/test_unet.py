@@ -102,3 +102,33 @@ def test_unet_overfits_tiny_occupancy(gen: torch.Generator) -> None:
     with torch.no_grad():
         acc = ((net(x).feats[:, 0] > 0).float() == target).float().mean()
     assert acc > 0.9
+
+
+def test_inference_in_place_matches_autograd_path_and_leaves_the_input_alone(gen: torch.Generator) -> None:
+    """At inference the blocks normalise, add and rectify their own maps in place; the result is bit for bit the
+    out-of-place path's (what runs when gradients are on), and the caller's features are not touched."""
+    torch.manual_seed(0)
+    coords = scene(gen)
+    net = SparseUNet(5, 3, channels=(8, 12, 16, 20, 24), blocks=2)
+    x = SparseTensor(coords, torch.randn(len(coords), 5, generator=gen) * 3 + 1)
+    with torch.no_grad():
+        for _ in range(3):          # running statistics away from (0, 1)
+            net(x)
+    net.eval()
+    before = x.feats.clone()
+    scale = 1 + torch.rand(20, generator=gen)
+
+    def modulate(level: int, h: SparseTensor) -> SparseTensor:
+        return h.replace_feats(h.feats * scale[:h.num_channels])
+
+    with torch.no_grad():
+        fast = net(x, modulate=modulate).feats
+    slow = net(x, modulate=modulate).feats.detach()          # gradients on: torch's out-of-place modules
+    assert torch.equal(x.feats, before)
+    assert torch.equal(fast, slow) and fast.abs().max() > 0
+    block = net.enc[0][0]                                     # a residual block alone, identity skip
+    h = SparseTensor(coords, torch.randn(len(coords), 8, generator=gen))
+    kept = h.feats.clone()
+    with torch.no_grad():
+        block(h)
+    assert torch.equal(h.feats, kept)
