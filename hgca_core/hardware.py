@@ -64,6 +64,25 @@ def tune_allocator() -> bool:
     return all([bool(mallopt(param, value)) for param, value in ALLOCATOR.items()])
 
 
+def release_free_memory() -> bool:
+    """Hand the heap's free pages back to the system (glibc's `malloc_trim(0)`); False where there is no glibc.
+
+    Why: glibc returns a freed block to the system only if it was mapped on its own (large) or lies at the top of
+    the heap; the holes a stage's many mid-sized tensors leave stay resident. `pipeline.complete_local` calls this
+    where a stage's working set has just died (before the fine stage and before meshing): on the AV2 7fab2350 log
+    the resident set fell from 1.74 to 1.00 GiB before meshing, and the completion's peak from 2.86 to 2.45 GiB.
+    It changes no setting, so a host process (Blender, a notebook) loses nothing but pages it had freed."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        trim = ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return False
+    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
+    trim(0)
+    return True
+
+
 def cpu_name() -> str:
     """The CPU model ('AMD EPYC 9454 48-Core Processor'), or what `platform` knows where /proc is absent."""
     info = Path("/proc/cpuinfo")

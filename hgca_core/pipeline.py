@@ -26,6 +26,7 @@ from hgca_core.geometry.nearest import PointIndex
 from hgca_core.geometry.region import Region, default_region
 from hgca_core.geometry.voxel import COARSE, FINE, voxelize
 from hgca_core.geometry.voxel_mesh import voxel_mesh
+from hgca_core.hardware import release_free_memory
 
 if TYPE_CHECKING:
     from hgca_core.models.autoencoder import Autoencoder
@@ -259,10 +260,12 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
         if stage == "full":
             from hgca_core.models.cgca import decode_mesh, upsample
 
+            release_free_memory()   # the coarse chain's holes in the heap, before the fine stage's larger maps
             with gemm_precision(gemm_dtype):
                 c10, latents = upsample(models.fine, models.autoencoder, local, cells, region.grid_shape(FINE), t2,
                                         gen, lambda t, n: report("fine", t, n, tag, i), free, forbid)
             report("mesh", 0, 1, tag, i)
+            release_free_memory()   # and the fine stage's, before meshing
             mesh = decode_mesh(models.autoencoder, c10, latents, points=local, sensors=sensors, tree=tree)
             cells10, latents10 = c10.cpu().numpy(), latents.float().cpu().numpy()
         else:

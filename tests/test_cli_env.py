@@ -84,3 +84,33 @@ def test_tune_allocator_respects_the_switch(monkeypatch: pytest.MonkeyPatch) -> 
     monkeypatch.delenv("HGCA_ALLOCATOR")
     monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "1000")
     assert hardware.tune_allocator() is False
+
+
+# Fill 64 MiB of the heap with 64 KiB blocks (below glibc's mmap threshold), free all but the last (which pins the
+# heap's top), and print the resident MiB before and after `release_free_memory`.
+TRIM_PROBE = """
+import ctypes
+from hgca_core.hardware import release_free_memory
+libc = ctypes.CDLL("libc.so.6")
+libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+libc.free.argtypes = [ctypes.c_void_p]
+def rss():
+    return int(open("/proc/self/statm").read().split()[1]) * 4096 / 2**20
+blocks = [libc.malloc(64 << 10) for _ in range(1024)]
+for b in blocks:
+    ctypes.memset(b, 1, 64 << 10)
+for b in blocks[:-1]:
+    libc.free(b)
+before = rss()
+release_free_memory()
+print(before, rss())
+"""
+
+
+@glibc_only
+def test_release_free_memory_returns_the_heaps_holes() -> None:
+    """Freed mid-sized blocks below a live one stay resident under glibc until `release_free_memory` hands their
+    pages back (the pipeline calls it between stages)."""
+    out = subprocess.run([sys.executable, "-c", TRIM_PROBE], capture_output=True, text=True, timeout=60)
+    before, after = map(float, out.stdout.split())
+    assert before - after > 48, (before, after, out.stderr)
