@@ -69,9 +69,10 @@ def release_free_memory() -> bool:
 
     Why: glibc returns a freed block to the system only if it was mapped on its own (large) or lies at the top of
     the heap; the holes a stage's many mid-sized tensors leave stay resident. `pipeline.complete_local` calls this
-    where a stage's working set has just died (before the fine stage and before meshing): on the AV2 7fab2350 log
-    the resident set fell from 1.74 to 1.00 GiB before meshing, and the completion's peak from 2.86 to 2.45 GiB.
-    It changes no setting, so a host process (Blender, a notebook) loses nothing but pages it had freed."""
+    where a stage's working set has just died (before the fine stage and before meshing): the full stage's median
+    peak RSS fell from 2.26 to 2.03 GiB on the default region and from 3.96 to 3.62 GiB on 40 x 120 m, at a few
+    seconds of re-faulted pages (`benchmarks/results/trim_full*.md`). It changes no setting, so a host process
+    (Blender, a notebook) loses nothing but pages it had freed."""
     if not sys.platform.startswith("linux"):
         return False
     try:
