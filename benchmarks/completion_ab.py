@@ -1,27 +1,30 @@
 """Completion time A/B in fresh processes, interleaved: glibc's allocator as the CLI sets it up against its defaults,
 or an earlier revision of the code against this one, on one machine in one sitting.
 
-    python benchmarks/completion_ab.py allocator [--pairs 5] [--stage coarse] [--width W]
-    python benchmarks/completion_ab.py base REV [--pairs 3] [--stage coarse] [--width W]
+    python benchmarks/completion_ab.py allocator [--pairs 5] [--stage coarse] [--width W | --input PATH]
+    python benchmarks/completion_ab.py base REV [--pairs 3] [--stage coarse] [--width W | --input PATH]
 
-Each run is `hgca bench`'s worker on its default region (38.4 x 38.4 x 8 m, synthetic drive; or a 40 x W m strip)
-in its own process, so it pays what a user's one-shot command pays. `allocator`: this tree with
-`hardware.tune_allocator` ("tuned") and with `HGCA_ALLOCATOR=system` (glibc's defaults). `base REV`: REV checked
-out in a temporary git worktree with its own shipped weights, run by this venv, against this tree. Why interleaved
-(A B B A A B ...): this VM's speed drifts by up to ~35 % within an hour, so a target such as "no worse than today" is
-only answered by the two codes side by side. Reported per side:
-each run's seconds, minor page faults (where the worker reports them) and peak RSS, medians, and a PNG of the runs
-in the order they ran.
+Each run is `hgca bench`'s worker on its default region (38.4 x 38.4 x 8 m, synthetic drive; or a 40 x W m strip) in
+its own process, so it pays what a user's one-shot command pays; with `--input PATH` (a scan file or a log folder,
+e.g. the real fixtures) each run is `hgca complete PATH --stage S` itself, its peak RSS and page faults read from
+the child's own rusage, and the output mesh's sha256 recorded (the sides should make the same mesh). `allocator`:
+this tree with `hardware.tune_allocator` ("tuned") and with `HGCA_ALLOCATOR=system` (glibc's defaults). `base REV`:
+REV checked out in a temporary git worktree with its own shipped weights, run by this venv, against this tree. Why
+interleaved (A B B A A B ...): this VM's speed drifts by up to ~35 % within an hour, so a target such as "no worse
+than today" is only answered by the two codes side by side. Reported per side: each run's seconds, minor page faults
+(where the worker reports them) and peak RSS, medians, and a PNG of the runs in the order they ran.
 """
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -60,6 +63,27 @@ def completion_run(side: Side, stage: str, width: float | None = None) -> dict:
     row = json.loads(proc.stdout.strip().splitlines()[-1])
     return {k: row[k] for k in ("seconds", "stages_s", "minor_faults", "peak_rss_gib", "points", "coarse_cells")
             if k in row}
+
+
+def cli_run(side: Side, stage: str, path: str) -> dict:
+    """`hgca complete PATH --stage STAGE` in `side`'s tree: wall seconds, the child's peak RSS and minor faults
+    (`os.wait4`: this child's own, not the largest of all children so far), and the mesh's sha256."""
+    with tempfile.TemporaryDirectory(prefix="hgca_ab_") as tmp:
+        with open(Path(tmp) / "stderr", "w+") as err:
+            t = time.perf_counter()
+            proc = subprocess.Popen([sys.executable, "-m", "hgca_core.cli", "complete", path, "--stage", stage,
+                                     "-o", str(Path(tmp) / "out.ply")], env=side.environ(), cwd=side.tree,
+                                    stdout=subprocess.DEVNULL, stderr=err)
+            _, status, usage = os.wait4(proc.pid, 0)
+            seconds = time.perf_counter() - t
+            proc.returncode = os.waitstatus_to_exitcode(status)
+            if proc.returncode:
+                err.seek(0)
+                sys.exit(f"completion_ab.py: hgca complete ({side.name}) failed: {err.read().strip()[-400:]}")
+        meshes = sorted(Path(tmp).glob("out*.ply"))
+        digest = hashlib.sha256(b"".join(m.read_bytes() for m in meshes)).hexdigest()
+    return {"seconds": round(seconds, 2), "minor_faults": usage.ru_minflt,
+            "peak_rss_gib": round(usage.ru_maxrss / 2**20, 3), "mesh_sha256": digest}
 
 
 def alternate(sides: tuple[Side, Side], pairs: int) -> list[Side]:
@@ -109,6 +133,10 @@ def table(result: dict) -> str:
         a, b = (block["summary"][n] for n in names)
         lines += ["", f"Median difference ({names[1]} - {names[0]}): {b['median_s'] - a['median_s']:+.2f} s. "
                       "Runs in order: " + ", ".join(f"{r['side']} {r['seconds']:.2f}" for r in block["runs"]), ""]
+        digests = sorted({r["mesh_sha256"] for r in block["runs"] if "mesh_sha256" in r})
+        if digests:
+            lines += [f"Output meshes: {len(digests)} distinct over {len(block['runs'])} runs (sha256 "
+                      f"{', '.join(d[:12] for d in digests)}).", ""]
     return "\n".join(lines)
 
 
@@ -157,11 +185,16 @@ def main(argv: list[str] | None = None) -> int:
     for q in (a, b):
         q.add_argument("--pairs", type=int, default=5)
         q.add_argument("--stage", choices=("coarse", "full"), default="coarse")
-        q.add_argument("--width", type=float, default=None, help="a 40 x WIDTH m strip (default: the default region)")
+        where = q.add_mutually_exclusive_group()
+        where.add_argument("--width", type=float, default=None,
+                           help="a 40 x WIDTH m strip (default: the default region)")
+        where.add_argument("--input", default=None, help="run `hgca complete INPUT` (a scan file or a log folder)")
         q.add_argument("--out", default=None, help="result stem in benchmarks/results (default: by mode)")
     args = p.parse_args(argv)
     out_dir = REPO / "benchmarks" / "results"
     name = args.out or ("allocator" if args.mode == "allocator" else f"then_now_{args.stage}")
+    if args.input is not None and args.out is None:
+        name += f"_{Path(args.input).name.split('.')[0]}"
     check_outputs([out_dir / f"{name}.{e}" for e in ("json", "md", "png")], [])
     here = Side("this tree", REPO)
     with tempfile.TemporaryDirectory(prefix="hgca_base_") as tmp:
@@ -175,9 +208,14 @@ def main(argv: list[str] | None = None) -> int:
             sides = (Side(f"{commit[:7]}", Path(tmp) / "tree"), here)
             title = f"revision {commit[:7]} (its own code and shipped weights) vs this tree"
         try:
-            where = "default region" if args.width is None else f"40 x {args.width:g} m"
-            blocks = {f"completion, stage {args.stage}, {where}":
-                      run_block(sides, args.pairs, lambda s: completion_run(s, args.stage, args.width))}
+            if args.input is not None:
+                path = str(Path(args.input).resolve())
+                blocks = {f"hgca complete {Path(path).name} --stage {args.stage}":
+                          run_block(sides, args.pairs, lambda s: cli_run(s, args.stage, path))}
+            else:
+                where = "default region" if args.width is None else f"40 x {args.width:g} m"
+                blocks = {f"completion, stage {args.stage}, {where}":
+                          run_block(sides, args.pairs, lambda s: completion_run(s, args.stage, args.width))}
         finally:
             if args.mode == "base":
                 subprocess.run(["git", "worktree", "remove", "--force", f"{tmp}/tree"], cwd=REPO, capture_output=True)

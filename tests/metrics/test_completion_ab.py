@@ -36,3 +36,20 @@ def test_unknown_revision_is_refused_before_any_run(tmp_path, monkeypatch):
     with pytest.raises(SystemExit, match="not a commit"):
         completion_ab.main(["base", "no-such-revision-xyz", "--out", "test_ab_never_written"])
     assert not list((completion_ab.REPO / "benchmarks" / "results").glob("test_ab_never_written*"))
+
+
+def test_table_says_whether_the_sides_made_the_same_mesh():
+    runs = [{"side": "a", "seconds": 10.0, "mesh_sha256": "ab" * 32},
+            {"side": "b", "seconds": 9.0, "mesh_sha256": "ab" * 32}]
+    block = {"runs": runs, "summary": completion_ab.summary(runs, ("a", "b"))}
+    head = {"machine": {"cpu": "x", "cores": 2, "torch": "t", "date": "d"}, "title": "t"}
+    assert "Output meshes: 1 distinct over 2 runs (sha256 abababababab)." in completion_ab.table(
+        {**head, "blocks": {"c": block}})
+    runs[1]["mesh_sha256"] = "cd" * 32
+    assert "Output meshes: 2 distinct over 2 runs" in completion_ab.table({**head, "blocks": {"c": block}})
+
+
+def test_input_and_width_are_one_or_the_other(monkeypatch):
+    monkeypatch.setattr(completion_ab, "completion_run", lambda *a: pytest.fail("ran a completion"))
+    with pytest.raises(SystemExit):
+        completion_ab.main(["allocator", "--width", "60", "--input", "scan.laz", "--out", "test_ab_never_written"])
