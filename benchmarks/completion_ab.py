@@ -185,10 +185,10 @@ def main(argv: list[str] | None = None) -> int:
     for q in (a, b):
         q.add_argument("--pairs", type=int, default=5)
         q.add_argument("--stage", choices=("coarse", "full"), default="coarse")
-        where = q.add_mutually_exclusive_group()
-        where.add_argument("--width", type=float, default=None,
+        scene = q.add_mutually_exclusive_group()
+        scene.add_argument("--width", type=float, default=None,
                            help="a 40 x WIDTH m strip (default: the default region)")
-        where.add_argument("--input", default=None, help="run `hgca complete INPUT` (a scan file or a log folder)")
+        scene.add_argument("--input", default=None, help="run `hgca complete INPUT` (a scan file or a log folder)")
         q.add_argument("--out", default=None, help="result stem in benchmarks/results (default: by mode)")
     args = p.parse_args(argv)
     out_dir = REPO / "benchmarks" / "results"
