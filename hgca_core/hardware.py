@@ -6,6 +6,7 @@ commands that take `--device`; it sits outside both so that training never impor
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import platform
 import sys
@@ -28,16 +29,25 @@ ALLOCATOR_ENV = ("MALLOC_ARENA_MAX", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRE
 ALLOCATOR_SWITCH = "HGCA_ALLOCATOR"
 
 
+@functools.cache
+def glibc() -> ctypes.CDLL | None:
+    """This process's glibc (for `mallopt` and `malloc_trim`), or None off Linux, on another C library, or where it
+    cannot be loaded. The one check behind `tune_allocator` and `release_free_memory`."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        if not os.confstr("CS_GNU_LIBC_VERSION").startswith("glibc"):
+            return None
+        return ctypes.CDLL("libc.so.6")
+    except (ValueError, OSError):
+        return None
+
+
 def allocator_tunable() -> bool:
     """Whether `tune_allocator` may act: glibc on Linux, not switched off, no MALLOC_* tuning of the user's own."""
-    if os.environ.get(ALLOCATOR_SWITCH, "") == "system" or not sys.platform.startswith("linux"):
+    if os.environ.get(ALLOCATOR_SWITCH, "") == "system" or any(k in os.environ for k in ALLOCATOR_ENV):
         return False
-    if any(k in os.environ for k in ALLOCATOR_ENV):
-        return False
-    try:
-        return os.confstr("CS_GNU_LIBC_VERSION").startswith("glibc")
-    except (ValueError, OSError):
-        return False
+    return glibc() is not None
 
 
 def tune_allocator() -> bool:
@@ -56,10 +66,7 @@ def tune_allocator() -> bool:
     add-on's jobs) and the bench worker; Ray's workers keep glibc's defaults."""
     if not allocator_tunable():
         return False
-    try:
-        mallopt = ctypes.CDLL("libc.so.6").mallopt
-    except (OSError, AttributeError):
-        return False
+    mallopt = glibc().mallopt
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     return all([bool(mallopt(param, value)) for param, value in ALLOCATOR.items()])
 
@@ -73,12 +80,10 @@ def release_free_memory() -> bool:
     peak RSS fell from 2.26 to 2.03 GiB on the default region and from 3.96 to 3.62 GiB on 40 x 120 m, at a few
     seconds of re-faulted pages (`benchmarks/results/trim_full*.md`). It changes no setting, so a host process
     (Blender, a notebook) loses nothing but pages it had freed."""
-    if not sys.platform.startswith("linux"):
+    libc = glibc()
+    if libc is None:
         return False
-    try:
-        trim = ctypes.CDLL("libc.so.6").malloc_trim
-    except (OSError, AttributeError):
-        return False
+    trim = libc.malloc_trim
     trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
     trim(0)
     return True

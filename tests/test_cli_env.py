@@ -8,6 +8,8 @@ import sys
 
 import pytest
 
+from hgca_core import hardware
+
 PROBE = ("import os, sys; from hgca_core import cli; sys.argv = ['hgca', '--version']\n"
          "try:\n    cli.main()\nexcept SystemExit:\n    pass\nprint(os.environ.get('OMP_WAIT_POLICY'))")
 
@@ -47,8 +49,7 @@ with tempfile.TemporaryFile() as f:
     print(f.read().decode().count("<heap nr="))
 """
 
-glibc_only = pytest.mark.skipif(not sys.platform.startswith("linux") or not os.confstr("CS_GNU_LIBC_VERSION"),
-                                reason="the allocator tuning is glibc's")
+glibc_only = pytest.mark.skipif(hardware.glibc() is None, reason="the allocator tuning is glibc's")
 
 
 def _arenas(*argv: str, **extra: str) -> int:
@@ -77,8 +78,6 @@ def test_train_keeps_glibcs_arenas() -> None:
 
 
 def test_tune_allocator_respects_the_switch(monkeypatch: pytest.MonkeyPatch) -> None:
-    from hgca_core import hardware
-
     monkeypatch.setenv("HGCA_ALLOCATOR", "system")
     assert hardware.tune_allocator() is False
     monkeypatch.delenv("HGCA_ALLOCATOR")
