@@ -31,6 +31,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from hgca_core.bench import worker  # noqa: E402
 from hgca_core.hardware import ALLOCATOR_SWITCH, machine  # noqa: E402
 from hgca_core.io.paths import check_outputs  # noqa: E402
 
@@ -55,12 +56,10 @@ def completion_run(side: Side, stage: str, width: float | None = None) -> dict:
     """One bench worker in `side`'s tree on the default region (`width` None) or a 40 x `width` m strip: total and
     stage seconds, minor faults (if reported), peak RSS."""
     w, d = (38.4, 38.4) if width is None else (width, 40.0)
-    job = json.dumps({"width": w, "depth": d, "stage": stage, "device": "cpu", "t1": None, "seed": 0})
-    proc = subprocess.run([sys.executable, "-m", "hgca_core.bench", "--worker", job], capture_output=True, text=True,
-                          env=side.environ(), cwd=side.tree)
-    if proc.returncode:
-        sys.exit(f"completion_ab.py: bench worker ({side.name}) failed: {proc.stderr.strip().splitlines()[-1:]}")
-    row = json.loads(proc.stdout.strip().splitlines()[-1])
+    row = worker({"width": w, "depth": d, "stage": stage, "device": "cpu", "t1": None, "seed": 0},
+                 env=side.environ(), cwd=side.tree)
+    if "error" in row:
+        sys.exit(f"completion_ab.py: bench worker ({side.name}) failed: {row['error']}")
     return {k: row[k] for k in ("seconds", "stages_s", "minor_faults", "peak_rss_gib", "points", "coarse_cells")
             if k in row}
 

@@ -90,6 +90,16 @@ def run_one(width: float, depth: float, stage: str, device: str, t1: int | None,
             "gpu_peak_gib": None if gpu is None else round(gpu / 2**30, 3)}
 
 
+def worker(job: dict, timeout: int | None = None, env: dict | None = None, cwd: Path | None = None) -> dict:
+    """One configuration in a fresh worker process (`python -m hgca_core.bench --worker JOB`, from `cwd`, with
+    `env`): its result row, or {"error": the last line of its stderr}."""
+    proc = subprocess.run([sys.executable, "-m", "hgca_core.bench", "--worker", json.dumps(job)], capture_output=True,
+                          text=True, timeout=timeout, env=env, cwd=cwd)
+    if proc.returncode != 0:
+        return {"error": proc.stderr.strip().splitlines()[-1:]}
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
 def run(widths: list[float], default: bool, stage: str, device: str, t1: int | None, out_dir: Path,
         name: str, timeout: int = 3600, precision: str = "auto", weights: str | None = None,
         fine_weights: str | None = None) -> dict:
@@ -103,14 +113,9 @@ def run(widths: list[float], default: bool, stage: str, device: str, t1: int | N
     configs = ([(38.4, 38.4)] if default else []) + [(w, 40.0) for w in widths]
     rows = []
     for width, depth in configs:
-        job = json.dumps({"width": width, "depth": depth, "stage": stage, "device": device, "t1": t1, "seed": 0,
-                          "precision": precision, "weights": files["coarse"], "fine_weights": files.get("fine")})
-        proc = subprocess.run([sys.executable, "-m", "hgca_core.bench", "--worker", job], capture_output=True,
-                              text=True, timeout=timeout)
-        if proc.returncode != 0:
-            rows.append({"width": width, "depth": depth, "error": proc.stderr.strip().splitlines()[-1:]})
-        else:
-            rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+        row = worker({"width": width, "depth": depth, "stage": stage, "device": device, "t1": t1, "seed": 0,
+                      "precision": precision, "weights": files["coarse"], "fine_weights": files.get("fine")}, timeout)
+        rows.append({"width": width, "depth": depth, **row} if "error" in row else row)
         print(json.dumps(rows[-1]), flush=True)
     result = {"machine": machine(), "stage": stage, "device": device, "t1": t1, "precision": precision, **record,
               "rows": rows}
