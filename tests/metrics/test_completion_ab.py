@@ -8,6 +8,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import completion_ab  # noqa: E402
 from completion_ab import Side  # noqa: E402
 
+MACHINE = {"cpu": "x", "cores": 2, "torch": "t", "date": "d"}   # what `hardware.machine()` gives a table
+
 
 def test_sides_alternate_so_each_runs_first_as_often_as_second():
     a, b = Side("a", Path(".")), Side("b", Path("."))
@@ -24,8 +26,7 @@ def test_table_reports_medians_and_marks_what_a_side_did_not_measure():
     s = block["summary"]
     assert s["old"]["median_s"] == 17.0 and s["new"]["median_s"] == 13.0 and s["new"]["median_faults"] == 310_000
     assert "median_faults" not in s["old"] and s["old"]["max_rss_gib"] == 1.8
-    text = completion_ab.table({"machine": {"cpu": "x", "cores": 2, "torch": "t", "date": "d"}, "title": "t",
-                                "blocks": {"completion": block}})
+    text = completion_ab.table({"machine": MACHINE, "title": "t", "blocks": {"completion": block}})
     assert "| old | 2 | 17.00 | 16.00 | - | 1.75 / 1.80 | coarse 14.50 |" in text
     assert "| new | 2 | 13.00 | 12.00 | 310,000 | 1.55 / 1.60 | coarse 10.50 |" in text
     assert "Median difference (new - old): -4.00 s" in text
@@ -42,7 +43,7 @@ def test_table_says_whether_the_sides_made_the_same_mesh():
     runs = [{"side": "a", "seconds": 10.0, "mesh_sha256": "ab" * 32},
             {"side": "b", "seconds": 9.0, "mesh_sha256": "ab" * 32}]
     block = {"runs": runs, "summary": completion_ab.summary(runs, ("a", "b"))}
-    head = {"machine": {"cpu": "x", "cores": 2, "torch": "t", "date": "d"}, "title": "t"}
+    head = {"machine": MACHINE, "title": "t"}
     assert "Output meshes: 1 distinct over 2 runs (sha256 abababababab)." in completion_ab.table(
         {**head, "blocks": {"c": block}})
     runs[1]["mesh_sha256"] = "cd" * 32
