@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -132,11 +133,26 @@ def test_georeferenced_drive_is_the_same_drive_moved(drive_weights, tmp_path):
     assert np.array_equal(fa, fb) and np.abs(vb - offset - va).max() < 1e-4
 
 
+# Set in the environment of every CLI this module starts; Ray's workers inherit it, so a test that looks for a tile
+# task finds its own drive's and never another run's on the machine (a user's drive, another pytest worker's).
+TAG = uuid.uuid4().hex
+
+
 def _cli(*args):
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(hgca_core.__file__).parents[1]),
-                                                                os.environ.get("PYTHONPATH", "")])}
+    env = {**os.environ, "HGCA_TEST_TAG": TAG,
+           "PYTHONPATH": os.pathsep.join([str(Path(hgca_core.__file__).parents[1]), os.environ.get("PYTHONPATH", "")])}
     return subprocess.Popen([sys.executable, "-m", "hgca_core.cli", "drive", *map(str, args)], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def own_tile_task(p) -> bool:
+    """A Ray worker running a tile of a drive this module started."""
+    import psutil
+
+    try:
+        return "ray::tile_task" in " ".join(p.cmdline()) and p.environ().get("HGCA_TEST_TAG") == TAG
+    except psutil.Error:
+        return False
 
 
 def done_tiles(out: Path) -> int:
@@ -178,6 +194,7 @@ def test_resume_after_being_killed_halfway(tmp_path, drive_weights):
     assert not list(out.rglob(".*.tmp")), "temp files of the killed run are gone"
 
 
+@pytest.mark.xdist_group("ray")  # one local Ray at a time: the last test counts what Ray leaves
 def test_ray_two_workers_survive_a_killed_worker(finished, flat_drive, drive_weights, tmp_path):
     """`--workers 2` on a local Ray: one tile's worker is killed while it runs; Ray retries that tile, and the drive
     ends with every tile exactly once and the very meshes the in-process run made (same plan, same keys)."""
@@ -191,10 +208,10 @@ def test_ray_two_workers_survive_a_killed_worker(finished, flat_drive, drive_wei
                 "--seed", 3, "--workers", 2, "--progress", "none")
     killed, deadline = None, time.time() + 240
     while killed is None and proc.poll() is None and time.time() < deadline:
-        for p in psutil.process_iter(["pid", "cmdline"]):
-            if "ray::tile_task" in " ".join(p.info["cmdline"] or []):
-                os.kill(p.info["pid"], signal.SIGKILL)
-                killed = p.info["pid"]
+        for p in psutil.process_iter():
+            if own_tile_task(p):
+                os.kill(p.pid, signal.SIGKILL)
+                killed = p.pid
                 break
         time.sleep(0.05)
     _, err = proc.communicate(timeout=300)
@@ -232,6 +249,7 @@ def test_ctrl_c_in_a_library_call_marks_the_drive_interrupted(drive_weights, tmp
     assert again["status"] == "complete" and again["timings"]["tiles_computed"] == 2
 
 
+@pytest.mark.xdist_group("ray")  # one local Ray at a time: the last test counts what Ray leaves
 def test_sigterm_on_ray_stops_ray_and_exits_143(flat_drive, drive_weights, tmp_path):
     """ray.init puts an aborting SIGTERM handler in place (exit 134 and a crash report); the drive takes the
     signal back, stops its Ray and leaves the CLI's one line and exit status."""
@@ -243,17 +261,23 @@ def test_sigterm_on_ray_stops_ray_and_exits_143(flat_drive, drive_weights, tmp_p
     proc = _cli(*scans, "--poses", poses, "--out", tmp_path / "d", "--weights", drive_weights, *CLI_SMALL,
                 "--workers", 2, "--progress", "none")
     deadline = time.time() + 240
-    while proc.poll() is None and time.time() < deadline and not any(
-            "ray::tile_task" in " ".join(p.info["cmdline"] or []) for p in psutil.process_iter(["cmdline"])):
+    while proc.poll() is None and time.time() < deadline and not any(map(own_tile_task, psutil.process_iter())):
         time.sleep(0.1)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 143 and "hgca drive: terminated (SIGTERM)" in err, err[-2000:]
     doc = json.loads((tmp_path / "d" / "drive.json").read_text())
     assert doc["status"] == "interrupted" and "SIGTERM" in doc["error"], "not left 'running'"
-    time.sleep(2)
-    left = [p for p in psutil.process_iter(["name", "cmdline", "create_time"]) if p.info["create_time"] >= start
-            and any(n in " ".join(p.info["cmdline"] or []) for n in ("raylet", "gcs_server", "ray::"))]
+
+    def ray_started_since() -> list:
+        return [p for p in psutil.process_iter(["name", "cmdline", "create_time"]) if p.info["create_time"] >= start
+                and any(n in " ".join(p.info["cmdline"] or []) for n in ("raylet", "gcs_server", "ray::"))]
+
+    # Ray's processes end on their own after the shutdown: within 2 s with the suite run serially, later beside a
+    # second pytest worker (the whole suite on two: a tile task and the GCS were still up at 2 s); none may stay
+    deadline = time.time() + 60
+    while (left := ray_started_since()) and time.time() < deadline:
+        time.sleep(0.2)
     assert not left, [" ".join(p.info["cmdline"])[:80] for p in left]
 
 
