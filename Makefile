@@ -35,9 +35,9 @@ BLENDER_TESTS = HGCA_PYTHON=$(abspath $(BIN)/python) $(1)/bin/python -m pytest -
 demo: $(STAMP)
 	$(BIN)/hgca demo
 
-# The core's tests in a worker per core (at most 4: each completion holds up to ~2.5 GiB); tests that start a local
-# Ray share one worker (xdist_group "ray"). The Blender tests (~80 s) stay in one process.
-PYTEST_PARALLEL := -n auto --maxprocesses 4 --dist loadgroup
+# The core's tests in a worker per core (at most 4: each completion holds up to ~2.5 GiB); the Blender tests (~80 s)
+# stay in one process.
+PYTEST_PARALLEL := -n auto --maxprocesses 4
 
 test: $(STAMP) .venv-bpy42/.installed
 	$(BIN)/python -m pytest -q $(PYTEST_PARALLEL) tests

@@ -7,8 +7,6 @@ import hgca_core
 from drive_data import write_drive
 from hgca_core.errors import InputError
 
-pytestmark = pytest.mark.xdist_group("ray")   # beside the other local Rays' tests, never at the same time
-
 SMALL = {"size": 12.8, "overlap": 3.2, "stage": "coarse", "t1": 3, "threads": 1}
 
 
