@@ -133,8 +133,8 @@ def test_georeferenced_drive_is_the_same_drive_moved(drive_weights, tmp_path):
     assert np.array_equal(fa, fb) and np.abs(vb - offset - va).max() < 1e-4
 
 
-# Set in the environment of every CLI this module starts; Ray's workers inherit it, so a test that looks for a tile
-# task finds its own drive's and never another run's on the machine (a user's drive, another pytest worker's).
+# In the environment of every CLI this module starts, so its tests find their own drive's Ray processes (`own_ray`)
+# and never another run's on the machine: a user's drive, another pytest worker's.
 TAG = uuid.uuid4().hex
 
 
