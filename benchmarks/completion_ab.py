@@ -75,7 +75,7 @@ def cli_run(side: Side, stage: str, path: str) -> dict:
                                     stdout=subprocess.DEVNULL, stderr=err)
             _, status, usage = os.wait4(proc.pid, 0)
             seconds = time.perf_counter() - t
-            proc.returncode = os.waitstatus_to_exitcode(status)
+            proc.returncode = os.waitstatus_to_exitcode(status)   # reaped by wait4: Popen must not wait again
             if proc.returncode:
                 err.seek(0)
                 sys.exit(f"completion_ab.py: hgca complete ({side.name}) failed: {err.read().strip()[-400:]}")
