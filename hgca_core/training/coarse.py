@@ -140,8 +140,20 @@ class CoarseLoss(nn.Module):
         cut = nbhd[:, 3] >= torch.tensor(lowest, device=nbhd.device)[nbhd[:, 0]]
         if not bool(cut.any()):
             return target, 0.0
-        b = len(chains)
-        p = torch.sigmoid(teacher(nbhd, st, s0, grid, teacher.bev(s0, b, grid, free), free).float())
+        # the teacher runs on the cut chains alone, renumbered 0..m-1: in eval mode no chain's output depends on
+        # another's, and with --cut 0.5 about half of a step's chains are whole (its pass was a quarter of a step)
+        chosen = torch.tensor(["cut" in c.extra for c in chains], device=nbhd.device)
+        renumber = torch.cumsum(chosen, 0) - 1
+
+        def only(coords: torch.Tensor) -> torch.Tensor:
+            kept = coords[chosen[coords[:, 0]]]
+            return torch.cat([renumber[kept[:, :1]], kept[:, 1:]], dim=1)
+
+        rows = chosen[nbhd[:, 0]]
+        sub_s0, sub_free = only(s0), None if free is None else free[chosen]
+        bev = teacher.bev(sub_s0, int(chosen.sum()), grid, sub_free)
+        p = torch.zeros_like(target)
+        p[rows] = torch.sigmoid(teacher(only(nbhd), only(st), sub_s0, grid, bev, sub_free).float())
         mixed = (1.0 - self.distill) * target + self.distill * p
         return torch.where(cut, mixed, target), float(cut.float().mean())
 

@@ -54,7 +54,7 @@ def test_cut_inputs_learn_the_teachers_probability_and_whole_ones_the_ground_tru
     _, stats, _ = loss(chains)
     monkeypatch.undo()
     (s_mod, nbhd, logits), (t_mod, t_nbhd, t_logits) = calls
-    assert s_mod is loss.model and t_mod is teacher and torch.equal(nbhd, t_nbhd)
+    assert s_mod is loss.model and t_mod is teacher and torch.equal(nbhd[nbhd[:, 0] == 0], t_nbhd)  # the cut chain
     gts = [{tuple(c) for c in ch.gt.tolist()} for ch in chains]
     rows = nbhd.tolist()
     hard = torch.tensor([tuple(r[1:]) in gts[r[0]] for r in rows], dtype=torch.float64)
@@ -66,7 +66,8 @@ def test_cut_inputs_learn_the_teachers_probability_and_whole_ones_the_ground_tru
         assert (cut & ~high).any() and (~cut & high).any()   # below the cut and the whole chain keep the truth
         cut = cut & high
     assert cut.any() and (~cut).any() and (seen & cut).any()
-    teach = torch.sigmoid(t_logits.double())
+    teach = torch.zeros(len(nbhd), dtype=torch.float64)
+    teach[nbhd[:, 0] == 0] = torch.sigmoid(t_logits.double())
     target = torch.where(cut, (1 - mu) * hard + mu * teach, hard) * (~seen)
     p = torch.sigmoid(logits.double())
     bce = -(target * torch.log(p) + (1 - target) * torch.log(1 - p))
@@ -78,6 +79,40 @@ def test_cut_inputs_learn_the_teachers_probability_and_whole_ones_the_ground_tru
     torch.manual_seed(0)
     _, plain_stats, _ = plain(chains)
     assert plain_stats["loss_gca"] != pytest.approx(stats["loss_gca"], rel=1e-4)   # the teacher changed it
+
+
+def test_the_teacher_runs_on_the_cut_chains_alone_and_gives_them_what_it_gives_in_the_whole_batch(dataset, monkeypatch):
+    """A step's whole chains need no teacher: it runs on the cut ones, renumbered, and (eval mode: no chain's
+    output depends on another's) gives their cells the logits it gives them in the whole batch."""
+    cfg = GCAConfig(**SMALL, steps=3, free_space=True)
+    cut, whole = _chains(dataset, monkeypatch, cfg)
+    chains = [whole, cut, whole]            # the cut chain is renumbered 1 -> 0
+    torch.manual_seed(0)
+    teacher = GCAKernel(cfg).eval()
+    loss = CoarseLoss(cfg, free_weight=5.0, distill=1.0, teacher=teacher)
+    calls = []
+    real_forward = GCAKernel.forward
+
+    def recording(self, nbhd, *a, **k):
+        out = real_forward(self, nbhd, *a, **k)
+        if self is teacher:
+            calls.append((nbhd, out.detach()))
+        return out
+
+    monkeypatch.setattr(GCAKernel, "forward", recording)
+    loss(chains)
+    monkeypatch.undo()
+    [(t_nbhd, t_logits)] = calls
+    grid = chains[0].grid
+    s0, st = (coarse.batched([getattr(c, k) for c in chains]) for k in ("s0", "state"))
+    free = torch.stack([c.extra["free"] for c in chains])
+    nbhd = teacher.neighbourhood(st, grid)
+    with torch.no_grad():
+        ref = teacher(nbhd, st, s0, grid, teacher.bev(s0, 3, grid, free), free)
+    mine = nbhd[:, 0] == 1
+    assert len(t_nbhd) == int(mine.sum()) < len(nbhd) and (t_nbhd[:, 0] == 0).all()
+    assert torch.equal(t_nbhd[:, 1:], nbhd[mine, 1:])
+    torch.testing.assert_close(t_logits, ref[mine], rtol=1e-5, atol=1e-5)   # GEMMs of fewer rows round apart
 
 
 def test_a_teacher_equal_to_the_student_leaves_cut_inputs_nothing_to_learn(dataset, monkeypatch):
