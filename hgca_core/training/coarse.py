@@ -136,13 +136,15 @@ class CoarseLoss(nn.Module):
             teacher.to(nbhd.device)
         # each chain's lowest distilled layer: its cut layer with `distill_above`, else every cell of a cut chain;
         # none of an uncut chain's
-        lowest = [(int(c.extra["cut"]) if self.distill_above else -1) if "cut" in c.extra else 1 << 30 for c in chains]
-        cut = nbhd[:, 3] >= torch.tensor(lowest, device=nbhd.device)[nbhd[:, 0]]
+        none = 1 << 30
+        lowest = torch.tensor([(int(c.extra["cut"]) if self.distill_above else -1) if "cut" in c.extra else none
+                               for c in chains], device=nbhd.device)
+        cut = nbhd[:, 3] >= lowest[nbhd[:, 0]]
         if not bool(cut.any()):
             return target, 0.0
         # the teacher runs on the cut chains alone, renumbered 0..m-1: in eval mode no chain's output depends on
         # another's, and with --cut 0.5 about half of a step's chains are whole (its pass was a quarter of a step)
-        chosen = torch.tensor(["cut" in c.extra for c in chains], device=nbhd.device)
+        chosen = lowest < none
         renumber = torch.cumsum(chosen, 0) - 1
 
         def only(coords: torch.Tensor) -> torch.Tensor:

@@ -32,6 +32,20 @@ def _chains(dataset, monkeypatch, cfg):
     return chains
 
 
+def _record_forwards(monkeypatch) -> list:
+    """Every GCAKernel forward from now on, as (module, nbhd, logits), in call order."""
+    calls = []
+    real_forward = GCAKernel.forward
+
+    def recording(self, nbhd, *a, **k):
+        out = real_forward(self, nbhd, *a, **k)
+        calls.append((self, nbhd, out.detach()))
+        return out
+
+    monkeypatch.setattr(GCAKernel, "forward", recording)
+    return calls
+
+
 @pytest.mark.parametrize("mu,above", [(1.0, False), (0.5, False), (1.0, True)])
 def test_cut_inputs_learn_the_teachers_probability_and_whole_ones_the_ground_truth(dataset, monkeypatch, mu, above):
     """With `above` (--distill-above) only the cut chain's cells at and above its cut layer are distilled."""
@@ -42,15 +56,7 @@ def test_cut_inputs_learn_the_teachers_probability_and_whole_ones_the_ground_tru
     torch.manual_seed(1)
     loss = CoarseLoss(cfg, free_weight=5.0, distill=mu, teacher=teacher, distill_above=above)
     assert not any(k.startswith("_teacher") or "teacher" in k for k in loss.state_dict())  # never checkpointed
-    calls = []
-    real_forward = GCAKernel.forward
-
-    def recording(self, nbhd, *a, **k):
-        out = real_forward(self, nbhd, *a, **k)
-        calls.append((self, nbhd, out.detach()))
-        return out
-
-    monkeypatch.setattr(GCAKernel, "forward", recording)
+    calls = _record_forwards(monkeypatch)
     _, stats, _ = loss(chains)
     monkeypatch.undo()
     (s_mod, nbhd, logits), (t_mod, t_nbhd, t_logits) = calls
@@ -90,19 +96,10 @@ def test_the_teacher_runs_on_the_cut_chains_alone_and_gives_them_what_it_gives_i
     torch.manual_seed(0)
     teacher = GCAKernel(cfg).eval()
     loss = CoarseLoss(cfg, free_weight=5.0, distill=1.0, teacher=teacher)
-    calls = []
-    real_forward = GCAKernel.forward
-
-    def recording(self, nbhd, *a, **k):
-        out = real_forward(self, nbhd, *a, **k)
-        if self is teacher:
-            calls.append((nbhd, out.detach()))
-        return out
-
-    monkeypatch.setattr(GCAKernel, "forward", recording)
+    calls = _record_forwards(monkeypatch)
     loss(chains)
     monkeypatch.undo()
-    [(t_nbhd, t_logits)] = calls
+    [(t_nbhd, t_logits)] = [(n, out) for m, n, out in calls if m is teacher]
     grid = chains[0].grid
     s0, st = (coarse.batched([getattr(c, k) for c in chains]) for k in ("s0", "state"))
     free = torch.stack([c.extra["free"] for c in chains])
