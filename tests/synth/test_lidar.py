@@ -172,6 +172,56 @@ def test_range_noise_grows_with_distance_and_rings_share_a_bias():
     assert np.allclose([b.mean() for b in by_ring], unit.range_bias[np.unique(sc.ring[front])], atol=1e-6)
 
 
+def test_random_dropout_removes_its_share_of_returns_drawn_per_scan():
+    mesh, _ = _walls(8.0)
+    inter, unit = make_intersector(mesh), _unit("hdl64", fraction=0.5)
+    n0 = len(scan(inter, np.zeros(12, np.uint8), _vehicle(), unit, np.random.default_rng(0), NO_EFFECTS).points)
+    fixed = scan(inter, np.zeros(12, np.uint8), _vehicle(), unit, np.random.default_rng(0),
+                 replace(NO_EFFECTS, dropout=(0.2, 0.2)))
+    kept = len(fixed.points) / n0
+    assert n0 > 5000 and abs(kept - 0.8) < 4 * np.sqrt(0.16 / n0)          # binomial: within 4 sd of 80 %
+    # the kept returns are a subset of the exact scan's, not moved ones
+    exact = scan(inter, np.zeros(12, np.uint8), _vehicle(), unit, np.random.default_rng(0), NO_EFFECTS).points
+    assert np.isin(fixed.points[:, 1].round(9), exact[:, 1].round(9)).all()
+    # each scan draws its own probability from the range: the kept share varies between scans, inside the range
+    shares = [len(scan(inter, np.zeros(12, np.uint8), _vehicle(), unit, np.random.default_rng(s),
+                       replace(NO_EFFECTS, dropout=(0.05, 0.3))).points) / n0 for s in range(12)]
+    assert min(shares) > 0.7 - 0.02 and max(shares) < 0.95 + 0.02 and np.ptp(shares) > 0.05
+
+
+def test_mount_jitter_moves_height_and_pitch_per_sample_and_the_ground_rings_follow():
+    prof = PROFILES["hdl32"]
+    units = [Unit.draw(prof, np.random.default_rng(s), replace(NO_EFFECTS, mount_jitter=(0.05, 0.7)))
+             for s in range(300)]
+    heights = np.array([u.mount[2, 3] for u in units])
+    pitch = np.degrees([np.arcsin(-u.mount[2, 0]) for u in units])    # the beam frame's x axis tilted up / down
+    assert abs(np.mean(heights) - prof.height) < 0.01 and 0.04 < np.std(heights) < 0.06
+    assert np.abs(heights - prof.height).max() <= 3 * 0.05 + 1e-9      # clipped at 3 sd
+    assert 0.55 < np.std(pitch) < 0.85
+    still = Unit.draw(prof, np.random.default_rng(0), NO_EFFECTS)
+    assert still.mount[2, 3] == pytest.approx(prof.height) and np.allclose(still.mount[:3, :3], np.eye(3))
+    # a scan of flat ground from the lowest and highest drawn mount: the nearest ground ring lies where the
+    # mount's height puts it (r = h / tan(-elevation), so a higher sensor sees the first ring further out)
+    low, high = (units[i] for i in (np.argmin(heights), np.argmax(heights)))
+    radii = []
+    for u in (low, high):
+        flat = Unit(u.profile, u.elevation_error_deg, u.range_bias, u.wobble, _height_only(u.mount))
+        sc = scan(make_intersector(_ground()), np.zeros(2, np.uint8), _vehicle(), flat, np.random.default_rng(0),
+                  NO_EFFECTS)
+        assert sc.pose[2, 3] == pytest.approx(u.mount[2, 3])
+        lowest = np.argmin(HDL32E.elevations_deg)
+        radii.append(np.median(np.hypot(*sc.points[sc.ring == lowest, :2].T)))
+    expect = [u.mount[2, 3] / np.tan(np.radians(-HDL32E.elevations_deg.min())) for u in (low, high)]
+    assert radii == pytest.approx(expect, rel=0.01) and radii[1] > radii[0]
+
+
+def _height_only(mount: np.ndarray) -> np.ndarray:
+    """The mount without its pitch and roll: the ring radius then depends on the height alone."""
+    m = np.eye(4)
+    m[2, 3] = mount[2, 3]
+    return m
+
+
 def test_ego_body_hides_the_lowest_beams_near_the_car():
     unit = _unit("hdl32")
     full = scan(make_intersector(_ground()), np.zeros(2, np.uint8), _vehicle(), unit, np.random.default_rng(0),
