@@ -122,6 +122,20 @@ def _legend(axes) -> tuple[list, list[str]]:
     return list(seen.values()), list(seen)
 
 
+def page_out(p: argparse.ArgumentParser, out: str, inputs: list[str]) -> Path:
+    """`--out` of a results page: a .json path (the .md and .png are named from it: without the suffix the JSON has
+    none) whose three files overwrite no input (the project's one output check: by path or inode, a writable
+    folder); argparse's error, exit 2, otherwise."""
+    path = Path(out)
+    if path.suffix != ".json":
+        p.error(f"--out {path}: name a .json file (the .md and .png are written beside it)")
+    try:
+        check_outputs([path, path.with_suffix(".md"), path.with_suffix(".png")], inputs)
+    except InputError as e:
+        p.error(f"--out {e}")
+    return path
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--row", action="append", required=True, metavar="LABEL=VAL.json,REAL.json",
@@ -133,17 +147,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="what the rows' val files hold, for the table and plot (e.g. 'av2-profile val sweeps')")
     p.add_argument("--out", required=True, help="results JSON (.md and .png beside it)")
     args = p.parse_args(argv)
-    out = Path(args.out)
-    if out.suffix != ".json":   # the .md and .png are named from it: without the suffix the JSON has none
-        p.error(f"--out {out}: name a .json file (the .md and .png are written beside it)")
     try:
         rows = known_rows(args.row)
     except (ValueError, OSError) as e:   # a malformed --row, a results file missing or not JSON
         p.error(f"--row {e}")
-    try:   # the project's one output check: never an input (by path or inode), a writable folder
-        check_outputs([out, out.with_suffix(".md"), out.with_suffix(".png")], row_files(args.row))
-    except InputError as e:
-        p.error(f"--out {e}")
+    out = page_out(p, args.out, row_files(args.row))
     pts = points(rows, args.val_name)
     ranks = agreement(pts, args.val_name)
     out.write_text(json.dumps({"rows": args.row, "val_name": args.val_name, "points": pts, "rank_agreement": ranks},

@@ -19,11 +19,9 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cut_frontier import _legend, points  # noqa: E402  (benchmarks reuse each other's readers)
+from cut_frontier import _legend, page_out, points  # noqa: E402  (benchmarks reuse each other's readers)
 from keep_sweep import pooled, scores  # noqa: E402
 
-from hgca_core.errors import InputError  # noqa: E402
-from hgca_core.io.paths import check_outputs  # noqa: E402
 
 
 def parse_group(item: str) -> tuple[str, list[str]]:
@@ -121,18 +119,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="runs of one recipe (repeatable), each an eval-real results file or A.json+B.json pooled")
     p.add_argument("--out", required=True, help="results JSON (.md and .png beside it)")
     args = p.parse_args(argv)
-    out = Path(args.out)
-    if out.suffix != ".json":
-        p.error(f"--out {out}: name a .json file (the .md and .png are written beside it)")
     try:
         groups = dict(parse_group(g) for g in args.group)
     except ValueError as e:
         p.error(f"--group {e}")
-    try:   # the project's one output check: never an input (by path or inode), a writable folder
-        check_outputs([out, out.with_suffix(".md"), out.with_suffix(".png")],
-                      [f for specs in groups.values() for spec in specs for f in spec.split("+")])
-    except InputError as e:   # before the ValueError below, which it is too: it was reported as a --group error
-        p.error(f"--out {e}")
+    # before `spread` reads them: an output over an input was once reported as a --group error
+    out = page_out(p, args.out, [f for specs in groups.values() for spec in specs for f in spec.split("+")])
     try:
         result = spread(groups)
     except (ValueError, OSError) as e:   # a results file missing, not JSON or not poolable

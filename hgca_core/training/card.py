@@ -193,11 +193,13 @@ def write_model_card(weights_dir: Path = WEIGHTS_DIR) -> Path:
         parts += [_section(path, blob), ""]
     for path in sorted(weights_dir.glob("eval_*.md")):
         parts += [f"## Evaluation: `{path.stem}`", "", path.read_text(), ""]
-        if path.with_suffix(".png").exists():   # `hgca eval --render`: the first scene, each row's first completion
-            parts += [f"![{path.stem}: the first scene]({path.stem}.png)", ""]
         js = path.with_suffix(".json")
-        if js.exists():
-            info = json.loads(js.read_text())
+        info = json.loads(js.read_text()) if js.exists() else {}
+        record = "files" in info and "rows" in info   # an `hgca eval` record; other pages (sim_to_real.py) say their own
+        if path.with_suffix(".png").exists():   # `hgca eval --render`: the first scene, each row's first completion
+            what = ": the first scene" if record or not info else ""
+            parts += [f"![{path.stem}{what}]({path.stem}.png)", ""]
+        if record:
             data = f"{info['data']}, {info['split']} split" if info.get("data") else f"{info.get('split')} split"
             parts.append(f"Scenes ({data}): {', '.join(info['files'])}; k = {info['samples']} samples; "
                          f"T1 = {info['t1'] or 'default'}; free space {info.get('free_space', 'auto')}.")

@@ -99,3 +99,14 @@ def test_card_names_every_session_of_a_blend_of_a_blend_and_of_a_warm_start(tmp_
         assert f"session ended 2026-11-{day} 11:00:00: {steps} steps" in card, steps
     assert "device cuda (NVIDIA H200)" in card
     assert "a = `we.pt`" in card and "b = `z.pt`" in card and "b = `y.pt`" in card and "started from `we.pt`" in card
+
+
+def test_a_results_page_that_is_not_an_eval_record_goes_on_the_card_as_it_is(tmp_path):
+    # benchmarks/sim_to_real.py writes eval_sim_to_real.{md,json,png} beside the weights: its JSON holds no scenes
+    # or rows, so the card shows the page and its rendering and reads nothing else from it
+    (tmp_path / "eval_sim_to_real.md").write_text("# Sim-to-real\n\n| target | measured | met |\n")
+    (tmp_path / "eval_sim_to_real.json").write_text(json.dumps({"targets": [["IoU >= 75 %", "64.02 %", False]]}))
+    (tmp_path / "eval_sim_to_real.png").write_bytes(b"\x89PNG")
+    card = write_model_card(tmp_path).read_text()
+    assert "## Evaluation: `eval_sim_to_real`" in card and "| target | measured | met |" in card
+    assert "![eval_sim_to_real](eval_sim_to_real.png)" in card and "Scenes (" not in card
