@@ -23,7 +23,6 @@ from cut_frontier import _legend, page_out, points  # noqa: E402  (benchmarks re
 from keep_sweep import pooled, scores  # noqa: E402
 
 
-
 def parse_group(item: str) -> tuple[str, list[str]]:
     """'NAME=SPEC,SPEC' -> (NAME, [SPEC, ...]); a SPEC is a results file or several joined by '+'."""
     name, sep, runs = item.partition("=")

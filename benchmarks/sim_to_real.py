@@ -29,7 +29,8 @@ from hgca_core.training.card import write_model_card  # noqa: E402
 CUT = "cut_2"
 COARSE, NOPLANNER, IMPLICIT = "hGCA coarse (planner)", "GCA (no planner)", "hGCA (implicit)"
 BASELINES = ("input", "Poisson (Open3D)", NOPLANNER)
-TABLE_KEYS = (("resim_min", 10.0, "ReSim min ↓"), ("resim_avg", 10.0, "ReSim avg ↓"), ("tmd", 10.0, "ReSim TMD ↑"),
+TABLE_KEYS = (("resim_min", 10.0, "ReSim min ↓"), ("resim_avg", 10.0, "ReSim avg ↓"),
+              ("tmd", 10.0, "ReSim TMD ↑"),
               ("iou", 100.0, "IoU (%) ↑"), ("street_cd_min", 10.0, "Street CD min ↓"),
               ("street_cd_avg", 10.0, "Street CD avg ↓"), ("street_tmd", 10.0, "Street CD TMD ↑"))
 
@@ -138,7 +139,8 @@ def _diffs(d: dict) -> str:
 
 def real_table(then: dict, now: dict, then_label: str, now_label: str) -> str:
     lines = ["| log | weights | k | 2 m recall (%) ↑ | above-cut cells | above cut in observed empty (%) ↓ "
-             "| whole input in observed empty (%) ↓ | whole input swept (%) ↓ |", "|---|---|---:|---:|---:|---:|---:|---:|"]
+             "| whole input in observed empty (%) ↓ | whole input swept (%) ↓ |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
     for log in now:
         for label, s in ((then_label, then.get(log)), (now_label, now[log])):
             if s is None:
@@ -163,7 +165,8 @@ def targets(now_test: dict, now_real: dict, times: dict) -> list[tuple[str, str,
             " / ".join(f"{now_real[g]['whole_share']:.1f}" for g in single) + " % (swept: "
             + " / ".join(f"{now_real[g]['whole_swept']:.1f}" for g in single) + " %)",
             all(now_real[g]["whole_share"] <= 3 for g in single)),
-           ("synthetic test IoU ≥ 75 % (hGCA coarse)", f"{100 * rows[COARSE]['iou']:.2f} %", rows[COARSE]["iou"] >= 0.75)]
+           ("synthetic test IoU ≥ 75 % (hGCA coarse)", f"{100 * rows[COARSE]['iou']:.2f} %",
+            rows[COARSE]["iou"] >= 0.75)]
     best = {k: min(rows[b][k] for b in BASELINES if b in rows) for k in ("resim_min", "street_cd_min")}
     out.append(("ReSim and Street CD min better than every baseline (implicit)",
                 f"{10 * rows[IMPLICIT]['resim_min']:.2f} / {10 * rows[IMPLICIT]['street_cd_min']:.2f} against the "
@@ -174,8 +177,8 @@ def targets(now_test: dict, now_real: dict, times: dict) -> list[tuple[str, str,
                 rows[COARSE]["iou"] > rows[NOPLANNER]["iou"]))
     for block, t in times.items():
         (tl, ts, tm), (_, ns, nm) = t["then"], t["now"]
-        out.append((f"{block}: time no worse than the issue's code ({tl}), same sitting", f"{ns:.1f} s against {ts:.1f} s",
-                    ns <= ts))
+        out.append((f"{block}: time no worse than the issue's code ({tl}), same sitting",
+                    f"{ns:.1f} s against {ts:.1f} s", ns <= ts))
         out.append((f"{block}: peak memory no worse than the issue's code", f"{nm:.2f} against {tm:.2f} GiB",
                     nm <= tm))
     return out

@@ -101,8 +101,8 @@ def main(argv: list[str] | None = None) -> int:
     for s in summary.values():
         lines.append(f"| {s['label']} | {s['runs']} | {s['s_per_step']:.3f} | {s['chains_per_s']:.2f} | "
                      f"{base / s['s_per_step']:.2f}x |")
-    lines += ["", "Runs in order: " + ", ".join(f"{r['kind']} {r['step_wall_s'] / r['steps']:.3f} s/step" for r in runs),
-              ""]
+    each = ", ".join(f"{r['kind']} {r['step_wall_s'] / r['steps']:.3f} s/step" for r in runs)
+    lines += ["", f"Runs in order: {each}", ""]
     out = Path(args.out)
     out.write_text(json.dumps({"config": vars(args), "machine": info, "runs": runs, "summary": summary}, indent=1))
     out.with_suffix(".md").write_text("\n".join(lines))
