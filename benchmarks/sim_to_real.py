@@ -28,6 +28,7 @@ from hgca_core.training.card import write_model_card  # noqa: E402
 
 CUT = "cut_2"
 COARSE, NOPLANNER, IMPLICIT = "hGCA coarse (planner)", "GCA (no planner)", "hGCA (implicit)"
+SPREAD = ("resim_avg", "tmd", "street_cd_avg", "street_tmd")
 BASELINES = ("input", "Poisson (Open3D)", NOPLANNER)
 TABLE_KEYS = (("resim_min", 10.0, "ReSim min ↓"), ("resim_avg", 10.0, "ReSim avg ↓"),
               ("tmd", 10.0, "ReSim TMD ↑"),
@@ -102,12 +103,16 @@ def paired_real(doc: dict, base: dict) -> tuple[dict, dict]:
 
 
 def timing(doc: dict) -> dict:
-    """{block: {"then": (label, median s, median GiB), "now": (...)}} of a completion_ab.py base-REV result."""
+    """{block: {"then": (label, median s, median GiB), "now": (...), "free_space_s": this tree's median ray walk,
+    "range_s": (fastest, slowest) run of either side}} of a completion_ab.py base-REV result."""
     out = {}
     for block, b in doc["blocks"].items():
         then, now = [s for s in b["summary"] if s != "this tree"][0], "this tree"
         out[block] = {side: (label, b["summary"][label]["median_s"], b["summary"][label]["median_rss_gib"])
                       for side, label in (("then", then), ("now", now))}
+        out[block]["free_space_s"] = b["summary"][now].get("median_stages_s", {}).get("free space")
+        secs = [r["seconds"] for r in b.get("runs", [])]
+        out[block]["range_s"] = (min(secs), max(secs)) if secs else None
     return out
 
 
@@ -121,13 +126,15 @@ def _cell(v: float | None, fmt: str = ".2f") -> str:
     return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
 
 
-def test_table(now: dict, then_row: dict) -> str:
+def synthetic_table(now: dict, then_row: dict) -> str:
     head = "| Method | Scenes | " + " | ".join(t for _, _, t in TABLE_KEYS) + " | IoU sd over scenes |"
     lines = [head, "|---|---:|" + "---:|" * (len(TABLE_KEYS) + 1)]
     rows = [("hGCA coarse, the issue's weights (d8bb003)", then_row), *now["rows"].items()]
     for name, r in rows:
         sd = standard_error(r["per_scene"]["iou"]) * math.sqrt(len(r["per_scene"]["iou"])) * 100
-        lines.append(f"| {name} | {r['n']} | " + " | ".join(_cell(r[k] * s) for k, s, _ in TABLE_KEYS)
+        one = r.get("k", 1) == 1   # one completion: no average or spread over samples
+        lines.append(f"| {name} | {r['n']} | " + " | ".join("-" if one and k in SPREAD else _cell(r[k] * s)
+                                                           for k, s, _ in TABLE_KEYS)
                      + f" | {_cell(sd)} |")
     return "\n".join(lines)
 
@@ -205,11 +212,11 @@ def plot(then_real: dict, now_real: dict, then_row: dict, now_test: dict, ablati
     rows = [("issue's\nweights", then_row), *((n.replace(" (", "\n("), r) for n, r in now_test["rows"].items())]
     ax[2].bar(range(len(rows)), [100 * r["iou"] for _, r in rows], color=["C0"] + ["C1"] * (len(rows) - 1))
     ax[2].axhline(75, color="k", ls="--", lw=1)
-    ax[2].set_xticks(range(len(rows)), [n for n, _ in rows], fontsize=6)
+    ax[2].set_xticks(range(len(rows)), [n.replace("\n", " ") for n, _ in rows], fontsize=7, rotation=30, ha="right")
     ax[2].set_title("synthetic test split IoU (%) ↑, 8 scenes, k = 3", fontsize=9)
     for a, (title, bars) in zip(ax[3:], ablations.items()):
         a.bar(range(len(bars)), list(bars.values()), color="C2")
-        a.set_xticks(range(len(bars)), list(bars), fontsize=7)
+        a.set_xticks(range(len(bars)), [b.replace("\n", " ") for b in bars], fontsize=7, rotation=30, ha="right")
         a.set_title(title, fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -256,8 +263,12 @@ def main(argv: list[str] | None = None) -> int:
           "`eval_test_synth1_s3.md`; 0.06 recall on KITTI, a scan not among our fixtures).", "",
           "## Targets", "", "| target | measured | met |", "|---|---|---|",
           *(f"| {t} | {f} | {'yes' if ok else 'no'} |" for t, f, ok in goals), "",
+          *(f"- {block}: the observed free space (ray walk) takes {_cell(t['free_space_s'], '.1f')} s of this tree's "
+            f"{t['now'][1]:.1f} s; runs of either side took {_cell((t['range_s'] or [None])[0], '.1f')}-"
+            f"{_cell((t['range_s'] or [None, None])[1], '.1f')} s in this sitting (the VM drifts: only the medians "
+            "side by side compare)." for block, t in times.items()), "",
           f"## Synthetic test split ({now_test['data']}, {now_test['split']}, k = {now_test['samples']})", "",
-          test_table(now_test, then_row), "",
+          synthetic_table(now_test, then_row), "",
           "CD and TMD x10 in metres, IoU in % at 20 cm over visible cells (paper Table 1 columns). Shipped hGCA "
           "coarse against the issue's weights, per scene (mean, difference ± s.e., scenes lower): " + _diffs(vs_then),
           "", "## Real logs (no ground truth: height cut at 2 m, observed free space)", "",

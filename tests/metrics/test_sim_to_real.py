@@ -43,8 +43,10 @@ def _real(path: Path, seed: int, logs: dict[str, tuple[str, list[tuple[float, fl
 
 def _timing(path: Path, then: tuple[float, float], now: tuple[float, float]) -> str:
     summary = {"d8bb003": {"median_s": then[0], "median_rss_gib": then[1]},
-               "this tree": {"median_s": now[0], "median_rss_gib": now[1]}}
-    path.write_text(json.dumps({"blocks": {"completion, stage coarse, default region": {"summary": summary}}}))
+               "this tree": {"median_s": now[0], "median_rss_gib": now[1], "median_stages_s": {"free space": 2.0}}}
+    runs = [{"seconds": s} for s in (15.0, 17.0, 13.5, 14.0)]
+    path.write_text(json.dumps({"blocks": {"completion, stage coarse, default region": {"summary": summary,
+                                                                                       "runs": runs}}}))
     return str(path)
 
 
@@ -102,6 +104,7 @@ def test_targets_tables_and_ablations_come_from_the_files(files):
     md = out.with_suffix(".md").read_text()
     assert "| sweep | shipped | 4 | 45.0 | 1,000 | 9.0 ± 1.3 | 4.0 | 0.5 |" in md
     assert "| hGCA coarse, the issue's weights (d8bb003) | 2 |" in md
+    assert "ray walk) takes 2.0 s of this tree's 13.7 s; runs of either side took 13.5-17.0 s" in md
     assert "- made by the test" in md and doc["notes"] == ["made by the test"]
     assert out.with_suffix(".png").stat().st_size > 10_000
 
