@@ -85,8 +85,8 @@ def sweeps(res: dict) -> int | None:
     files = sorted((src / "sensors" / "lidar").glob("*.feather")) if src.is_dir() else []
     if not files:
         return None
-    a, _, b = (res.get("frames") or ":").partition(":")
-    return len(files[slice(int(a) if a else None, int(b.split(":")[0]) if b.split(":")[0] else None)])
+    parts = (res.get("frames") or ":").split(":")   # START:STOP[:STEP], as `--frames` takes it
+    return len(files[slice(*(int(v) if v else None for v in parts))])
 
 
 def _seeds(doc: dict) -> tuple[int, int]:
@@ -249,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
         vs_then = paired(now_test, then_test)
         abl_test = {lab: paired(docs[f], now_test) for lab, f in test_abl}
         now_real = real_scores(docs[args.real_now])
-        then_real, _ = paired_real(docs[args.real_then], docs[args.real_now])
+        then_real = real_scores(docs[args.real_then])
         abl_real = {lab: paired_real(docs[f], docs[args.real_now]) for lab, f in real_abl}
         times = {b: t for f in args.timing for b, t in timing(docs[f]).items()}
         goals = targets(now_test, now_real, times)

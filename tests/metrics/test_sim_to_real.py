@@ -90,6 +90,9 @@ def test_targets_tables_and_ablations_come_from_the_files(files):
     assert share == ("9.0 / 9.0 %", False)                          # mean of 6, 8, 10, 12
     single = next((k, v) for k, v in goals.items() if k.startswith("single sweeps"))
     assert "(sweep)" in single[0] and single[1] == ("4.0 % (swept: 0.5 %)", False)   # the 2-sweep log is not one
+    log = str(files["dir"] / "log")
+    assert [sim_to_real.sweeps({"source": log, "frames": f}) for f in (None, "0:1", "1:", "0:2:2")] == [2, 1, 1, 1]
+    assert sim_to_real.sweeps({"source": str(files["dir"] / "gone")}) is None
     assert next(v for k, v in goals.items() if k.startswith("synthetic test IoU")) == ("64.00 %", False)
     assert next(v for k, v in goals.items() if k.startswith("ReSim and Street CD"))[1] is True
     assert next(v for k, v in goals.items() if k.startswith("planner better"))[1] is True
