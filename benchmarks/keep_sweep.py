@@ -83,13 +83,27 @@ def row_files(items: list[str]) -> list[str]:
     return [f for item in items for spec in _row(item)[1:] if spec for f in spec.split("+")]
 
 
+def resummarised(doc: dict, samples_of) -> dict:
+    """A copy of an `hgca eval-real` / val_cut.py result whose every row holds `samples_of((input, case, method),
+    row)` as its per-sample scores, its k and summary recomputed from them; a row given no samples keeps its own
+    (a row without per-sample scores keeps its summary)."""
+    from hgca_core.metrics.realscan import summarise
+
+    out = json.loads(json.dumps(doc))
+    for name, res in out["inputs"].items():
+        for case, c in res["cases"].items():
+            for method, row in c["rows"].items():
+                samples = samples_of((name, case, method), row)
+                if samples:
+                    row.update(per_sample=samples, k=len(samples), summary=summarise(samples))
+    return out
+
+
 def pooled(spec: str) -> dict:
     """One results file, or several joined by '+': runs of the same command on the same weights with disjoint
     seeds (`--seed 0 --samples 6`, then `--seed 6 --samples 6`), read as one run of all their samples, every
     summary recomputed over the pooled per-sample scores. Why: a real log's above-cut share swings several points
     between samples, so telling weights apart takes more samples than one scoring run affords."""
-    from hgca_core.metrics.realscan import summarise
-
     paths = spec.split("+")
     docs = [json.loads(Path(p).read_text()) for p in paths]
     if len(docs) == 1:
@@ -110,14 +124,12 @@ def pooled(spec: str) -> dict:
     ranges.sort()
     if any(a[1] > b[0] for a, b in zip(ranges, ranges[1:])):
         raise ValueError(f"{spec}: the runs' seeds overlap ({ranges}), so pooling would count samples twice")
-    out = json.loads(json.dumps(first))
-    for name, res in out["inputs"].items():
-        for case, c in res["cases"].items():
-            for method, row in c["rows"].items():
-                runs = [d["inputs"][name]["cases"][case]["rows"][method] for d in docs]
-                samples = [s for r in runs for s in r.get("per_sample", [])]
-                if samples:   # a row without per-sample scores keeps the first run's summary
-                    row.update(per_sample=samples, k=len(samples), summary=summarise(samples))
+
+    def joined(path: tuple[str, str, str], row: dict) -> list[dict]:
+        name, case, method = path
+        return [s for d in docs for s in d["inputs"][name]["cases"][case]["rows"][method].get("per_sample", [])]
+
+    out = resummarised(first, joined)
     out["config"] = {**first.get("config", {}), "seeds": [list(r) for r in ranges],
                      "samples": sum(b - a for a, b in ranges)}
     return out

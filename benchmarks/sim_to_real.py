@@ -22,18 +22,15 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cut_frontier import page_out  # noqa: E402  (benchmarks reuse each other's readers)
-from paired_eval import paired, standard_error  # noqa: E402
+from keep_sweep import resummarised, scores  # noqa: E402
+from paired_eval import paired  # noqa: E402
+from hgca_core.metrics.evaluate import format_table  # noqa: E402
 from hgca_core.models.weights import WEIGHTS_DIR  # noqa: E402
 from hgca_core.training.card import write_model_card  # noqa: E402
 
 CUT = "cut_2"
 COARSE, NOPLANNER, IMPLICIT = "hGCA coarse (planner)", "GCA (no planner)", "hGCA (implicit)"
-SPREAD = ("resim_avg", "tmd", "street_cd_avg", "street_tmd")
 BASELINES = ("input", "Poisson (Open3D)", NOPLANNER)
-TABLE_KEYS = (("resim_min", 10.0, "ReSim min ↓"), ("resim_avg", 10.0, "ReSim avg ↓"),
-              ("tmd", 10.0, "ReSim TMD ↑"),
-              ("iou", 100.0, "IoU (%) ↑"), ("street_cd_min", 10.0, "Street CD min ↓"),
-              ("street_cd_avg", 10.0, "Street CD avg ↓"), ("street_tmd", 10.0, "Street CD TMD ↑"))
 
 
 def labelled(item: str) -> tuple[str, str]:
@@ -46,32 +43,22 @@ def labelled(item: str) -> tuple[str, str]:
 
 def leading(doc: dict, k: int) -> dict:
     """An `hgca eval-real` result cut to its first k samples (seeds seed .. seed + k - 1), summaries recomputed."""
-    from hgca_core.metrics.realscan import summarise
-
-    out = json.loads(json.dumps(doc))
-    for res in out["inputs"].values():
-        for case in res["cases"].values():
-            for row in case["rows"].values():
-                if len(row.get("per_sample", [])) > k:
-                    row["per_sample"] = row["per_sample"][:k]
-                    row.update(k=k, summary=summarise(row["per_sample"]))
+    out = resummarised(doc, lambda path, row: row.get("per_sample", [])[:k])
     out["config"] = {**out.get("config", {}), "samples": k}
     return out
 
 
-def real_scores(doc: dict, method: str = "hgca") -> dict[str, dict]:
-    """Per log: k, 2 m recall, above-cut share (± s.e. over the samples), whole input in observed empty and swept
-    (%), as means over the samples."""
+def real_scores(doc: dict) -> dict[str, dict]:
+    """Per log, in %: `keep_sweep.scores`' 2 m recall, above-cut share and its standard error, cells above and the
+    whole input's share in observed empty, with the whole input's swept share and whether it was one sweep."""
     out = {}
-    for name, res in doc["inputs"].items():
-        whole = res["cases"]["full"]["rows"][method]
-        cut = res["cases"][CUT]["rows"][method]
-        shares = [100 * s["above_empty_share"] for s in cut["per_sample"] if s["above_empty_share"] is not None]
-        mean = lambda row, key: 100 * row["summary"][key]["mean"]  # noqa: E731
-        out[name] = {"k": len(cut["per_sample"]), "recall": mean(cut, "recall"),
-                     "above_share": mean(cut, "above_empty_share"),
-                     "above_se": standard_error(shares), "above_cells": cut["summary"]["generated_above"]["mean"],
-                     "whole_share": mean(whole, "empty_share"), "whole_swept": mean(whole, "swept_share"),
+    for name, s in scores({"inputs": {}}, doc).items():
+        res, cut = doc["inputs"][name], s[CUT]
+        swept = res["cases"]["full"]["rows"]["hgca"]["summary"]["swept_share"]["mean"]
+        sem = cut["above_empty_sem"]
+        out[name] = {"k": cut["k"], "recall": 100 * cut["recall"], "above_share": 100 * cut["above_empty_share"],
+                     "above_se": math.nan if sem is None else 100 * sem, "above_cells": cut["generated_above"],
+                     "whole_share": 100 * s["whole_empty_share"], "whole_swept": 100 * swept,
                      "single_sweep": sweeps(res) == 1}
     return out
 
@@ -112,7 +99,7 @@ def timing(doc: dict) -> dict:
                       for side, label in (("then", then), ("now", now))}
         out[block]["free_space_s"] = b["summary"][now].get("median_stages_s", {}).get("free space")
         secs = [r["seconds"] for r in b.get("runs", [])]
-        out[block]["range_s"] = (min(secs), max(secs)) if secs else None
+        out[block]["range_s"] = (min(secs), max(secs)) if secs else (None, None)
     return out
 
 
@@ -124,19 +111,6 @@ def _short(log: str) -> str:
 
 def _cell(v: float | None, fmt: str = ".2f") -> str:
     return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
-
-
-def synthetic_table(now: dict, then_row: dict) -> str:
-    head = "| Method | Scenes | " + " | ".join(t for _, _, t in TABLE_KEYS) + " | IoU sd over scenes |"
-    lines = [head, "|---|---:|" + "---:|" * (len(TABLE_KEYS) + 1)]
-    rows = [("hGCA coarse, the issue's weights (d8bb003)", then_row), *now["rows"].items()]
-    for name, r in rows:
-        sd = standard_error(r["per_scene"]["iou"]) * math.sqrt(len(r["per_scene"]["iou"])) * 100
-        one = r.get("k", 1) == 1   # one completion: no average or spread over samples
-        lines.append(f"| {name} | {r['n']} | " + " | ".join("-" if one and k in SPREAD else _cell(r[k] * s)
-                                                           for k, s, _ in TABLE_KEYS)
-                     + f" | {_cell(sd)} |")
-    return "\n".join(lines)
 
 
 def _diffs(d: dict) -> str:
@@ -264,13 +238,13 @@ def main(argv: list[str] | None = None) -> int:
           "## Targets", "", "| target | measured | met |", "|---|---|---|",
           *(f"| {t} | {f} | {'yes' if ok else 'no'} |" for t, f, ok in goals), "",
           *(f"- {block}: the observed free space (ray walk) takes {_cell(t['free_space_s'], '.1f')} s of this tree's "
-            f"{t['now'][1]:.1f} s; runs of either side took {_cell((t['range_s'] or [None])[0], '.1f')}-"
-            f"{_cell((t['range_s'] or [None, None])[1], '.1f')} s in this sitting (the VM drifts: only the medians "
+            f"{t['now'][1]:.1f} s; runs of either side took {_cell(t['range_s'][0], '.1f')}-"
+            f"{_cell(t['range_s'][1], '.1f')} s in this sitting (the VM drifts: only the medians "
             "side by side compare)." for block, t in times.items()), "",
           f"## Synthetic test split ({now_test['data']}, {now_test['split']}, k = {now_test['samples']})", "",
-          synthetic_table(now_test, then_row), "",
-          "CD and TMD x10 in metres, IoU in % at 20 cm over visible cells (paper Table 1 columns). Shipped hGCA "
-          "coarse against the issue's weights, per scene (mean, difference ± s.e., scenes lower): " + _diffs(vs_then),
+          format_table({"hGCA coarse, the issue's weights (d8bb003)": then_row, **now_test["rows"]}), "",
+          "Shipped hGCA coarse against the issue's weights, per scene (mean, difference ± s.e., scenes lower): "
+          + _diffs(vs_then),
           "", "## Real logs (no ground truth: height cut at 2 m, observed free space)", "",
           real_table(then_real, now_real, "issue's (d8bb003)", "shipped"), "",
           "## Observed free space ablated (shipped weights)", ""]
