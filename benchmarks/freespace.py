@@ -1,6 +1,6 @@
 """Time of the observed-free-space ray walk (`hgca_core.geometry.freespace.observed_empty`) on real sweeps.
 
-    python benchmarks/freespace.py [--real-dir ../shared/fixtures/real] [--repeats 5] [--threads 1]
+    python benchmarks/freespace.py [--real-dir tests/data/real] [--repeats 5] [--threads 1]
 
 Every input ray, in the default region (38.4 x 38.4 x 8 m, 192 x 192 x 40 cells of 20 cm) that `hgca complete`
 and `hgca eval-real` use. The walk will also become a model input, so it should stay around a second. On a
@@ -29,7 +29,7 @@ INPUTS = (  # name, path under --real-dir, frames, calibration (as hgca eval-rea
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--real-dir", default="../shared/fixtures/real")
+    p.add_argument("--real-dir", default=str(Path(__file__).resolve().parents[1] / "tests" / "data" / "real"))
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--threads", type=int, default=1, help="numpy is single-threaded here; kept for the record")
     p.add_argument("--out", default="benchmarks/results/freespace.json")

@@ -3,7 +3,7 @@ meets the ground, ring spacing against range, and the range histogram.
 
     python benchmarks/sensor_profiles.py [--scenes 6] [--out benchmarks/results]
 
-Real: the nuScenes sweep (HDL-32E) and the three Argoverse 2 sweeps (two VLP-32C) in ../shared/fixtures/real.
+Real: the nuScenes sweep (HDL-32E) and the three Argoverse 2 sweeps (two VLP-32C) in tests/data/real.
 Simulated: one scan per synthetic street (seeds 3,000,000 + i, the city style) with every real-sensor effect,
 for all five profiles (KITTI's HDL-64E, Waymo and the OS1-128 have no real fixture here). It also
 re-measures the AV2 beam table and mounting height the `av2` profile was built from.

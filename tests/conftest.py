@@ -39,7 +39,7 @@ def dataset(tiny_dataset, tmp_path) -> Path:
 
 @pytest.fixture(scope="session")
 def real_dir() -> Path:
-    """The real-files folder ../shared/fixtures/real: a skip where it is missing, a failure under CI."""
+    """The real-files folder tests/data/real: a skip where it is missing, a failure under CI."""
     return require_real()
 
 

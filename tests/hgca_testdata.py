@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-REAL_FIXTURES = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "real"
+# The real LiDAR files live in the repository (tests/data/real, with their licences), so a clone runs every test.
+REAL_FIXTURES = Path(__file__).resolve().parent / "data" / "real"
 
 
 def in_ci() -> bool:
@@ -18,12 +19,12 @@ def in_ci() -> bool:
 
 
 def require_real(path: Path | None = None) -> Path:
-    """A real LiDAR fixture (default: the folder ../shared/fixtures/real). When it is missing the test is skipped
-    on a developer's machine, but FAILS under CI: CI runs on a clean clone with ../shared beside it, so a missing
-    fixture there means the real-file tests silently stopped running."""
+    """A real LiDAR fixture (default: the folder tests/data/real). When it is missing the test is skipped on a
+    developer's machine (e.g. a checkout that left the data out), but FAILS under CI: a clone holds the folder,
+    so a missing fixture there means the real-file tests silently stopped running."""
     p = REAL_FIXTURES if path is None else Path(path)
     if not p.exists():
-        msg = f"real LiDAR fixture missing: {p} (expected ../shared/fixtures/real next to the repo)"
+        msg = f"real LiDAR fixture missing: {p} (expected in tests/data/real)"
         if in_ci():
             pytest.fail(f"{msg}; CI is set, so this is a failure, not a skip", pytrace=False)
         pytest.skip(msg)

@@ -17,7 +17,8 @@ from pathlib import Path
 from hgca_core.commands.complete import add_free_space_argument, add_precision_argument
 from hgca_core.real_eval import METHODS
 
-DEFAULT_REAL = "../shared/fixtures/real"
+# The real fixtures shipped with the repository (tests/data/real), wherever the command is run from
+DEFAULT_REAL = str(Path(__file__).resolve().parents[2] / "tests" / "data" / "real")
 AV2_7FAB = "av2/7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
 # The fixtures this project has: (name, path under --real-dir, frames, calibration for a log without one)
 DEFAULT_INPUTS = (

@@ -3,7 +3,7 @@
 
 nuScenes keeps the returns off its own car in the sweeps (the devkit drops them only when it merges sweeps,
 `remove_close`); Argoverse 2 ships sweeps without them and the simulator makes none (its ego body only blocks
-beams). In the real sweep of `../shared/fixtures/real`, 8,526 of 34,688 returns (25 %) lie on the car: x -0.62 to
+beams). In the real sweep of `tests/data/real`, 8,526 of 34,688 returns (25 %) lie on the car: x -0.62 to
 0.64, y -1.12 to 1.81, z -0.92 to 0 m in the LIDAR_TOP frame (y forward), and the nearest other return is 3.04 m
 out. Left in, they are a 1.3 x 2.9 m slab 0.9-1.8 m above the road at the sensor that the model completes as an
 object, so the reader drops the returns inside the car's footprint below the sensor (`NUSCENES_EGO_BOX`, the

@@ -2,7 +2,7 @@
 suffer that a perfect ray caster does not.
 
 Profiles: Velodyne HDL-64E (KITTI), HDL-32E (nuScenes), two stacked VLP-32C (Argoverse 2; the beam table
-and mounting were measured from the real AV2 sweeps in ../shared/fixtures/real/av2, see
+and mounting were measured from the real AV2 sweeps in tests/data/real/av2, see
 benchmarks/sensor_profiles.py), the Waymo top LiDAR (the paper's input sensor) and an Ouster OS1-128.
 
 Effects (each can be switched off in `Effects`): random dropout; returns that fade with range, incidence

@@ -2,7 +2,7 @@
 
 The KITTI folder is built here from the format's facts (velodyne/NNNNNN.bin float32 x,y,z,i; poses.txt one
 3x4 camera-0 pose per line; calib.txt `Tr:` velodyne -> camera 0), around known velodyne poses, so the
-reader must undo Tr to recover them. The AV2 and nuScenes cases use the real files of ../shared.
+reader must undo Tr to recover them. The AV2 and nuScenes cases use the real files in tests/data/real.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The real sweeps of ../shared/fixtures/real as plain arrays, for the sensor-profile tests and
+"""The real sweeps of tests/data/real as plain arrays, for the sensor-profile tests and
 benchmarks/sensor_profiles.py: nuScenes (HDL-32E, sensor frame) and Argoverse 2 (two VLP-32C, ego frame).
 
 Missing files skip a test, except under CI, where they fail it (`hgca_testdata.require_real`).
