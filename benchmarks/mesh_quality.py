@@ -135,7 +135,7 @@ def real_scene(name: str, points: np.ndarray, origins: np.ndarray, index: np.nda
     inside = local[region.contains_local(local)]
     m = mesh_both(models.autoencoder, cells10, z, inside, sensors)
     patches = flatness.flat_patches_from_points(inside, max_rms=0.03)
-    anyp = flatness.flat_patches_from_points(inside, max_rms=0.03, max_above=1.0)   # objects allowed (session 5)
+    anyp = flatness.flat_patches_from_points(inside, max_rms=0.03, max_above=1.0)   # objects allowed
     return {"scene": name, "timings": m["timings"], "ground": ground(m, patches, {"input": inside}),
             "ground_with_objects": flatness.ground_report(m["after"], anyp, {"input": inside}),
             "stats": {k: mesh_stats(m[k]) for k in MESHES},

@@ -1,5 +1,5 @@
-"""Wall time of the fine stage's mesh, step by step, on the default region of `hgca bench` (issue #14: meshing,
-i.e. decode + extraction + cleanup, <= 5 s on 2 cores).
+"""Wall time of the fine stage's mesh, step by step, on the default region of `hgca bench` (the budget:
+meshing, i.e. decode + extraction + cleanup, <= 5 s on 2 cores).
 
     python benchmarks/meshing_time.py [--reps 5] [--workers 1 2] [--cache DIR] [--out NAME]
 
@@ -102,7 +102,7 @@ def table(r: dict) -> str:
              "| numpy threads | " + " | ".join(STEPS) + " |", "|---|" + "---:|" * len(STEPS)]
     for w, row in r["rows"].items():
         lines.append(f"| {w} | " + " | ".join(f"{row[k]['median']:.2f} ({row[k]['min']:.2f})" for k in STEPS) + " |")
-    lines += ["", "Seconds, median (min). meshing = decode + extract + clean (the issue's measure); clean includes "
+    lines += ["", "Seconds, median (min). meshing = decode + extract + clean (the budgeted measure: <= 5 s on 2 cores); clean includes "
               "finding the observed vertices; fair, decimate and the observed distances complete the stage. The "
               "decoder runs on torch's threads (2) in every row; the thread count is that of the numpy steps."]
     return "\n".join(lines) + "\n"

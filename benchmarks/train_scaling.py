@@ -1,4 +1,4 @@
-"""Training throughput of one coarse run on this machine's cores (issue 13 item 4, "both cores for one run"):
+"""Training throughput of one coarse run on this machine's cores (should one run take every core?):
 one process with 1 thread, one process with N threads, and N gloo ranks of 1 thread each (torchrun), at the same
 recipe and the same chains a step in all (the ranks split them), interleaved A B C C B A (run by hand):
 
@@ -7,10 +7,9 @@ recipe and the same chains a step in all (the ranks split them), interleaved A B
 
 Each run is `hgca train coarse` itself in a fresh process, from the shipped coarse.pt, with the recipe of the
 shipped weights' last fine-tune (free space, --free-weight 8 --cut 0.5 --focus 0.5, bf16 GEMMs); its seconds are
-the trainer's own summed step wall time (the session record in the run's checkpoint), so start-up and the first
-chains' set-up are out, and the free-space sidecars are computed before the first run. Why: the sessions' runs
-have used one thread per process, two side by side, and the only two-thread figure (train_precision.md) was taken
-on a machine loaded 4.6 deep, so whether one run should take both cores had not been measured.
+the trainer's own summed step wall time (the run record in the run's checkpoint), so start-up and the first
+chains' set-up are out, and the free-space sidecars are computed before the first run. Why: on a CPU the choice is
+one run on all cores or several one-thread runs side by side, and only a measurement on the machine says which.
 """
 from __future__ import annotations
 

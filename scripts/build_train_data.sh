@@ -1,17 +1,17 @@
 #!/usr/bin/env bash
-# Rebuild the coarse fine-tunes' scenes on a new machine: nothing a session builds outside the repository outlives
-# it, and sessions 31-37 trained on folders that existed only on their machine. The folders, by name (DATA, default
+# Rebuild the scenes the shipped coarse weights were trained, validated and tested on, on any machine (the data is
+# not in the repository: these commands regenerate it bit for bit from seeds). The folders, by name (DATA, default
 # data/), each a resumable `hgca synth` split build (re-running skips the scenes already written), in the order a
-# session needs them:
+# training run needs them:
 #   v2f        the 16 val scenes of synth2f alone (generator 6, val seeds 1,000,000-15): the trainer's validation
-#              (a first --data folder holding only a val split) and benchmarks/val_cut.py's 16-scene set
-#   synth2cal  val seeds 16-63 (generator 6): val_cut.py --profiles av2 --count 8
+#              (a first --data folder holding only a val split) and the 16-scene val set
+#   synth2cal  val seeds 16-63 (generator 6): further val scenes
 #   synth2f    the 8 format-3 test scenes (generator 6, test seeds 2,000,000-7): `hgca eval --split test`
 #   s6a..s6d   generator 6 train seeds 0-339, 340-679, 680-1,019, 1,020-1,359 (340 each)
 #   s7a        generator 7 train seeds 1,500-1,670 (171)
 # The 1,531 train scenes of s6a-s6d and s7a are the train set the shipped coarse.pt's last fine-tune saw (its card,
 # `generator 6 seeds 0-1,359 and generator 7 seeds 1,500-1,670`); recipes docs/data/synth2f_recipe.json (generator 6,
-# format 3) and synth7f_recipe.json (generator 7). With two workers on a 2-core AMD EPYC (session 38): s7a's 171
+# format 3) and synth7f_recipe.json (generator 7). With two workers on a 2-core AMD EPYC: s7a's 171
 # scenes in 13 min (4.7 s a scene), s6a's 340 in 32 min and v2f + synth2cal in 8.5 min, those partly beside a scoring run.
 #
 #   bash scripts/build_train_data.sh                    # everything (1,603 scenes), ~2 h on 2 cores

@@ -1,9 +1,8 @@
 """Rewrite committed renderings as 256-colour palette PNGs, in place (run by hand before committing results):
-`python scripts/compact_png.py benchmarks/results/real_scans_s33*.png`.
+`python scripts/compact_png.py benchmarks/results/real_scans_*.png`.
 
-Why: renderings are most of the tracked bytes, and `tests/test_repo_size.py` keeps the tracked files under the
-budget the device tool's carries leave for training data. A shaded mesh rendering has few distinct colours, so a
-palette (fast octree, no dithering) looks the same and is 3-4x smaller. Files already in palette or grey mode,
+Why: renderings are most of a results page's bytes, and every clone carries them. A shaded mesh rendering has few
+distinct colours, so a palette (fast octree, no dithering) looks the same and is 3-4x smaller. Files already in palette or grey mode,
 or that would not shrink, are left as they are.
 """
 from __future__ import annotations
