@@ -11,7 +11,7 @@ import importlib
 from types import ModuleType
 
 # Registration order: properties before the panels that draw them, preferences before operators use them.
-_MODULES = ("properties", "preferences", "jobs", "operators_import", "operators_complete", "operators_drive",
+_MODULES = ("properties", "messages", "preferences", "jobs", "operators_import", "operators_complete", "operators_drive",
             "panels")
 
 

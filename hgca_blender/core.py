@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import re
 import shutil
 import signal
 import subprocess
@@ -28,6 +29,8 @@ from typing import Any, Callable
 CORE_MODULE = "hgca_core.cli"
 PROGRESS_PROTOCOL = 1  # must equal hgca_core.progress.PROTOCOL (tests/test_complete.py holds them equal)
 KILL_GRACE_S = 3.0
+# `hgca complete: warning: ...` (hgca_core.cli prints its own warnings on one stderr line each)
+WARNING_LINE = re.compile(r"^hgca [\w-]+: warning: (.+)$")
 
 
 class CoreError(RuntimeError):
@@ -184,7 +187,9 @@ class Job:
         self.started = time.monotonic()
         self._events: queue.Queue[dict[str, Any]] = queue.Queue()
         self._stderr: deque[str] = deque(maxlen=200)
+        self.warnings: list[str] = []  # the core's warnings, in order (stderr; shown with the job's report)
         self._reported_error = ""
+        self._ended = False
         self._done_event: dict[str, Any] | None = None
         try:
             self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -203,7 +208,11 @@ class Job:
         assert self._proc.stderr is not None
         try:
             for line in self._proc.stderr:
-                self._stderr.append(line.rstrip("\n"))
+                text = line.rstrip("\n")
+                self._stderr.append(text)
+                found = WARNING_LINE.match(text.strip())
+                if found and found.group(1) not in self.warnings:
+                    self.warnings.append(found.group(1))
         except (OSError, ValueError):
             pass
 
@@ -247,6 +256,9 @@ class Job:
                 break
             self._handle(event)
         self.publish()
+        if self.state != "running" and not self._ended:
+            self._ended = True
+            self.on_end()
         return self.state == "running"
 
     def wait(self, timeout: float | None = None, interval: float = 0.05,
@@ -351,6 +363,9 @@ class Job:
 
     def success_status(self) -> str:
         return "Done"
+
+    def on_end(self) -> None:
+        """Once, after the job reached a terminal state in `poll_once` (main thread): say what it has to say."""
 
     def publish(self) -> None:
         """Show progress somewhere (main thread)."""

@@ -26,7 +26,7 @@ from typing import Any
 import bpy
 import numpy as np
 
-from . import georef, jobs, mesh_build, region, sources
+from . import georef, jobs, mesh_build, messages, region, sources
 from .core import CoreError, Job, check_python, core_command, run_core_json
 
 # Share of the progress bar: reading the scans, the tiles, merging the samples.
@@ -300,6 +300,9 @@ class DriveJob(Job):
 
     def publish(self) -> None:
         jobs.publish_state(self)
+
+    def on_end(self) -> None:
+        messages.report_job(self)
 
 
 def start_drive_job(params: DriveParams, objects: list[bpy.types.Object] | None = None) -> DriveJob:

@@ -14,6 +14,8 @@ own extent of zero, so float32 keeps sub-millimetre detail. Points and regions g
 """
 from __future__ import annotations
 
+from decimal import Decimal
+
 import bpy
 import numpy as np
 
@@ -59,9 +61,13 @@ def to_world(scene: bpy.types.Scene, points: np.ndarray) -> np.ndarray:
 
 
 def region_to_world(scene: bpy.types.Scene, region: tuple[float, ...]) -> tuple[float, ...]:
-    """A (cx, cy, cz, sx, sy, sz, yaw) region in Blender coordinates -> the same region in world coordinates."""
-    centre = np.asarray(region[:3], dtype=np.float64) + scene_origin(scene)
-    return (*map(float, centre), *map(float, region[3:]))
+    """A (cx, cy, cz, sx, sy, sz, yaw) region in Blender coordinates -> the same region in world coordinates.
+
+    The centre is added in decimal: -0.11 in a scene whose origin is 5225 is the 5224.89 a user gives the CLI,
+    where float64 addition would give 5224.889999999999."""
+    origin = scene_origin(scene)
+    centre = [float(Decimal(repr(float(c))) + Decimal(repr(float(o)))) for c, o in zip(region[:3], origin)]
+    return (*centre, *map(float, region[3:]))
 
 
 def region_to_scene(scene: bpy.types.Scene, region: tuple[float, ...]) -> tuple[float, ...]:

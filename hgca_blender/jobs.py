@@ -10,7 +10,6 @@ from __future__ import annotations
 import atexit
 import math
 import shutil
-import sys
 import tempfile
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -20,8 +19,9 @@ from typing import Any
 import bpy
 import numpy as np
 
-from . import mesh_build
+from . import mesh_build, messages
 from .core import CoreError, Job, check_python, core_command
+from .job_inputs import ScanFiles
 
 STAGES = ("read", "coarse", "fine", "mesh", "write")
 # Share of the progress bar each stage gets; a coarse-only run has no "fine" stage.
@@ -47,6 +47,9 @@ class CompletionParams:
     scene_name: str = ""
     run_name: str = ""
     extra_args: list[str] = field(default_factory=list)
+    origins: np.ndarray | None = None        # (S, 3) world sensor origins: the rays of the observed free space
+    origin_index: np.ndarray | None = None   # (N,) each point's row in `origins`
+    files: ScanFiles | None = None           # the scan files themselves, when the points are exactly theirs
 
 
 def validate_params(params: CompletionParams) -> np.ndarray:
@@ -71,14 +74,32 @@ def validate_params(params: CompletionParams) -> np.ndarray:
         raise CoreError("T1 and T2 must be at least 1, or 0 for the weights' own step counts")
     if int(params.max_faces) != 0 and int(params.max_faces) < 1000:
         raise CoreError(f"max faces must be 0 (no limit) or at least 1000, got {params.max_faces}")
+    if params.origins is not None:
+        origins = np.asarray(params.origins, dtype=np.float64)
+        index = np.asarray(params.origin_index if params.origin_index is not None else [], dtype=np.int64)
+        if origins.ndim != 2 or origins.shape[1] != 3 or not len(origins) or not np.all(np.isfinite(origins)):
+            raise CoreError(f"sensor origins must be finite (S, 3), got {origins.shape}")
+        if index.shape != (len(pts),) or index.min() < 0 or index.max() >= len(origins):
+            raise CoreError("every source point needs the index of its sensor origin")
     return pts
 
 
+def input_arrays(params: CompletionParams, pts: np.ndarray) -> dict[str, np.ndarray]:
+    """The .npz the core reads in place of scan files: world points and, when known, their rays."""
+    arrays = {"points": pts}
+    if params.origins is not None and params.origin_index is not None:
+        arrays["origins"] = np.asarray(params.origins, dtype=np.float64)
+        arrays["origin_index"] = np.asarray(params.origin_index, dtype=np.int64)
+    return arrays
+
+
 def completion_args(params: CompletionParams, in_path: Path, out_path: Path) -> list[str]:
-    """The `hgca complete` command line from CONTRACTS.md ("Completion CLI"); T1/T2 of 0 are left to the core."""
+    """The `hgca complete` command line from CONTRACTS.md ("Completion CLI"); T1/T2 of 0 are left to the core.
+    The input is the scan files when `params.files` names them, else the .npz at `in_path`."""
     region = ",".join(repr(float(v)) for v in params.region)
     steps = [f"--{name}={int(value)}" for name, value in (("t1", params.t1), ("t2", params.t2)) if int(value)]
-    return ["complete", str(in_path), f"--region={region}", "--samples", str(int(params.samples)),
+    inputs = params.files.args() if params.files is not None else [str(in_path)]
+    return ["complete", *inputs, f"--region={region}", "--samples", str(int(params.samples)),
             "--seed", str(int(params.seed)), "--stage", params.stage, "--device", params.device,
             *steps, "--progress", "jsonl",
             "--max-faces", str(int(params.max_faces)),      # 0: every triangle (the core's default is 1 M)
@@ -148,6 +169,9 @@ class CompletionJob(Job):
     def publish(self) -> None:
         publish_state(self)
 
+    def on_end(self) -> None:
+        messages.report_job(self)
+
 
 def publish_state(job: Job) -> None:
     """Show a job's progress and status in its scene's panel (`scene.hgca`); completion and drive jobs alike."""
@@ -213,7 +237,8 @@ def start_job(params: CompletionParams) -> CompletionJob:
     workdir = Path(tempfile.mkdtemp(prefix="hgca_job_"))
     try:
         in_path = workdir / "in.npz"
-        np.savez(in_path, points=pts)
+        if params.files is None:
+            np.savez(in_path, **input_arrays(params, pts))
         cmd = core_command(params.python, completion_args(params, in_path, workdir / "out.npz"))
     except Exception:
         shutil.rmtree(workdir, ignore_errors=True)
@@ -231,8 +256,6 @@ def poll_all() -> bool:
         if job.poll_once():
             any_running = True
         else:
-            if job.state == "error":
-                print(f"hGCA: job failed: {job.error}", file=sys.stderr)
             del ACTIVE[name]
     return any_running
 

@@ -8,8 +8,9 @@ from __future__ import annotations
 import math
 
 import bpy
+import numpy as np
 
-from . import core, georef, jobs, preferences, region, sources
+from . import core, georef, job_inputs, jobs, preferences, region, sources
 
 
 def _scene_props(context: bpy.types.Context):
@@ -38,12 +39,17 @@ def panel_region(context: bpy.types.Context) -> region.Region:
 
 def gather_params(context: bpy.types.Context) -> jobs.CompletionParams:
     """Everything the panel says, turned into job parameters (raises with a user-facing message). Points and
-    region go to the core in world coordinates: Blender's plus the scene's georeference origin (float64)."""
+    region go to the core in world coordinates: Blender's plus the scene's georeference origin (float64), the
+    points with their sensor origins; an unchanged imported scan goes as its files (`job_inputs`)."""
     props = _scene_props(context)
     scene = context.scene
-    points = georef.to_world(scene, sources.world_points(source_objects(context)))
+    objects = source_objects(context)
+    sources.world_points(objects)  # refuses an empty selection or objects without points, with the reason
+    per_object = [job_inputs.object_world_points(scene, obj) for obj in objects]
+    origins, origin_index = job_inputs.ray_inputs(scene, objects, per_object)
     return jobs.CompletionParams(
-        python=preferences.core_python(context), points=points,
+        python=preferences.core_python(context), points=np.concatenate(per_object),
+        origins=origins, origin_index=origin_index, files=job_inputs.unchanged_files(scene, objects),
         region=georef.region_to_world(scene, panel_region(context)),
         samples=props.samples, seed=props.seed, stage=props.stage, device=props.device,
         t1=props.t1, t2=props.t2, max_faces=props.max_faces, scene_name=context.scene.name,

@@ -14,7 +14,7 @@ import numpy as np
 from bpy.props import BoolProperty, CollectionProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from . import core, georef, mesh_build, preferences, sources
+from . import core, georef, job_inputs, mesh_build, preferences, sources
 
 EXTENSIONS = (".ply", ".las", ".laz", ".pcd", ".xyz", ".csv", ".txt", ".npy", ".npz", ".bin", ".feather")
 READ_TIMEOUT_S = 3600
@@ -106,6 +106,8 @@ def import_scans(python: str, paths: list[Path], collection: bpy.types.Collectio
         raise
     if origins is not None:  # the default region is centred on the first one (Blender coordinates)
         sources.set_sensor_origins(obj, origins - origin)
+    job_inputs.remember_files(scene, obj, job_inputs.ScanFiles([str(p) for p in paths], frames,
+                                                               str(poses) if poses is not None else ""))
     return obj, skipped, dropped
 
 

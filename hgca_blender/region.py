@@ -26,6 +26,17 @@ REGION_TYPES = ("MESH", "EMPTY")  # objects whose box can be a region
 REGION_TIMEOUT_S = 600
 
 
+def decimal32(value: float) -> float:
+    """The shortest decimal a float32 holds (9.6 for the float32 nearest 9.6): what the user typed into a
+    Blender property, without the float32 noise (9.600000381...) that would make the core's region differ."""
+    return float(str(np.float32(value)))
+
+
+def clean(region: tuple[float, ...]) -> "Region":
+    """A region read from float32 Blender data, each number as the user typed it (`decimal32`)."""
+    return tuple(decimal32(v) for v in region)  # type: ignore[return-value]
+
+
 class RegionError(ValueError):
     """The region cannot be used (no points, a tilted box, zero size); the message says why."""
 
@@ -89,14 +100,14 @@ def region_from_object(obj: bpy.types.Object) -> Region:
         raise RegionError(f"region object {obj.name!r} is tilted: rotate it about Z only")
     centre = m @ np.append((lo + hi) / 2, 1.0)
     yaw = math.degrees(math.atan2(axes[1, 0], axes[0, 0]))
-    return (*map(float, centre[:3]), *map(float, size), float(yaw))
+    return clean((*map(float, centre[:3]), *map(float, size), float(yaw)))
 
 
 def region_from_numbers(centre: tuple[float, float, float], size: tuple[float, float, float],
                         yaw_rad: float) -> Region:
     if min(size) <= 0:
         raise RegionError(f"region size must be positive, got {tuple(size)}")
-    return (*map(float, centre), *map(float, size), math.degrees(yaw_rad))
+    return clean((*map(float, centre), *map(float, size), math.degrees(yaw_rad)))
 
 
 def _unit_cube(name: str) -> bpy.types.Mesh:
