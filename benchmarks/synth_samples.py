@@ -118,8 +118,7 @@ def main() -> int:
                        ("coarse stage only: input, ground truth and visible cells at 20 cm as delta keys",
                         "bytes_coarse_cells")):
         b = np.mean([r[key] for r in rows])
-        lines.append(f"\n{label}: mean {b / 1e6:.2f} MB per sample, 200 samples {200 * b / mib:.0f} MiB, "
-                     f"{64 * mib / b:.0f} samples in 64 MiB.")
+        lines.append(f"\n{label}: mean {b / 1e6:.2f} MB per sample, 200 samples {200 * b / mib:.0f} MiB.")
     text = "\n".join(lines) + "\n"
     (Path(args.out) / "synth_samples.md").write_text(text)
     (Path(args.out) / "synth_samples.json").write_text(json.dumps(rows, indent=1))
