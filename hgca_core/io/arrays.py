@@ -23,6 +23,21 @@ def _check_magic(path: str, magic: tuple[bytes, ...], what: str) -> None:
         raise InputError(f"not a {what}: its first bytes lack the signature", path)
 
 
+# A point table carries a few values per point (x, y, z, intensity, ring, time, colour: LAS's richest point
+# format has 15 standard fields); more columns than this, and more than rows, look like points stored as columns.
+MAX_COLUMNS = 16
+
+
+def _refuse_wide(shape: tuple[int, ...], what: str, path: str) -> None:
+    """An (R, C) table with 3 <= R < C and C > `MAX_COLUMNS` reads two ways: R points of C values, or C points
+    stored as columns (x, y, z as rows, as MATLAB and some exporters save them). Neither is guessed."""
+    rows, cols = shape
+    if 3 <= rows < cols and cols > MAX_COLUMNS:
+        raise InputError(f"{what} of shape {shape} has more columns than rows: it is either {rows} points with "
+                         f"{cols} values each or {cols} points stored as columns; not read rather than guessed: "
+                         f"save it as (N, {rows}) (the transpose, a.T) for {cols} points", path)
+
+
 def read_npy(path: str) -> Scan:
     """Columns beyond x, y, z become attributes `column_3`, ...; structured arrays keep their field names."""
     _check_magic(path, (b"\x93NUMPY",), "NumPy .npy file")
@@ -38,6 +53,7 @@ def read_npy(path: str) -> Scan:
     _numeric(a, "array", path)
     if a.ndim != 2 or a.shape[1] < 3:
         raise InputError(f"array must be (N, >=3), got shape {a.shape}", path)
+    _refuse_wide(a.shape, "array", path)
     attributes = {f"column_{i}": a[:, i].copy() for i in range(3, a.shape[1])}
     return Scan(a[:, :3].astype(np.float64), attributes, None, path)
 
@@ -52,6 +68,7 @@ def read_npz(path: str) -> Scan:
         points = _numeric(z["points"], "'points'", path)
         if points.ndim != 2 or points.shape[1] < 3:
             raise InputError(f"'points' must be (N, >=3), got shape {points.shape}", path)
+        _refuse_wide(points.shape, "'points'", path)
         n = len(points)
         attributes = {}
         offset = read_offset(z["offset"], path) if "offset" in keys else np.zeros(3)

@@ -14,6 +14,7 @@ import os
 import numpy as np
 
 from hgca_core.errors import InputError
+from hgca_core.io.poses import validate_pose
 from hgca_core.io.scan import Scan
 
 LIDARS = ("up_lidar", "down_lidar")  # laser_number // 32 indexes this tuple
@@ -43,6 +44,20 @@ def read_table(path: str, columns: tuple[str, ...], what: str) -> dict[str, np.n
     return {name: table.column(name).to_numpy(zero_copy_only=False) for name in table.column_names}
 
 
+def numeric(table: dict[str, np.ndarray], name: str, what: str, path: str, integral: bool = False) -> np.ndarray:
+    """Column `name` as numbers, or InputError: strings or objects parsed as numbers would be a silent guess."""
+    values = table[name]
+    if values.dtype.kind not in ("iu" if integral else "iuf") and not (integral and values.dtype.kind == "f"):
+        kind = "strings" if values.dtype.kind in "OSU" else f"values of type {values.dtype}"
+        raise InputError(f"{what} column {name!r} holds {kind}, not numbers", path)
+    if integral and values.dtype.kind == "f":
+        bad = ~np.isfinite(values) | (values != np.round(values))
+        if bad.any():
+            raise InputError(f"{what} column {name!r} must hold whole numbers; row {int(np.flatnonzero(bad)[0])} "
+                             f"holds {values[np.flatnonzero(bad)[0]]}", path)
+    return values
+
+
 def quat_pose(q: np.ndarray, t: np.ndarray) -> np.ndarray:
     """4x4 float64 pose from a unit quaternion (w, x, y, z) and a translation."""
     w, x, y, z = (np.asarray(q, dtype=np.float64) / np.linalg.norm(q)).tolist()
@@ -63,12 +78,16 @@ def lidar_origins(calibration_path: str) -> np.ndarray:
     """(2, 3) ego-frame positions of up_lidar and down_lidar from an egovehicle_SE3_sensor table."""
     table = read_table(calibration_path, ("sensor_name", *POSE_COLUMNS), "AV2 calibration table")
     names = [str(n) for n in table["sensor_name"]]
+    columns = [numeric(table, c, "AV2 calibration table", calibration_path) for c in ("tx_m", "ty_m", "tz_m")]
     rows = []
     for lidar in LIDARS:
         if lidar not in names:
             raise InputError(f"AV2 calibration has no {lidar!r} row (sensors: {', '.join(names)})", calibration_path)
+        if names.count(lidar) > 1:
+            raise InputError(f"AV2 calibration has {names.count(lidar)} {lidar!r} rows: which one holds is unknown",
+                             calibration_path)
         i = names.index(lidar)
-        rows.append([table[c][i] for c in ("tx_m", "ty_m", "tz_m")])
+        rows.append([c[i] for c in columns])
     origins = np.asarray(rows, dtype=np.float64)
     if not np.isfinite(origins).all():
         raise InputError("AV2 calibration has non-finite lidar positions", calibration_path)
@@ -79,14 +98,19 @@ def read_av2_sweep(path: str, calibration: str | None = None) -> Scan:
     """One AV2 lidar sweep in the ego frame. Origins are the two lidars' positions (from `calibration`, else
     the log's own calibration file) with `origin_index` = laser_number // 32 per point; without any
     calibration the origins are unknown (None)."""
-    table = read_table(path, (*SWEEP_COLUMNS, "laser_number"), "AV2 lidar sweep")
-    pts = np.stack([table[c].astype(np.float64) for c in SWEEP_COLUMNS], axis=1)
-    laser = table["laser_number"].astype(np.int64)
+    what = "AV2 lidar sweep"
+    table = read_table(path, (*SWEEP_COLUMNS, "laser_number"), what)
+    pts = np.stack([numeric(table, c, what, path).astype(np.float64) for c in SWEEP_COLUMNS], axis=1)
+    laser = numeric(table, "laser_number", what, path, integral=True).astype(np.int64)
     attributes: dict[str, np.ndarray] = {"laser_number": laser.astype(np.uint8)}
     if "intensity" in table:
-        attributes["intensity"] = np.asarray(table["intensity"])
+        attributes["intensity"] = np.asarray(numeric(table, "intensity", what, path))
     if "offset_ns" in table:
-        attributes["offset_ns"] = table["offset_ns"].astype(np.int32)
+        offset_ns = numeric(table, "offset_ns", what, path, integral=True)
+        if len(offset_ns) and (offset_ns.min() < np.iinfo(np.int32).min or offset_ns.max() > np.iinfo(np.int32).max):
+            raise InputError(f"{what} column 'offset_ns' runs from {offset_ns.min()} to {offset_ns.max()}: beyond "
+                             "a sweep's duration", path)
+        attributes["offset_ns"] = offset_ns.astype(np.int32)
     if len(laser) and (laser.min() < 0 or laser.max() >= 32 * len(LIDARS)):
         raise InputError(f"laser_number outside 0-63 (found {laser.min()}-{laser.max()}): not an AV2 sweep", path)
     calib = calibration or os.path.join(log_root(path), CALIBRATION)
@@ -109,12 +133,20 @@ def ego_poses(log: str, timestamps: list[int]) -> list[np.ndarray]:
     """The ego->city pose at each timestamp: an exact row of the log's pose table, else an InputError saying
     whether the table does not reach the timestamp or has no row at it (AV2 logs have one per sweep)."""
     path = os.path.join(log, EGO_POSES)
-    table = read_table(path, ("timestamp_ns", *POSE_COLUMNS), "AV2 ego pose table")
-    ts = table["timestamp_ns"].astype(np.int64)
+    what = "AV2 ego pose table"
+    table = read_table(path, ("timestamp_ns", *POSE_COLUMNS), what)
+    ts = numeric(table, "timestamp_ns", what, path, integral=True).astype(np.int64)
+    for c in POSE_COLUMNS:
+        numeric(table, c, what, path)
     if len(ts) == 0:
         raise InputError("AV2 ego pose table has no rows", path)
     order = np.argsort(ts, kind="stable")
     ts_sorted = ts[order]
+    repeated = np.flatnonzero(ts_sorted[1:] == ts_sorted[:-1])
+    if len(repeated):
+        stamp = int(ts_sorted[repeated[0]])
+        raise InputError(f"AV2 ego pose table has {int((ts == stamp).sum())} rows for timestamp {stamp}: which "
+                         "pose holds is unknown", path)
     poses = []
     for stamp in timestamps:
         j = int(np.searchsorted(ts_sorted, stamp))
@@ -131,5 +163,5 @@ def ego_poses(log: str, timestamps: list[int]) -> list[np.ndarray]:
         t = np.array([table[c][i] for c in ("tx_m", "ty_m", "tz_m")], dtype=np.float64)
         if not (np.isfinite(q).all() and np.isfinite(t).all()) or np.linalg.norm(q) < 1e-9:
             raise InputError(f"ego pose at {stamp} is not a finite unit quaternion and translation", path)
-        poses.append(quat_pose(q, t))
+        poses.append(validate_pose(quat_pose(q, t), f"ego pose at {stamp}", path))
     return poses

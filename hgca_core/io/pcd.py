@@ -51,6 +51,8 @@ def parse_header(raw: bytes, path: str) -> PCDHeader:
         if not line or line.startswith("#"):
             continue
         key, *values = line.split()
+        if key.upper() in entries:
+            raise InputError(f"PCD header has two {key.upper()} lines (which one is meant is unknown)", path)
         entries[key.upper()] = values
         if key.upper() == "DATA":
             break
@@ -59,6 +61,10 @@ def parse_header(raw: bytes, path: str) -> PCDHeader:
             raise InputError(f"PCD header lacks {key}", path)
     fields = entries["FIELDS"]
     n = len(fields)
+    repeated = sorted({f for f in fields if fields.count(f) > 1 and f != "_"})
+    if repeated:
+        raise InputError(f"PCD FIELDS lists {repeated[0]!r} {fields.count(repeated[0])} times (fields: "
+                         f"{' '.join(fields)}): which column is {repeated[0]} is unknown", path)
     counts_raw = entries.get("COUNT", ["1"] * n)
     if not (len(entries["SIZE"]) == len(entries["TYPE"]) == len(counts_raw) == n):
         raise InputError("PCD header FIELDS, SIZE, TYPE and COUNT have different lengths", path)
@@ -78,6 +84,9 @@ def parse_header(raw: bytes, path: str) -> PCDHeader:
         dtypes.append(np.dtype(code))
     if min(counts) < 1 or points < 0 or len(viewpoint) != 7:
         raise InputError("PCD header has invalid COUNT, POINTS or VIEWPOINT", path)
+    if not np.isfinite(viewpoint).all():
+        raise InputError(f"PCD VIEWPOINT has NaN or infinite values ({' '.join(entries['VIEWPOINT'])}): the "
+                         "sensor position is unknown", path)
     if width < 0 or height < 0:
         raise InputError(f"PCD header WIDTH {width} / HEIGHT {height} must not be negative", path)
     if width * height != points:

@@ -16,6 +16,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from hgca_core.errors import HgcaWarning, InputError
+from hgca_core.io.georef import COORD_LIMIT
 from hgca_core.io.paths import check_readable
 
 ORTHONORMAL_TOL = 1e-3  # max |R^T R - I| entry; loose enough for float32-rounded or SLAM-drifted rotations
@@ -49,6 +50,9 @@ def validate_pose(matrix: Any, what: str, path: str | None = None) -> np.ndarray
         raise InputError(f"{what}: pose rotation is not orthonormal (max |R^T R - I| = {err:.3g})", path)
     if np.linalg.det(r) < 0:
         raise InputError(f"{what}: pose rotation is a reflection (determinant < 0)", path)
+    if np.abs(m[:3, 3]).max() > COORD_LIMIT:
+        raise InputError(f"{what}: pose translation {', '.join(f'{v:.6g}' for v in m[:3, 3])} lies beyond "
+                         f"{COORD_LIMIT:.0e} m: no place on Earth in metres", path)
     return m
 
 
@@ -88,12 +92,29 @@ def load_poses(path: str | os.PathLike) -> list[PoseEntry]:
                 raise InputError(f'{what}: "origin" must be 3 finite numbers', path)
         resolved = os.path.normpath(os.path.join(base, os.path.expanduser(item["file"])))
         entries.append(PoseEntry(item["file"], resolved, pose, origin))
-    seen: dict[str, int] = {}
+    seen: dict[object, int] = {}
     for i, e in enumerate(entries):
-        if e.path in seen:
-            raise InputError(f"scans[{seen[e.path]}] and scans[{i}] name the same file {e.file!r}", path)
-        seen[e.path] = i
+        for key in _identities(e.path):
+            if key in seen:
+                j = seen[key]
+                how = "" if entries[j].path == e.path else " (through a symlink or hard link)"
+                differ = "" if np.array_equal(entries[j].pose, e.pose) else " with different poses"
+                raise InputError(f"scans[{j}] ({entries[j].file}) and scans[{i}] ({e.file}) name the same file"
+                                 f"{how}{differ}: give each scan one entry", path)
+        for key in _identities(e.path):
+            seen[key] = i
     return entries
+
+
+def _identities(path: str) -> list[object]:
+    """What makes two entries the same file: the resolved path, and the inode when the file exists."""
+    keys: list[object] = [os.path.normpath(path), _key(path)]
+    try:
+        st = os.stat(path)
+        keys.append((st.st_dev, st.st_ino))
+    except OSError:
+        pass
+    return keys
 
 
 def _key(path: str) -> str:

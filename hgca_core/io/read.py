@@ -14,6 +14,7 @@ from hgca_core.errors import InputError
 from hgca_core.io.arrays import read_npy, read_npz
 from hgca_core.io.av2 import read_av2_sweep
 from hgca_core.io.formats import label, resolve_format
+from hgca_core.io.georef import check_bound, check_coordinates
 from hgca_core.io.las import read_las
 from hgca_core.io.paths import check_readable
 from hgca_core.io.pcd import read_pcd
@@ -68,6 +69,31 @@ def _accumulated_origin_index(scans: list[Scan], origins: list[np.ndarray]) -> n
                            for s, o, first in zip(scans, origins, start)]).astype(np.uint16)
 
 
+def _refuse_repeats(paths: list[str]) -> None:
+    """The same file twice (by name, through a symlink or a hard link) would count every point twice."""
+    seen: dict[object, str] = {}
+    for p in paths:
+        try:
+            st = os.stat(p)
+            key: object = (st.st_dev, st.st_ino)
+        except OSError:
+            key = os.path.normcase(os.path.realpath(p))
+        if key in seen:
+            same = "" if seen[key] == p else f" (also given as {seen[key]})"
+            raise InputError(f"scan file given twice{same}: its points would be counted twice", p)
+        seen[key] = p
+
+
+def _check_accumulated(points: np.ndarray, scan_index: np.ndarray, paths: list[str],
+                       poses: str | os.PathLike | Sequence | None) -> None:
+    """Posed or accumulated scans must still fit one float32 frame (`georef.check_coordinates`); the message
+    names the scan of the first point that lies apart."""
+    source = os.fspath(poses) if isinstance(poses, (str, os.PathLike)) else None
+    via = " moved by its pose" if poses is not None else ""
+    check_coordinates(points, source, "accumulated point",
+                      lambda row: f"scan {int(scan_index[row])}, {paths[int(scan_index[row])]}{via}")
+
+
 def read_scans(paths: Sequence[str | os.PathLike], poses: str | os.PathLike | Sequence | None = None,
                fmt: str | None = None) -> Scan:
     """Accumulate scans in one world frame; adds `scan_index` (uint16) and keeps attributes all scans share.
@@ -81,6 +107,7 @@ def read_scans(paths: Sequence[str | os.PathLike], poses: str | os.PathLike | Se
         raise InputError("no scan files given")
     if len(paths) > np.iinfo(np.uint16).max + 1:
         raise InputError(f"too many scans ({len(paths)}); at most 65536 can be accumulated")
+    _refuse_repeats(paths)
     pose_mats, json_origins = _pose_list(poses, paths) if poses is not None else (None, None)
     scans = [read_scan(p, fmt) for p in paths]
     common = set(scans[0].attributes)
@@ -112,8 +139,14 @@ def read_scans(paths: Sequence[str | os.PathLike], poses: str | os.PathLike | Se
         attributes.pop("origin_index", None)
     attributes["scan_index"] = np.concatenate(
         [np.full(len(s), i, dtype=np.uint16) for i, s in enumerate(scans)])
+    accumulated = np.concatenate(points)
+    if pose_mats is not None or len(scans) > 1:
+        _check_accumulated(accumulated, attributes["scan_index"], paths, poses)
+    if any_origin:
+        check_bound(np.concatenate(origins), poses if isinstance(poses, (str, os.PathLike)) else None,
+                    "sensor origin")
     return Scan(
-        points=np.concatenate(points),
+        points=accumulated,
         attributes=attributes,
         origins=np.concatenate(origins) if any_origin else None,
         path=paths[0] if len(paths) == 1 else None,

@@ -1,4 +1,5 @@
-"""The `Scan` container every reader returns, and the one place that enforces the finite-coordinate policy.
+"""The `Scan` container every reader returns, and the one place that enforces the coordinate policy (finite,
+on Earth, in one float32 frame: `hgca_core.io.georef`).
 
 Keeping the policy here (not in each reader) means every format drops sensor "no return" rows and rejects
 other non-finite coordinates in exactly the same way.
@@ -10,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hgca_core.errors import InputError
+from hgca_core.io.georef import check_bound, check_coordinates
 
 
 @dataclass
@@ -74,6 +76,13 @@ def finalize(scan: Scan, path: str | None = None) -> Scan:
             path=scan.path,
             dropped=scan.dropped,
         )
-    if scan.origins is not None and not np.isfinite(scan.origins).all():
-        raise InputError("sensor origin has NaN or infinite values", where)
+    check_coordinates(scan.points, where)
+    if scan.origins is not None:
+        if not np.isfinite(scan.origins).all():
+            raise InputError("sensor origin has NaN or infinite values", where)
+        check_bound(scan.origins, where, "sensor origin")
+        index = scan.attributes.get("origin_index")
+        if index is not None and len(index) and (index.min() < 0 or index.max() >= len(scan.origins)):
+            raise InputError(f"origin_index runs from {index.min()} to {index.max()} but there are "
+                             f"{len(scan.origins)} sensor origin(s)", where)
     return scan

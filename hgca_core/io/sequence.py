@@ -94,20 +94,31 @@ def kitti_calibration(path: str) -> np.ndarray:
     """Tr (velodyne -> camera 0) from calib.txt."""
     if not os.path.isfile(path):
         raise InputError("KITTI sequence has no calib.txt (needed for Tr, velodyne -> camera)", path)
-    with open(path, "r", encoding="utf-8", errors="replace") as f:
+    found = []
+    with open(path, "r", encoding="utf-8-sig", errors="replace") as f:
         for line in f:
             key, _, rest = line.partition(":")
             if key.strip() == "Tr":
-                return validate_pose(_kitti_matrix(rest.split(), "Tr", path), "calib.txt Tr", path)
-    raise InputError("calib.txt has no 'Tr:' line (velodyne -> camera 0 transform)", path)
+                found.append(validate_pose(_kitti_matrix(rest.split(), "Tr", path), "calib.txt Tr", path))
+    if not found:
+        raise InputError("calib.txt has no 'Tr:' line (velodyne -> camera 0 transform)", path)
+    if len(found) > 1 and not all(np.array_equal(found[0], m) for m in found[1:]):
+        raise InputError(f"calib.txt has {len(found)} different 'Tr:' lines: which one holds is unknown", path)
+    return found[0]
 
 
 def kitti_poses(path: str) -> list[np.ndarray]:
     """Camera-0 poses P_i, one 3x4 per line."""
     if not os.path.isfile(path):
         raise InputError("KITTI sequence has no poses.txt (give a poses JSON with --poses instead)", path)
-    with open(path, "r", encoding="utf-8", errors="replace") as f:
-        lines = [ln.split() for ln in f if ln.strip()]
+    with open(path, "r", encoding="utf-8-sig", errors="replace") as f:
+        lines = [ln.split() for ln in f]
+    while lines and not lines[-1]:
+        lines.pop()
+    blank = [i + 1 for i, v in enumerate(lines) if not v]
+    if blank:
+        raise InputError(f"poses.txt line {blank[0]} is blank: line i holds frame i's pose, so a blank line "
+                         "would give every later frame the next frame's pose", path)
     return [validate_pose(_kitti_matrix(v, f"line {i + 1}", path), f"line {i + 1}", path)
             for i, v in enumerate(lines)]
 
@@ -167,6 +178,10 @@ def _files_only(root: str, layout: str) -> tuple[str, ...]:
     if layout == "kitti":
         velodyne = os.path.join(root, "velodyne")
         named = sorted((int(n[:-4]), n) for n in os.listdir(velodyne) if KITTI_NAME.match(n))
+        for (a, first), (b, second) in zip(named, named[1:]):
+            if a == b:
+                raise InputError(f"{first} and {second} are both frame {a}: which sweep is frame {a} is unknown",
+                                 velodyne)
         return tuple(os.path.join(velodyne, n) for _, n in named)
     if layout == "av2":
         lidar = os.path.join(root, "sensors", "lidar")

@@ -112,3 +112,67 @@ def test_read_command_keeps_las_coordinates_to_the_mm(tmp_path, monkeypatch, cap
         world = z["points"].astype(np.float64) + z["offset"]
     assert np.abs(world - held).max() < 0.01 * MM
     assert np.abs(read_scan(tmp_path / "scan.npz").points - held).max() < 0.01 * MM
+
+
+# --- one offset per file: a stray point must not move it (check_coordinates) -----------------------------------
+
+def with_strays(place: str, strays: np.ndarray, n: int = 3000) -> np.ndarray:
+    pts = np.round(cloud(place, n), 3)
+    pts[: len(strays)] = strays
+    return pts
+
+
+@pytest.mark.parametrize("stray", [[0.0, 0.0, 0.0], [0.0, 5_000_000.0, 100.0], [1e7, -1e7, 0.0]])
+def test_a_stray_point_is_refused_not_written_off_by_centimetres(tmp_path, stray):
+    """Before, the bounds midpoint of UTM points and one point at (0, 0, 0) sat 2.5e6 m from both, and every
+    point of the .npz was off by up to 0.25 m."""
+    from hgca_core.errors import InputError
+
+    pts = with_strays("utm", np.array([stray]))
+    with pytest.raises(InputError, match=r"1 of 3000 points lies [0-9.e+]+ m from the others \(first at row 0"):
+        write_points(tmp_path / "p.npz", pts)
+    assert not (tmp_path / "p.npz").exists()
+
+
+def test_every_point_round_trips_within_1_mm_or_the_read_is_refused(tmp_path, monkeypatch, capsys):
+    """Clouds out to the frame's reach and past it, with and without far points: `hgca read -o .npz` either
+    keeps every point to 1 mm or exits 2 naming the file and how many points lie apart."""
+    from hgca_core.io.georef import FRAME_RADIUS
+
+    rng = np.random.default_rng(3)
+    worst, refused = 0.0, 0
+    monkeypatch.setattr(sys, "argv", ["hgca"])
+    for trial in range(24):
+        half = [10.0, 8000.0, FRAME_RADIUS - 2, FRAME_RADIUS + 3][trial % 4]
+        local = rng.uniform(-half, half, (500, 3))
+        local[:2, 0] = -half, half                          # the cloud spans exactly 2 * half
+        pts = local + [rng.uniform(-1e7, 1e7), rng.uniform(0, 1e7), 100.0]
+        strays = trial % 3
+        if strays:
+            pts[rng.choice(np.arange(2, 500), strays, replace=False)] = rng.uniform(-1e8, 1e8, (strays, 3))
+        src = tmp_path / f"s{trial}.npy"
+        np.save(src, pts)
+        code = main(["read", str(src), "-o", str(tmp_path / f"o{trial}.npz")])
+        err = capsys.readouterr().err
+        if code == 2:
+            refused += 1
+            apart = f"{strays} of 500 points lie" if strays and half < FRAME_RADIUS else "of 500 points lie"
+            assert str(src) in err and apart in err, err
+            assert not (tmp_path / f"o{trial}.npz").exists()
+            continue
+        assert code == 0 and strays == 0 and half < FRAME_RADIUS, err
+        with np.load(tmp_path / f"o{trial}.npz") as z:
+            worst = max(worst, float(np.abs(z["points"].astype(np.float64) + z["offset"] - pts).max()))
+    assert worst < MM and refused == 24 - 6   # 16 clouds with strays, 2 too wide: refused; 6 kept
+    print(f"worst error of the kept clouds: {worst * 1e3:.3f} mm")
+
+
+def test_local_offset_refuses_what_no_frame_holds():
+    from hgca_core.errors import InputError
+    from hgca_core.io.georef import local_offset
+
+    pts = with_strays("utm_1e7", np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0], [4.0, 0.0, 0.0]]))
+    with pytest.raises(InputError, match="3 of 3000 points lie"):
+        local_offset(pts)
+    with pytest.raises(InputError, match="beyond 1e\\+09 m"):
+        local_offset(np.array([[1e305, 0.0, 0.0], [1e305, 1.0, 0.0]]))

@@ -95,8 +95,14 @@ def test_nuscenes_file_near_the_sensor_only_is_not_emptied(tmp_path):
     assert len(scan) == 2 and scan.dropped == {}
 
 
-def test_accumulate_real_las_keeps_common_attributes(real_dir):
-    scan = read_scans([real_dir / "simple.las", real_dir / NUSCENES])
+def test_accumulate_real_las_keeps_common_attributes(real_dir, tmp_path):
+    las = laspy.read(real_dir / "simple.las")   # moved from its UTM place next to the sweep: one float32 frame
+    shift = np.floor(las.header.mins)
+    local = [np.asarray(las.x) - shift[0], np.asarray(las.y) - shift[1], np.asarray(las.z) - shift[2]]
+    las.header.offsets = np.zeros(3)
+    las.x, las.y, las.z = local
+    las.write(tmp_path / "simple.las")
+    scan = read_scans([tmp_path / "simple.las", real_dir / NUSCENES])
     nuscenes = read_scan(real_dir / NUSCENES)
     assert len(scan) == 1065 + len(nuscenes) and scan.dropped == nuscenes.dropped
     assert set(scan.attributes) == {"intensity", "scan_index"}
