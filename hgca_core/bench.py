@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from hgca_core.hardware import machine
+from hgca_core.nn.precision import DEFAULT_PRECISION
 
 WIDTHS = (40, 60, 80, 100, 120)
 
@@ -55,7 +56,7 @@ def scene_inputs(width: float, seed: int = 4_000_000,
 
 
 def run_one(width: float, depth: float, stage: str, device: str, t1: int | None, seed: int,
-            precision: str = "auto", weights: str | None = None, fine_weights: str | None = None) -> dict:
+            precision: str = DEFAULT_PRECISION, weights: str | None = None, fine_weights: str | None = None) -> dict:
     """One completion with per-stage wall times (s) and peak memory (bytes)."""
     import torch
 
@@ -101,7 +102,7 @@ def worker(job: dict, timeout: int | None = None, env: dict | None = None, cwd: 
 
 
 def run(widths: list[float], default: bool, stage: str, device: str, t1: int | None, out_dir: Path,
-        name: str, timeout: int = 3600, precision: str = "auto", weights: str | None = None,
+        name: str, timeout: int = 3600, precision: str = DEFAULT_PRECISION, weights: str | None = None,
         fine_weights: str | None = None) -> dict:
     """Each configuration in its own worker process, with the weights of `weights_files` (given or shipped),
     which the caller has checked to load, and writes `out_dir`/`name`.{json,md,png} into the folder the caller has
@@ -180,7 +181,7 @@ def _worker(job: str) -> int:
     tune_allocator()
     args = json.loads(job)
     print(json.dumps(run_one(args["width"], args["depth"], args["stage"], args["device"], args["t1"], args["seed"],
-                             args.get("precision", "auto"), args.get("weights"), args.get("fine_weights"))))
+                             args.get("precision", DEFAULT_PRECISION), args.get("weights"), args.get("fine_weights"))))
     return 0
 
 

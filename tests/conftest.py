@@ -6,7 +6,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
+
+import hgca_core  # noqa: F401  (first: it sets MKL's strict reproducibility mode before torch runs any GEMM)
+import torch  # noqa: E402
 
 from hgca_testdata import require_real, tiny_sample
 

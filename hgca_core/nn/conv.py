@@ -1,7 +1,9 @@
 """Gather-GEMM-scatter sparse convolution (pure PyTorch).
 
 Two ways to run a `KernelMap`, both in a fixed order, so the result does not depend on the thread count
-(the CPU build of spconv gets exactly this wrong):
+(the CPU build of spconv gets exactly this wrong). Inside a GEMM, MKL splits the reduction by thread count
+unless its strict reproducibility mode is on (`MKL_CBWR=AUTO,STRICT`, which `import hgca_core` sets before any
+BLAS call): with it, the weight gradients (a reduction over every row) are bit-identical on 1 and 2 threads.
 
 * dense maps (the finest level of the coarse U-Net fills ~78% of its (output, offset) slots):
   output-stationary. Per chunk of output rows, one `index_select` gathers every offset's input row (a zero
@@ -28,6 +30,7 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from hgca_core.nn.kernel_map import KernelMap
+from hgca_core.nn.precision import DEFAULT_PRECISION, PRECISIONS  # noqa: F401  (re-exported)
 
 # Elements (rows x channels) gathered per chunk: big enough that GEMMs amortise the per-call
 # overhead, small enough that the chunk buffers stay in cache-friendly sizes and memory stays bounded.
@@ -83,9 +86,6 @@ def gemm_precision(dtype: torch.dtype | None):
 def training_precision(dtype: torch.dtype | None):
     """Within the block, convolutions that need gradients run their forward and backward GEMMs in `dtype`."""
     return _gemm_dtype_scope(True, dtype)
-
-
-PRECISIONS = ("auto", "fp32", "bf16")
 
 
 def resolve_precision(name: str, device: str = "cpu") -> torch.dtype | None:

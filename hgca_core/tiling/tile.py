@@ -23,21 +23,24 @@ from hgca_core.errors import InputError
 from hgca_core.geometry.region import Region
 from hgca_core.geometry.voxel import COARSE, cell_centers, voxelize
 from hgca_core.io.digest import file_digest
+from hgca_core.nn.precision import DEFAULT_PRECISION
 
 KEY_VERSION = 3   # bump when the same key would give different content (a change to this algorithm)
 
 
 @dataclass(frozen=True)
 class Settings:
-    """What every tile of a drive is completed with (the `hgca complete` options). `threads` and `device`
-    decide only where and how fast, not what, so they are not part of a tile's key."""
+    """What every tile of a drive is completed with (the `hgca complete` options). `device` decides only where,
+    not what, so it is not part of a tile's key; nor is `threads` at fp32 (MKL's strict mode makes float32 GEMMs
+    thread-count independent). bf16 GEMMs (oneDNN) differ between thread counts on some CPUs, so at any other
+    precision the thread count is part of the key: a resumed drive never mixes tiles made on 1 and 2 threads."""
 
     stage: str = "full"
     samples: int = 1
     seed: int = 0
     t1: int | None = None
     t2: int | None = None
-    precision: str = "auto"
+    precision: str = DEFAULT_PRECISION
     max_faces: int | None = None
     weights: str | None = None
     fine_weights: str | None = None
@@ -47,8 +50,10 @@ class Settings:
 
     def keyed(self) -> dict:
         d = asdict(self)
-        for name in ("weights", "fine_weights", "device", "threads"):   # files enter by digest, see weight_files
+        for name in ("weights", "fine_weights", "device"):   # files enter by digest, see weight_files
             d.pop(name)
+        if self.precision == "fp32":
+            d.pop("threads")
         return d
 
 
