@@ -9,7 +9,7 @@ import os as _os
 # MKL's strict conditional numerical reproducibility: float32 GEMMs give the same bits whatever the thread count
 # (without it, MKL splits a GEMM's reduction by thread count, and a weight gradient, or a completion, differs in
 # the last bits between 1 and 2 threads). MKL reads the variable at its first call, so it is set here, before
-# anything in hgca runs a GEMM; a value the user set wins. See `hgca_core.hardware.gemm_reproducible`.
+# anything in hgca runs a GEMM; a value the user set wins (tests/test_determinism.py).
 _os.environ.setdefault("MKL_CBWR", "AUTO,STRICT")
 
 from hgca_core.errors import HgcaError, InputError  # noqa: E402
