@@ -9,9 +9,11 @@ if __name__ == "__main__":  # `python -m hgca_core.cli`: take over Ctrl-C before
     _interrupt.install()
 
 import argparse
+import errno
 import importlib
 import os
 import sys
+import traceback
 import warnings
 
 from hgca_core import __version__, interrupt
@@ -34,8 +36,16 @@ COMMANDS = {
 }
 
 
+DEBUG_ENV = "HGCA_DEBUG"
+EPILOG = (f"Bad input ends a command with one 'hgca CMD: error: ...' line and exit status 2, and nothing is "
+          f"written. Set {DEBUG_ENV}=1 to also print the Python traceback of an unexpected failure (for a bug "
+          "report).")
+
+
 def build_parser(argv: list[str]) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="hgca", description="LiDAR scene extrapolation with hierarchical Generative Cellular Automata (hGCA)")
+    parser = argparse.ArgumentParser(prog="hgca", epilog=EPILOG,
+                                     description="LiDAR scene extrapolation with hierarchical Generative Cellular "
+                                                 "Automata (hGCA)")
     parser.add_argument("--version", action="version", version=f"hgca {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     for name, help_text in COMMANDS.items():
@@ -93,6 +103,23 @@ def _main(argv: list[str]) -> int:
     except KeyboardInterrupt:  # raised by code that handles SIGINT itself (the trainer's second Ctrl-C)
         print(f"hgca {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # noqa: BLE001  (anything unforeseen is still one line, not a traceback)
+        if os.environ.get(DEBUG_ENV, "") not in ("", "0"):
+            traceback.print_exc()
+        print(f"hgca {args.command}: error: {unexpected(exc)}", file=sys.stderr)
+        return 2
+
+
+def unexpected(exc: BaseException) -> str:
+    """The one line for a failure no check foresaw: what the OS or Python said, and how to see more."""
+    if isinstance(exc, MemoryError):
+        return "out of memory: this input needs more memory than the machine (or its limit) allows"
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        where = f" ({exc.filename})" if exc.filename else ""
+        return f"no space left on the device{where}; nothing was written"
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+    return (f"unexpected {type(exc).__name__}{': ' + text if text else ''} "
+            f"(set {DEBUG_ENV}=1 for the traceback)")
 
 
 def _one_line_warning(command: str, default):

@@ -76,6 +76,11 @@ def install(command: str = "") -> dict[int, Any]:
     return previous
 
 
+def installed() -> bool:
+    """Whether this process's SIGTERM is handled here (the CLI), so long calls should stay interruptible."""
+    return signal.getsignal(signal.SIGTERM) is _handler
+
+
 def restore(previous: dict[int, Any]) -> None:
     for sig, handler in previous.items():
         if handler is not None:

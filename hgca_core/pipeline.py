@@ -11,6 +11,7 @@ Two layers, so that `hgca eval` scores exactly what `hgca complete` ships:
 """
 from __future__ import annotations
 
+import numbers
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,9 +48,51 @@ FREE_SPACE_MODES = ("auto", "feature", "mask", "off")
 # used to refuse regions that cannot fit before spending minutes on them.
 BASE_BYTES = 2.0 * 2**30
 BYTES_PER_M2 = 1.5e6
+MEASURED_HEIGHT = 8.0   # metres: the height of the regions the slope was measured on
 # Fewer occupied 20 cm cells than this inside the region is no scan (one point, one spot measured 50k times):
 # the chain has nothing to grow from, and an empty mesh with exit 0 would look like success.
 MIN_INPUT_CELLS = 10
+# Sample i of a run uses seed + i (drive tile i, sample k: seed + i * samples + k); torch's generators take at most
+# 2**64 - 1, so every seed a run uses stays within a signed 64-bit integer.
+SEED_MAX = 2**63 - 1
+MIN_FACES = 1000   # `max_faces` below this is no mesh of a street
+
+
+def check_device(device: str) -> None:
+    """Refuse a device this torch build or machine does not have, before any work."""
+    import re
+
+    if not re.fullmatch(r"cpu|cuda(:\d+)?", str(device)):
+        raise InputError(f"unknown device {device!r}: use cpu, cuda or cuda:N")
+    if not device.startswith("cuda"):
+        return
+    if not torch.cuda.is_available():
+        raise InputError(f"--device {device} asked for, but this torch build sees no CUDA GPU; use --device cpu")
+    index = int(device.split(":")[1]) if ":" in device else 0
+    if index >= torch.cuda.device_count():
+        raise InputError(f"--device {device}: this machine has {torch.cuda.device_count()} CUDA GPU(s)")
+
+
+def check_settings(samples: int, seed: int, max_faces: int | None, t1: int | None, t2: int | None,
+                   span: int | None = None) -> None:
+    """The numbers of a completion, checked before any work: samples >= 1, seeds within SEED_MAX for all `span`
+    (default `samples`) seeds a run uses, max_faces 0 or at least MIN_FACES, steps 0 to MAX_STEPS."""
+    from hgca_core.models.weights import MAX_STEPS
+
+    for name, value, low in (("samples", samples, 1), ("seed", seed, 0)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
+            raise InputError(f"{name} must be a whole number of at least {low}, got {value!r}")
+    seed, samples = int(seed), int(samples)
+    used = span if span is not None else samples
+    if seed + used - 1 > SEED_MAX:
+        raise InputError(f"seed {seed} with {used} samples would use seeds up to {seed + used - 1}, past 2**63 - 1; "
+                         f"choose a seed of at most {SEED_MAX - used + 1}")
+    if max_faces is not None and max_faces != 0 and max_faces < MIN_FACES:
+        raise InputError(f"max_faces must be 0 (keep every triangle) or at least {MIN_FACES}, got {max_faces}")
+    for name, steps in (("t1", t1), ("t2", t2)):
+        if steps is not None and (int(steps) != steps or not 0 <= steps <= MAX_STEPS):
+            raise InputError(f"{name} must be a whole number >= 0 and at most {MAX_STEPS} (0: the weights' own), "
+                             f"got {steps}")
 
 
 @dataclass
@@ -109,8 +152,11 @@ def check_points(points: np.ndarray, what: str = "input") -> np.ndarray:
 
 def memory_need(region: Region) -> float:
     """Estimated peak bytes of one completion of `region` (the measured slope above, with margin); `check_memory`
-    refuses by it and `hgca drive` declares it as each tile's Ray memory."""
-    return BASE_BYTES + float(region.size[0] * region.size[1]) * BYTES_PER_M2
+    refuses by it and `hgca drive` declares it as each tile's Ray memory. The slope was measured on 8 m tall
+    regions; a taller box holds proportionally more cells (the free-space grid is dense), so it scales with the
+    height beyond 8 m."""
+    tall = max(1.0, float(region.size[2]) / MEASURED_HEIGHT)
+    return BASE_BYTES + float(region.size[0] * region.size[1]) * BYTES_PER_M2 * tall
 
 
 def check_input_cells(cells: int, points: np.ndarray) -> None:
@@ -129,7 +175,8 @@ def check_memory(region: Region) -> None:
     need = memory_need(region)
     avail = psutil.virtual_memory().available
     if need > avail:
-        raise InputError(f"region {region.size[0]:.1f} x {region.size[1]:.1f} m needs about {need / 2**30:.1f} GiB, "
+        raise InputError(f"region {region.size[0]:.1f} x {region.size[1]:.1f} x {region.size[2]:.1f} m needs about "
+                         f"{need / 2**30:,.1f} GiB, "
                          f"only {avail / 2**30:.1f} GiB available: use a smaller --region or split it into tiles")
 
 
@@ -305,11 +352,9 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
     `hgca_core.meshing.DEFAULT_MAX_FACES`, 0: every triangle). Each mesh carries per-vertex normals,
     `observed_distance` and an observed / generated face `material` (`hgca_core.meshing.finish_mesh`). The work
     itself is `complete_local`'s, in the region frame; this wrapper moves points in and meshes out."""
+    check_settings(samples, seed, max_faces, t1, t2)
+    check_device(device)
     models = load_models(stage, weights, fine_weights, device)   # both files are checked before any work
-    if samples < 1:
-        raise InputError(f"samples must be at least 1, got {samples}")
-    if max_faces is not None and max_faces != 0 and max_faces < 1000:
-        raise InputError(f"max_faces must be 0 (keep every triangle) or at least 1000, got {max_faces}")
     from hgca_core.meshing import DEFAULT_MAX_FACES, finish_mesh
 
     pts = check_points(points)

@@ -160,3 +160,44 @@ def test_python_api_refuses_negative_steps(small_weights):
     with pytest.raises(hgca_core.InputError, match="t1 must be a whole number >= 0"):
         hgca_core.complete(pts, region=hgca_core.Region.parse("3,3,1,6,6,4"), stage="coarse", t1=-2,
                            weights=small_weights)
+
+
+@pytest.fixture
+def full_disk(tmp_path):
+    """A folder on a 16 kB tmpfs (a real ENOSPC); where mounting is not allowed, the test is skipped."""
+    import os
+    import shutil
+
+    root = tmp_path / "full"
+    root.mkdir()
+    if shutil.which("mount") is None or os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root")
+    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=16k", "tmpfs", str(root)], capture_output=True)
+    if res.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs: {res.stderr.decode()[:200]}")
+    try:
+        yield root
+    finally:
+        subprocess.run(["umount", str(root)], capture_output=True)
+
+
+def one_disk_full_line(res: subprocess.CompletedProcess, command: str) -> None:
+    """Exit 2 and exactly one line, the error, naming the full disk (no second failure on a closed file)."""
+    assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"hgca {command}: error: "), res.stderr
+    assert "no space left on the device" in lines[0], res.stderr
+
+
+def test_disk_full_while_writing_is_one_line_and_leaves_nothing(small_weights, tmp_path, full_disk):
+    big = tmp_path / "big.npz"
+    np.savez(big, points=np.random.default_rng(0).uniform(0, 20, (20_000, 3)))
+    one_disk_full_line(hgca("read", big, "-o", full_disk / "x.npz"), "read")
+    assert list(full_disk.iterdir()) == []
+    scan = tmp_path / "scan.npz"
+    np.savez(scan, points=tiny_sample(3)["input_points"].astype(np.float64))
+    for out in ("x.npz", "x.ply"):
+        res = hgca("complete", scan, "-o", full_disk / out, "--weights", small_weights, "--stage", "coarse",
+                   "--region", "3,3,1,6,6,4", "--samples", "2", "--progress", "none")
+        one_disk_full_line(res, "complete")
+        assert list(full_disk.iterdir()) == [], "no sample, no temp file"

@@ -137,3 +137,54 @@ def test_code_that_swallows_keyboardinterrupt_cannot_keep_the_run_going(tmp_path
     out, err = proc.communicate(timeout=30)
     assert proc.returncode == 130 and "went on" not in out, (out, err)
     assert time.monotonic() - sent < 2.0
+
+
+DECIMATE = textwrap.dedent("""
+    import sys, time
+    from hgca_core import interrupt
+    interrupt.install("test")
+    import trimesh
+    from hgca_core.meshing import decimate
+    mesh = trimesh.creation.icosphere(subdivisions=8)   # 1.3 M faces: seconds of quadric collapse
+    print("ready", flush=True)
+    decimate(mesh, 1000)
+    print("went on", flush=True)
+""")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_signal_during_decimation_stops_at_once(tmp_path, sig):
+    """fast-simplification holds the GIL for the whole collapse; the run must still stop within 2 s."""
+    proc = subprocess.Popen([sys.executable, "-c", DECIMATE], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, cwd=tmp_path)
+    assert proc.stdout.readline().strip() == "ready"
+    time.sleep(3.0)  # past loading the mesh into the library (~1.7 s), inside the collapse itself (~7 s)
+    proc.send_signal(sig)
+    sent = time.monotonic()
+    try:
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    elapsed = time.monotonic() - sent
+    assert proc.returncode == CODES[sig] and "went on" not in out, (proc.returncode, out, err[-2000:])
+    assert elapsed < 2.0, f"took {elapsed:.2f} s to stop"
+    assert err.strip().splitlines() == [f"hgca test: {NAMES[sig]}"], err
+
+
+def test_decimation_gives_the_same_mesh_in_the_interruptible_child():
+    """The forked collapse returns exactly what the plain call returns."""
+    import trimesh
+
+    from hgca_core import interrupt
+    from hgca_core.meshing import decimate
+
+    mesh = trimesh.creation.icosphere(subdivisions=5)
+    plain = decimate(mesh, 2000)
+    previous = interrupt.install("test")
+    try:
+        assert interrupt.installed()
+        forked = decimate(mesh, 2000)
+    finally:
+        interrupt.restore(previous)
+    assert not interrupt.installed()
+    assert np.array_equal(plain.faces, forked.faces) and np.array_equal(plain.vertices, forked.vertices)

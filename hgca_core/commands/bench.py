@@ -6,9 +6,11 @@ from pathlib import Path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from hgca_core.commands.arguments import floats_arg
     from hgca_core.commands.complete import add_precision_argument, device_arg, steps_arg
 
-    p.add_argument("--widths", default="40,60,80,100,120", help="strip widths w (m) of 40 x w regions; '' for none")
+    p.add_argument("--widths", type=floats_arg("--widths", positive=True), default="40,60,80,100,120",
+                   help="strip widths w (m) of 40 x w regions; '' for none")
     p.add_argument("--no-default", action="store_true", help="skip the default 38.4 x 38.4 m region")
     p.add_argument("--stage", choices=("coarse", "full"), default="coarse")
     p.add_argument("--device", type=device_arg, default="cpu")
@@ -26,7 +28,10 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.io.paths import check_outputs
     from hgca_core.pipeline import load_models
 
-    widths = [float(w) for w in args.widths.split(",") if w.strip()]
+    from hgca_core.commands.arguments import check_device
+
+    widths = list(args.widths)
+    check_device(args.device)
     name = args.name or f"completion_{args.stage}_{args.device.split(':')[0]}"
     load_models(args.stage, args.weights, args.fine_weights, "cpu")   # a bad file fails here, before any run
     out = Path(args.out)

@@ -2,10 +2,13 @@
 from __future__ import annotations
 
 import argparse
-import re
 from pathlib import Path
 
+from hgca_core.commands.arguments import (MAX_STEPS, check_device, check_seed_span, device_arg, max_faces_arg,
+                                          samples_arg, seed_arg)
 from hgca_core.errors import InputError
+
+__all__ = ["device_arg", "steps_arg", "add_arguments", "run", "output_paths"]
 
 MESH_EXTS = (".ply", ".obj", ".glb", ".npz")
 
@@ -21,13 +24,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--format", dest="fmt", help="force the scan format instead of guessing from the extension")
     p.add_argument("--region", help="cx,cy,cz,sx,sy,sz[,yaw_deg] in the world frame (default: 38.4 x 38.4 x 8 m "
                                     "around the first scan's sensor, from 1 m below the ground)")
-    p.add_argument("--samples", type=int, default=1, help="number of completions k (each its own mesh)")
-    p.add_argument("--seed", type=int, default=0, help="sample i uses seed + i: same seed, same mesh")
+    p.add_argument("--samples", type=samples_arg, default=1, help="number of completions k (each its own mesh)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="sample i uses seed + i: same seed, same mesh")
     p.add_argument("--stage", choices=("coarse", "full"), default="full",
                    help="full (default): 20 cm coarse GCA, 10 cm cGCA upsampling and an implicit mesh; "
                         "coarse: the 20 cm voxels only (faster)")
     p.add_argument("--device", type=device_arg, default="cpu", help="cpu, cuda or cuda:N")
-    p.add_argument("--max-faces", type=int, default=None,
+    p.add_argument("--max-faces", type=max_faces_arg, default=None,
                    help="simplify each mesh to at most this many triangles (default 1,000,000; 0 keeps every "
                         "triangle: a default region's full-stage mesh has ~2 M)")
     add_precision_argument(p)
@@ -57,21 +60,17 @@ def add_precision_argument(p: argparse.ArgumentParser) -> None:
                    help="GEMM precision of the sparse convs while sampling (auto: bf16 where the hardware has it)")
 
 
-def device_arg(text: str) -> str:
-    """`--device` type: cpu, cuda or cuda:N, checked while parsing so a typo fails before any work."""
-    if re.fullmatch(r"cpu|cuda(:\d+)?", text.strip()):
-        return text.strip()
-    raise argparse.ArgumentTypeError(f"unknown device {text!r}: use cpu, cuda or cuda:N")
-
-
 def steps_arg(text: str) -> int:
-    """`--t1` / `--t2` type: a step count >= 0, where 0 (like leaving the option out) means the weights' own."""
+    """`--t1` / `--t2` type: a step count in [0, MAX_STEPS], where 0 (like leaving the option out) means the
+    weights' own; a bound, since each step is a pass of the network (10^9 steps would never end)."""
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be 0 (the weights' own step count) or more, got {value}")
+    if value > MAX_STEPS:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_STEPS} steps, got {value}")
     return value
 
 
@@ -84,6 +83,7 @@ def add_steps_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def output_paths(out: str, samples: int) -> list[Path]:
+    """OUT_s<i>.ext for each sample (the names every sample's mesh is written to)."""
     path = Path(out)
     if path.suffix.lower() not in MESH_EXTS:
         raise InputError(f"output must end in one of {', '.join(MESH_EXTS)}", out)
@@ -107,30 +107,29 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, progress) -> list[Path]:
+    from hgca_core.geometry.region import Region
     from hgca_core.io.paths import check_outputs
+    from hgca_core.pipeline import check_memory
 
     paths = output_paths(args.out, args.samples)
+    check_seed_span(args.seed, args.samples)
     check_outputs(paths, [*args.scans, args.poses, args.weights, args.fine_weights])
+    check_device(args.device)
+    region_arg = Region.parse(args.region) if args.region else None
+    if region_arg is not None:
+        check_memory(region_arg)
 
-    from hgca_core.geometry.region import Region
     from hgca_core.io import write_mesh, write_mesh_npz
     from hgca_core.io.atomic import AtomicBatch
     from hgca_core.io.sequence import read_inputs
-    from hgca_core.pipeline import complete
-
-    if args.device.startswith("cuda"):
-        import torch
-
-        if not torch.cuda.is_available():
-            raise InputError("--device cuda asked for, but this torch build sees no CUDA GPU")
-    from hgca_core.pipeline import load_models
+    from hgca_core.pipeline import complete, load_models
 
     load_models(args.stage, args.weights, args.fine_weights, args.device)   # bad weights fail before any work;
     # complete() gets the same models again from the cache
     progress("read", 0, 1, f"{len(args.scans)} scan(s)", 0)
     scan = read_inputs(args.scans, poses=args.poses, fmt=args.fmt, frames=args.frames)
     progress("read", 1, 1, f"{len(scan.points)} points", 0)
-    region = Region.parse(args.region) if args.region else None
+    region = region_arg
     index = None
     if scan.origins is not None and len(scan.origins) and args.free_space != "off":
         from hgca_core.geometry.freespace import ray_origins

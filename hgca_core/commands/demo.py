@@ -9,9 +9,11 @@ EXAMPLE_DIR = Path(__file__).resolve().parents[1] / "examples"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from hgca_core.commands.arguments import samples_arg, seed_arg
+
     p.add_argument("--out", default="demo_out", help="folder for the mesh and its rendering")
-    p.add_argument("--samples", type=int, default=1)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--samples", type=samples_arg, default=1)
+    p.add_argument("--seed", type=seed_arg, default=0)
     p.add_argument("--stage", choices=("coarse", "full"), default=None,
                    help="default: full when fine weights are shipped, else coarse")
     p.add_argument("--progress", choices=("bar", "jsonl", "none"), default="bar")
@@ -35,10 +37,20 @@ def run(args: argparse.Namespace) -> int:
     scans = [str(EXAMPLE_DIR / e.file) for e in load_poses(poses)]
     # the ego-aligned box, stored as `Region.as_tuple()`: the --region form, yaw in degrees
     region = ",".join(f"{v:.6f}" for v in json.loads(poses.read_text())["region"])
+    from hgca_core.commands.arguments import check_seed_span
+    from hgca_core.io.paths import check_output_folder, check_outputs
+
     stage = args.stage or ("full" if shipped("fine").exists() else "coarse")
     out_dir = Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    check_seed_span(args.seed, args.samples)
+    check_output_folder(out_dir, [EXAMPLE_DIR])
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the output folder ({exc.strerror})", str(out_dir)) from None
     mesh_path = out_dir / "completion.ply"
+    check_outputs([out_dir / f"completion_s{i}{e}" for i in range(args.samples) for e in (".ply", ".png")],
+                  [EXAMPLE_DIR])
     t0 = time.time()
     parser = argparse.ArgumentParser()   # complete's own parser: its defaults, present and future, apply here too
     complete_arguments(parser)

@@ -12,7 +12,9 @@ import argparse
 import json
 import sys
 
-from hgca_core.commands.complete import add_free_space_argument, add_precision_argument
+from hgca_core.commands.arguments import (MAX_WORKERS, check_device, counted, device_arg, max_faces_arg,
+                                          positive_float, samples_arg, seed_arg)
+from hgca_core.commands.complete import add_free_space_argument, add_precision_argument, steps_arg
 from hgca_core.errors import InputError
 
 
@@ -24,44 +26,53 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", default=None, metavar="START:STOP[:STEP]",
                    help="frames of a sequence folder (default: all of them)")
     p.add_argument("--format", dest="fmt", help="force the scan format instead of guessing from the extension")
-    p.add_argument("--size", type=float, default=38.4, help="tile side in metres (default 38.4, the paper's region)")
-    p.add_argument("--overlap", type=float, default=6.4, help="overlap of consecutive tiles in metres (default 6.4)")
-    p.add_argument("--scans-per-tile", type=int, default=5, help="each tile is completed from its N nearest scans")
+    p.add_argument("--size", type=positive_float, default=38.4, help="tile side in metres (default 38.4, the paper's region)")
+    p.add_argument("--overlap", type=positive_float, default=6.4, help="overlap of consecutive tiles in metres (default 6.4)")
+    p.add_argument("--scans-per-tile", type=counted(1, 10_000), default=5, help="each tile is completed from its N nearest scans")
     p.add_argument("--plan-only", action="store_true",
                    help="print the tiles (regions along the trajectory, their scans) and stop; writes nothing")
     p.add_argument("--json", action="store_true", help="--plan-only: print the plan as one JSON object")
-    p.add_argument("--samples", type=int, default=1, help="number of completions k (one merged mesh each)")
-    p.add_argument("--seed", type=int, default=0, help="sample k of tile i uses seed + i * samples + k")
+    p.add_argument("--samples", type=samples_arg, default=1, help="number of completions k (one merged mesh each)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="sample k of tile i uses seed + i * samples + k")
     p.add_argument("--stage", choices=("coarse", "full"), default="full", help="as `hgca complete --stage`")
-    p.add_argument("--device", default="cpu", help="cpu or cuda")
-    p.add_argument("--max-faces", type=int, default=None, help="simplify each tile's mesh to at most N triangles")
+    p.add_argument("--device", type=device_arg, default="cpu", help="cpu, cuda or cuda:N")
+    p.add_argument("--max-faces", type=max_faces_arg, default=None, help="simplify each tile's mesh to at most N triangles")
     add_precision_argument(p)
     add_free_space_argument(p, " from each scan's rays")
-    p.add_argument("--t1", type=int, default=None, help="coarse steps T1 (default from the weights)")
-    p.add_argument("--t2", type=int, default=None, help="fine steps T2 (default from the weights)")
+    p.add_argument("--t1", type=steps_arg, default=None, help="coarse steps T1 (default from the weights)")
+    p.add_argument("--t2", type=steps_arg, default=None, help="fine steps T2 (default from the weights)")
     p.add_argument("--weights", default=None, help="coarse weights file (default: the shipped ones)")
     p.add_argument("--fine-weights", default=None, help="fine weights file (default: the shipped ones)")
     p.add_argument("--no-seams", dest="seams", action="store_false",
                    help="do not condition tiles on their finished neighbours (faster start, joins may disagree)")
-    p.add_argument("--workers", type=int, default=1,
+    p.add_argument("--workers", type=counted(1, MAX_WORKERS), default=1,
                    help="tiles at once; more than 1 starts a local Ray in this process (needs hgca[ray])")
     p.add_argument("--address", default=None, help="run on an existing Ray cluster (ray://host:port)")
-    p.add_argument("--threads", type=int, default=None, help="torch threads per tile (default: cores / workers)")
-    p.add_argument("--tile-memory", type=float, default=None, metavar="GIB",
+    p.add_argument("--threads", type=counted(1, 4096), default=None, help="torch threads per tile (default: cores / workers)")
+    p.add_argument("--tile-memory", type=positive_float, default=None, metavar="GIB",
                    help="memory each tile declares to Ray (default: estimated from the tile's area)")
     p.add_argument("--mesh-format", choices=("ply", "glb", "obj", "npz"), default="ply", help="tile and drive meshes")
     p.add_argument("--progress", choices=("bar", "jsonl", "none"), default="bar")
 
 
 def run(args: argparse.Namespace) -> int:
+    from hgca_core.tiling.plan import check_stride
+
     if args.plan_only:
+        check_stride(args.size, args.overlap)
         return _plan_only(args)
-    if not args.out:
-        raise InputError("--out DIR is required (the drive folder), except with --plan-only")
     from hgca_core.progress import Progress
     from hgca_core.tiling.run import drive
 
     progress = Progress(args.progress if args.progress != "bar" else "none", samples=args.samples)
+    try:
+        check_stride(args.size, args.overlap)
+        check_device(args.device)
+        if not args.out:
+            raise InputError("--out DIR is required (the drive folder), except with --plan-only")
+    except InputError as exc:
+        progress.error(str(exc))
+        raise
     bar = None
 
     def on_tile(done: int, total: int, index: int, state: str) -> None:

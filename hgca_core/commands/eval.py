@@ -11,6 +11,7 @@ DEFAULT_METHODS = ("input", "poisson", "gca", "hgca")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from hgca_core.commands.arguments import counted, samples_arg, seed_arg
     from hgca_core.commands.complete import add_free_space_argument, add_precision_argument, steps_arg
 
     p.add_argument("--data", default="data/synth", help="dataset folder (hgca synth --split test)")
@@ -23,12 +24,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fine-weights", default=None, help="fine-stage weights (default: the shipped fine.pt)")
     p.add_argument("--t2", type=steps_arg, default=None, help="fine steps (default from the weights)")
     add_precision_argument(p)
-    p.add_argument("--count", type=int, default=None, help="evaluate only the first N samples")
-    p.add_argument("--samples", type=int, default=3, help="completions k per input (min/avg/TMD)")
+    p.add_argument("--count", type=counted(1), default=None, help="evaluate only the first N samples")
+    p.add_argument("--samples", type=samples_arg, default=3, help="completions k per input (min/avg/TMD)")
     p.add_argument("--methods", default=None,
                    help=f"comma list of {', '.join(METHODS)} (default: the coarse ones, plus hgca-full with --stage full)")
     p.add_argument("--t1", type=steps_arg, default=None, help="coarse steps (default from the weights)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed_arg, default=0)
     add_free_space_argument(p, " for the model rows (compare runs to ablate it)")
     p.add_argument("--out", default=None, help="write the rows as JSON and the table as .md next to it")
     p.add_argument("--render", default=None, metavar="PNG",
@@ -55,11 +56,12 @@ def run(args: argparse.Namespace) -> int:
     unknown = set(methods) - set(METHODS)
     if unknown:
         raise InputError(f"unknown methods {sorted(unknown)}; choose from {', '.join(METHODS)}")
-    files = split_files(args.data, args.split)[: args.count]
-    refuse_packed(files, "hgca eval")
     if args.render and Path(args.render).suffix.lower() != ".png":
         raise InputError(f"--render writes a PNG, not {Path(args.render).suffix or 'a file without suffix'}",
                          args.render)
+    check_eval_outputs(args)
+    files = split_files(args.data, args.split)[: args.count]
+    refuse_packed(files, "hgca eval")
     gemm_dtype = resolve_precision(args.precision)
     rows_of = {m: list(ROWS_OF.get(m, (m,))) for m in methods}
     computed = {ROW_NAMES[r][0] for m in methods for r in rows_of[m]}
@@ -105,6 +107,24 @@ def run(args: argparse.Namespace) -> int:
 
         write_model_card()   # after the rendering, which the card shows when it lies beside the table
     return 0
+
+
+def check_eval_outputs(args: argparse.Namespace) -> None:
+    """--out (its .json and .md) and --render pass the one output check, against the data, weights and the
+    --reuse files, before any scene runs; the seeds of the k samples fit in 64 bits."""
+    from hgca_core.commands.arguments import check_seed_span
+    from hgca_core.io.paths import check_outputs
+
+    check_seed_span(args.seed, args.samples)
+    outputs = []
+    if args.out:
+        out = Path(args.out)
+        outputs += [out, out.with_suffix(".md")]
+    if args.render:
+        outputs.append(Path(args.render))
+    if outputs:
+        check_outputs(outputs, [args.data, args.weights, args.fine_weights, args.noplanner_weights,
+                                *(p for p in (args.reuse or []) if not args.out or Path(p) != Path(args.out))])
 
 
 def load_method_models(methods: list[str], fine_weights: str | None, weights: str | None = None,

@@ -14,7 +14,8 @@ import math
 import time
 from pathlib import Path
 
-from hgca_core.commands.complete import add_free_space_argument, add_precision_argument
+from hgca_core.commands.arguments import counted, finite_float, samples_arg, seed_arg
+from hgca_core.commands.complete import add_free_space_argument, add_precision_argument, steps_arg
 from hgca_core.real_eval import METHODS
 
 # The real fixtures shipped with the repository (tests/data/real), wherever the command is run from
@@ -40,16 +41,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--methods", default=",".join(METHODS), help=f"comma list of {', '.join(METHODS)}")
     p.add_argument("--cuts", default="1.5,2.0", help="cut heights above the ground, metres")
     p.add_argument("--full-cuts", default="2.0", help="cut heights where the full stage runs (it is slow)")
-    p.add_argument("--samples", type=int, default=3, help="k for the sampling rows")
-    p.add_argument("--full-samples", type=int, default=None, help="k for the full-stage rows (default --samples)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--yaw", type=float, default=0.0, metavar="DEG",
+    p.add_argument("--samples", type=samples_arg, default=3, help="k for the sampling rows")
+    p.add_argument("--full-samples", type=samples_arg, default=None, help="k for the full-stage rows (default --samples)")
+    p.add_argument("--seed", type=seed_arg, default=0)
+    p.add_argument("--yaw", type=finite_float, default=0.0, metavar="DEG",
                    help="turn each input's region by DEG degrees about the vertical (default 0: the region's axes "
                         "along the scan's frame, as `hgca complete` picks it); a model trained on regions along the "
                         "drive may score otherwise on a turned box (benchmarks/region_heading.py)")
-    p.add_argument("--threads", type=int, default=1, help="torch / Open3D threads")
-    p.add_argument("--t1", type=int, default=None, help="coarse steps (default from the weights)")
-    p.add_argument("--t2", type=int, default=None, help="fine steps (default from the weights)")
+    p.add_argument("--threads", type=counted(1, 4096), default=1, help="torch / Open3D threads")
+    p.add_argument("--t1", type=steps_arg, default=None, help="coarse steps (default from the weights)")
+    p.add_argument("--t2", type=steps_arg, default=None, help="fine steps (default from the weights)")
     p.add_argument("--weights", default=None, help="hGCA coarse weights (default: shipped)")
     p.add_argument("--noplanner-weights", default=None, help="GCA weights without planner (default: shipped)")
     p.add_argument("--fine-weights", default=None, help="fine weights (default: shipped)")
@@ -108,8 +109,12 @@ def run(args: argparse.Namespace) -> int:
     if args.samples < 1 or (args.full_samples is not None and args.full_samples < 1):
         raise InputError("--samples and --full-samples must be at least 1")
     out = Path(args.out)
-    if not out.parent.is_dir():
-        raise InputError("output folder does not exist", str(out.parent))
+    from hgca_core.commands.arguments import check_seed_span
+    from hgca_core.io.paths import check_outputs
+
+    check_seed_span(args.seed, max(args.samples, args.full_samples or 0))
+    check_outputs([out, out.with_suffix(".md")], [*args.inputs, args.calibration, args.weights, args.fine_weights,
+                                                  args.noplanner_weights])
     torch.set_num_threads(max(1, args.threads))
     from hgca_core.models.weights import weights_record
     from hgca_core.real_eval import WAYMO_NA, evaluate_input, format_tables

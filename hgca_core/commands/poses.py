@@ -21,11 +21,12 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.io.atomic import atomic_write
     from hgca_core.io.sequence import open_sequence, poses_document
 
+    from hgca_core.io.paths import check_outputs
+
     if os.path.splitext(args.out)[1].lower() != ".json":
         raise InputError("output must end in .json", args.out)
+    check_outputs([args.out], [args.sequence])     # the folder's own poses.json is an input it reads
     out_dir = os.path.dirname(os.path.abspath(args.out))
-    if not os.path.isdir(out_dir):
-        raise InputError("output folder does not exist", out_dir)
     doc = poses_document(open_sequence(args.sequence), args.frames, out_dir)
     text = json.dumps(doc, indent=1).encode("utf-8")
     atomic_write(args.out, lambda f: f.write(text))

@@ -12,6 +12,7 @@ import argparse
 import json
 import time
 
+from hgca_core.commands.arguments import MAX_WORKERS, counted, seed_arg
 from hgca_core.errors import InputError
 from hgca_core.synth.lidar import PROFILES
 from hgca_core.synth.scene import GENERATOR_VERSION, STYLE_DRAWS, STYLES
@@ -19,18 +20,18 @@ from hgca_core.synth.scene import GENERATOR_VERSION, STYLE_DRAWS, STYLES
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     what = p.add_mutually_exclusive_group(required=True)
-    what.add_argument("--seed", type=int, help="make the scene named by this seed and write its files")
+    what.add_argument("--seed", type=seed_arg, help="make the scene named by this seed and write its files")
     what.add_argument("--split", choices=("train", "val", "test"),
                       help="build a dataset split (seeds: train i, val 1,000,000 + i, test 2,000,000 + i)")
     what.add_argument("--pack", metavar="DATASET",
                       help="pack a built dataset's splits for coarse training only (input, ground truth and free "
                            "space as 20 cm bit grids, ~60 kB a scene instead of ~6 MB), e.g. to carry it to a GPU "
                            "machine; resumable, like --split")
-    p.add_argument("--count", type=int, help="samples in the split (with --split)")
-    p.add_argument("--first", type=int, default=0, metavar="I",
+    p.add_argument("--count", type=counted(1, 10_000_000), help="samples in the split (with --split)")
+    p.add_argument("--first", type=counted(0, 10**9), default=0, metavar="I",
                    help="with --split: start at the split's I-th seed (a folder of new scenes beside an older "
                         "dataset, so the two share no seed; default 0)")
-    p.add_argument("--scans", type=int, help="input scans per sample: the ego scan + others (default: the seed "
+    p.add_argument("--scans", type=counted(1, 255), help="input scans per sample: the ego scan + others (default: the seed "
                    "draws 1 to 10)")
     p.add_argument("--profile", choices=sorted(PROFILES),
                    help="sensor profile with --seed (default: the seed picks): " + ", ".join(
@@ -39,7 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--generator", type=int, choices=sorted(STYLE_DRAWS),
                    help=f"scene generator version (default: a split folder's own, else {GENERATOR_VERSION}); 6 makes "
                         "every seed's scene as it was before the strip style (synth2, docs/data/synth2_recipe.json)")
-    p.add_argument("--workers", type=int, default=2, help="processes for --split (default 2)")
+    p.add_argument("--workers", type=counted(1, MAX_WORKERS), default=2, help="processes for --split (default 2)")
     p.add_argument("--no-preview", action="store_true", help="skip the preview PNG (with --seed)")
     p.add_argument("--quick", action="store_true",
                    help="smoke-test density: a quarter of the azimuth steps and sparser ground truth (not for training)")
@@ -47,6 +48,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from hgca_core.io.paths import check_output_folder
+
+    check_output_folder(args.out, [args.pack])
     if args.pack is not None:
         return _pack(args)
     if args.scans is not None and not 1 <= args.scans <= 255:
@@ -108,7 +112,7 @@ def _pack(args: argparse.Namespace) -> int:
         raise InputError(f"{', '.join(given)} make scenes; --pack only packs a built dataset")
     from tqdm import tqdm
 
-    from hgca_core.training.packed import pack_dataset
+    from hgca_core.training.pack import pack_dataset
 
     t0 = time.perf_counter()
     bar = tqdm(desc="pack", unit="sample")

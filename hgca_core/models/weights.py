@@ -16,9 +16,12 @@ the file is and which option takes it, never a `load_state_dict` traceback.
 """
 from __future__ import annotations
 
+import errno
+import math
 import os
 import pickle
 import re
+import stat
 import warnings
 from dataclasses import dataclass
 from functools import lru_cache
@@ -166,10 +169,7 @@ def load_file(path: str | os.PathLike, hint: str = "") -> dict:
     Every failure is an `InputError` naming the file: missing, a folder, unreadable, not a torch file, or a
     file holding pickled objects (refused, nothing from it was run)."""
     p = Path(path)
-    if not p.exists():
-        raise InputError(f"no such weights file{hint}", str(p))
-    if p.is_dir():
-        raise InputError("is a folder, not a weights file", str(p))
+    _check_regular(p, hint)
     try:
         with warnings.catch_warnings():  # torch warns about pickle protocols of foreign files: the error says it
             warnings.simplefilter("ignore")
@@ -189,6 +189,79 @@ def load_file(path: str | os.PathLike, hint: str = "") -> dict:
     if not isinstance(blob, dict):
         raise InputError(f"not an hgca weights file (it holds a {type(blob).__name__}, not a dict)", str(p))
     return blob
+
+
+def _check_regular(p: Path, hint: str) -> None:
+    """Say what `p` is when it is not a regular file, before opening it: a FIFO would block the read forever."""
+    try:
+        st = os.stat(p)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise InputError("the weights file is a symbolic link loop", str(p)) from None
+        if os.path.islink(p):
+            raise InputError(f"the weights file is a symbolic link to a missing target ({os.readlink(p)})",
+                             str(p)) from None
+        if exc.errno == errno.ENOENT:
+            raise InputError(f"no such weights file{hint}", str(p)) from None
+        raise InputError(f"cannot open the weights file ({exc.strerror})", str(p)) from None
+    except ValueError as exc:   # NUL in the name
+        raise InputError(f"the weights file name is not a valid path ({exc})", str(p)) from None
+    if stat.S_ISDIR(st.st_mode):
+        raise InputError("is a folder, not a weights file", str(p))
+    if not stat.S_ISREG(st.st_mode):
+        raise InputError("the weights file is not a regular file (a pipe, device or socket)", str(p))
+
+
+# Bounds of the config values a weights file may hold: what this code can run in reasonable time and memory.
+# Steps are network passes per sample (the shipped files use 30 and 15); 10^9 would never end.
+MAX_STEPS = 1000
+INT_BOUNDS = {"steps": (1, MAX_STEPS), "channels": (1, 4096), "grid": (1, 65536)}
+DEFAULT_INT_BOUNDS = (0, 65536)
+FLOAT_BOUND = 1e6
+
+
+def check_config(config: dict, kind: str, what: str, path: str) -> None:
+    """Refuse config values of the wrong type or out of bounds (a string "30" for steps, 10^9 steps, NaN), with
+    the key, before any model is built. Types come from the dataclass defaults; unknown keys are ignored."""
+    fields = KINDS[kind].config.__dataclass_fields__  # type: ignore[attr-defined]
+    for key, value in config.items():
+        if key not in fields:
+            continue
+        default = fields[key].default
+        low, high = INT_BOUNDS.get(key, DEFAULT_INT_BOUNDS)
+        problem = ""
+        if isinstance(default, bool):
+            problem = "" if isinstance(value, bool) else "must be true or false"
+        elif isinstance(default, int) or (default is None and key == "crop"):
+            if value is None and default is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, int):
+                problem = "must be a whole number"
+            elif not low <= value <= high:
+                problem = f"must be between {low} and {high}"
+        elif isinstance(default, float):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                problem = "must be a number"
+            elif not math.isfinite(value) or abs(value) > FLOAT_BOUND:
+                problem = f"must be a finite number within +-{FLOAT_BOUND:g}"
+        elif isinstance(default, str):
+            problem = "" if isinstance(value, str) else "must be a string"
+        elif isinstance(default, tuple):
+            if not isinstance(value, (list, tuple)) or not value or len(value) > 64 or any(
+                    isinstance(v, bool) or not isinstance(v, int) or not low <= v <= high for v in value):
+                problem = f"must be a list of whole numbers between {low} and {high}"
+        if problem:
+            raise InputError(f"the {what}config does not describe a {kind} model: its {key!r} {problem}, got "
+                             f"{value!r}", path)
+
+
+def check_finite(state_dict: dict[str, torch.Tensor], what: str, path: str) -> None:
+    """Refuse tensors holding NaN or infinity: such weights give an empty mesh with exit 0."""
+    for name, t in state_dict.items():
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            bad = int((~torch.isfinite(t)).sum())
+            raise InputError(f"the {what}tensor {name!r} holds {bad} NaN or infinite value(s) of {t.numel()}: "
+                             "the file is corrupt", path)
 
 
 def identify(blob: dict) -> tuple[str | None, bool]:
@@ -241,6 +314,8 @@ def build(kind: str, config: Any, state_dict: Any, path: str, part: str = "") ->
             isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state_dict.items()):
         raise InputError(f"the {what}state_dict is not a non-empty table of named tensors", path)
     k = KINDS[kind]
+    check_config(config, kind, what, path)
+    check_finite(state_dict, what, path)
     try:
         cfg = k.config.from_dict(config)
         with torch.device("meta"):

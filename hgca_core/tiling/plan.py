@@ -78,22 +78,39 @@ class TilePlan:
         return 1 + self.index % 2
 
 
+MIN_STRIDE = 0.2       # metres between tile centres: one coarse cell (a finer stride only repeats tiles)
+MAX_TILES = 100_000    # a drive of 3,200 km at the default stride; more is a typo, not a drive
+
+
+def check_stride(size: float, overlap: float) -> float:
+    """The stride `size - overlap` between tiles, or an `InputError` naming the flags: a stride of micrometres
+    (--overlap 12.79999 --size 12.8) would plan millions of identical tiles."""
+    if not (np.isfinite(size) and size > 0):
+        raise InputError(f"--size must be a finite tile side above 0 m, got {size}")
+    if not (np.isfinite(overlap) and 0 < overlap < size):
+        raise InputError(f"--overlap must be between 0 and the tile size (--size {size} m), got {overlap}")
+    stride = size - overlap
+    if stride < MIN_STRIDE - 1e-9:
+        raise InputError(f"--size {size} with --overlap {overlap} leaves {stride:.6g} m between tiles; the stride "
+                         f"must be at least {MIN_STRIDE} m (one coarse cell): lower --overlap")
+    return stride
+
+
 def plan_tiles(positions: np.ndarray, size: float = DEFAULT_SIZE[0], overlap: float = MIN_OVERLAP,
                scans_per_tile: int = 5) -> list[TilePlan]:
     """Tiles covering the trajectory through `positions` (the scans' sensor positions, in scan order) with
     `overlap` metres between consecutive tiles and a margin of overlap / 2 before the first and after the last
     position; each tile takes the `scans_per_tile` scans nearest its centre."""
-    if not size > 0:
-        raise InputError(f"tile size must be positive, got {size}")
-    if not 0 < overlap < size:
-        raise InputError(f"tile overlap must be between 0 and the tile size {size} m, got {overlap}")
+    stride = check_stride(size, overlap)
     if scans_per_tile < 1:
         raise InputError(f"scans per tile must be at least 1, got {scans_per_tile}")
     pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     path = Trajectory(pos)
-    stride = size - overlap
     span = path.length + overlap            # cover [-overlap/2, length + overlap/2]
     n = 1 + int(np.ceil(max(0.0, span - size) / stride - 1e-9))
+    if n > MAX_TILES:
+        raise InputError(f"the drive would need {n:,} tiles ({path.length:,.1f} m at a stride of {stride:g} m); "
+                         f"at most {MAX_TILES:,}: give fewer scans or a larger --size - --overlap")
     first = (path.length - (n - 1) * stride) / 2
     tiles = []
     for i in range(n):

@@ -13,12 +13,13 @@ import os
 import signal
 import socket
 import time
+import warnings
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
-from hgca_core.errors import InputError
+from hgca_core.errors import HgcaWarning, InputError
 from hgca_core.geometry.region import DEFAULT_SIZE, Region
 from hgca_core.io.digest import file_digest
 from hgca_core.tiling.merge import merge_sample, write_piece
@@ -72,7 +73,8 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     (`DriveStore.lock`); a signal that ends the `hgca` CLI leaves drive.json "interrupted".
     """
     from hgca_core.interrupt import last_words
-    from hgca_core.pipeline import FREE_SPACE_MODES, check_memory, load_models, memory_need
+    from hgca_core.pipeline import (FREE_SPACE_MODES, check_device, check_memory, check_settings, load_models,
+                                    memory_need)
 
     t_start = time.perf_counter()
     say = report or (lambda *a: None)
@@ -81,10 +83,12 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
         raise InputError(f"mesh format must be one of {', '.join(MESH_FORMATS)}, not {mesh_format!r}")
     if free_space not in FREE_SPACE_MODES:
         raise InputError(f"free space must be one of {', '.join(FREE_SPACE_MODES)}, not {free_space!r}")
-    if samples < 1:
-        raise InputError(f"samples must be at least 1, got {samples}")
-    if workers < 1:
-        raise InputError(f"workers must be at least 1, got {workers}")
+    check_settings(samples, seed, max_faces, t1, t2)
+    check_device(device)
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise InputError(f"workers must be at least 1, got {workers!r}")
+    if threads is not None and threads < 1:
+        raise InputError(f"threads must be at least 1, got {threads}")
     if workers > 1 or address:
         from hgca_core.tiling.runners import require_ray
 
@@ -95,7 +99,7 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     store = DriveStore(out)
     store.check()
     ext = "." + mesh_format
-    _check_outputs(paths, poses, store)
+    _check_outputs(paths, poses, store, weight_files(stage, weights, fine_weights))
     threads = threads or max(1, (os.cpu_count() or 1) // workers)
     settings = Settings(stage=stage, samples=samples, seed=seed, t1=t1, t2=t2, precision=precision,
                         max_faces=max_faces, weights=weights, fine_weights=fine_weights, device=device,
@@ -110,10 +114,17 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     memory = tile_memory or memory_need(regions[0])
     if workers == 1 and not address:
         check_memory(regions[0])                                  # on Ray, each node is checked instead
+    check_settings(samples, seed, max_faces, t1, t2, span=len(plans) * samples)   # every tile's seeds
     scan_digests = [s.digest() for s in inputs]
     jobs = _jobs(plans, regions, scan_digests, seed, samples, settings, digests, seams)
 
     store.prepare()
+    for job in jobs:                  # a cache entry cut short (a full disk, a copy) is recomputed, not fatal
+        problem = store.damaged(job.key)
+        if problem:
+            warnings.warn(HgcaWarning(f"tile {job.index}: its finished result {store.entry(job.key)} is unreadable "
+                                      f"({problem}); computing the tile again"), stacklevel=2)
+            store.discard(job.key)
     doc: dict = {}
     try:
         with last_words(lambda signum: _stopped(store, doc, signum)):
@@ -280,8 +291,15 @@ def _path_length(positions: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(positions[:, :2], axis=0), axis=1).sum()) if len(positions) > 1 else 0.0
 
 
-def _check_outputs(paths: list[str], poses, store: DriveStore) -> None:
-    """No input may be one of the files a drive writes (a drive folder inside the scans' folder is fine)."""
+def _check_outputs(paths: list[str], poses, store: DriveStore, weights: list[Path]) -> None:
+    """No input may be one of the files a drive writes (a drive folder inside the scans' folder is fine); an
+    existing drive folder's outputs pass the commands' one output check (`io.paths.check_outputs`)."""
+    from hgca_core.io.paths import check_outputs
+
+    if store.root.is_dir():
+        check_outputs([store.manifest, store.drive_mesh(0, ".ply")], [*paths, poses, *weights], skip=[store.root])
+    else:
+        store.check_creatable()
     inputs = {os.path.realpath(p) for p in paths} | ({os.path.realpath(os.fspath(poses))} if poses else set())
     for p in inputs:
         if Path(p).parent == Path(os.path.realpath(store.root)) and (Path(p).name == "drive.json"

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import os
 import socket
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +40,12 @@ class DriveStore:
         """Refuse an --out that cannot be a drive folder, before anything is read or written."""
         if self.root.exists() and not self.root.is_dir():
             raise InputError("output exists and is not a folder", str(self.root))
+
+    def check_creatable(self) -> None:
+        """For a folder not made yet: its names fit the file system and its nearest existing parent takes it."""
+        from hgca_core.io.paths import check_output_folder
+
+        check_output_folder(self.root, what="drive folder")
 
     def prepare(self) -> None:
         """Create the folders, take the folder's lock (`lock`), then remove the temp files a killed run left in
@@ -87,6 +94,28 @@ class DriveStore:
     def has(self, key: str) -> bool:
         return self.entry(key).is_file()
 
+    def damaged(self, key: str) -> str:
+        """'' when the entry is missing or readable (its arrays and record open), else what is wrong with it."""
+        path = self.entry(key)
+        if not path.is_file():
+            return ""
+        try:
+            with zipfile.ZipFile(path) as z:
+                bad = z.testzip()
+                if bad is None:
+                    with z.open("meta.npy") as f:
+                        meta = json.loads(str(np.lib.format.read_array(f, allow_pickle=False)))
+                    bad = None if isinstance(meta, dict) and isinstance(meta.get("samples"), list) else "meta"
+            if bad is not None:
+                return f"a damaged member {bad}"
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            return f"{type(exc).__name__}: {exc}"
+        return ""
+
+    def discard(self, key: str) -> None:
+        """Remove a damaged entry so the tile is computed and saved again."""
+        self.entry(key).unlink(missing_ok=True)
+
     def save(self, result: dict) -> Path:
         """Write a tile result under its key (atomically; an existing entry is the same content and is kept)."""
         path = self.entry(result["key"])
@@ -116,7 +145,7 @@ class DriveStore:
                 for k, s in enumerate(meta["samples"]):
                     wanted = only is None or k == only
                     samples.append({**s, **{n: z[f"s{k}_{n}"] if wanted else None for n in names}})
-        except (OSError, ValueError, KeyError) as exc:
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
             raise InputError(f"finished tile is unreadable ({exc}); delete it to recompute the tile", str(path)) \
                 from None
         meta["samples"] = samples
