@@ -117,7 +117,7 @@ def laz_stored_points(path: str, header: Any) -> str | None:
     size, chunks = int(laz.chunk_size()), len(table)
     first = (chunks - 1) * size
     if count <= first:
-        return f"{chunks} chunks of {size} points (more than {first})"
+        return f"{chunks} chunks ({first} points in the first {chunks - 1} alone)"
 
     def packed_bytes(n: int) -> int:
         """Bytes of the last chunk's first n points compressed again (raises when n is past its data)."""
