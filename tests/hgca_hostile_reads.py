@@ -409,3 +409,58 @@ def _(d):
     root = _kitti(d)
     (root / "calib.txt").write_text("Tr: 1 0 0 0 0 1 0 0 0 0 1 0\nTr: 1 0 0 5 0 1 0 0 0 0 1 0\n")
     return ["read", str(root), "--frames", "0:2", "-o", str(d / "out.npz")]
+
+
+def _av2_repeated_column(d: Path) -> Path:
+    import pyarrow as pa
+    import pyarrow.feather as feather
+
+    cols = _sweep_columns()
+    arrays = [pa.array(cols["x"]), pa.array(cols["x"] + 3.0), pa.array(cols["y"]), pa.array(cols["z"]),
+              pa.array(cols["laser_number"])]
+    path = d / "315966070159854000.feather"
+    feather.write_feather(pa.Table.from_arrays(arrays, names=["x", "x", "y", "z", "laser_number"]), str(path))
+    return path
+
+
+info_or_read("av2 sweep with column x twice", "column 'x' 2 times", _av2_repeated_column, "silently wrong reads")
+info_or_read("csv rows ending in a delimiter", "an empty value", lambda d: write(d, "t.csv", "1,2,3,\n4,5,6,\n"),
+             "silently wrong reads")
+
+
+def _npz_repeated_member(d: Path) -> Path:
+    import io
+    import warnings
+    import zipfile
+
+    def member(a: np.ndarray) -> bytes:
+        buf = io.BytesIO()
+        np.save(buf, a)
+        return buf.getvalue()
+
+    with warnings.catch_warnings():           # zipfile warns of the duplicate name it is told to write
+        warnings.simplefilter("ignore")
+        with zipfile.ZipFile(d / "dupe.npz", "w") as z:
+            z.writestr("points.npy", member(np.zeros((50, 3))))
+            z.writestr("points.npy", member(np.ones((50, 3))))
+    return d / "dupe.npz"
+
+
+info_or_read("npz holding 'points' twice", "'points' 2 times", _npz_repeated_member, "silently wrong reads")
+
+
+@case("read: poses entry giving pose twice", "'pose' twice", "silently wrong reads")
+def _(d):
+    scan = good_npz(d)
+    moved = json.dumps(_moved((4.0, 0.0, 0.0)).tolist())
+    (d / "poses.json").write_text('{"scans": [{"file": "scan.npz", "pose": %s, "pose": %s}]}' % (json.dumps(EYE), moved))
+    return read_cmd(scan, d, "--poses", d / "poses.json")
+
+
+@case("read: poses with two scans lists", "'scans' twice", "silently wrong reads")
+def _(d):
+    scan = good_npz(d)
+    entry = json.dumps([{"file": "scan.npz", "pose": EYE}])
+    moved = json.dumps([{"file": "scan.npz", "pose": _moved((4.0, 0.0, 0.0)).tolist()}])
+    (d / "poses.json").write_text('{"scans": %s, "scans": %s}' % (entry, moved))
+    return read_cmd(scan, d, "--poses", d / "poses.json")

@@ -63,6 +63,10 @@ def read_npz(path: str) -> Scan:
     _check_magic(path, (b"PK\x03\x04", b"PK\x05\x06"), "NumPy .npz (zip) archive")
     with np.load(path, allow_pickle=False) as z:
         keys = list(z.keys())
+        repeated = sorted({k for k in keys if keys.count(k) > 1})
+        if repeated:
+            raise InputError(f"npz holds array {repeated[0]!r} {keys.count(repeated[0])} times (a zip with repeated "
+                             "member names): which one is meant is unknown", path)
         if "points" not in keys:
             raise InputError(f"npz has no 'points' array (keys: {keys})", path)
         points = _numeric(z["points"], "'points'", path)

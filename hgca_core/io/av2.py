@@ -37,6 +37,11 @@ def read_table(path: str, columns: tuple[str, ...], what: str) -> dict[str, np.n
         table = feather.read_table(path)
     except Exception as exc:  # noqa: BLE001 - any Arrow failure is a corrupt file
         raise InputError(f"corrupt or truncated {what} ({type(exc).__name__}: {exc})", path) from None
+    names = list(table.column_names)
+    repeated = sorted({c for c in names if names.count(c) > 1})
+    if repeated:
+        raise InputError(f"{what} has column {repeated[0]!r} {names.count(repeated[0])} times: which one holds "
+                         "the values is unknown", path)
     missing = [c for c in columns if c not in table.column_names]
     if missing:
         raise InputError(f"{what} lacks column(s) {', '.join(missing)} (has {', '.join(table.column_names)})",

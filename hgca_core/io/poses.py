@@ -56,15 +56,31 @@ def validate_pose(matrix: Any, what: str, path: str | None = None) -> np.ndarray
     return m
 
 
+class _RepeatedKey(Exception):
+    """A JSON object with one key twice."""
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _RepeatedKey(key)
+        out[key] = value
+    return out
+
+
 def load_poses(path: str | os.PathLike) -> list[PoseEntry]:
     """Parse `{"scans": [{"file", "pose", "origin"?}, ...]}`; every entry is validated."""
     path = os.fspath(path)
     check_readable(path, "poses file")
     try:
-        with open(path, "r", encoding="utf-8") as f:
-            doc = json.load(f)
+        with open(path, "r", encoding="utf-8-sig") as f:
+            doc = json.load(f, object_pairs_hook=_unique_keys)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"poses file is not valid JSON ({exc})", path) from None
+    except _RepeatedKey as exc:
+        raise InputError(f"poses file gives {exc.args[0]!r} twice in one object: JSON readers keep the later "
+                         "one without a word, so which is meant is unknown", path) from None
     except RecursionError:
         raise InputError("poses file nests arrays or objects too deeply to be a poses file", path) from None
     scans = doc.get("scans") if isinstance(doc, dict) else None

@@ -132,6 +132,8 @@ def _load(path: str, delimiter: str | None, skip: int) -> np.ndarray:
         reason = str(exc).split(";")[0]  # drop numpy's `usecols` advice, which is no use to a CLI user
         bad = re.search(r"could not convert string '([^']*)'", reason)
         why = _not_decimal([bad.group(1)]) if bad else None
+        if bad and not bad.group(1).strip():
+            why = "an empty value: a doubled delimiter, or one at the end of the rows"
         raise InputError(f"malformed text table ({reason}){': ' + why if why else ''}", path) from None
 
 
