@@ -41,7 +41,7 @@ class PCDHeader:
 def parse_header(raw: bytes, path: str) -> PCDHeader:
     """Parse header lines up to and including DATA; checks that FIELDS/SIZE/TYPE/COUNT agree."""
     entries: dict[str, list[str]] = {}
-    pos = 0
+    pos = 3 if raw.startswith(b"\xef\xbb\xbf") else 0      # a UTF-8 byte-order mark before the header
     while True:
         end = raw.find(b"\n", pos)
         if end < 0 or pos > _MAX_HEADER:

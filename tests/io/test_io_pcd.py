@@ -281,3 +281,13 @@ def test_pcd_single_trailing_newline_after_binary_data_is_fine(tmp_path):
     path = tmp_path / "newline.pcd"
     path.write_bytes(header(len(a), "binary") + encode(a, "binary") + b"\n")
     check(read_scan(path), a)
+
+
+def test_pcd_after_a_byte_order_mark(tmp_path):
+    """A UTF-8 BOM before a header that starts with FIELDS (Windows editors add one) hid that line."""
+    a = make_cloud(50)
+    lines = header(len(a), "ascii").decode().splitlines()
+    head = ("\n".join([lines[2], *lines[:2], *lines[3:]]) + "\n").encode()
+    path = tmp_path / "bom.pcd"
+    path.write_bytes(b"\xef\xbb\xbf" + head + encode(a, "ascii"))
+    check(read_scan(path), a)

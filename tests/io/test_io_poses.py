@@ -195,3 +195,11 @@ def test_poses_that_are_not_a_poses_file_say_what_they_are(tmp_path, two_scans, 
 def test_no_scans():
     with pytest.raises(InputError, match="no scan files"):
         read_scans([])
+
+
+def test_poses_json_after_a_byte_order_mark(tmp_path, two_scans):
+    a, b = two_scans
+    doc = {"scans": [{"file": "a.bin", "pose": SHIFT}, {"file": "sweeps/b.bin", "pose": YAW90}]}
+    (tmp_path / "poses.json").write_bytes(b"\xef\xbb\xbf" + json.dumps(doc).encode())
+    plain = read_scans([a, b], poses=write_json(tmp_path / "plain.json", doc))
+    np.testing.assert_array_equal(read_scans([a, b], poses=tmp_path / "poses.json").points, plain.points)
