@@ -13,7 +13,8 @@ from hgca_core.models.gca import GCAConfig
 from hgca_core.training import data
 from hgca_core.training.coarse import CoarseTask
 from hgca_core.training.fine import FineTask
-from hgca_core.training.packed import is_packed, pack_dataset
+from hgca_core.training.pack import pack_dataset
+from hgca_core.training.packed import is_packed
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 SMALL = dict(channels=(8, 8, 16, 16, 16), steps=3, free_space=True)
@@ -67,7 +68,7 @@ def test_packing_resumes_and_refuses_what_it_cannot_do(full, packed, tmp_path, c
     assert {p: p.stat().st_mtime_ns for p in packed.glob("*/sample_*.npz")} == first
     assert (packed / "packed.json").exists()
     for argv, says in ((["--pack", str(packed), "--out", str(tmp_path / "again")], "already a packed sample"),
-                       (["--pack", str(full), "--out", str(full)], "not over it"),
+                       (["--pack", str(full), "--out", str(full)], "output folder is an input"),
                        (["--pack", str(tmp_path / "nothing"), "--out", str(tmp_path / "o")], "no samples"),
                        (["--pack", str(full), "--count", "3", "--out", str(tmp_path / "o")], "--count")):
         capsys.readouterr()
