@@ -113,3 +113,44 @@ def test_release_free_memory_returns_the_heaps_holes() -> None:
     out = subprocess.run([sys.executable, "-c", TRIM_PROBE], capture_output=True, text=True, timeout=60)
     before, after = map(float, out.stdout.split())
     assert before - after > 48, (before, after, out.stderr)
+
+
+def test_an_unforeseen_failure_is_one_error_line_and_the_debug_variable_shows_the_traceback(tmp_path, capsys,
+                                                                                           monkeypatch):
+    """A bug no check foresaw (here: a reader that raises RuntimeError) ends in one `error:` line and exit 2;
+    HGCA_DEBUG=1, which `hgca --help` names, adds the traceback."""
+    import numpy as np
+
+    import hgca_core.io.sequence as sequence
+    from hgca_core.cli import DEBUG_ENV, main
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("reader bug\nsecond line")
+
+    np.savez(tmp_path / "s.npz", points=np.zeros((5, 3)))
+    monkeypatch.setattr(sequence, "read_inputs", broken)
+    monkeypatch.delenv(DEBUG_ENV, raising=False)
+    argv = ["read", str(tmp_path / "s.npz"), "-o", str(tmp_path / "o.npz")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.splitlines() == [f"hgca read: error: unexpected RuntimeError: reader bug (set {DEBUG_ENV}=1 for the "
+                                "traceback)"], err
+    monkeypatch.setenv(DEBUG_ENV, "1")
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "Traceback (most recent call last)" in err and "RuntimeError: reader bug" in err
+    assert err.splitlines()[-1].startswith("hgca read: error: unexpected RuntimeError")
+    assert not (tmp_path / "o.npz").exists()
+    res = subprocess.run([sys.executable, "-m", "hgca_core.cli", "--help"], capture_output=True, text=True,
+                         timeout=60)
+    assert res.returncode == 0 and f"{DEBUG_ENV}=1" in res.stdout
+
+
+def test_memory_errors_and_full_disks_name_themselves():
+    import errno
+
+    from hgca_core.cli import unexpected
+
+    assert unexpected(MemoryError()).startswith("out of memory")
+    full = OSError(errno.ENOSPC, "No space left on device", "/mnt/x.npz")
+    assert unexpected(full) == "no space left on the device (/mnt/x.npz); nothing was written"

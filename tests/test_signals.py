@@ -188,3 +188,33 @@ def test_decimation_gives_the_same_mesh_in_the_interruptible_child():
         interrupt.restore(previous)
     assert not interrupt.installed()
     assert np.array_equal(plain.faces, forked.faces) and np.array_equal(plain.vertices, forked.vertices)
+
+
+KILLED_WRITER = textwrap.dedent("""
+    import os, signal, sys
+    from hgca_core.io import atomic
+    batch = atomic.AtomicBatch()
+    batch.add(os.path.join(sys.argv[1], "o_s0.ply"), lambda f: f.write(b"half a mesh"))
+    os.kill(os.getpid(), signal.SIGKILL)   # no handler runs: the temp file stays
+""")
+
+
+def test_next_run_removes_the_stale_temp_files_of_its_own_outputs(small_weights, tmp_path):
+    """A SIGKILL mid-write leaves `.o_s0.ply.<pid>.*.tmp`; the next `hgca complete -o o.ply` removes it. Temp files
+    of another target, and of a writer that is still running (this test's own pid), are left alone."""
+    res = subprocess.run([sys.executable, "-c", KILLED_WRITER, str(tmp_path)], capture_output=True, timeout=60)
+    assert res.returncode == -signal.SIGKILL
+    (stale,) = tmp_path.glob(".o_s0.ply.*.tmp")
+    other = tmp_path / stale.name.replace(".o_s0.ply.", ".other.ply.")
+    other.write_bytes(b"x")
+    live = tmp_path / f".o_s0.ply.{os.getpid()}.abcdefgh.tmp"
+    live.write_bytes(b"x")
+    scan = tmp_path / "scan.npz"
+    np.savez(scan, points=tiny_sample(3)["input_points"].astype(np.float64))
+    done = subprocess.run([sys.executable, "-m", "hgca_core.cli", "complete", str(scan), "-o", str(tmp_path / "o.ply"),
+                           "--weights", str(small_weights), "--stage", "coarse", "--region", "3,3,1,6,6,4",
+                           "--progress", "none"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert not stale.exists(), "the killed run's temp file of o_s0.ply is gone"
+    assert other.exists() and live.exists()
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")) == sorted([other.name, live.name])

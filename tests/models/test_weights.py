@@ -11,8 +11,8 @@ from hgca_core.errors import InputError
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel
 from hgca_core.models.gca import GCAConfig, GCAKernel
-from hgca_core.models.weights import (KINDS, WEIGHTS_DIR, identify, load_autoencoder, load_coarse, load_file,
-                                      load_fine, save_file, save_weights, shipped)
+from hgca_core.models.weights import (KINDS, WEIGHTS_DIR, check_config, identify, load_autoencoder, load_coarse,
+                                      load_file, load_fine, save_file, save_weights, shipped)
 
 SMALL_AE = AutoencoderConfig(latent=4, enc_hidden=8, mlp_hidden=8, dec_channels=8)
 
@@ -215,3 +215,46 @@ def test_blend_interpolates_tensor_by_tensor_and_refuses_what_does_not_fit(files
         blend_files(files["coarse"], ckpt, 0.5)
     with pytest.raises(ValueError, match="outside"):
         blend_files(files["coarse"], b, 1.5)
+
+
+def test_config_values_of_the_wrong_type_or_out_of_bounds_are_refused_with_their_key(files, tmp_path):
+    """Types come from the config dataclasses' defaults: a string where steps is a count, 10^9 steps (a run that
+    would never end), a NaN rate, a float grid; every shipped file passes the same check."""
+    blob = load_file(files["coarse"])
+    bad = {"steps": "30", "blocks": 2.0, "use_planner": "yes", "alpha0": float("nan"), "grid": [192, 192, 0.5],
+           "pe_axes": 3}
+    for key, value in bad.items():
+        path = save_file({**blob, "config": {**blob["config"], key: value}}, tmp_path / f"{key}.pt")
+        with pytest.raises(InputError, match=f"its '{key}' must"):
+            load_coarse(path)
+    path = save_file({**blob, "config": {**blob["config"], "steps": 10**9}}, tmp_path / "long.pt")
+    with pytest.raises(InputError, match="'steps' must be between 1 and 1000, got 1000000000"):
+        load_coarse(path)
+    for stage in ("coarse", "coarse-noplanner", "fine", "autoencoder"):
+        shipped_blob = load_file(shipped(stage))
+        kind = shipped_blob["kind"]
+        check_config(shipped_blob["config"], kind, "", str(shipped(stage)))
+        if "autoencoder" in shipped_blob:
+            check_config(shipped_blob["autoencoder"]["config"], "autoencoder", "autoencoder ", str(shipped(stage)))
+
+
+def test_non_finite_tensors_are_refused_at_load(files, tmp_path):
+    """All-NaN weights gave an empty mesh and exit 0; one infinite value in the fine file's autoencoder is enough."""
+    fine = load_file(files["fine"])
+    name = next(iter(fine["autoencoder"]["state_dict"]))
+    ae = {**fine["autoencoder"]["state_dict"]}
+    ae[name] = ae[name].clone()
+    ae[name].view(-1)[0] = float("inf")
+    path = save_file({**fine, "autoencoder": {**fine["autoencoder"], "state_dict": ae}}, tmp_path / "inf.pt")
+    with pytest.raises(InputError, match=f"autoencoder tensor '{name}' holds 1 NaN or infinite value"):
+        load_fine(path)
+
+
+def test_parsing_bounds_equal_the_cores():
+    """The torch-free argument types spell out the core's bounds; they must be the same numbers."""
+    from hgca_core import pipeline
+    from hgca_core.commands import arguments
+    from hgca_core.models import weights
+
+    assert arguments.MAX_STEPS == weights.MAX_STEPS
+    assert arguments.SEED_MAX == pipeline.SEED_MAX and arguments.MIN_FACES == pipeline.MIN_FACES
