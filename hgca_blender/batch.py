@@ -13,11 +13,29 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-if __name__ == "__main__" and not __package__:
-    # Run as a script (`blender --python hgca_blender/batch.py`): import the package and run from it.
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from hgca_blender import batch as _package_batch
 
+def _package_of(folder: Path):
+    """This folder as a package: the one Blender loaded it as (an enabled extension, `bl_ext.<repo>.hgca`), else
+    imported from its own `__init__.py` under the folder's name (a checkout's `hgca_blender`, an unzipped copy)."""
+    import importlib
+    import importlib.util
+
+    init = folder / "__init__.py"
+    for name, module in list(sys.modules.items()):
+        if getattr(module, "__file__", None) and Path(module.__file__).resolve() == init:
+            return importlib.import_module(f"{name}.batch")
+    name = folder.name if folder.name.isidentifier() else "hgca_blender"
+    spec = importlib.util.spec_from_file_location(name, init, submodule_search_locations=[str(folder)])
+    package = importlib.util.module_from_spec(spec)
+    sys.modules[name] = package
+    spec.loader.exec_module(package)
+    return importlib.import_module(f"{name}.batch")
+
+
+if __name__ == "__main__" and not __package__:
+    # Run as a script (`blender -b --python .../hgca/batch.py -- ...`, from a checkout or the installed
+    # extension, whose folder is `hgca`): import the package this file lies in and run from it.
+    _package_batch = _package_of(Path(__file__).resolve().parent)
     sys.exit(_package_batch.main(_package_batch.script_args(sys.argv)))
 
 import argparse
@@ -25,7 +43,7 @@ import time
 
 import bpy
 
-from . import core, georef, jobs, operators_import, preferences, preview, region, sources
+from . import core, georef, job_inputs, jobs, operators_import, preferences, preview, region, sources
 
 
 def script_args(argv: list[str]) -> list[str]:
@@ -37,6 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="hgca_blender.batch", description=__doc__.split("\n")[0])
     p.add_argument("scans", nargs="+", help="scan files (any format `hgca read` accepts)")
     p.add_argument("--poses", default=None, help="poses JSON for the scans")
+    p.add_argument("--frames", default="", metavar="START:STOP[:STEP]",
+                   help="frames of a sequence folder given as the one scan (default: the 5 around the middle)")
     p.add_argument("--out", required=True, help="output .blend")
     p.add_argument("--region", default=None, help="cx,cy,cz,sx,sy,sz[,yaw_deg] (default: `hgca region`'s box, "
                                                   "38.4 x 38.4 x 8 m around the sensor, 1 m below the ground)")
@@ -76,7 +96,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         obj, skipped, dropped = operators_import.import_scans(python, [Path(s) for s in args.scans],
                                                               scene.collection,
-                                                              Path(args.poses) if args.poses else None, scene=scene)
+                                                              Path(args.poses) if args.poses else None, scene=scene,
+                                                              frames=args.frames)
     except (core.CoreError, ValueError, OSError) as exc:
         _log(f"error: {exc}")
         return 2
@@ -93,8 +114,10 @@ def run(args: argparse.Namespace) -> int:
         _log(f"error: {exc}")
         return 2
     region.create_region_box(scene.collection, box)
-    params = jobs.CompletionParams(python=python, points=georef.to_world(scene, points),
-                                   region=georef.region_to_world(scene, box), samples=args.samples, seed=args.seed,
+    # a --region goes to the core as typed (world), as `hgca complete --region` takes it
+    world_box = region.parse_region(args.region) if args.region else georef.region_to_world(scene, box)
+    params = jobs.CompletionParams(python=python, **job_inputs.source_inputs(scene, [obj]),
+                                   region=world_box, samples=args.samples, seed=args.seed,
                                    stage=args.stage, device=args.device, t1=args.t1, t2=args.t2,
                                    max_faces=args.max_faces,
                                    scene_name=scene.name,

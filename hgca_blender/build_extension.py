@@ -40,8 +40,29 @@ def package_files(package_dir: Path = PACKAGE_DIR) -> list[Path]:
     return sorted(p for p in package_dir.glob("*.py") if p.name not in EXCLUDED)
 
 
-def stage(dest: Path, manifest: Path = MANIFEST, package_dir: Path = PACKAGE_DIR) -> Path:
-    """Copy the manifest and package files into `dest` (emptied first); returns `dest`.
+def build_wheel(out_dir: Path, source: Path = REPO_ROOT, python: str = sys.executable) -> Path:
+    """hgca's wheel (core, shipped weights) built from `source` into `out_dir`, for *Install Core*."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for old in out_dir.glob("hgca-*.whl"):
+        old.unlink()
+    # the project's setuptools>=77 from this Python when it has it, else in pip's isolated build environment
+    has_setuptools = subprocess.run([python, "-c", "import setuptools, sys; "
+                                     "sys.exit(int(setuptools.__version__.split('.')[0]) < 77)"],
+                                    capture_output=True).returncode == 0
+    isolation = ["--no-build-isolation"] if has_setuptools else []
+    proc = subprocess.run([python, "-m", "pip", "wheel", "--no-deps", *isolation, "-q",
+                           "-w", str(out_dir), str(source)], capture_output=True, text=True)
+    wheels = sorted(out_dir.glob("hgca-*.whl"))
+    if proc.returncode != 0 or not wheels:
+        raise BuildError(f"building hgca's wheel failed (exit {proc.returncode}): {(proc.stdout + proc.stderr)[-2000:]}")
+    return wheels[-1]
+
+
+def stage(dest: Path, manifest: Path = MANIFEST, package_dir: Path = PACKAGE_DIR,
+          core_wheel: Path | None = None) -> Path:
+    """Copy the manifest and package files into `dest` (emptied first), with hgca's wheel in `core/` when
+    given (the extension's *Install Core* installs it); returns `dest`.
 
     Tests also point a local extension repository at a staged folder, so the add-on they load is
     byte-for-byte what the zip contains.
@@ -56,6 +77,9 @@ def stage(dest: Path, manifest: Path = MANIFEST, package_dir: Path = PACKAGE_DIR
         shutil.copy2(src, dest / src.name)
     if not (dest / "__init__.py").is_file():
         raise BuildError(f"{package_dir} has no __init__.py")
+    if core_wheel is not None:
+        (dest / "core").mkdir()
+        shutil.copy2(core_wheel, dest / "core" / Path(core_wheel).name)
     return dest
 
 
@@ -93,7 +117,8 @@ def build(out_dir: Path, blender_ext: Path | None = None, python: str = sys.exec
     if zip_path.exists():
         zip_path.unlink()
     with tempfile.TemporaryDirectory(prefix="hgca_ext_") as tmp:
-        staged = stage(Path(tmp) / manifest["id"])
+        wheel = build_wheel(Path(tmp) / "wheel", python=python)
+        staged = stage(Path(tmp) / manifest["id"], core_wheel=wheel)
         cmd = [python, str(tool), "build", "--source-dir", str(staged), "--output-filepath", str(zip_path)]
         tags = _valid_tags_file(tool)
         if tags is not None:

@@ -135,3 +135,12 @@ def ray_inputs(scene: bpy.types.Scene, objects: list[bpy.types.Object],
         return None, None
     return np.concatenate(all_origins), np.concatenate(all_index)
 
+
+
+def source_inputs(scene: bpy.types.Scene, objects: list[bpy.types.Object]) -> dict:
+    """`CompletionParams` fields for these source objects: world points, their rays, and the files when the
+    objects are one unchanged import (the panel and batch runs alike)."""
+    per_object = [object_world_points(scene, obj) for obj in objects]
+    origins, origin_index = ray_inputs(scene, objects, per_object)
+    return {"points": np.concatenate(per_object), "origins": origins, "origin_index": origin_index,
+            "files": unchanged_files(scene, objects)}

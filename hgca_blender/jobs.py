@@ -184,7 +184,33 @@ def publish_state(job: Job) -> None:
     if props.status != job.status:
         props.status = job.status[:1000]
     props.status_is_error = job.state == "error"
+    window_progress(job)
     _redraw_view3d()
+
+
+_PROGRESS_SHOWN: set[int] = set()  # ids of jobs whose window-manager progress is showing
+
+
+def window_progress(job: Job) -> None:
+    """The job's progress in the window manager's progress indicator (`wm.progress_*`), ended with the job."""
+    wm = getattr(bpy.context, "window_manager", None)
+    if wm is None or bpy.app.background or not wm.windows:
+        return
+    if job.running:
+        if id(job) not in _PROGRESS_SHOWN:
+            wm.progress_begin(0.0, 1.0)
+            _PROGRESS_SHOWN.add(id(job))
+        wm.progress_update(job.progress)
+    elif id(job) in _PROGRESS_SHOWN:
+        _PROGRESS_SHOWN.discard(id(job))
+        wm.progress_end()
+
+
+def status_bar(context: bpy.types.Context, text: str | None) -> None:
+    """Text in the status bar while a job runs (None gives the bar back to Blender)."""
+    workspace = getattr(context, "workspace", None)
+    if workspace is not None and not bpy.app.background:
+        workspace.status_text_set(text)
 
 
 def undo_push(message: str) -> None:
@@ -289,9 +315,24 @@ def _on_load_pre(*_args: Any) -> None:
     cancel_all()
 
 
+@bpy.app.handlers.persistent
+def _on_load_post(*_args: Any) -> None:
+    """A file saved while a job ran keeps its progress and status: nothing runs after loading it, so clear them."""
+    clear_stale_status()
+
+
+def clear_stale_status() -> None:
+    for scene in bpy.data.scenes:
+        props = getattr(scene, "hgca", None)
+        if props is not None and active_job(scene.name) is None and (props.status or props.progress):
+            props.status, props.progress, props.status_is_error = "", 0.0, False
+
+
 def register() -> None:
     if _on_load_pre not in bpy.app.handlers.load_pre:
         bpy.app.handlers.load_pre.append(_on_load_pre)
+    if _on_load_post not in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.append(_on_load_post)
     atexit.register(_kill_all_at_exit)
 
 
@@ -302,3 +343,5 @@ def unregister() -> None:
         bpy.app.timers.unregister(_timer_tick)
     if _on_load_pre in bpy.app.handlers.load_pre:
         bpy.app.handlers.load_pre.remove(_on_load_pre)
+    if _on_load_post in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.remove(_on_load_post)

@@ -13,7 +13,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from . import georef
+from . import colors, georef
 
 ROLE_KEY = "hgca_role"  # custom property marking objects the add-on created: "scan", "region", "result"
 OBSERVED_ATTRIBUTE = "observed_distance"
@@ -21,6 +21,9 @@ OBSERVED_ATTRIBUTE = "observed_distance"
 OBSERVED_NEAR = 0.05
 OBSERVED_FAR = 0.3
 POINT_NODE_GROUP = "hGCA Points"
+POINT_MATERIAL = "hGCA point colours"
+RADIUS_INPUT = "Radius"
+DEFAULT_RADIUS = 0.03
 
 
 class Created:
@@ -106,36 +109,101 @@ def points_mesh(name: str, points: np.ndarray) -> bpy.types.Mesh:
 
 
 def point_display_group(created: Created) -> bpy.types.NodeTree:
-    """Geometry Nodes group "Mesh to Points", so loose vertices show (and render) as small points."""
+    """Geometry Nodes group "Mesh to Points", so loose vertices show (and render) as points; its "Radius" input
+    is set per object on the modifier, so each scan keeps its own point size."""
     existing = bpy.data.node_groups.get(POINT_NODE_GROUP)
-    if existing is not None and existing.get(ROLE_KEY) == "points" and existing.bl_idname == "GeometryNodeTree":
+    if (existing is not None and existing.get(ROLE_KEY) == "points" and existing.bl_idname == "GeometryNodeTree"
+            and RADIUS_INPUT in existing.interface.items_tree):
         return existing
     ng = bpy.data.node_groups.new(POINT_NODE_GROUP, "GeometryNodeTree")
     created.node_groups.append(ng)
     ng[ROLE_KEY] = "points"
     ng.interface.new_socket(name="Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    radius = ng.interface.new_socket(name=RADIUS_INPUT, in_out="INPUT", socket_type="NodeSocketFloat")
+    radius.default_value, radius.min_value = DEFAULT_RADIUS, 0.0
     ng.interface.new_socket(name="Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
     nodes, links = ng.nodes, ng.links
     node_in = nodes.new("NodeGroupInput")
     node_out = nodes.new("NodeGroupOutput")
     to_points = nodes.new("GeometryNodeMeshToPoints")
-    to_points.inputs["Radius"].default_value = 0.03
     node_in.location, to_points.location, node_out.location = (-300, 0), (0, 0), (300, 0)
     links.new(node_in.outputs[0], to_points.inputs["Mesh"])
+    links.new(node_in.outputs[RADIUS_INPUT], to_points.inputs["Radius"])
     links.new(to_points.outputs["Points"], node_out.inputs[0])
     return ng
 
 
+def set_point_radius(obj: bpy.types.Object, radius: float) -> bool:
+    """Set the point size of a scan shown by the "hGCA Points" modifier; False when it has none."""
+    for mod in obj.modifiers:
+        if mod.type == "NODES" and mod.node_group is not None and mod.node_group.get(ROLE_KEY) == "points":
+            item = mod.node_group.interface.items_tree.get(RADIUS_INPUT)
+            if item is not None:
+                mod[item.identifier] = float(radius)
+                obj.update_tag()
+                return True
+    return False
+
+
+def point_radius(obj: bpy.types.Object) -> float | None:
+    for mod in obj.modifiers:
+        if mod.type == "NODES" and mod.node_group is not None and mod.node_group.get(ROLE_KEY) == "points":
+            item = mod.node_group.interface.items_tree.get(RADIUS_INPUT)
+            if item is not None:
+                return float(mod[item.identifier])
+    return None
+
+
+def add_point_colors(mesh: bpy.types.Mesh, rgba: np.ndarray) -> bpy.types.Attribute:
+    """The scan's colours as its active colour attribute (what Solid view draws with colour = Attribute)."""
+    attr = mesh.color_attributes.new(colors.COLOR_ATTRIBUTE, "FLOAT_COLOR", "POINT")
+    attr.data.foreach_set("color", np.ascontiguousarray(rgba, dtype=np.float32).ravel())
+    mesh.color_attributes.active_color = attr
+    if hasattr(mesh.color_attributes, "render_color_index"):
+        mesh.color_attributes.render_color_index = mesh.color_attributes.active_color_index
+    return attr
+
+
+def point_color_material(created: Created) -> bpy.types.Material:
+    """One material drawing the scan colour attribute, for Material Preview and renders."""
+    existing = bpy.data.materials.get(POINT_MATERIAL)
+    if existing is not None and existing.get(ROLE_KEY) == "points":
+        return existing
+    mat = bpy.data.materials.new(POINT_MATERIAL)
+    created.materials.append(mat)
+    mat[ROLE_KEY] = "points"
+    if mat.node_tree is None:
+        mat.use_nodes = True
+    nodes, links = mat.node_tree.nodes, mat.node_tree.links
+    bsdf = next((n for n in nodes if n.bl_idname == "ShaderNodeBsdfPrincipled"), None)
+    if bsdf is None:
+        bsdf = nodes.new("ShaderNodeBsdfPrincipled")
+        output = next((n for n in nodes if n.bl_idname == "ShaderNodeOutputMaterial"), None) \
+            or nodes.new("ShaderNodeOutputMaterial")
+        links.new(bsdf.outputs["BSDF"], output.inputs["Surface"])
+    attr = nodes.new("ShaderNodeAttribute")
+    attr.attribute_type = "GEOMETRY"
+    attr.attribute_name = colors.COLOR_ATTRIBUTE
+    attr.location = (-400, 200)
+    links.new(attr.outputs["Color"], bsdf.inputs["Base Color"])
+    return mat
+
+
 def build_point_object(name: str, points: np.ndarray, attributes: dict[str, np.ndarray],
                        collection: bpy.types.Collection, show_points: bool = True,
-                       location: np.ndarray | None = None) -> tuple[bpy.types.Object, list[str]]:
+                       location: np.ndarray | None = None, radius: float = DEFAULT_RADIUS,
+                       rgba: np.ndarray | None = None) -> tuple[bpy.types.Object, list[str]]:
     """A new point object in `collection` holding `points` at `location` (Blender coordinates, from
-    `georef.place`); returns it and the attribute names that could not be stored."""
+    `georef.place`), drawn as points of `radius` coloured by `rgba` (N, 4) when given; returns it and the
+    attribute names that could not be stored."""
     created = Created()
     try:
         mesh = points_mesh(name, points)
         created.meshes.append(mesh)
         skipped = add_point_attributes(mesh, attributes)
+        if rgba is not None:
+            add_point_colors(mesh, rgba)
+            mesh.materials.append(point_color_material(created))
         obj = bpy.data.objects.new(name, mesh)
         created.objects.append(obj)
         obj.location = (0.0, 0.0, 0.0) if location is None else [float(v) for v in location]
@@ -143,6 +211,7 @@ def build_point_object(name: str, points: np.ndarray, attributes: dict[str, np.n
         if show_points:
             mod = obj.modifiers.new("hGCA Points", "NODES")
             mod.node_group = point_display_group(created)
+            set_point_radius(obj, radius)
         collection.objects.link(obj)
     except Exception:
         created.rollback()

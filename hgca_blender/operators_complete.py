@@ -8,9 +8,8 @@ from __future__ import annotations
 import math
 
 import bpy
-import numpy as np
 
-from . import core, georef, job_inputs, jobs, preferences, region, sources
+from . import core, georef, job_inputs, jobs, preferences, properties, region, sources
 
 
 def _scene_props(context: bpy.types.Context):
@@ -45,14 +44,11 @@ def gather_params(context: bpy.types.Context) -> jobs.CompletionParams:
     scene = context.scene
     objects = source_objects(context)
     sources.world_points(objects)  # refuses an empty selection or objects without points, with the reason
-    per_object = [job_inputs.object_world_points(scene, obj) for obj in objects]
-    origins, origin_index = job_inputs.ray_inputs(scene, objects, per_object)
     return jobs.CompletionParams(
-        python=preferences.core_python(context), points=np.concatenate(per_object),
-        origins=origins, origin_index=origin_index, files=job_inputs.unchanged_files(scene, objects),
+        python=preferences.core_python(context), **job_inputs.source_inputs(scene, objects),
         region=georef.region_to_world(scene, panel_region(context)),
         samples=props.samples, seed=props.seed, stage=props.stage, device=props.device,
-        t1=props.t1, t2=props.t2, max_faces=props.max_faces, scene_name=context.scene.name,
+        t1=props.t1, t2=props.t2, max_faces=properties.face_limit(props), scene_name=context.scene.name,
         extra_args=preferences.core_extra_args(context))
 
 
@@ -82,10 +78,12 @@ class HGCA_OT_add_region_box(bpy.types.Operator):
 
 
 class HGCA_OT_complete(bpy.types.Operator):
-    """Complete the source scans inside the region with hGCA (runs in the background)"""
+    """Complete the source scans inside the region with hGCA (runs in the background; Esc cancels)"""
 
     bl_idname = "hgca.complete"
     bl_label = "Complete"
+
+    _timer = None
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
@@ -103,6 +101,35 @@ class HGCA_OT_complete(bpy.types.Operator):
             return {"CANCELLED"}
         jobs.ensure_timer()
         self.report({"INFO"}, f"hGCA started on {len(params.points):,} points (process {job.pid})")
+        return {"FINISHED"}
+
+    def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
+        """From the panel: start the job, then watch it so Esc cancels it and the status bar shows it."""
+        if self.execute(context) != {"FINISHED"}:
+            return {"CANCELLED"}
+        if context.window is None:
+            return {"FINISHED"}
+        self._timer = context.window_manager.event_timer_add(jobs.POLL_INTERVAL_S, window=context.window)
+        context.window_manager.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
+        job = jobs.ACTIVE.get(context.scene.name)
+        if job is not None and job.running and event.type == "ESC" and event.value == "PRESS":
+            job.cancel()
+            jobs.poll_all()
+            self.report({"INFO"}, "hGCA completion cancelled (Esc)")
+            return self._finish(context)
+        if job is None or not job.running:
+            return self._finish(context)
+        jobs.status_bar(context, f"hGCA: {job.status} ({job.progress * 100:.0f}%)  Esc: cancel")
+        return {"PASS_THROUGH"}
+
+    def _finish(self, context: bpy.types.Context) -> set[str]:
+        if self._timer is not None:
+            context.window_manager.event_timer_remove(self._timer)
+            self._timer = None
+        jobs.status_bar(context, None)
         return {"FINISHED"}
 
 

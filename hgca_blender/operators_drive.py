@@ -11,7 +11,7 @@ from pathlib import Path
 
 import bpy
 
-from . import core, drive_job, jobs, operators_complete, preferences, sources
+from . import core, drive_job, jobs, operators_complete, preferences, properties, sources
 
 
 def drive_folder(context: bpy.types.Context) -> str:
@@ -29,7 +29,7 @@ def drive_params(context: bpy.types.Context) -> drive_job.DriveParams:
     props = context.scene.hgca
     return drive_job.DriveParams(
         python=preferences.core_python(context), scans=[], out_dir=drive_folder(context), samples=props.samples,
-        seed=props.seed, stage=props.stage, device=props.device, t1=props.t1, max_faces=props.max_faces,
+        seed=props.seed, stage=props.stage, device=props.device, t1=props.t1, max_faces=properties.face_limit(props),
         workers=props.drive_workers, tile_size=props.drive_tile_size, overlap=props.drive_overlap,
         scene_name=context.scene.name, extra_args=preferences.core_extra_args(context))
 

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import bpy
 import numpy as np
-from bpy.props import BoolProperty, CollectionProperty, StringProperty
+from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from . import core, georef, job_inputs, mesh_build, preferences, sources
+from . import colors, core, georef, job_inputs, mesh_build, preferences, sources
 
 EXTENSIONS = (".ply", ".las", ".laz", ".pcd", ".xyz", ".csv", ".txt", ".npy", ".npz", ".bin", ".feather")
 READ_TIMEOUT_S = 3600
@@ -76,11 +76,13 @@ def dropped_text(dropped: dict[str, int]) -> str:
 
 def import_scans(python: str, paths: list[Path], collection: bpy.types.Collection, poses: Path | None = None,
                  name: str = "", show_points: bool = True, scene: bpy.types.Scene | None = None,
-                 frames: str = "") -> tuple[bpy.types.Object, list[str], dict[str, int]]:
+                 frames: str = "", color_by: str = "AUTO", point_size: float = 0.0
+                 ) -> tuple[bpy.types.Object, list[str], dict[str, int]]:
     """Read and add one point object to `collection`, placed relative to `scene`'s georeference origin (set
     here when the scene has none and the scans lie far from zero); returns it, the attributes not stored and the
     returns the reader left out by reason (`read_scans`).
-    `paths` is scan files or one sequence folder (`frames` picks its frames)."""
+    `paths` is scan files or one sequence folder (`frames` picks its frames). Points are coloured by `color_by`
+    (`colors.MODES`) and drawn `point_size` metres wide (0: `colors.default_point_radius` for the data)."""
     # absolute: the core runs in a temporary folder (poses then match scans by their resolved paths)
     paths = [Path(p).absolute() for p in paths]
     poses = Path(poses).absolute() if poses is not None else None
@@ -92,6 +94,8 @@ def import_scans(python: str, paths: list[Path], collection: bpy.types.Collectio
         raise core.CoreError("frames apply to a sequence folder, not to scan files")
     # a poses path that is no file (missing, a folder, a link loop) is described by `hgca read` itself
     points, attributes, origins, offset, dropped = read_scans(python, paths, poses, frames)
+    rgba, _mode = colors.point_colors(color_by, points, attributes)  # before anything is added: may refuse
+    radius = point_size / 2 if point_size > 0 else colors.default_point_radius(points, origins is not None)
     scene = scene or bpy.context.scene
     centre = offset + (points.min(axis=0).astype(np.float64) + points.max(axis=0)) / 2
     previous = scene.get(georef.ORIGIN_KEY)
@@ -99,7 +103,7 @@ def import_scans(python: str, paths: list[Path], collection: bpy.types.Collectio
     vertices, location = georef.place(points, offset, origin)
     try:
         obj, skipped = mesh_build.build_point_object(name or object_name(paths, frames), vertices, attributes,
-                                                     collection, show_points, location)
+                                                     collection, show_points, location, radius, rgba)
     except Exception:
         if previous is None and georef.ORIGIN_KEY in scene:  # leave the scene as it was
             del scene[georef.ORIGIN_KEY]
@@ -129,6 +133,16 @@ class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
     frames: StringProperty(name="Frames", default="",
                            description="Frames of a sequence folder as START:STOP[:STEP] "
                                        "(empty: the 5 around the middle)")
+    color_by: EnumProperty(
+        name="Colour", default="AUTO",
+        items=[("AUTO", "Automatic", "RGB when the file has it, else intensity, else height"),
+               ("RGB", "RGB", "The file's own colours (LAS/PLY red, green, blue)"),
+               ("INTENSITY", "Intensity", "Return strength, grey"),
+               ("HEIGHT", "Height", "Height above the lowest points, as a colour ramp"),
+               ("NONE", "None", "No colour attribute")])
+    point_size: FloatProperty(name="Point Size", default=0.0, min=0.0, soft_max=5.0, unit="LENGTH",
+                              description="Diameter of the drawn points (0: 6 cm for scans from a vehicle, about "
+                                          "the point spacing for aerial scans)")
 
     def _paths(self) -> list[Path]:
         names = [f.name for f in self.files if f.name]
@@ -155,7 +169,8 @@ class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
         collection = context.collection or context.scene.collection
         try:
             obj, skipped, dropped = import_scans(python, paths, collection, poses, show_points=self.show_points,
-                                                 scene=context.scene, frames=self.frames.strip())
+                                                 scene=context.scene, frames=self.frames.strip(),
+                                                 color_by=self.color_by, point_size=self.point_size)
         except (core.CoreError, ValueError, OSError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -172,6 +187,8 @@ class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
         layout.prop(self, "poses_path")
         layout.prop(self, "frames")
         layout.prop(self, "show_points")
+        layout.prop(self, "color_by")
+        layout.prop(self, "point_size")
 
 
 class HGCA_FH_lidar(bpy.types.FileHandler):

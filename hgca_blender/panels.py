@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import georef, jobs
+from . import georef, jobs, mesh_build
 
 
 class _SidebarTab:
@@ -12,6 +12,18 @@ class _SidebarTab:
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "hGCA"
+
+
+def draw_point_size(layout: bpy.types.UILayout, obj: bpy.types.Object | None) -> None:
+    """The active scan's point radius: the input of its "hGCA Points" modifier (a display setting only)."""
+    if obj is None or obj.get(mesh_build.ROLE_KEY) != "scan":
+        return
+    for mod in obj.modifiers:
+        group = mod.node_group if mod.type == "NODES" else None
+        item = group.interface.items_tree.get(mesh_build.RADIUS_INPUT) if group is not None else None
+        if item is not None and group.get(mesh_build.ROLE_KEY) == "points":
+            layout.prop(mod, f'["{item.identifier}"]', text="Point Radius")
+            return
 
 
 class HGCA_PT_main(_SidebarTab, bpy.types.Panel):
@@ -31,6 +43,8 @@ class HGCA_PT_main(_SidebarTab, bpy.types.Panel):
         else:
             n = sum(1 for o in context.selected_objects if o.type in {"MESH", "POINTCLOUD"})
             col.label(text=f"{n} selected object(s)")
+
+        draw_point_size(layout, context.active_object)
 
         col = layout.column(heading="Region")
         col.prop(props, "region_mode", expand=True)
@@ -52,7 +66,11 @@ class HGCA_PT_main(_SidebarTab, bpy.types.Panel):
         col.prop(props, "samples")
         col.prop(props, "seed")
         col.prop(props, "stage")
-        col.prop(props, "max_faces")
+        row = col.row(heading="Max Faces", align=True)
+        row.prop(props, "keep_all_faces", text="All")
+        sub = row.row(align=True)
+        sub.active = not props.keep_all_faces
+        sub.prop(props, "max_faces", text="")
         col.prop(props, "device")
 
 

@@ -14,9 +14,9 @@ import sys
 from pathlib import Path
 
 import bpy
-from bpy.props import StringProperty
+from bpy.props import EnumProperty, FloatProperty, StringProperty
 
-from . import core
+from . import core, installer
 
 ENV_VAR = "HGCA_PYTHON"
 
@@ -91,7 +91,8 @@ def core_extra_args(context: bpy.types.Context | None = None) -> list[str]:
 
 
 class HGCA_OT_check_python(bpy.types.Operator):
-    """Run `<python> -m hgca_core.cli --version` to see whether the core can be used"""
+    """Check that the core's Python runs a completion's first steps: torch and hgca_core import, the shipped
+    weights load"""
 
     bl_idname = "hgca.check_python"
     bl_label = "Check"
@@ -101,16 +102,61 @@ class HGCA_OT_check_python(bpy.types.Operator):
         python = core_python(context)
         prefs = addon_preferences(context)
         try:
-            proc = core.run_core(python, ["--version"], timeout=120)
+            found = installer.check_core(python)
         except core.CoreError as exc:
             if prefs is not None:
                 prefs.check_result = f"Error: {exc}"
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        version = (proc.stdout.strip() or proc.stderr.strip()).splitlines()[-1]
+        text = (f"hgca {found.get('hgca', '?')}, torch {found.get('torch', '?')}"
+                f"{', CUDA' if found.get('cuda') else ''}: the shipped weights load ({python})")
         if prefs is not None:
-            prefs.check_result = f"{version} ({python})"
-        self.report({"INFO"}, f"{version} ({python})")
+            prefs.check_result = text
+        self.report({"INFO"}, text)
+        return {"FINISHED"}
+
+
+class HGCA_OT_install_core(bpy.types.Operator):
+    """Create a Python environment in the extension's user folder with hgca (from this extension) and torch
+    (from the package index, or from a folder of wheels), in the background"""
+
+    bl_idname = "hgca.install_core"
+    bl_label = "Install Core"
+    bl_options = {"INTERNAL"}
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        prefs = addon_preferences(context)
+        base = bpy.path.abspath(prefs.base_python.strip()) if prefs is not None and prefs.base_python.strip() \
+            else sys.executable
+        wheels = bpy.path.abspath(prefs.wheels_dir.strip()) if prefs is not None and prefs.wheels_dir.strip() else ""
+        kind = prefs.torch_kind if prefs is not None else "cpu"
+        index = (prefs.torch_index.strip() if kind == "cpu" else "") if prefs is not None else \
+            installer.TORCH_CPU_INDEX
+        try:
+            job = installer.start_install(base, wheels, kind, index)
+        except core.CoreError as exc:
+            if prefs is not None:
+                prefs.install_status = f"Error: {exc}"
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"Installing the hGCA core into {job.env} (log: {job.log})")
+        return {"FINISHED"}
+
+
+class HGCA_OT_cancel_install(bpy.types.Operator):
+    """Stop installing the core; the environment installed before (if any) stays as it was"""
+
+    bl_idname = "hgca.cancel_install"
+    bl_label = "Cancel"
+    bl_options = {"INTERNAL"}
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        return installer.running_install() is not None
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        installer.cancel_install()
+        self.report({"INFO"}, "hGCA core install cancelled")
         return {"FINISHED"}
 
 
@@ -120,6 +166,7 @@ class HGCA_AddonPreferences(bpy.types.AddonPreferences):
     python_path: StringProperty(
         name="Core Python",
         subtype="FILE_PATH",
+        update=lambda self, _context: setattr(self, "check_result", "") if self.check_result else None,
         description="Python interpreter that has hgca_core installed; empty = detect automatically",
     )
     weights_path: StringProperty(
@@ -128,6 +175,23 @@ class HGCA_AddonPreferences(bpy.types.AddonPreferences):
         description="Weights file from `hgca train` (passed as --weights); empty = the shipped weights",
     )
     check_result: StringProperty(name="Check result", options={"SKIP_SAVE"})
+    base_python: StringProperty(
+        name="Base Python", subtype="FILE_PATH",
+        description="Python 3.11+ that makes the core's environment; empty = the Python running Blender")
+    wheels_dir: StringProperty(
+        name="Wheels Folder", subtype="DIR_PATH",
+        description="Offline install: a folder holding torch's and the other dependencies' wheels; empty = the "
+                    "package index (needs online access)")
+    torch_kind: EnumProperty(
+        name="Torch", items=[("cpu", "CPU", "torch without CUDA (smaller download)"),
+                             ("cuda", "CUDA", "torch with CUDA for NVIDIA GPUs (PyPI's Linux build, ~3 GB)")],
+        default="cpu")
+    torch_index: StringProperty(
+        name="Torch Index", default=installer.TORCH_CPU_INDEX,
+        description="Extra package index for the CPU torch; empty = only pip's own index")
+    install_status: StringProperty(name="Install status", options={"SKIP_SAVE"})
+    install_progress: FloatProperty(name="Install progress", min=0.0, max=1.0, subtype="FACTOR",
+                                    options={"SKIP_SAVE"})
 
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.layout
@@ -142,9 +206,39 @@ class HGCA_AddonPreferences(bpy.types.AddonPreferences):
         if self.check_result:
             icon = "ERROR" if self.check_result.startswith("Error") else "CHECKMARK"
             layout.label(text=self.check_result, icon=icon)
+        box = layout.box()
+        box.label(text=f"Core environment: {installer.env_dir()}", icon="PACKAGE")
+        box.prop(self, "base_python")
+        box.prop(self, "wheels_dir")
+        row = box.row()
+        row.prop(self, "torch_kind", expand=True)
+        if self.torch_kind == "cpu":
+            box.prop(self, "torch_index")
+        if not bpy.app.online_access and not self.wheels_dir.strip():
+            box.label(text="Online access is off: allow it (System > Network) or choose a wheels folder",
+                      icon="INTERNET_OFFLINE")
+        row = box.row(align=True)
+        job = installer.running_install()
+        if job is None:
+            row.operator(HGCA_OT_install_core.bl_idname, icon="IMPORT")
+        else:
+            row.progress(factor=self.install_progress, text=f"{self.install_progress * 100:.0f}%")
+            row.operator(HGCA_OT_cancel_install.bl_idname, icon="CANCEL")
+        if self.install_status:
+            icon = "ERROR" if self.install_status.startswith("Error") else "INFO"
+            box.label(text=self.install_status[:160], icon=icon)
 
 
-CLASSES = (HGCA_OT_check_python, HGCA_AddonPreferences)
+CLASSES = (HGCA_OT_check_python, HGCA_OT_install_core, HGCA_OT_cancel_install, HGCA_AddonPreferences)
 
 
-register, unregister = bpy.utils.register_classes_factory(CLASSES)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(CLASSES)
+
+
+def register() -> None:
+    _register_classes()
+
+
+def unregister() -> None:
+    installer.unregister()  # a running install is stopped; its half-made environment is removed
+    _unregister_classes()

@@ -7,6 +7,16 @@ from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorPro
 from .region import DEFAULT_SIZE
 
 
+MIN_FACES = 1000  # the core's smallest face limit (hgca complete --max-faces: 0 or at least this)
+
+
+
+
+def face_limit(props: "HGCA_PG_scene") -> int:
+    """The `--max-faces` the settings ask for: 0 keeps every triangle."""
+    return 0 if props.keep_all_faces else int(props.max_faces)
+
+
 class HGCA_PG_scene(bpy.types.PropertyGroup):
     """Settings of one completion; stored with the scene so they survive saving the file."""
 
@@ -54,9 +64,13 @@ class HGCA_PG_scene(bpy.types.PropertyGroup):
                     description="Coarse GCA steps (0: the weights' own count, 30 for the shipped ones)")
     t2: IntProperty(name="T2", default=0, min=0, max=200,
                     description="Fine cGCA steps (0: the weights' own count, 15 for the shipped ones)")
-    max_faces: IntProperty(name="Max Faces", default=1_000_000, min=0, soft_max=10_000_000,
-                           description="Simplify each completed mesh to at most this many triangles "
-                                       "(0: keep all; a full-stage region gives 5-7 million)")
+    # No `update` callback: on Blender 4.2 a scene property's callback crashes Blender on quit once the
+    # extension was uninstalled. The core takes 0 (keep all) or >= MIN_FACES: a toggle and a hard minimum.
+    keep_all_faces: BoolProperty(name="Keep All Faces", default=False,
+                                 description="Keep every triangle (a default region's full-stage mesh has 2-3 "
+                                             "million) instead of simplifying to Max Faces")
+    max_faces: IntProperty(name="Max Faces", default=1_000_000, min=MIN_FACES, soft_max=10_000_000,
+                           description="Simplify each completed mesh to at most this many triangles")
 
     drive_dir: StringProperty(name="Drive Folder", subtype="DIR_PATH", default="",
                               description="Folder the drive's tiles are kept in (running again resumes; empty: "

@@ -98,3 +98,20 @@ def test_batch_drive_makes_one_object_per_tile_per_sample(tmp_path: Path) -> Non
     xs = [(min(v.co.x for v in o.data.vertices) + o.location.x, max(v.co.x for v in o.data.vertices) + o.location.x)
           for o in objs[::2]]
     assert all(a[1] < b[0] + 0.5 for a, b in zip(xs, xs[1:]))
+
+
+def test_batch_script_runs_from_the_installed_extensions_folder(tmp_path: Path) -> None:
+    """`blender -b --python <extensions>/hgca/batch.py -- ...`: the folder is `hgca`, there is no `hgca_blender`
+    to import, and the working directory is not a checkout."""
+    from hgca_blender import build_extension
+
+    scan = require_fixture(NUSCENES)
+    folder = build_extension.stage(tmp_path / "extensions" / "user_default" / "hgca")
+    blend = tmp_path / "scene.blend"
+    env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path), "BLENDER_USER_RESOURCES": str(tmp_path / "bl_user")}
+    args = [str(scan), "--stage", "coarse", "--t1", "2", "--python", CORE_PYTHON,
+            "--region", ",".join(map(str, SMALL_REGION)), "--out", str(blend)]
+    proc = subprocess.run([sys.executable, str(folder / "batch.py"), "--", *args], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=400)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "Done: 1 sample" in proc.stdout and blend.is_file()

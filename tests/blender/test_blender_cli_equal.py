@@ -45,7 +45,7 @@ def panel_complete(obj: bpy.types.Object, scene_region: tuple[float, ...]):
     props.region_size = scene_region[3:6]
     props.region_yaw = np.radians(scene_region[6])
     props.samples, props.seed, props.stage, props.device, props.t1 = 1, SEED, "coarse", "cpu", T1
-    props.max_faces = 0
+    props.keep_all_faces = True
     assert bpy.ops.hgca.complete() == {"FINISHED"}
     job = jobs.active_job(bpy.context.scene.name)
     deadline = time.monotonic() + JOB_TIMEOUT_S

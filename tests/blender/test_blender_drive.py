@@ -49,7 +49,7 @@ def import_drive(folder: Path, length: float) -> tuple[bpy.types.Object, list[Pa
 def use_drive_settings(weights: Path, folder: Path, samples: int = 1, t1: int = 2) -> None:
     prefs().weights_path = str(weights)
     props = bpy.context.scene.hgca
-    props.samples, props.seed, props.stage, props.t1, props.max_faces = samples, 3, "coarse", t1, 0
+    props.samples, props.seed, props.stage, props.t1, props.keep_all_faces = samples, 3, "coarse", t1, True
     props.drive_tile_size, props.drive_overlap, props.drive_dir = 12.8, 3.2, str(folder)
 
 

@@ -23,7 +23,7 @@ def test_manifest_matches_the_package() -> None:
     assert manifest["id"] == "hgca" and manifest["type"] == "add-on"
     assert manifest["version"] == project["version"]
     assert manifest["blender_version_min"] == "4.2.0" and manifest["schema_version"] == "1.0.0"
-    assert set(manifest["permissions"]) == {"files"}
+    assert set(manifest["permissions"]) == {"files", "network"}  # network: Install Core's package index
 
 
 def test_zip_builds_installs_and_enables(addon, tmp_path: Path) -> None:
@@ -32,6 +32,7 @@ def test_zip_builds_installs_and_enables(addon, tmp_path: Path) -> None:
     names = set(zipfile.ZipFile(zip_path).namelist())
     assert {"blender_manifest.toml", "__init__.py", "core.py", "jobs.py", "batch.py", "panels.py"} <= names
     assert "build_extension.py" not in names and not any("__pycache__" in n for n in names)
+    assert {"install_core.py", "installer.py", "core/hgca-0.1.0-py3-none-any.whl"} <= names
 
     # The session's copy registers the same classes: step it aside while the installed one is tested.
     addon_utils.disable(ADDON, default_set=True)

@@ -319,7 +319,8 @@ def test_full_stage_with_shipped_weights_inserts_the_implicit_mesh(addon) -> Non
     for stage in ("coarse", "full"):
         use_numbers(SMALL_REGION, samples=1, t1=4)
         props = bpy.context.scene.hgca
-        props.stage, props.t2, props.max_faces = stage, 2, (5000 if stage == "full" else 0)
+        props.stage, props.t2, props.max_faces = stage, 2, 5000
+        props.keep_all_faces = stage != "full"
         before = snapshot()
         assert bpy.ops.hgca.complete() == {"FINISHED"}
         job = jobs.active_job(bpy.context.scene.name)

@@ -86,9 +86,11 @@ def test_preferences_draw(addon) -> None:
     prefs = bpy.context.preferences.addons[ADDON].preferences
     log: list[tuple[str, str]] = []
     fake = type("P", (), {"layout": Recorder(log), "python_path": "", "weights_path": "", "check_result": "",
-                          "bl_rna": prefs.bl_rna})()
+                          "base_python": "", "wheels_dir": "", "torch_kind": "cpu", "torch_index": "",
+                          "install_status": "", "install_progress": 0.0, "bl_rna": prefs.bl_rna})()
     preferences.HGCA_AddonPreferences.draw(fake, bpy.context)
     assert ("prop", "python_path") in log and ("operator", "hgca.check_python") in log
+    assert ("operator", "hgca.install_core") in log and ("prop", "wheels_dir") in log
 
 
 def test_disable_unregisters_everything_and_enable_restores(addon) -> None:
