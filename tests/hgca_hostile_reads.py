@@ -464,3 +464,11 @@ def _(d):
     moved = json.dumps([{"file": "scan.npz", "pose": _moved((4.0, 0.0, 0.0)).tolist()}])
     (d / "poses.json").write_text('{"scans": %s, "scans": %s}' % (entry, moved))
     return read_cmd(scan, d, "--poses", d / "poses.json")
+
+
+@case("read: av2 calibration with a lidar 1e30 m out", "lidar position(s) have coordinates beyond",
+      "georeferenced precision")
+def _(d):
+    calib = {"sensor_name": ["up_lidar", "down_lidar"], "qw": [1.0] * 2, "qx": [0.0] * 2, "qy": [0.0] * 2,
+             "qz": [0.0] * 2, "tx_m": [1.0, 1e30], "ty_m": [0.0] * 2, "tz_m": [1.9, 1.7]}
+    return ["read", str(_av2_log(d, calibration=calib)), "--frames", "0:1", "-o", str(d / "out.npz")]

@@ -14,6 +14,7 @@ import os
 import numpy as np
 
 from hgca_core.errors import InputError
+from hgca_core.io.georef import check_bound
 from hgca_core.io.poses import validate_pose
 from hgca_core.io.scan import Scan
 
@@ -96,6 +97,7 @@ def lidar_origins(calibration_path: str) -> np.ndarray:
     origins = np.asarray(rows, dtype=np.float64)
     if not np.isfinite(origins).all():
         raise InputError("AV2 calibration has non-finite lidar positions", calibration_path)
+    check_bound(origins, calibration_path, "lidar position")
     return origins
 
 
