@@ -436,3 +436,8 @@ degenerate("a vertical line of 3 cells", np.c_[np.zeros(300), np.zeros(300), np.
            "too few input points")
 degenerate("UTM point pair", np.array([[500_000.0, 5_000_000.0, 10.0], [500_000.0, 5_000_000.0, 10.1]]),
            "too few input points")
+
+
+# --- further classes, each in a module of its own that appends to CASES ---------------------------------------
+import hgca_hostile_reads  # noqa: E402,F401  (silently wrong reads, georeferenced precision)
+import hgca_hostile_cli  # noqa: E402,F401  (flags, outputs, hangs, late checks, disk full, signals)
