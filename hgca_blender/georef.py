@@ -20,6 +20,10 @@ import bpy
 import numpy as np
 
 ORIGIN_KEY = "hgca_origin"
+# BlenderGIS keeps a scene's georeferencing in these keys (x/y offset of Blender's 0 in the CRS, and the CRS
+# itself): the add-on writes the x/y of its origin there too, and takes them as the origin of a scene that
+# BlenderGIS georeferenced first (z 0: BlenderGIS has no vertical offset).
+GIS_X, GIS_Y, GIS_CRS = "crs x", "crs y", "crs"
 # Objects whose data centre lies farther than this from the scene origin get a whole-metre location (the data
 # then stays near zero); nearer ones keep location 0, as an import of local scans always did.
 RECENTER_ABOVE = 1000.0
@@ -28,9 +32,14 @@ RECENTER_ABOVE = 1000.0
 def scene_origin(scene: bpy.types.Scene) -> np.ndarray:
     """(3,) float64 world position of Blender's (0, 0, 0) in `scene`; zeros when the scene has no origin."""
     value = scene.get(ORIGIN_KEY)
+    if value is None and scene.get(GIS_X) is not None and scene.get(GIS_Y) is not None:
+        value = (scene[GIS_X], scene[GIS_Y], 0.0)
     if value is None:
         return np.zeros(3)
-    origin = np.array([float(v) for v in value], dtype=np.float64)
+    try:
+        origin = np.array([float(v) for v in value], dtype=np.float64)
+    except (TypeError, ValueError):
+        origin = np.full(1, np.nan)
     if origin.shape != (3,) or not np.all(np.isfinite(origin)):
         raise ValueError(f"scene {scene.name!r} has a broken {ORIGIN_KEY!r} property: {list(value)}")
     return origin
@@ -39,9 +48,29 @@ def scene_origin(scene: bpy.types.Scene) -> np.ndarray:
 def ensure_origin(scene: bpy.types.Scene, centre_world: np.ndarray) -> np.ndarray:
     """The scene's origin, first set to `centre_world` rounded to whole metres when the scene has none and
     the data is far from zero (a georeferenced scan); local data leaves the scene without one."""
-    if scene.get(ORIGIN_KEY) is None and float(np.abs(centre_world).max()) > RECENTER_ABOVE:
-        scene[ORIGIN_KEY] = [float(v) for v in np.round(centre_world)]
+    if (not has_origin(scene)) and float(np.abs(centre_world).max()) > RECENTER_ABOVE:
+        origin = [float(v) for v in np.round(centre_world)]
+        scene[ORIGIN_KEY] = origin
+        scene[GIS_X], scene[GIS_Y] = origin[0], origin[1]
     return scene_origin(scene)
+
+
+def has_origin(scene: bpy.types.Scene) -> bool:
+    """Whether the scene is georeferenced (by the add-on or by BlenderGIS)."""
+    return scene.get(ORIGIN_KEY) is not None or (scene.get(GIS_X) is not None and scene.get(GIS_Y) is not None)
+
+
+def origin_keys(scene: bpy.types.Scene) -> dict:
+    """The georeferencing keys the scene holds now (to put back if an import fails)."""
+    return {k: scene[k] for k in (ORIGIN_KEY, GIS_X, GIS_Y) if k in scene}
+
+
+def restore_keys(scene: bpy.types.Scene, keys: dict) -> None:
+    for k in (ORIGIN_KEY, GIS_X, GIS_Y):
+        if k in keys:
+            scene[k] = keys[k]
+        elif k in scene:
+            del scene[k]
 
 
 def place(local: np.ndarray, offset: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -98,15 +98,14 @@ def import_scans(python: str, paths: list[Path], collection: bpy.types.Collectio
     radius = point_size / 2 if point_size > 0 else colors.default_point_radius(points, origins is not None)
     scene = scene or bpy.context.scene
     centre = offset + (points.min(axis=0).astype(np.float64) + points.max(axis=0)) / 2
-    previous = scene.get(georef.ORIGIN_KEY)
+    previous = georef.origin_keys(scene)
     origin = georef.ensure_origin(scene, centre)
     vertices, location = georef.place(points, offset, origin)
     try:
         obj, skipped = mesh_build.build_point_object(name or object_name(paths, frames), vertices, attributes,
                                                      collection, show_points, location, radius, rgba)
     except Exception:
-        if previous is None and georef.ORIGIN_KEY in scene:  # leave the scene as it was
-            del scene[georef.ORIGIN_KEY]
+        georef.restore_keys(scene, previous)  # leave the scene as it was
         raise
     if origins is not None:  # the default region is centred on the first one (Blender coordinates)
         sources.set_sensor_origins(obj, origins - origin)

@@ -55,10 +55,12 @@ class HGCA_PT_main(_SidebarTab, bpy.types.Panel):
             col.prop(props, "region_size")
             col.prop(props, "region_yaw")
         col.operator("hgca.add_region_box", icon="CUBE")
-        if context.scene.get(georef.ORIGIN_KEY) is not None:
+        if georef.has_origin(context.scene):
             try:
                 x, y, z = georef.scene_origin(context.scene)
-                col.label(text=f"Georeference origin: {x:.3f}, {y:.3f}, {z:.3f}", icon="WORLD")
+                crs = context.scene.get(georef.GIS_CRS)
+                col.label(text=f"Georeference origin: {x:.3f}, {y:.3f}, {z:.3f}" + (f" ({crs})" if crs else ""),
+                          icon="WORLD")
             except ValueError as exc:
                 col.label(text=str(exc), icon="ERROR")
 

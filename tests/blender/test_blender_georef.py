@@ -98,3 +98,31 @@ def test_completion_of_a_utm_scan_round_trips_to_the_mm(addon, tmp_path: Path) -
     co = np.empty(len(result.data.vertices) * 3, dtype=np.float32)
     result.data.vertices.foreach_get("co", co)
     assert np.abs(co).max() < 100  # float32 data near zero, the offset is in the location and the origin
+
+
+def test_origin_is_kept_where_blendergis_reads_it(addon, tmp_path: Path) -> None:
+    """The first far import writes its origin's x/y also as BlenderGIS's `crs x` / `crs y`."""
+    base = np.array(UTM_OFFSETS["utm"])
+    rng = np.random.default_rng(1)
+    write_las(tmp_path / "a.las", rng.uniform([-30, -30, 0], [30, 30, 10], (2000, 3)) + base)
+    import_las(tmp_path / "a.las")
+    scene = bpy.context.scene
+    assert (scene["crs x"], scene["crs y"]) == tuple(origin()[:2])
+
+
+def test_scene_georeferenced_by_blendergis_places_the_scan_under_its_origin(addon, tmp_path: Path) -> None:
+    """A scene BlenderGIS set up (`crs`, `crs x`, `crs y`, no hgca origin) keeps its origin: the scan lies
+    relative to it, to the mm, and the add-on adds no origin of its own."""
+    base = np.array(UTM_OFFSETS["utm"])
+    scene = bpy.context.scene
+    scene["crs"], scene["crs x"], scene["crs y"] = "EPSG:32632", base[0] + 100.0, base[1] - 50.0
+    rng = np.random.default_rng(2)
+    held = write_las(tmp_path / "a.las", rng.uniform([-30, -30, 0], [30, 30, 10], (2000, 3)) + base)
+    obj = import_las(tmp_path / "a.las")
+    assert "hgca_origin" not in scene
+    gis = np.array([scene["crs x"], scene["crs y"], 0.0])
+    co = np.empty(len(obj.data.vertices) * 3, dtype=np.float32)
+    obj.data.vertices.foreach_get("co", co)
+    world = co.reshape(-1, 3).astype(np.float64) + np.array(obj.location) + gis
+    assert np.abs(world - held).max() < MM
+    assert np.abs(np.array(obj.location)).max() < 1000  # near Blender's 0, not 5,000 km away
