@@ -57,11 +57,11 @@ def tune_allocator() -> bool:
     Why: glibc gives each new thread an arena of its own (up to 8 per core), and torch's OpenMP threads free
     blocks there that the other threads never reuse, so they pile up. One arena took the median peak RSS of a
     default-region full completion from 2.50 to 2.29 GiB (40 x 120 m: 4.38 to 4.04 GiB) at the same time, measured
-    in fresh processes, interleaved (`benchmarks/completion_ab.py allocator`, `benchmarks/results/allocator_*.md`).
+    in fresh processes, interleaved (`benchmarks/completion_ab.py allocator`; its pages are in git at 7f06b18).
     Keeping freed blocks (a 64 MiB mmap threshold) also cut the full stage's ~4.5 million page faults to ~1 million
     and its time by a sixth, but took the peak past the 2.7 GiB budget in some runs
-    (`benchmarks/results/allocator_grid_s42.md`), so it is not set; nor are torch's 2 MiB pages
-    (`THP_MEM_ALLOC_ENABLE`: 0.55 M faults, the time within the spread, +0.18 GiB, `huge_pages_full.md`). Results do
+    (the allocator grid in git at 7f06b18), so it is not set; nor are torch's 2 MiB pages
+    (`THP_MEM_ALLOC_ENABLE`: 0.55 M faults, the time within the spread, +0.18 GiB). Results do
     not change, only where memory comes from. Only one-shot processes call this: the CLI (and with it the Blender
     add-on's jobs) and the bench worker; Ray's workers keep glibc's defaults."""
     if not allocator_tunable():
@@ -78,7 +78,7 @@ def release_free_memory() -> bool:
     the heap; the holes a stage's many mid-sized tensors leave stay resident. `pipeline.complete_local` calls this
     where a stage's working set has just died (before the fine stage and before meshing): the full stage's median
     peak RSS fell from 2.26 to 2.03 GiB on the default region and from 3.96 to 3.62 GiB on 40 x 120 m, at a few
-    seconds of re-faulted pages (`benchmarks/results/trim_full*.md`). It changes no setting, so a host process
+    seconds of re-faulted pages (`benchmarks/results/trim_full*.md`, in git at 7f06b18). It changes no setting, so a host process
     (Blender, a notebook) loses nothing but pages it had freed."""
     libc = glibc()
     if libc is None:

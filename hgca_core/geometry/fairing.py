@@ -18,7 +18,7 @@ local bias of the decoded ground, the anchor-weighted mean of (nearest point's h
 surface at the rings is off by a few millimetres (on the AV2 log 7fab 1-6 mm below the points' plane), and holding
 it there carried that error between the rings; pulling each vertex to its own nearest point instead fixes the bias
 but draws every ring as a stripe (its one noisy point per vertex), so the pull is the local mean. On 10 val scenes
-the road then lies closer to the true plane (benchmarks/results/fairing_sweep.md). Far from every point a vertex
+the road then lies closer to the true plane (benchmarks/results/fairing_sweep.md, in git at 7f06b18). Far from every point a vertex
 follows the evidence around it. Without input (`distances` None) it is a plain low-pass.
 
 s is the local slope (`slopes`: planes per region and 8 m square, fitted mostly to the vertices at input points).
@@ -32,9 +32,9 @@ Only heights move (the surfaces concerned are within `tilt` of horizontal), so n
 the graph Laplacian plus a positive diagonal: symmetric positive definite, solved by Jacobi-preconditioned CG for
 the height change (relative tolerance 1e-3: 0.4 mm RMS from the converged solution on a default region).
 
-Defaults selected in session 8 on three synth2 val scenes by the height error against the ground-truth road plane,
-with the AV2 log 7fab's flatness as a check (the mesh_quality.md of commit 01d23f9); the anchor weight with both
-kinds of targets re-measured on 10 generator-7 val scenes in benchmarks/results/fairing_sweep.md.
+Defaults selected on three synth2 val scenes by the height error against the ground-truth road plane, with the
+AV2 log 7fab's flatness as a check (the mesh_quality.md of commit 01d23f9); the anchor weight with both kinds of
+targets re-measured on 10 generator-7 val scenes (benchmarks/results/fairing_sweep.md, in git at 7f06b18).
 """
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ cell the segment enters, Amanatides-Woo style), and drop cells next to any hit (
 grazing ray near a surface says little about the surface's own cell. Geometry in these cells contradicts a
 ray, yet a ray that crossed only part of a cell (over the ground between rings, through a porous crown)
 leaves room for a surface in the rest: on synthetic single sweeps 80 % of the completion cells found there
-are true (`benchmarks/results/freespace_calibration.md`). `swept` says how much of each cell the rays crossed,
+are true (`benchmarks/results/freespace_calibration.md`, in git at 7f06b18). `swept` says how much of each cell the rays crossed,
 walking the same rays over 5 cm sub-cells. The model reads the free space as an input and `hgca eval-real`
 scores with it, so it is vectorised: every boundary crossing of every ray is one array element, and each
 crossing names the cell it enters on its own (no sort), marked in a dense grid.
@@ -164,7 +164,7 @@ def swept(points: np.ndarray, origins: np.ndarray, origin_index: np.ndarray | No
     Why: a completion cell says "surface somewhere in these 20 cm". A ray through the cell disproves that only
     where it passed; a ray grazing a ground cell's top leaves its bottom unseen, which is why a perfect
     completion of a single sweep puts 1-14 % of its cells in `observed_empty` and 0-1.5 % in cells swept half
-    (`benchmarks/results/freespace_floor_val64.md`). The more
+    (`benchmarks/results/freespace_floor_val64.md`, in git at 7f06b18). The more
     of a cell's volume the rays swept, the less room is left for a surface in it: `swept(...) >= sub ** 3 // 2`
     asks that rays crossed at least half of it (`HALF`)."""
     if not 1 <= sub <= 6:
@@ -184,7 +184,7 @@ def confident(free: np.ndarray) -> np.ndarray:
     Why: the free space's one-cell rim is where rays pass just over a surface without hitting it: the top of
     ground cells between LiDAR rings at grazing angles, glass, porous crowns. On 16 synth2 val scenes 0.9 to 10 %
     (mean 4.6 %) of the true cells a perfect completion of one sweep would add lie in its free space, at most
-    0.14 % in the core (`benchmarks/results/freespace_floor.md`): forbidding the core costs true geometry almost
+    0.14 % in the core (`benchmarks/results/freespace_floor.md`, in git at 7f06b18): forbidding the core costs true geometry almost
     nothing, forbidding the whole free space does."""
     g = np.asarray(free, dtype=bool)
     core = g.copy()

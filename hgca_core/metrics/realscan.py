@@ -3,14 +3,14 @@
 - Observed free space: generated cells (completion cells the input does not occupy) that lie where the
   input's own rays passed through (`hgca_core.geometry.freespace`) contradict a ray. On a whole sweep most of
   them are true surface that rays grazed (80 % on synthetic sweeps); above a height cut nearly all are errors
-  (97 %; `benchmarks/results/freespace_calibration.md`).
+  (97 %; `benchmarks/results/freespace_calibration.md`, in git at 7f06b18).
 - Height-cut extrapolation: the input is cut at h metres above the ground and completed; the real cells
   that were cut away are the target. Recall counts a target cell as found when a completion cell lies
   within one cell of it (26-neighbourhood); generated cells above the cut in the full input's observed free
   space are errors.
 Each share is also given for the free space's core (`geometry.freespace.confident`, the free cells whose six
 neighbours are free): the rim holds true surface (grazing rays over the ground), so even a perfect completion
-scores a few % in the whole free space and ~0 in the core (`benchmarks/results/freespace_floor.md`); and, with a
+scores a few % in the whole free space and ~0 in the core (`benchmarks/results/freespace_floor.md`, in git at 7f06b18); and, with a
 `swept` grid, for the cells whose volume the rays crossed at least half of (`geometry.freespace.swept`, 5 cm
 sub-cells): what rays disproved rather than grazed, also ~0 for a perfect completion, in the rim as in the core.
 All cells are 20 cm cells in the region frame (`hgca_core.geometry.voxel`).

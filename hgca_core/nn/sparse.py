@@ -283,7 +283,7 @@ class SparseBatchNorm(nn.Module):
     inference on the CPU (running statistics, no autograd), they are normalised where they lie, bit for bit as
     BatchNorm1d would: each fresh map costs a page fault per 4 KiB. With the U-Nets' sums and ReLUs also in place,
     a default-region full completion took 3.0 M faults instead of 4.5 M and 43.3 s instead of 46.7 s
-    (`benchmarks/results/inplace_full.md`). CUDA's caching allocator reuses its blocks, so CUDA keeps torch's
+    (`benchmarks/results/inplace_full.md`, in git at 7f06b18). CUDA's caching allocator reuses its blocks, so CUDA keeps torch's
     path, as does training (BN's backward needs its input)."""
 
     def __init__(self, channels: int, eps: float = 1e-5, momentum: float = 0.1, affine: bool = True,
