@@ -305,7 +305,8 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
                              lambda t, n: report("planner" if t == 0 else "coarse", t, n, tag, i), free, forbid)
         cells, cells10, latents10 = occ[:, 1:].cpu().numpy(), None, None
         if stage == "full":
-            from hgca_core.models.cgca import decode_mesh, upsample
+            from hgca_core.meshing import udf_mesh
+            from hgca_core.models.cgca import upsample
 
             release_free_memory()   # the coarse chain's holes in the heap, before the fine stage's larger maps
             with gemm_precision(gemm_dtype):
@@ -313,7 +314,8 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
                                         gen, lambda t, n: report("fine", t, n, tag, i), free, forbid)
             report("mesh", 0, 1, tag, i)
             release_free_memory()   # and the fine stage's, before meshing
-            mesh = decode_mesh(models.autoencoder, c10, latents, points=local, sensors=sensors, tree=tree)
+            mesh = udf_mesh(models.autoencoder, c10, latents, voxel=models.autoencoder.cfg.voxel, points=local,
+                            sensors=sensors, tree=tree)
             cells10, latents10 = c10.cpu().numpy(), latents.float().cpu().numpy()
         else:
             report("mesh", 0, 1, tag, i)

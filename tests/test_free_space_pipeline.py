@@ -12,6 +12,7 @@ from hgca_core.errors import InputError
 from hgca_core.geometry import freespace
 from hgca_core.geometry.region import Region
 from hgca_core.geometry.voxel import COARSE
+from hgca_core.meshing import udf_mesh
 from hgca_core.models import cgca, gca
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel
@@ -156,13 +157,13 @@ def test_the_mask_never_outputs_a_cell_of_the_free_space_core(scene, monkeypatch
     assert free[tuple(parents.T)].sum() == 0
     # the latents come back row-aligned with the fine cells: meshing them again gives the run's own mesh
     assert on.fine_latents.shape == (len(on.fine_cells), models.autoencoder.cfg.latent)
-    again = cgca.decode_mesh(models.autoencoder, torch.from_numpy(on.fine_cells), torch.from_numpy(on.fine_latents),
-                             points=local[region.contains_local(local)], sensors=origins)
+    again = udf_mesh(models.autoencoder, torch.from_numpy(on.fine_cells), torch.from_numpy(on.fine_latents),
+                     voxel=models.autoencoder.cfg.voxel, points=local[region.contains_local(local)], sensors=origins)
     np.testing.assert_array_equal(again.faces, on.mesh.faces)
     np.testing.assert_allclose(again.vertices, on.mesh.vertices, atol=1e-6)
     shuffled = np.random.default_rng(0).permutation(len(on.fine_cells))
-    other = cgca.decode_mesh(models.autoencoder, torch.from_numpy(on.fine_cells),
-                             torch.from_numpy(on.fine_latents[shuffled]))
+    other = udf_mesh(models.autoencoder, torch.from_numpy(on.fine_cells), torch.from_numpy(on.fine_latents[shuffled]),
+                     voxel=models.autoencoder.cfg.voxel)
     assert len(other.faces) != len(on.mesh.faces)                       # the pairing matters
     assert off.fine_latents is not None and off.coarse_cells is not None
 

@@ -1,7 +1,8 @@
 """Dependency directions and the one weights module, read from the source (every import, also those inside
-functions): geometry (keys, voxels, regions, the voxel mesher) imports no other hgca_core layer; models never
-import training, commands or the benchmark; training never imports the benchmark
-or the commands; only hgca_core/models/weights.py calls torch.load / torch.save, and only with weights_only=True."""
+functions). The architecture's layers (docs/architecture.md): `commands` -> `pipeline` / `tiling` -> `models` ->
+`nn` -> `geometry`; meshing is called by the pipeline (and training's validation), never by models; `training` and
+`metrics` use `models`, never the reverse; no two modules import each other, even through a function-level import.
+Only hgca_core/models/weights.py calls torch.load / torch.save, and only with weights_only=True."""
 import ast
 from pathlib import Path
 
@@ -9,34 +10,106 @@ import pytest
 
 CORE = Path(__file__).resolve().parents[1] / "hgca_core"
 
-FORBIDDEN = {
-    "geometry": ("hgca_core.nn", "hgca_core.models", "hgca_core.training", "hgca_core.commands", "hgca_core.pipeline",
-                 "hgca_core.bench", "hgca_core.metrics", "hgca_core.synth", "hgca_core.meshing"),
-    "nn": ("hgca_core.models", "hgca_core.training", "hgca_core.commands", "hgca_core.pipeline", "hgca_core.bench"),
-    "models": ("hgca_core.training", "hgca_core.commands", "hgca_core.pipeline", "hgca_core.bench"),
-    "training": ("hgca_core.bench", "hgca_core.commands", "hgca_core.pipeline"),
-    "tiling": ("hgca_core.bench", "hgca_core.commands", "hgca_core.training"),
+UTIL = {"errors", "hardware", "interrupt", "progress"}   # what any layer may use
+LOW = UTIL | {"io", "geometry"}
+# each layer (a top-level package or module of hgca_core) and the layers it may import; "hgca_core" is the package's
+# own API (`hgca_core.complete`), for the front ends only
+ALLOWED = {
+    "errors": set(),
+    "io": {"errors"},
+    "geometry": UTIL,
+    "nn": UTIL | {"geometry"},
+    "models": LOW | {"nn"},
+    "meshing": LOW,
+    "synth": LOW,
+    "render": LOW,
+    "metrics": LOW | {"nn", "models", "meshing", "pipeline", "render", "synth"},
+    "training": LOW | {"nn", "models", "meshing", "metrics", "synth"},
+    "pipeline": LOW | {"nn", "models", "meshing"},
+    "tiling": LOW | {"nn", "models", "meshing", "pipeline"},
 }
+FRONT_ENDS = {"commands", "cli"}   # above every layer; nothing in the core imports them
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for f in sorted(CORE.rglob("*.py")):
+        parts = ("hgca_core", *f.relative_to(CORE).with_suffix("").parts)
+        out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = f
+    return out
+
+
+MODULES = _modules()
 
 
 def imported_modules(path: Path) -> set[str]:
+    """The hgca_core modules a file imports anywhere in it (`from hgca_core import interrupt` names the module)."""
     names = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
             names |= {a.name for a in node.names}
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names.add(node.module)
-            names |= {f"{node.module}.{a.name}" for a in node.names}
-    return names
+            subs = {f"{node.module}.{a.name}" for a in node.names}
+            names |= subs & set(MODULES) or {node.module}
+    return {n for n in names if n in MODULES}
 
 
-@pytest.mark.parametrize("package", sorted(FORBIDDEN))
-def test_imports_point_one_way(package):
-    files = sorted((CORE / package).glob("*.py"))
-    assert files
-    bad = {f"{f.relative_to(CORE)} imports {m}" for f in files for m in imported_modules(f)
-           for prefix in FORBIDDEN[package] if m == prefix or m.startswith(prefix + ".")}
-    assert not bad, sorted(bad)
+def layer(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "hgca_core"
+
+
+@pytest.mark.parametrize("name", sorted(ALLOWED))
+def test_each_layer_imports_only_the_layers_below_it(name):
+    files = [(m, f) for m, f in MODULES.items() if layer(m) == name]
+    assert files, name
+    bad = sorted(f"{f.relative_to(CORE)} imports {d}" for m, f in files for d in imported_modules(f)
+                 if layer(d) != name and layer(d) not in ALLOWED[name])
+    assert not bad, bad
+
+
+def test_no_layer_imports_the_front_ends():
+    bad = sorted(f"{f.relative_to(CORE)} imports {d}" for m, f in MODULES.items() if layer(m) not in FRONT_ENDS
+                 for d in imported_modules(f) if layer(d) in FRONT_ENDS)
+    assert not bad, bad
+
+
+def test_meshing_is_called_by_the_pipeline_not_by_models():
+    users = {layer(m) for m, f in MODULES.items() for d in imported_modules(f) if layer(d) == "meshing"}
+    assert "pipeline" in users and "models" not in users
+
+
+def test_no_import_cycles_between_modules():
+    """Tarjan's strongly connected components of the module import graph (function-level imports included)."""
+    graph = {m: imported_modules(f) - {m} for m, f in MODULES.items()}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    cycles = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                cycles.append(sorted(comp))
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    assert not cycles, cycles
 
 
 def _torch_calls(tree: ast.AST, name: str) -> list[ast.Call]:

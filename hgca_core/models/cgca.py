@@ -29,7 +29,7 @@ the field existed.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import numpy as np
 import torch
@@ -42,9 +42,6 @@ from hgca_core.models.config import Config
 from hgca_core.nn.encoding import sinusoidal
 from hgca_core.nn.sparse import SparseConv3d, SparseConvTranspose3d, SparseTensor
 from hgca_core.nn.unet import SparseUNet
-
-if TYPE_CHECKING:   # only the annotation: a GPU machine trains without trimesh
-    import trimesh
 
 
 @dataclass
@@ -253,23 +250,10 @@ def upsample(model: CGCAKernel, autoencoder: Autoencoder, input_points_local: np
     grid10: the 10 cm grid shape (Region.grid_shape(0.1)); free20: (1, X, Y, Z) bool seen-empty 20 cm cells or
     None, given to the model as 10 cm cells; forbid20: the 20 cm cells whose 10 cm children are never output
     (`--free-space mask`), or None. Returns (cells (N, 3) int64, latents
-    (N, K) float32) on the model's device, for `decode_mesh`.
+    (N, K) float32) on the model's device, which the pipeline meshes (`meshing.udf_mesh`).
     """
     x0, z0 = initial_state(autoencoder, input_points_local, coarse_cells, grid10)
     free = fs.upsample(free20, tuple(grid10)) if free20 is not None and model.cfg.free_space else None
     forbid = fs.upsample(forbid20, tuple(grid10)) if forbid20 is not None else None
     cells, z = sample(model, x0, z0, tuple(grid10), steps or model.cfg.steps, generator, progress, free, forbid)
     return cells[:, 1:], z
-
-
-def decode_mesh(autoencoder: Autoencoder, cells: torch.Tensor | np.ndarray, latents: torch.Tensor,
-                res: float = 0.05, chunk: int = 1 << 15, points: np.ndarray | None = None,
-                sensors: np.ndarray | None = None, **cleanup) -> trimesh.Trimesh:
-    """Mesh (region frame, metres) of the unsigned distance decoded from 10 cm cells and latents: its zero level
-    as one open surface from a `res` grid around the cells, cleaned and oriented towards `sensors` (see
-    `hgca_core.meshing.udf_mesh`, which also takes the `cleanup` keywords)."""
-    from hgca_core.meshing import udf_mesh
-
-    with torch.no_grad():
-        return udf_mesh(autoencoder, cells, latents, voxel=autoencoder.cfg.voxel, res=res, chunk=chunk,
-                        points=points, sensors=sensors, **cleanup)

@@ -1,6 +1,6 @@
 """Building rows along the main street, one builder per scene style.
 
-Positions are street coordinates (see `scene.Street`). A lot is addressed in its own frame: lx along the
+Positions are street coordinates (see `street.Street`). A lot is addressed in its own frame: lx along the
 street from the lot's start, ly away from the street from the sidewalk's back edge; `Lot.at` turns that
 into a placement standing on the ground under the object's footprint.
 """
@@ -15,7 +15,7 @@ from hgca_core.synth import furniture as F
 from hgca_core.synth import vehicles as V
 from hgca_core.synth.materials import DARK
 from hgca_core.synth.primitives import DEFAULT_MATERIAL, MeshBuilder
-from hgca_core.synth.scene import EXTENT, Street
+from hgca_core.synth.street import EXTENT, Street
 
 FENCE_PIECE = 4.0   # long fences are built in pieces that each stand on the ground
 

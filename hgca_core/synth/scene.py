@@ -19,9 +19,11 @@ import trimesh
 from hgca_core.synth import furniture as F
 from hgca_core.synth import vehicles as V
 from hgca_core.synth.assets import ROAD, SIDEWALK
+from hgca_core.synth.blocks import city_rows, strip_rows, suburb_rows, town_rows
 from hgca_core.synth.materials import resolve
 from hgca_core.synth.primitives import MeshBuilder, Solids
-from hgca_core.synth.terrain import StreetCurve, Terrain, make_terrain, tilt_to
+from hgca_core.synth.street import EXTENT, Street
+from hgca_core.synth.terrain import StreetCurve, Terrain, make_terrain
 
 STYLES = ("city", "suburb", "town", "strip")
 STYLE_P = (0.3, 0.25, 0.15, 0.3)
@@ -30,7 +32,6 @@ STYLE_P = (0.3, 0.25, 0.15, 0.3)
 # test splits of every table before session 12) can be rebuilt exactly.
 STYLE_DRAWS = {6: (STYLES[:3], (0.45, 0.35, 0.2)), 7: (STYLES, STYLE_P)}
 GENERATOR_VERSION = max(STYLE_DRAWS)   # bumped whenever the same seed would produce different content
-EXTENT = 60.0       # half size of the layout square in street coordinates (metres)
 GROUND_HALF = 78.0  # the ground reaches further, so a bent layout still stands on it
 DRIVE_STEP = 0.5    # spacing of drive samples (metres)
 BLOCK = 40.0        # street stretch over which parked cars are counted (metres)
@@ -67,8 +68,6 @@ class StreetScene:
 def make_scene(seed: int, style: str | None = None, generator: int = GENERATOR_VERSION) -> StreetScene:
     """The scene named by `seed` (and `style`; by default the seed picks it) as generator version `generator`
     made it."""
-    from hgca_core.synth.blocks import city_rows, strip_rows, suburb_rows, town_rows
-
     if generator not in STYLE_DRAWS:
         raise ValueError(f"unknown generator version {generator!r}; use one of {', '.join(map(str, STYLE_DRAWS))}")
     styles, p = STYLE_DRAWS[generator]
@@ -102,67 +101,6 @@ def make_scene(seed: int, style: str | None = None, generator: int = GENERATOR_V
               "drive_direction": direction, "faces": int(len(mesh.faces)), **extra}
     return StreetScene(mesh, labels, materials, drive, up, S.hw + S.sw, style, int(seed), solids, terrain, curve,
                        layout, int(len(terrain.mesh_arrays()[1])))
-
-
-@dataclass
-class Street:
-    """The layout's numbers and how a place in street coordinates lands in the world."""
-
-    hw: float              # road half width (curb to centre line)
-    sw: float              # sidewalk width
-    hs: float              # sidewalk (curb) height
-    cross: bool            # has a cross street
-    xc: float              # where the cross street's centre line meets the main one (u)
-    hw2: float             # cross street half width
-    theta: float           # angle between the streets (radians, in street coordinates)
-    curve: StreetCurve
-    terrain: Terrain
-
-    def cross_u(self, v: float) -> float:
-        """u of the cross street's centre line at lateral position v."""
-        return self.xc + v / np.tan(self.theta)
-
-    def cross_span(self, v0: float, v1: float, margin: float, width: float | None = None) -> tuple[float, float]:
-        """u interval the cross street (carriageway + sidewalks, or `width` either side) covers for v in [v0, v1]."""
-        half = ((self.hw2 + self.sw) if width is None else width) / np.sin(self.theta) + margin
-        us = [self.cross_u(v0), self.cross_u(v1)]
-        return min(us) - half, max(us) + half
-
-    def x_free(self, u: float, margin: float, v0: float | None = None, v1: float | None = None) -> bool:
-        """Whether u is clear of the cross street by `margin` between lateral positions v0 and v1 (default:
-        across the main street's sidewalks)."""
-        if not self.cross:
-            return True
-        v0 = -(self.hw + self.sw) if v0 is None else v0
-        v1 = self.hw + self.sw if v1 is None else v1
-        lo, hi = self.cross_span(v0, v1, margin)
-        return not lo < u < hi
-
-    def place(self, u: float, v: float, yaw: float = 0.0, foot=(-0.3, -0.3, 0.3, 0.3), lift: float = 0.0,
-              tilt: bool = False) -> tuple[float, np.ndarray, np.ndarray | None]:
-        """Arguments for `MeshBuilder.placed`: an object at street coordinates (u, v), turned by `yaw` from
-        the street direction, standing on the lowest ground under its footprint (x0, y0, x1, y1 in its own
-        frame) plus `lift`. With `tilt` (vehicles) it is set onto the plane through the ground under the
-        footprint's corners, raised until no corner is below the ground."""
-        xy = self.curve.to_world(u, v)
-        yaw_w = float(self.curve.heading(u)) + yaw
-        x0, y0, x1, y1 = foot
-        c, s = np.cos(yaw_w), np.sin(yaw_w)
-        local = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [(x0 + x1) / 2, (y0 + y1) / 2]])
-        corners = xy + local @ np.array([[c, s], [-s, c]])
-        z = self.terrain.height(corners)
-        if not tilt:
-            return yaw_w, np.r_[xy, z.min() + lift], None
-        a = np.c_[corners - xy, np.ones(5)]
-        gx, gy, z0 = np.linalg.lstsq(a, z, rcond=None)[0]
-        z0 += max(0.0, float(np.max(z - a @ [gx, gy, z0])))
-        return yaw_w, np.r_[xy, z0 + lift], tilt_to([-gx, -gy, 1.0])
-
-    def side(self, s: int, u: float, v: float, yaw: float = 0.0, foot=(-0.3, -0.3, 0.3, 0.3), lift: float = 0.0,
-             tilt: bool = False):
-        """`place` for an object whose local -y faces the main street, on side s (+1 north, -1 south); its local
-        x runs along +u on the north side and along -u on the south side."""
-        return self.place(u, s * v, yaw + (0.0 if s > 0 else np.pi), foot, lift, tilt)
 
 
 def slab(b: MeshBuilder, S: Street, quad_uv, label: int, lift: float, piece: float = PIECE) -> None:

@@ -53,31 +53,16 @@ def batched(sets: list[torch.Tensor]) -> torch.Tensor:
 class CoarseLoss(nn.Module):
     """Wraps the kernel so one forward computes the whole loss (what DDP must see) and the next states."""
 
-    def __init__(self, cfg: GCAConfig, free_weight: float = 0.0, frozen_bn: bool = False, distill: float = 0.0,
-                 teacher: GCAKernel | None = None, distill_above: bool = False) -> None:
+    def __init__(self, cfg: GCAConfig, free_weight: float = 0.0, distill: float = 0.0,
+                 teacher: GCAKernel | None = None) -> None:
         super().__init__()
         self.cfg = cfg
         self.free_weight = free_weight
-        self.frozen_bn = frozen_bn
         self.model = GCAKernel(cfg)
         self.distill = distill
-        self.distill_above = distill_above
         # kept out of the module tree (neither trained, checkpointed nor averaged) and in eval mode: the trainer's
         # train() calls never reach it
         self._teacher = [teacher.eval().requires_grad_(False)] if teacher is not None and distill else []
-
-    def train(self, mode: bool = True) -> "CoarseLoss":
-        """With `frozen_bn`, every BatchNorm stays in eval mode whatever the trainer asks: it normalises by the
-        running statistics the weights came with and never updates them, so training optimises the function
-        sampling runs (batches of two crops give noisy batch statistics, and exported statistics that differ
-        from the ones trained under change what the chain grows: benchmarks/results/precise_bn.md). Their
-        affine scale and shift still train."""
-        super().train(mode)
-        if self.frozen_bn:
-            for m in self.modules():
-                if isinstance(m, nn.modules.batchnorm._BatchNorm):
-                    m.eval()
-        return self
 
     def forward(self, chains: list[Chain]) -> tuple[torch.Tensor, dict, list[torch.Tensor]]:
         cfg, grid, b = self.cfg, chains[0].grid, len(chains)
@@ -126,19 +111,15 @@ class CoarseLoss(nn.Module):
         of the step's cells so moved).
 
         Why: every fine-tune on synthetic cuts learnt to grow more above a cut than the weights it started from,
-        and on real scans more of that growth lands where the rays saw empty (benchmarks/results/recipe_s20-23):
-        synthetic streets reward growth there that real ones do not hold. On cut inputs the teacher's
-        (the starting weights') restraint is kept instead, while whole inputs train on the ground truth. With
-        `distill_above` only the cells at and above the cut's layer move: below it the input is whole, and the
-        ground truth there keeps teaching what the synthetic test scores."""
+        and on real scans more of that growth lands where the rays saw empty: synthetic streets reward growth
+        there that real ones do not hold. On cut inputs the teacher's (the starting weights') restraint is kept
+        instead, while whole inputs train on the ground truth."""
         teacher = self._teacher[0]
         if next(teacher.parameters()).device != nbhd.device:
             teacher.to(nbhd.device)
-        # each chain's lowest distilled layer: its cut layer with `distill_above`, else every cell of a cut chain;
-        # none of an uncut chain's
+        # each chain's lowest distilled layer: every cell of a cut chain, none of an uncut chain's
         none = 1 << 30
-        lowest = torch.tensor([(int(c.extra["cut"]) if self.distill_above else -1) if "cut" in c.extra else none
-                               for c in chains], device=nbhd.device)
+        lowest = torch.tensor([-1 if "cut" in c.extra else none for c in chains], device=nbhd.device)
         cut = nbhd[:, 3] >= lowest[nbhd[:, 0]]
         if not bool(cut.any()):
             return target, 0.0
@@ -174,11 +155,9 @@ class CoarseTask:
     cut_share: float = 0.0    # share of training inputs cut at a random height (`height_cut`), as eval-real cuts
     cut_free_loss: bool = False  # free_weight on a cut input also weighs what the uncut input saw empty (`example`)
     turn_share: float = 0.0   # share of training inputs turned by a random yaw about the sensor (`data.turn_cells`)
-    frozen_bn: bool = False   # BatchNorm normalises by the initial weights' running statistics (`CoarseLoss.train`)
     distill: float = 0.0      # on cut inputs the target moves this far to the teacher's probability (`CoarseLoss`)
     teacher: str | None = None  # coarse weights the cut inputs are distilled from (with distill > 0)
     teacher_sha256: str | None = None  # the teacher file's digest when the run started: a resume checks it
-    distill_above: bool = False  # distil only the cells at and above the cut's layer (`CoarseLoss._distilled`)
 
     def __post_init__(self) -> None:
         self.train_files = split_files(self.data_dir, "train")
@@ -187,8 +166,7 @@ class CoarseTask:
         """The training settings a session records beside its steps (the model card shows them)."""
         return {"crop": self.crop, "focus_share": self.focus_share, "free_weight": self.free_weight,
                 "cut_share": self.cut_share, "cut_free_loss": self.cut_free_loss, "turn_share": self.turn_share,
-                "frozen_bn": self.frozen_bn, "distill": self.distill, "teacher": self.teacher,
-                "teacher_sha256": self.teacher_sha256, "distill_above": self.distill_above}
+                "distill": self.distill, "teacher": self.teacher, "teacher_sha256": self.teacher_sha256}
 
     def build(self) -> CoarseLoss:
         teacher = None
@@ -198,7 +176,7 @@ class CoarseTask:
             from hgca_core.models.weights import load_coarse
 
             teacher = copy.deepcopy(load_coarse(self.teacher)[0])   # its own copy: the cached one may be in use
-        return CoarseLoss(self.cfg, self.free_weight, self.frozen_bn, self.distill, teacher, self.distill_above)
+        return CoarseLoss(self.cfg, self.free_weight, self.distill, teacher)
 
     def new_example(self, rng: np.random.Generator) -> Chain:
         path = self.train_files[int(rng.integers(len(self.train_files)))]

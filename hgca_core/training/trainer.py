@@ -54,7 +54,7 @@ class EMA:
     count, are copied), with the usual warm-up decay min(decay, (1 + n) / (10 + n)) so short runs are averaged
     over their own steps only. BatchNorm's running statistics are averaged too (as `AveragedModel(use_buffers=True)`
     does): copied, they are the live model's last ~10 batches, and the coarse chain's growth on real scans swung
-    with them from one checkpoint to the next (`hgca_core.training.precise_bn`, session 15)."""
+    with them from one checkpoint to the next."""
 
     def __init__(self, module: nn.Module, decay: float = EMA_DECAY) -> None:
         self.decay, self.n = decay, 0
@@ -164,8 +164,8 @@ def _gather(obj: dict, rank: int, world: int) -> list[dict] | None:
 def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False, batch: int = 2,
           buffer_size: int = 8, lr: float | None = None, clip: float = 0.5, seed: int | None = None,
           val_every_min: float = 10.0, ckpt_every_min: float = 5.0, max_steps: int | None = None,
-          progress: bool = True, ema_decay: float | None = None, device: str = "cpu",
-          init_from: str | os.PathLike | None = None, precision: str = "fp32") -> dict:
+          progress: bool = True, device: str = "cpu", init_from: str | os.PathLike | None = None,
+          precision: str = "fp32", recipe: dict | None = None) -> dict:
     """Train `task` for `minutes` of wall time (or `max_steps`), resuming from out_dir/ckpt.pt if asked.
 
     `device` 'cuda' trains on the GPU (each torchrun rank on its own, cuda:LOCAL_RANK): the model, its optimiser
@@ -185,7 +185,10 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
     checkpoint's from this step on (an annealing phase), which the run's notes record.
 
     `init_from` (weights or a checkpoint of the task's kind) initialises a run that does not resume a checkpoint
-    (`weights.load_into`: new free-space inputs start at zero); the run's notes record it."""
+    (`weights.load_into`: new free-space inputs start at zero); the run's notes record it.
+
+    `recipe` (`hgca train`'s resolved recipe, plain values) is saved in every checkpoint, so a resume continues
+    the run as it was configured, not from flags given again."""
     if precision not in ("fp32", "bf16"):
         raise InputError(f"training precision must be fp32 or bf16, not {precision!r}")
     start_seed = 0 if seed is None else int(seed)
@@ -237,13 +240,9 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
             state.setdefault("notes", []).append(
                 f"initialised from {init_from} ({meta.get('steps')} steps)"
                 + (", its free-space inputs new and zero-initialised" if meta.get("widened") else ""))
-    ema = EMA(module, EMA_DECAY if ema_decay is None else ema_decay)  # a checkpoint from before the EMA
-    if ema_state:                                                       # existed starts it at its weights
+    ema = EMA(module)     # a checkpoint from before the EMA existed starts it at its weights
+    if ema_state:
         ema.load_state_dict(ema_state)
-        if ema_decay is not None and ema_decay != ema.decay:   # a longer (or shorter) average from here on
-            state.setdefault("notes", []).append(
-                f"weight average decay {ema_decay:g} from step {state['step']:,} on (was {ema.decay:g})")
-            ema.decay = ema_decay
     ddp = nn.parallel.DistributedDataParallel(module, device_ids=[dev.index] if dev.type == "cuda" else None) \
         if world > 1 else module
     module.train()
@@ -251,13 +250,13 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
     def checkpoint(session_open: bool = True) -> None:
         """Collective under DDP: every rank hands rank 0 its streams and chains. A checkpoint written while the
         session runs lists the session so far, so its steps are accounted for when the process is killed before
-        the session ends or the file is exported mid-run (session 36's Y45 listed 1,242 of its 2,285 steps)."""
+        the session ends or the file is exported mid-run."""
         ranks = _gather({"rng": _rng_state(dev), "buffer": buffer.state_dict()}, rank, world)
         if rank == 0:
             record = with_this_session() if session_open else state
             save_file({"model": _cpu(module.state_dict()), "optim": _cpu(optim.state_dict()), "state": record,
                        "ranks": ranks, "ema": _cpu(ema.state_dict()), "config": task.cfg.to_dict(),
-                       "task": task.name}, ckpt_path)
+                       "task": task.name, **({"recipe": recipe} if recipe is not None else {})}, ckpt_path)
 
     def validate() -> None:
         if rank == 0:
@@ -273,8 +272,8 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
 
     def keep_if_best(metrics: dict) -> None:
         """Write best.pt (a checkpoint without optimiser or chains: weights, average, record so far) when the
-        validation score is the run's best yet. Why: a run's val score can peak mid-session and fall (session
-        31's EC: 74.3 % at 40 min, 72.7 % at 80), and the checkpoint keeps only the last step."""
+        validation score is the run's best yet. Why: a run's val score can peak mid-session and fall (74.3 % at
+        40 min, 72.7 % at 80 in one fine-tune), and the checkpoint keeps only the last step."""
         key = next((k for k in VAL_KEYS if k in metrics), None)
         value = float(metrics[key]) if key else float("nan")
         best = state.get("best_val")
@@ -282,7 +281,8 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
             return
         state["best_val"] = {"key": key, "value": value, "step": state["step"]}
         save_file({"model": _cpu(module.state_dict()), "ema": _cpu(ema.state_dict()), "state": with_this_session(),
-                   "config": task.cfg.to_dict(), "task": task.name}, out / BEST)
+                   "config": task.cfg.to_dict(), "task": task.name,
+                   **({"recipe": recipe} if recipe is not None else {})}, out / BEST)
 
     def with_this_session() -> dict:
         """The run's state as a file written mid-session keeps it: the session so far listed with the others."""

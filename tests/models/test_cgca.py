@@ -1,5 +1,5 @@
 """cGCA upsampler: neighbourhoods, kernel shapes and gradients, infusion, seeded sampling, x^0, overfitting, and
-the functions the pipeline calls (upsample, decode_mesh, shipped weights)."""
+the functions the pipeline calls (upsample, shipped weights, the mesh of its output)."""
 
 import numpy as np
 import pytest
@@ -9,7 +9,8 @@ from scipy.spatial import cKDTree
 from hgca_core.geometry import coords as cs
 from hgca_core.geometry.voxel import downsample, voxelize
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
-from hgca_core.models.cgca import CGCAConfig, CGCAKernel, decode_mesh, initial_state, sample, upsample
+from hgca_core.meshing import udf_mesh
+from hgca_core.models.cgca import CGCAConfig, CGCAKernel, initial_state, sample, upsample
 from hgca_core.models.weights import load_file, load_fine, save_weights
 from hgca_core.training.buffer import Chain, ChainBuffer
 from hgca_core.training.fine import FineLoss, FineTask, export_fine
@@ -208,7 +209,7 @@ def test_fine_task_trains_exports_and_runs_the_pipeline_calls(tmp_path):
     assert calls[-1] == (3, 3) and cells.shape[1] == 3 and z.shape == (len(cells), K)
     assert torch.equal(out[0][0], out[1][0]) and torch.equal(out[0][1], out[1][1])   # same seed, same result
     assert ((cells >= 0) & (cells < torch.tensor(grid10))).all()
-    mesh = decode_mesh(ae2, cells, z)
+    mesh = udf_mesh(ae2, cells, z, voxel=ae2.cfg.voxel)
     if len(mesh.vertices):                       # untrained decoder: whatever surface it has lies near the cells
         assert cKDTree(cells.numpy() * 0.1).query(mesh.vertices)[0].max() < 0.1
 

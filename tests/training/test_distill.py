@@ -1,5 +1,6 @@
-"""`--distill MU --teacher W`: on cut training inputs the coarse kernel's target moves MU of the way from the ground
-truth to the teacher's probability (cells the rays saw empty stay empty); whole inputs keep the ground truth."""
+"""Recipe field `distill` (MU): on cut training inputs the coarse kernel's target moves MU of the way from the ground
+truth to the probability of the `init_from` weights (cells the rays saw empty stay empty); whole inputs keep the
+ground truth."""
 import numpy as np
 import pytest
 import torch
@@ -14,8 +15,8 @@ from hgca_core.training.coarse import CoarseLoss, CoarseTask
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 SMALL = dict(channels=(8, 8, 16, 16, 16))
-BASE = ["train", "coarse", "--channels", "8,8,16,16,16", "--crop", "16", "--threads", "1", "--no-progress",
-        "--val-every", "1000"]
+BASE = ["train", "--set", "crop=16", "--threads", "1", "--no-progress", "--set", "val_every=1000"]
+NEW = ["--set", "channels=8,8,16,16,16"]   # a run started from weights takes their widths
 
 
 def _chains(dataset, monkeypatch, cfg):
@@ -46,15 +47,14 @@ def _record_forwards(monkeypatch) -> list:
     return calls
 
 
-@pytest.mark.parametrize("mu,above", [(1.0, False), (0.5, False), (1.0, True)])
-def test_cut_inputs_learn_the_teachers_probability_and_whole_ones_the_ground_truth(dataset, monkeypatch, mu, above):
-    """With `above` (--distill-above) only the cut chain's cells at and above its cut layer are distilled."""
+@pytest.mark.parametrize("mu", [1.0, 0.5])
+def test_cut_inputs_learn_the_teachers_probability_and_whole_ones_the_ground_truth(dataset, monkeypatch, mu):
     cfg = GCAConfig(**SMALL, steps=3, free_space=True)
     chains = _chains(dataset, monkeypatch, cfg)
     torch.manual_seed(0)
     teacher = GCAKernel(cfg).eval()
     torch.manual_seed(1)
-    loss = CoarseLoss(cfg, free_weight=5.0, distill=mu, teacher=teacher, distill_above=above)
+    loss = CoarseLoss(cfg, free_weight=5.0, distill=mu, teacher=teacher)
     assert not any(k.startswith("_teacher") or "teacher" in k for k in loss.state_dict())  # never checkpointed
     calls = _record_forwards(monkeypatch)
     _, stats, _ = loss(chains)
@@ -67,10 +67,6 @@ def test_cut_inputs_learn_the_teachers_probability_and_whole_ones_the_ground_tru
     frees = [ch.extra.get("free_loss", ch.extra["free"]) for ch in chains]
     seen = torch.tensor([bool(frees[r[0]][r[1], r[2], r[3]]) for r in rows]) & (hard == 0)
     cut = nbhd[:, 0] == 0
-    if above:
-        high = nbhd[:, 3] >= chains[0].extra["cut"]
-        assert (cut & ~high).any() and (~cut & high).any()   # below the cut and the whole chain keep the truth
-        cut = cut & high
     assert cut.any() and (~cut).any() and (seen & cut).any()
     teach = torch.zeros(len(nbhd), dtype=torch.float64)
     teach[nbhd[:, 0] == 0] = torch.sigmoid(t_logits.double())
@@ -133,62 +129,55 @@ def test_a_teacher_equal_to_the_student_leaves_cut_inputs_nothing_to_learn(datas
     assert whole_grad > 1e-4 and cut_grad < 1e-3 * whole_grad
 
 
-def test_distill_options_need_a_cut_a_teacher_and_are_kept_on_resume(dataset, tmp_path, capsys):
+def test_distill_needs_a_cut_the_free_space_and_init_weights_and_is_kept_on_resume(dataset, tmp_path, capsys):
     base = BASE + ["--data", str(dataset)]
     init = tmp_path / "init.pt"
-    assert main(base + ["--out", str(tmp_path / "a"), "--free-space", "--max-steps", "1", "--export", str(init)]) == 0
+    assert main(base + NEW + ["--out", str(tmp_path / "a"), "--set", "free_space=true", "--max-steps", "1",
+                        "--export", str(init)]) == 0
     capsys.readouterr()
-    for extra, says in ((["--distill", "0.5", "--init-from", str(init)], "--cut"),
-                        (["--distill", "0.5", "--cut", "0.5"], "teacher"),
-                        (["--teacher", str(init)], "--distill"),
-                        (["--distill-above", "--cut", "0.5"], "--distill")):
+    for extra, says in ((["--set", "distill=0.5", "--set", f"init_from={init}"], "needs cut"),
+                        (["--set", "distill=0.5", "--set", "cut=0.5"], "init_from"),
+                        (["--set", "distill=1.5", "--set", "cut=0.5", "--set", f"init_from={init}"], "[0, 1]")):
         out = tmp_path / "bad"
-        assert main(base + ["--out", str(out), "--free-space", "--max-steps", "1"] + extra) == 2
-        assert says in capsys.readouterr().err and not (out / "ckpt.pt").exists()
-    with pytest.raises(SystemExit) as exc:                              # argparse: a share is 0 to 1
-        main(base + ["--out", str(tmp_path / "bad"), "--cut", "0.5", "--distill", "1.5", "--init-from", str(init)])
-    assert exc.value.code == 2 and "between 0 and 1" in capsys.readouterr().err
+        assert main(base + ["--out", str(out), "--set", "free_space=true", "--max-steps", "1"] + extra) == 2
+        assert says in capsys.readouterr().err and not out.exists()
     no_planner = tmp_path / "np.pt"
     save_weights(no_planner, GCAKernel(GCAConfig(**SMALL, use_planner=False, free_space=True)))
-    assert main(base + ["--out", str(tmp_path / "bad"), "--free-space", "--max-steps", "1", "--cut", "0.5",
-                        "--init-from", str(init), "--distill", "1", "--teacher", str(no_planner)]) == 2
-    assert "teacher" in capsys.readouterr().err
+    assert main(base + ["--out", str(tmp_path / "bad"), "--set", "free_space=true", "--max-steps", "1",
+                               "--set", "cut=0.5", "--set", f"init_from={no_planner}", "--set", "distill=1"]) == 2
+    assert "planner" in capsys.readouterr().err
     out = tmp_path / "b"
-    assert main(base + ["--out", str(out), "--init-from", str(init), "--cut", "1", "--distill", "0.5",
-                        "--distill-above", "--max-steps", "2"]) == 0
+    assert main(base + ["--out", str(out), "--set", f"init_from={init}", "--set", "cut=1", "--set",
+                               "free_space=true", "--set", "distill=0.5", "--max-steps", "2"]) == 0
     assert main(base + ["--out", str(out), "--resume", "--max-steps", "3"]) == 0
     ck = load_file(out / "ckpt.pt")
     recipes = [s["recipe"] for s in ck["state"]["sessions"]]
-    assert [(r["distill"], r["distill_above"]) for r in recipes] == [(0.5, True), (0.5, True)]
+    assert [r["distill"] for r in recipes] == [0.5, 0.5]
     assert all(r["teacher"] == str(init.resolve()) for r in recipes)
     assert not any("teacher" in k for k in ck["model"])
 
 
 def test_a_resume_refuses_a_teacher_overwritten_since_the_run_started(dataset, tmp_path, capsys):
-    """Shipping a fine-tune overwrites the weights it distilled from: a resume that takes the teacher's path from
-    the run must notice (exit 2, checkpoint untouched), and distils from the new file only when told to."""
+    """Shipping a fine-tune overwrites the weights it distilled from: a resume must notice (exit 2, checkpoint
+    untouched) rather than distil from the student."""
     base = BASE + ["--data", str(dataset)]
     teacher = tmp_path / "teacher.pt"
-    assert main(base + ["--out", str(tmp_path / "a"), "--free-space", "--max-steps", "1", "--export",
+    assert main(base + NEW + ["--out", str(tmp_path / "a"), "--set", "free_space=true", "--max-steps", "1", "--export",
                         str(teacher)]) == 0
     first = file_digest(teacher)
     out = tmp_path / "b"
-    assert main(base + ["--out", str(out), "--init-from", str(teacher), "--cut", "1", "--distill", "1",
-                        "--max-steps", "1"]) == 0
+    assert main(base + ["--out", str(out), "--set", f"init_from={teacher}", "--set", "cut=1", "--set",
+                               "free_space=true", "--set", "distill=1", "--max-steps", "1"]) == 0
     assert load_file(out / "ckpt.pt")["state"]["sessions"][0]["recipe"]["teacher_sha256"] == first
+    shipped = tmp_path / "weights"                     # the card names each session's teacher by its digest
+    shipped.mkdir()
+    assert main(base + ["--out", str(out), "--minutes", "0", "--export", str(shipped / "coarse.pt")]) == 0
+    assert f"teacher sha256 {first}" in write_model_card(shipped).read_text()
     assert main(base + ["--out", str(out), "--minutes", "0", "--export", str(teacher)]) == 0   # the student shipped
     assert file_digest(teacher) != first
     before = (out / "ckpt.pt").read_bytes()
     capsys.readouterr()
     assert main(base + ["--out", str(out), "--resume", "--max-steps", "2"]) == 2
     err = capsys.readouterr().err
-    assert str(teacher) in err and first[:12] in err and "--teacher" in err
+    assert str(teacher) in err and first[:12] in err
     assert (out / "ckpt.pt").read_bytes() == before
-    assert main(base + ["--out", str(out), "--resume", "--max-steps", "2", "--teacher", str(teacher)]) == 0
-    sessions = load_file(out / "ckpt.pt")["state"]["sessions"]
-    assert [s["recipe"]["teacher_sha256"] for s in sessions] == [first, file_digest(teacher)]
-    shipped = tmp_path / "weights"                     # the card names each session's teacher by its digest
-    shipped.mkdir()
-    assert main(base + ["--out", str(out), "--minutes", "0", "--export", str(shipped / "coarse.pt")]) == 0
-    card = write_model_card(shipped).read_text()
-    assert f"teacher sha256 {first}" in card and f"teacher sha256 {file_digest(teacher)}" in card

@@ -1,12 +1,11 @@
 """Crops drawn toward where the error is (issue 13, item 4): missed cells 3 m or more above the ground."""
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 import pytest
 
-from hgca_core.commands.train import _share
+from hgca_core.errors import InputError
+from hgca_core.training.recipes import parse_sets, resolve
 from hgca_core.training.data import FOCUS_HEIGHT, draw_crop, focus_cells
 
 
@@ -51,7 +50,7 @@ def test_focus_share_puts_that_share_of_crops_over_the_focus_cells() -> None:
 
 
 def test_focus_share_must_be_a_share() -> None:
-    assert _share("0.25") == 0.25
-    for bad in ("-0.1", "1.5", "half"):
-        with pytest.raises(argparse.ArgumentTypeError):
-            _share(bad)
+    assert resolve("coarse", parse_sets(["focus=0.25"])).focus == 0.25
+    for bad in ("1.5", "-0.1", "nan"):
+        with pytest.raises(InputError, match="focus"):
+            resolve("coarse", parse_sets([f"focus={bad}"]))

@@ -71,9 +71,10 @@ def test_train_coarse_free_space_warm_starts_from_old_weights_and_resumes(datase
     old = GCAKernel(GCAConfig(**SMALL, steps=3))
     save_weights(tmp_path / "old.pt", old, {"steps": 123})
     out = tmp_path / "run"
-    base = ["train", "coarse", "--data", str(dataset), "--out", str(out), "--crop", "16", "--batch", "2",
-            "--buffer", "2", "--threads", "1", "--no-progress", "--val-every", "100"]
-    assert main(base + ["--free-space", "--init-from", str(tmp_path / "old.pt"), "--max-steps", "3"]) == 0
+    base = ["train", "--data", str(dataset), "--out", str(out), "--threads", "1", "--no-progress"]
+    recipe = ["--set", "crop=16", "--set", "batch=2", "--set", "buffer=2", "--set", "val_every=100"]
+    assert main(base + recipe + ["--set", "free_space=true", "--set", f"init_from={tmp_path / 'old.pt'}",
+                                 "--max-steps", "3"]) == 0
     ck = load_file(out / "ckpt.pt")
     assert ck["config"]["free_space"] is True and ck["config"]["steps"] == 3 and ck["state"]["step"] == 3
     assert any("initialised from" in n and "123 steps" in n and "zero-initialised" in n for n in ck["state"]["notes"])
@@ -94,11 +95,11 @@ def test_train_coarse_free_space_warm_starts_from_old_weights_and_resumes(datase
     assert meta["data"] == str(dataset) and card.read_bytes() == card_before             # the card is untouched
     assert meta["init"]["sha256"] == file_digest(tmp_path / "old.pt") and meta["init"]["steps"] == 123   # lineage
     capsys.readouterr()
-    assert main(base[:2] + ["--data", str(dataset), "--out", str(tmp_path / "bad"), "--free-space", "--init-from",
-                            str(tmp_path / "missing.pt"), "--max-steps", "1"]) == 2
+    assert main(["train", "--data", str(dataset), "--out", str(tmp_path / "bad"), "--set", "free_space=true",
+                 "--set", f"init_from={tmp_path / 'missing.pt'}", "--max-steps", "1"]) == 2
     assert "missing.pt" in capsys.readouterr().err
-    assert main(["train", "coarse-noplanner", "--data", str(dataset), "--out", str(tmp_path / "np"), "--init-from",
-                 str(tmp_path / "old.pt"), "--max-steps", "1"]) == 2     # a planner model is no planner ablation
+    assert main(["train", "--recipe", "coarse-noplanner", "--data", str(dataset), "--out", str(tmp_path / "np"),
+                 "--set", f"init_from={tmp_path / 'old.pt'}", "--max-steps", "1"]) == 2     # no planner ablation
     assert "with the planner" in capsys.readouterr().err
 
 
@@ -171,11 +172,11 @@ def test_free_weight_weighs_the_loss_on_seen_empty_negatives(dataset, capsys, mo
     assert s_weighted["seen_empty"] == pytest.approx(float(seen.float().mean()))
     assert task.recipe()["free_weight"] == 5.0
     capsys.readouterr()
-    assert main(["train", "coarse", "--data", str(dataset), "--free-weight", "2", "--max-steps", "1"]) == 2
-    assert "--free-space" in capsys.readouterr().err                    # nothing to weigh without the free space
-    assert main(["train", "coarse", "--data", str(dataset), "--free-space", "--free-weight", "-1",
+    assert main(["train", "--data", str(dataset), "--set", "free_weight=2", "--max-steps", "1"]) == 2
+    assert "free_space=true" in capsys.readouterr().err                 # nothing to weigh without the free space
+    assert main(["train", "--data", str(dataset), "--set", "free_space=true", "--set", "free_weight=-1",
                  "--max-steps", "1"]) == 2
-    assert "0 or more" in capsys.readouterr().err
+    assert "free_weight must lie in [0" in capsys.readouterr().err
 
 
 def test_height_cut_inputs_match_eval_reals_cut(dataset, monkeypatch):
@@ -247,6 +248,6 @@ def test_cut_free_loss_weighs_what_the_uncut_scan_saw_empty(dataset, monkeypatch
     _, cut_only, _ = loss(chains)
     assert torch.equal(model_free[0], model_free[1])                   # the model sees the cut's view both times
     assert with_uncut["seen_empty"] > cut_only["seen_empty"]
-    assert main(["train", "coarse", "--data", str(dataset), "--free-space", "--free-weight", "2",
-                 "--cut-free-loss", "--max-steps", "1"]) == 2
-    assert "needs --cut" in capsys.readouterr().err
+    assert main(["train", "--data", str(dataset), "--set", "free_space=true", "--set", "free_weight=2",
+                 "--set", "cut_free_loss=true", "--max-steps", "1"]) == 2
+    assert "needs cut" in capsys.readouterr().err

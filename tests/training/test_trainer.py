@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from hgca_core.models.gca import GCAConfig
-from hgca_core.models.weights import load_coarse, load_file, save_file, trained_weights
+from hgca_core.models.weights import load_coarse, load_file, trained_weights
 from hgca_core.training.coarse import CoarseTask
 from hgca_core.training.trainer import EMA, train
 
@@ -97,8 +97,7 @@ def test_run_record_names_the_device_used(tiny_dataset, tmp_path):
     assert ses["device"] == "cpu" and ses["device_name"] == cpu_name() and ses["device_name"]
     assert ses["recipe"] == {"crop": _task(tiny_dataset, planner=False).crop, "focus_share": 0.0, "free_weight": 0.0,
                              "cut_share": 0.0, "cut_free_loss": False, "turn_share": 0.0,
-                             "frozen_bn": False, "distill": 0.0, "teacher": None, "teacher_sha256": None,
-                             "distill_above": False}
+                             "distill": 0.0, "teacher": None, "teacher_sha256": None}
     from hgca_core.errors import InputError
 
     with pytest.raises(InputError, match="--device must be cpu, cuda or cuda:N"):
@@ -119,9 +118,9 @@ def test_torchrun_two_cpu_ranks_with_their_own_streams(tiny_dataset, tmp_path):
     """Two gloo ranks: each draws its own chains and keeps its own random streams, also across a resume."""
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29533",
-           "-m", "hgca_core.cli", "train", "coarse", "--data", str(tiny_dataset), "--out", str(tmp_path / "ddp"),
-           "--max-steps", "2", "--minutes", "5", "--crop", "24", "--batch", "1", "--buffer", "2",
-           "--channels", "8,8,16,16,16", "--no-progress", "--device", "cpu"]
+           "-m", "hgca_core.cli", "train", "--data", str(tiny_dataset), "--out", str(tmp_path / "ddp"),
+           "--max-steps", "2", "--minutes", "5", "--set", "crop=24", "--set", "batch=1", "--set", "buffer=2",
+           "--set", "channels=8,8,16,16,16", "--no-progress", "--device", "cpu"]
     res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     ck = load_file(tmp_path / "ddp" / "ckpt.pt")
@@ -203,8 +202,9 @@ def test_sigterm_stops_after_the_step_with_a_checkpoint(tiny_dataset, tmp_path):
     import time
 
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    cmd = [sys.executable, "-m", "hgca_core.cli", "train", "coarse-noplanner", "--data", str(tiny_dataset), "--out",
-           str(tmp_path / "sig"), "--minutes", "10", "--crop", "24", "--channels", "8,8,16,16,16", "--no-progress"]
+    cmd = [sys.executable, "-m", "hgca_core.cli", "train", "--recipe", "coarse-noplanner", "--data", str(tiny_dataset),
+           "--out", str(tmp_path / "sig"), "--minutes", "10", "--set", "crop=24", "--set", "channels=8,8,16,16,16",
+           "--no-progress"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:
         for line in proc.stdout:               # the first log line comes after step 10
@@ -271,9 +271,9 @@ def test_several_data_folders_train_on_the_union_and_validate_on_the_first(tiny_
     with pytest.raises(InputError, match="no samples in"):
         split_files(str(val_only), "train")
     def run(out, data):
-        cmd = [sys.executable, "-m", "hgca_core.cli", "train", "coarse-noplanner", "--data", *data, "--out", str(out),
-               "--max-steps", "1", "--batch", "1", "--buffer", "1", "--crop", "24", "--channels", "8,8,16,16,16",
-               "--threads", "1", "--minutes", "5", "--no-progress"]
+        cmd = [sys.executable, "-m", "hgca_core.cli", "train", "--recipe", "coarse-noplanner", "--data", *data,
+               "--out", str(out), "--max-steps", "1", "--set", "batch=1", "--set", "buffer=1", "--set", "crop=24",
+               "--set", "channels=8,8,16,16,16", "--threads", "1", "--minutes", "5", "--no-progress"]
         return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
 
     assert run(tmp_path / "run", both).returncode == 0
@@ -285,45 +285,27 @@ def test_several_data_folders_train_on_the_union_and_validate_on_the_first(tiny_
     assert bad.returncode == 2 and str(more / "train") in bad.stderr
 
 
-def test_a_resume_keeps_the_runs_recipe_unless_told_otherwise(tiny_dataset, tmp_path):
-    """Leaving --focus / --cut / --precision out of a resume command keeps what the run trained with (it used to
-    fall back to the defaults and change the recipe silently); giving one again changes it from then on."""
-    def run(*extra):
-        cmd = [sys.executable, "-m", "hgca_core.cli", "train", "coarse-noplanner", "--data", str(tiny_dataset),
-               "--out", str(tmp_path / "r"), "--max-steps", "1", "--batch", "1", "--buffer", "1", "--crop", "24",
-               "--channels", "8,8,16,16,16", "--threads", "1", "--minutes", "5", "--no-progress", *extra]
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-        assert done.returncode == 0, done.stderr
-        ses = load_file(tmp_path / "r" / "ckpt.pt")["state"]["sessions"][-1]
-        return ses["recipe"], ses["precision"], done.stderr
-
-    recipe, precision, _ = run("--focus", "0.25", "--cut", "0.5", "--precision", "bf16")
-    assert (recipe["focus_share"], recipe["cut_share"], precision) == (0.25, 0.5, "bf16")
-    recipe, precision, err = run("--resume")
-    assert (recipe["focus_share"], recipe["cut_share"], recipe["free_weight"], precision) == (0.25, 0.5, 0.0, "bf16")
-    assert "--focus 0.25" in err and "--precision bf16" in err
-    recipe, precision, _ = run("--resume", "--focus", "0", "--precision", "fp32")
-    assert (recipe["focus_share"], recipe["cut_share"], precision) == (0.0, 0.5, "fp32")
-
-
 def test_export_blended_toward_the_weights_the_run_started_from(tiny_dataset, tmp_path):
-    """`--export F --blend-with A --blend-t T` writes (1 - T) * A + T * the run's EMA weights, says so in the meta
-    (which the card renders), and the options are refused alone or for the fine stage (exit 2, nothing written)."""
-    from hgca_core.models.weights import save_weights
-
-    def run(*extra):
-        cmd = [sys.executable, "-m", "hgca_core.cli", "train", "coarse-noplanner", "--data", str(tiny_dataset),
-               "--out", str(tmp_path / "r"), "--batch", "1", "--buffer", "1", "--crop", "24",
-               "--channels", "8,8,16,16,16", "--threads", "1", "--no-progress", *extra]
-        return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-
-    assert run("--max-steps", "1", "--minutes", "5").returncode == 0
+    """Recipe field `blend` T: the export writes (1 - T) * init_from + T * the run's EMA weights and says so in the
+    meta (which the card renders); it needs init_from, and T lies strictly between 0 and 1 (exit 2, nothing
+    written)."""
     from hgca_core.models.gca import GCAKernel
+    from hgca_core.models.weights import save_weights
 
     torch.manual_seed(3)
     a = save_weights(tmp_path / "a.pt", GCAKernel(GCAConfig(use_planner=False, **SMALL)), {"steps": 5})
-    assert run("--minutes", "0", "--export", str(tmp_path / "plain.pt")).returncode == 0
-    done = run("--minutes", "0", "--export", str(tmp_path / "mix.pt"), "--blend-with", str(a), "--blend-t", "0.25")
+
+    def run(*extra):
+        cmd = [sys.executable, "-m", "hgca_core.cli", "train", "--recipe", "coarse-noplanner", "--data",
+               str(tiny_dataset), "--out", str(tmp_path / "r"), "--set", "batch=1", "--set", "buffer=1", "--set",
+               "crop=24", "--threads", "1", "--no-progress", *extra]
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+
+    done = run("--max-steps", "1", "--minutes", "5", "--set", f"init_from={a}", "--set", "blend=0.25")
+    assert done.returncode == 0, done.stderr
+    done = run("--minutes", "0", "--export", str(tmp_path / "plain.pt"), "--set", "blend=none")
+    assert done.returncode == 0, done.stderr
+    done = run("--minutes", "0", "--export", str(tmp_path / "mix.pt"))
     assert done.returncode == 0, done.stderr
     mix, plain, base = (load_file(tmp_path / f) for f in ("mix.pt", "plain.pt", "a.pt"))
     k = next(n for n, v in plain["state_dict"].items() if v.is_floating_point() and v.abs().sum() > 0)
@@ -332,11 +314,11 @@ def test_export_blended_toward_the_weights_the_run_started_from(tiny_dataset, tm
     assert mix["meta"]["blend"]["t"] == 0.25 and mix["meta"]["blend"]["b"]["file"] == str(tmp_path / "r" / "ckpt.pt")
     assert mix["meta"]["blend"]["b"]["sessions"] == plain["meta"]["sessions"]
     assert mix["meta"]["blend"]["b"]["sha256"] == hashlib.sha256((tmp_path / "r" / "ckpt.pt").read_bytes()).hexdigest()
-    for bad in (["--blend-with", str(a)], ["--blend-t", "0.5", "--export", str(tmp_path / "x.pt")],
-                ["--blend-with", str(a), "--blend-t", "2", "--export", str(tmp_path / "x.pt")]):
-        done = run("--minutes", "0", *bad)
-        assert done.returncode == 2 and not (tmp_path / "x.pt").exists(), done.stderr
-
+    for bad in (["--set", "blend=2"], ["--set", "blend=0.5", "--set", "init_from=none"]):
+        done = subprocess.run([sys.executable, "-m", "hgca_core.cli", "train", "--recipe", "coarse-noplanner",
+                               "--data", str(tiny_dataset), "--out", str(tmp_path / "x"), *bad],
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 2 and "blend" in done.stderr and not (tmp_path / "x").exists(), done.stderr
 
 def test_the_best_validation_weights_are_kept_beside_the_last(tiny_dataset, tmp_path, monkeypatch):
     """best.pt holds the average of the step whose validation scored best (here the second of three), with the
@@ -360,49 +342,6 @@ def test_the_best_validation_weights_are_kept_beside_the_last(tiny_dataset, tmp_
     monkeypatch.setattr(task, "validate", lambda model: {"val_iou": 0.65})
     train(task, out, minutes=5, max_steps=1, resume=True, batch=1, buffer_size=1, progress=False)
     assert load_file(out / "best.pt")["state"]["step"] == 2
-
-
-def test_export_best_writes_the_best_steps_weights_and_refuses_a_run_without_them(tiny_dataset, tmp_path):
-    def run(out, *extra):
-        cmd = [sys.executable, "-m", "hgca_core.cli", "train", "coarse-noplanner", "--data", str(tiny_dataset),
-               "--out", str(out), "--batch", "1", "--buffer", "1", "--crop", "24",
-               "--channels", "8,8,16,16,16", "--threads", "1", "--no-progress", *extra]
-        return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-
-    done = run(tmp_path / "r", "--max-steps", "2", "--minutes", "5", "--export", str(tmp_path / "w.pt"), "--best")
-    assert done.returncode == 0, done.stderr
-    w = load_file(tmp_path / "w.pt")
-    assert w["meta"]["steps"] == load_file(tmp_path / "r" / "best.pt")["state"]["step"] == 2
-    (tmp_path / "r" / "best.pt").unlink()   # a run from before best-score weights were kept
-    done = run(tmp_path / "r", "--minutes", "0", "--export", str(tmp_path / "x.pt"), "--best")
-    assert done.returncode == 2 and "no best.pt in" in done.stderr and not (tmp_path / "x.pt").exists()
-    done = run(tmp_path / "r", "--minutes", "0", "--best")
-    assert done.returncode == 2 and "--best goes with --export" in done.stderr
-
-
-def test_a_resumed_run_takes_a_new_weight_average_decay_and_records_it(tiny_dataset, tmp_path):
-    """`--ema-decay` on a resume averages over a longer window from that step on (notes and session say so, the
-    checkpoint keeps it); without it the run keeps its own; a decay outside (0, 1) is refused (exit 2)."""
-    out = tmp_path / "run"
-    s = train(_task(tiny_dataset), out, minutes=5, max_steps=2, batch=2, buffer_size=3, progress=False)
-    assert s["sessions"][-1]["ema_decay"] == 0.999 and load_file(out / "ckpt.pt")["ema"]["decay"] == 0.999
-    ck = load_file(out / "ckpt.pt")
-    ck["ema"]["n"] = 10**6          # as if long past the warm-up, so the step's update uses the decay itself
-    save_file(ck, out / "ckpt.pt")
-    before = ck["ema"]["model"]
-    s = train(_task(tiny_dataset), out, minutes=5, max_steps=1, resume=True, batch=2, buffer_size=3,
-              progress=False, ema_decay=0.9999)
-    ck = load_file(out / "ckpt.pt")
-    assert ck["ema"]["decay"] == 0.9999 and s["notes"] == ["weight average decay 0.9999 from step 2 on (was 0.999)"]
-    k = next(n for n, v in before.items() if v.is_floating_point() and (v - ck["model"][n]).abs().max() > 1e-3)
-    for decay, close in ((0.9999, True), (0.999, False)):   # moved 1e-4 of the way to the live weights, not 1e-3
-        want = before[k].lerp(ck["model"][k], 1 - decay)
-        assert torch.allclose(ck["ema"]["model"][k], want, rtol=0, atol=1e-7) == close, decay
-    s = train(_task(tiny_dataset), out, minutes=5, max_steps=1, resume=True, batch=2, buffer_size=3, progress=False)
-    assert [ses["ema_decay"] for ses in s["sessions"]] == [0.999, 0.9999, 0.9999] and len(s["notes"]) == 1
-    res = subprocess.run([sys.executable, "-m", "hgca_core.cli", "train", "coarse", "--data", str(tiny_dataset),
-                          "--out", str(tmp_path / "x"), "--ema-decay", "1"], capture_output=True, text=True)
-    assert res.returncode == 2 and "strictly between 0 and 1" in res.stderr
 
 
 def test_the_seed_starts_a_new_runs_streams_and_a_resume_keeps_them(tiny_dataset, tmp_path, one_thread):
@@ -430,13 +369,15 @@ def test_the_seed_starts_a_new_runs_streams_and_a_resume_keeps_them(tiny_dataset
     assert not (tmp_path / "neg").exists()                                     # refused before the run folder
     assert lineage(tmp_path / "b" / "ckpt.pt", run_record(b))["seed"] == 1     # a blend or start keeps it
 
-    cmd = [sys.executable, "-m", "hgca_core.cli", "train", "coarse", "--data", str(tiny_dataset), "--out",
-           str(tmp_path / "b"), "--resume", "--max-steps", "1", "--batch", "2", "--buffer", "3", "--crop", "24",
-           "--threads", "1", "--minutes", "5", "--no-progress"]
-    done = subprocess.run([*cmd, "--seed", "2"], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 2 and "started with seed 1" in done.stderr and "ckpt.pt" in done.stderr
-    assert load_file(tmp_path / "b" / "ckpt.pt")["state"]["step"] == 2          # nothing trained, nothing written
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    cmd = [sys.executable, "-m", "hgca_core.cli", "train", "--data", str(tiny_dataset), "--out",
+           str(tmp_path / "cli"), "--max-steps", "1", "--set", "buffer=3", "--set", "crop=24",
+           "--set", "channels=8,8,16,16,16", "--threads", "1", "--minutes", "5", "--no-progress"]
+    done = subprocess.run([*cmd, "--seed", "1"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
-    st = load_file(tmp_path / "b" / "ckpt.pt")["state"]
-    assert (st["step"], st["seed"]) == (3, 1)
+    done = subprocess.run([*cmd, "--resume", "--seed", "2"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2 and "started with seed 1" in done.stderr and "ckpt.pt" in done.stderr
+    assert load_file(tmp_path / "cli" / "ckpt.pt")["state"]["step"] == 1          # nothing trained, nothing written
+    done = subprocess.run([*cmd, "--resume"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    st = load_file(tmp_path / "cli" / "ckpt.pt")["state"]
+    assert (st["step"], st["seed"]) == (2, 1)
