@@ -77,10 +77,10 @@ def _(d):
     return ["eval-real", str(root), "--frames", "0:2", "--out", str(root / "poses.json"), "--no-render"]
 
 
-@case("complete: sample 0 is the weights file", "overwrite an input", group="outputs")
+@case("drive: --out is the input sequence folder", "input sequence folder", group="outputs")
 def _(d):
-    (d / "w_s0.npz").write_bytes(b"weights")
-    return ["complete", str(good_npz(d)), "--weights", str(d / "w_s0.npz"), "-o", str(d / "w.npz")]
+    root = nuscenes_folder(d)
+    return ["drive", str(root), "--out", str(root), "--progress", "none"]
 
 
 @case("synth: --out is an existing file", "exists and is not a folder", group="outputs")
@@ -101,38 +101,11 @@ def _(d):
     return ["demo", "--out", str(d / "demo"), "--progress", "none"]
 
 
-@case("bench: --out is an existing file", "", group="outputs")
-def _(d):
-    (d / "results").write_text("mine")
-    return ["bench", "--out", str(d / "results"), "--widths", ""]
-
-
-@case("drive: --out is an existing file", "not a folder", group="outputs")
-def _(d):
-    (d / "drive").write_text("mine")
-    return drive_cmd(d)
-
-
 # --- names too long, checked before any work (sample and temp names included) ---------------------------------
-
-@case("complete: output name of 250 characters", "too long", group="outputs")
-def _(d):
-    return ["complete", str(good_npz(d)), "-o", str(d / f"{LONG}.ply"), "--progress", "none"]
-
 
 @case("complete: --samples 2 with a 248-character output name", "too long", group="outputs")
 def _(d):
     return ["complete", str(good_npz(d)), "--samples", "2", "-o", str(d / f"{LONG}xx.npz"), "--progress", "none"]
-
-
-@case("read: output name of 250 characters", "too long", group="outputs")
-def _(d):
-    return ["read", str(good_npz(d)), "-o", str(d / f"{LONG}.npz")]
-
-
-@case("poses: output name of 251 characters", "too long", group="outputs")
-def _(d):
-    return ["poses", str(nuscenes_folder(d)), "-o", str(d / f"{LONG}.json")]
 
 
 @case("drive: --out folder name of 300 characters", "too long", group="outputs")
@@ -182,7 +155,6 @@ flags("drive", drive_cmd, {
     "--max-faces -5": (["--max-faces", "-5"], "max-faces"),
     "--max-faces 10": (["--max-faces", "10"], "at least 1000"),
     "--t1 -1": (["--t1", "-1"], "--t1"),
-    "--t1 abc": (["--t1", "abc"], "--t1"),
     "--t2 1e9": (["--t2", "1000000000"], "at most 1000"),
     "--samples 0": (["--samples", "0"], "--samples"),
     "--workers 0": (["--workers", "0"], "--workers"),
@@ -204,36 +176,20 @@ flags("complete", lambda d, *f: complete_cmd(good_npz(d), d, *f), {
     "--max-faces -5": (["--max-faces", "-5"], "max-faces"),
     "--t1 1e9 steps": (["--t1", "1000000000"], "at most 1000"),
     "--samples 100000": (["--samples", "100000"], "--samples"),
-    "--device CPU": (["--device", "CPU"], "unknown device"),
-    "--device cuda:99": (["--device", "cuda:99"], "CUDA GPU"),
     "--region 100000 m tall": (["--region", "3,3,1,6,6,100000,0"], "GiB"),
-    "--region 1e6 m wide": (["--region", "3,3,1,1000000,6,4,0"], "GiB"),
 })
 flags("eval", lambda d, *f: ["eval", "--data", str(d), *f], {
     "--samples 0": (["--samples", "0"], "--samples"),
     "--count 0": (["--count", "0"], "--count"),
-    "--t1 -3": (["--t1", "-3"], "--t1"),
 })
 flags("eval-real", lambda d, *f: ["eval-real", str(good_npz(d)), "--out", str(d / "r.json"), *f], {
-    "--samples 0": (["--samples", "0"], "--samples"),
-    "--full-samples -1": (["--full-samples", "-1"], "--full-samples"),
     "--threads 0": (["--threads", "0"], "--threads"),
-    "--yaw inf": (["--yaw", "inf"], "--yaw"),
     "--t1 -1": (["--t1", "-1"], "--t1"),
-    "output in a missing folder": (["--out", str(Path("/nonexistent") / "r.json")], "does not exist"),
 })
 flags("bench", lambda d, *f: ["bench", "--out", str(d / "b"), *f], {
     "--widths abc": (["--widths", "abc"], "--widths"),
     "--widths 40,-60": (["--widths", "40,-60"], "--widths"),
     "--widths nan": (["--widths", "nan"], "--widths"),
-    "--t1 -1": (["--t1", "-1"], "--t1"),
-    "--device tpu": (["--device", "tpu"], "unknown device"),
-})
-flags("synth", lambda d, *f: ["synth", *f, "--out", str(d / "s")], {
-    "--seed 1 --scans 0": (["--seed", "1", "--scans", "0"], "--scans"),
-    "--split train --count 0": (["--split", "train", "--count", "0"], "--count"),
-    "--split train --count 2 --workers 0": (["--split", "train", "--count", "2", "--workers", "0"], "--workers"),
-    "--split train --first -1": (["--split", "train", "--count", "1", "--first", "-1"], "--first"),
 })
 flags("demo", lambda d, *f: ["demo", *f, "--out", str(d / "demo")], {
     "--samples 0": (["--samples", "0"], "--samples"),

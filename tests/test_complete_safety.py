@@ -201,3 +201,32 @@ def test_disk_full_while_writing_is_one_line_and_leaves_nothing(small_weights, t
                    "--region", "3,3,1,6,6,4", "--samples", "2", "--progress", "none")
         one_disk_full_line(res, "complete")
         assert list(full_disk.iterdir()) == [], "no sample, no temp file"
+
+
+@pytest.mark.parametrize("command", ["read", "complete", "complete --samples 2", "poses"])
+def test_an_output_name_too_long_is_refused_before_any_input_is_read(tmp_path, monkeypatch, capsys, command):
+    """A 250-character `-o` fits the file system, but its sample names (`_s0`) or its temp file do not: that
+    failed only after every stage ran. Now the reader is never reached."""
+    import hgca_core.io.sequence as sequence
+    from hgca_core.cli import main
+
+    called = []
+
+    def reader(*args, **kwargs):
+        called.append(args)
+        raise AssertionError("read before the outputs were checked")
+
+    monkeypatch.setattr(sequence, "read_inputs", reader)
+    monkeypatch.setattr(sequence, "open_sequence", reader)
+    np.savez(tmp_path / "s.npz", points=np.zeros((50, 3)))
+    name, *extra = command.split()
+    if name == "poses":
+        (tmp_path / "seq").mkdir()
+        argv = ["poses", str(tmp_path / "seq"), "-o", str(tmp_path / ("a" * 246 + ".json"))]
+    else:
+        argv = [name, str(tmp_path / "s.npz"), *extra, "-o", str(tmp_path / ("a" * 246 + ".npz"))]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "too long" in err and "Traceback" not in err, err
+    assert called == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["s.npz"] + (["seq"] if name == "poses" else []))

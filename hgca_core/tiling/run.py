@@ -296,6 +296,11 @@ def _check_outputs(paths: list[str], poses, store: DriveStore, weights: list[Pat
     existing drive folder's outputs pass the commands' one output check (`io.paths.check_outputs`)."""
     from hgca_core.io.paths import check_outputs
 
+    root = os.path.realpath(store.root)
+    for p in paths:
+        if os.path.isdir(p) and os.path.realpath(p) == root:
+            raise InputError("the drive folder is the input sequence folder; choose another --out (a folder inside "
+                             "it is fine)", str(store.root))
     if store.root.is_dir():
         check_outputs([store.manifest, store.drive_mesh(0, ".ply")], [*paths, poses, *weights], skip=[store.root])
     else:
