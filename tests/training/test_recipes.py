@@ -83,6 +83,22 @@ def test_shipped_recipe_is_the_one_the_shipped_coarse_weights_record():
     assert r.init_from == str(shipped("coarse")) and r.free_space is blob["config"]["free_space"] is True
 
 
+@pytest.mark.parametrize("stage", ["coarse-noplanner", "fine"])
+def test_the_other_shipped_recipes_are_the_ones_their_weights_record(stage):
+    """Their runs recorded precision, batch-free sessions (2 chains, the default then), the crop and focus, and a
+    start from the stage's previous weights with the free space switched on."""
+    blob = torch.load(shipped(stage), weights_only=True)
+    r = RECIPES[f"{stage}-shipped"]
+    sessions = blob["meta"]["sessions"]
+    assert {s["precision"] for s in sessions} == {r.precision} and all("batch" not in s for s in sessions)
+    assert r.batch == 2 and r.free_space is blob["config"]["free_space"] is True and r.init_from == str(shipped(stage))
+    assert any("initialised from the previous" in n for n in blob["meta"]["notes"])
+    if stage == "fine":
+        assert r.crop == blob["config"]["crop"]
+    else:
+        assert {(s["recipe"]["crop"], s["recipe"]["focus_share"]) for s in sessions} == {(r.crop, r.focus)}
+
+
 def test_set_is_typed_checked_and_refuses_unknown_keys():
     assert parse_sets(["lr=1e-4", "batch=3", "free_space=true", "channels=8,16", "blend=none"]) == {
         "lr": 1e-4, "batch": 3, "free_space": True, "channels": (8, 16), "blend": None}
