@@ -13,15 +13,18 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from . import colors, georef
+from . import colors, confidence, georef
 
 ROLE_KEY = "hgca_role"  # custom property marking objects the add-on created: "scan", "region", "result"
 OBSERVED_ATTRIBUTE = "observed_distance"
 # Vertices closer than this to an input point count as observed, farther ones as generated (metres).
-OBSERVED_NEAR = 0.05
-OBSERVED_FAR = 0.3
+OBSERVED_NEAR = confidence.OBSERVED_NEAR
+OBSERVED_FAR = confidence.OBSERVED_FAR
 POINT_NODE_GROUP = "hGCA Points"
 POINT_MATERIAL = "hGCA point colours"
+OBSERVED_COLOR = "hgca_observed_color"     # colour attributes of results: observed (grey) / generated (orange)
+AGREEMENT_ATTRIBUTE = "hgca_agreement"     # share of the k samples with surface at the vertex
+AGREEMENT_COLOR = "hgca_agreement_color"
 RADIUS_INPUT = "Radius"
 DEFAULT_RADIUS = 0.03
 
@@ -308,14 +311,30 @@ def observed_material(name: str = "hGCA observed/generated") -> bpy.types.Materi
     return mat
 
 
+def add_color(mesh: bpy.types.Mesh, name: str, rgba: np.ndarray) -> bpy.types.Attribute:
+    attr = mesh.color_attributes.new(name, "FLOAT_COLOR", "POINT")
+    attr.data.foreach_set("color", np.ascontiguousarray(rgba, dtype=np.float32).ravel())
+    return attr
+
+
 def result_object(name: str, arrays: ResultArrays, material: bpy.types.Material, created: Created,
-                  origin: np.ndarray | None = None) -> bpy.types.Object:
-    """One sample's mesh object, placed relative to the scene origin `origin` (see georef)."""
+                  origin: np.ndarray | None = None, agreement: np.ndarray | None = None) -> bpy.types.Object:
+    """One sample's mesh object, placed relative to the scene origin `origin` (see georef), with its
+    observed/generated colours (the active colour attribute: Solid view with colour = Attribute) and, for k > 1
+    samples, the share of samples that agree with each vertex (`confidence.agreement`) and its colours."""
     vertices, location = georef.place(arrays.vertices, arrays.offset, np.zeros(3) if origin is None else origin)
     mesh = triangle_mesh(name, vertices, arrays.faces)
     created.meshes.append(mesh)
     attr = mesh.attributes.new(OBSERVED_ATTRIBUTE, "FLOAT", "POINT")
     attr.data.foreach_set("value", arrays.observed_distance)
+    observed = add_color(mesh, OBSERVED_COLOR, confidence.observed_colors(arrays.observed_distance))
+    if agreement is not None:
+        share = mesh.attributes.new(AGREEMENT_ATTRIBUTE, "FLOAT", "POINT")
+        share.data.foreach_set("value", np.ascontiguousarray(agreement, dtype=np.float32))
+        add_color(mesh, AGREEMENT_COLOR, confidence.agreement_colors(agreement, colors.RAMP))
+    mesh.color_attributes.active_color = observed
+    if hasattr(mesh.color_attributes, "render_color_index"):
+        mesh.color_attributes.render_color_index = mesh.color_attributes.active_color_index
     mesh.materials.append(material)
     obj = bpy.data.objects.new(name, mesh)
     created.objects.append(obj)
@@ -338,8 +357,10 @@ def build_results(scene: bpy.types.Scene, outputs: list[Path], run_name: str) ->
         material = observed_material(f"{run_name} observed/generated")
         created.materials.append(material)
         objects = []
+        shares = confidence.agreement([a.vertices.astype(np.float64) + a.offset for a in arrays]) \
+            if len(arrays) > 1 else [None] * len(arrays)
         for i, arr in enumerate(arrays):
-            obj = result_object(f"{run_name} sample {i}", arr, material, created, origin)
+            obj = result_object(f"{run_name} sample {i}", arr, material, created, origin, shares[i])
             obj["hgca_sample"] = i
             collection.objects.link(obj)
             objects.append(obj)
