@@ -230,3 +230,36 @@ def test_an_output_name_too_long_is_refused_before_any_input_is_read(tmp_path, m
     assert "too long" in err and "Traceback" not in err, err
     assert called == []
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["s.npz"] + (["seq"] if name == "poses" else []))
+
+
+def test_fifty_million_points_under_a_3_gib_limit_are_refused_up_front_with_the_figure(tmp_path):
+    """The point count of a KITTI .bin is its size / 16: 800 MB (sparse here) is 50 M points, ~3.8 GiB to read."""
+    import resource
+
+    scan = tmp_path / "fifty.bin"
+    with open(scan, "wb") as f:
+        f.truncate(50_000_000 * 16)
+
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (3 * 2**30, 3 * 2**30))
+
+    for command in ("read", "complete"):
+        out = tmp_path / ("o.npz" if command == "read" else "m.ply")
+        res = subprocess.run([sys.executable, "-m", "hgca_core.cli", command, str(scan), "-o", str(out)],
+                             capture_output=True, text=True, timeout=300, preexec_fn=limit)
+        clear_error(res, "about 50,000,000 points", "GiB to read", "address-space limit")
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["fifty.bin"]
+
+
+def test_point_counts_come_from_the_headers(tmp_path):
+    from hgca_core.commands.memory import point_count_hint
+    from hgca_core.io import write_points
+
+    pts = tiny_sample(3)["input_points"].astype(np.float64)
+    write_las(tmp_path / "a.las", pts + [500_000.0, 5_000_000.0, 0.0])
+    write_points(tmp_path / "a.ply", pts)
+    np.save(tmp_path / "a.npy", pts)
+    (tmp_path / "a.pcd.bin").write_bytes(b"\0" * 20 * 7)
+    for name in ("a.las", "a.ply", "a.npy"):
+        assert point_count_hint([str(tmp_path / name)]) == len(pts), name
+    assert point_count_hint([str(tmp_path / "a.pcd.bin"), str(tmp_path)]) == 7

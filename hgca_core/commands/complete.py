@@ -108,6 +108,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, progress) -> list[Path]:
     from hgca_core.geometry.region import Region
+    from hgca_core.commands.memory import check_read_memory
     from hgca_core.io.paths import check_outputs
     from hgca_core.pipeline import check_memory
 
@@ -115,6 +116,7 @@ def _run(args: argparse.Namespace, progress) -> list[Path]:
     check_seed_span(args.seed, args.samples)
     check_outputs(paths, [*args.scans, args.poses, args.weights, args.fine_weights])
     check_device(args.device)
+    check_read_memory(args.scans)
     region_arg = Region.parse(args.region) if args.region else None
     if region_arg is not None:
         check_memory(region_arg)

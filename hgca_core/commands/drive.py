@@ -56,6 +56,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from hgca_core.commands.memory import check_read_memory
     from hgca_core.tiling.plan import check_stride
 
     if args.plan_only:
@@ -68,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         check_stride(args.size, args.overlap)
         check_device(args.device)
+        check_read_memory(args.scans)
         if not args.out:
             raise InputError("--out DIR is required (the drive folder), except with --plan-only")
     except InputError as exc:

@@ -35,11 +35,13 @@ def add_frames_argument(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from hgca_core.commands.memory import check_read_memory
     from hgca_core.io.paths import check_outputs
 
     if os.path.splitext(args.out)[1].lower() != ".npz":
         raise InputError("output must end in .npz", args.out)
     check_outputs([args.out], [*args.scans, args.poses])
+    check_read_memory(args.scans)
 
     from hgca_core.io import write_points
     from hgca_core.io.sequence import read_inputs

@@ -41,7 +41,10 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.geometry.region import default_region, ground_height
     from hgca_core.io import read_scans
 
+    from hgca_core.commands.memory import check_read_memory
+
     size = parse_size(args.size)
+    check_read_memory(args.scans)
     scan = read_scans(args.scans, poses=args.poses, fmt=args.fmt)
     region = default_region(scan.points, scan.origins, size=size)
     values = [float(v) for v in region.as_tuple()]
