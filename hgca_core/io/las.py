@@ -17,8 +17,8 @@ import numpy as np
 from hgca_core.errors import InputError
 from hgca_core.io.scan import Scan
 
-# Per-point fields worth carrying (intensity for display, returns and class for filtering, time for ordering).
-LAS_ATTRIBUTES = ("intensity", "return_number", "classification", "gps_time")
+# Per-point fields worth carrying (intensity and RGB for display, returns and class for filtering, time for ordering).
+LAS_ATTRIBUTES = ("intensity", "return_number", "classification", "gps_time", "red", "green", "blue")
 
 
 CHUNK = 1 << 20

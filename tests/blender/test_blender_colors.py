@@ -96,3 +96,16 @@ def test_colour_scaling_is_robust() -> None:
     values = np.r_[np.linspace(0, 1, 999), 1e6]  # one wild return does not flatten the rest
     assert np.median(colors.normalised(values)) == pytest.approx(0.5, abs=0.02)
     assert colors.normalised(np.full(5, 3.0)).tolist() == [0.5] * 5
+
+
+def test_las_rgb_is_imported_as_the_scans_colours(addon) -> None:
+    """simple.las (point format 3) carries RGB: the import colours by it (stored 8-bit in its 16-bit fields)."""
+    import laspy
+
+    path = require_fixture(FIXTURES / "simple.las")
+    las = laspy.read(str(path))
+    obj = import_one(filepath=str(path))
+    want = np.c_[las.red, las.green, las.blue].astype(np.float64) / 255.0
+    got = colors_of(obj)[:, :3]
+    assert len(got) == len(want)
+    np.testing.assert_allclose(got, want, atol=1e-6)
