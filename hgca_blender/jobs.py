@@ -206,6 +206,17 @@ def window_progress(job: Job) -> None:
         wm.progress_end()
 
 
+def time_left(job: Job) -> str:
+    """", about 1 min 20 s left" from the time so far and the share done; "" until there is enough to tell."""
+    import time
+
+    done, spent = job.progress, time.monotonic() - job.started
+    if done < 0.05 or spent < 2.0:
+        return ""
+    left = spent * (1.0 - done) / done
+    return f", about {int(left // 60)} min {int(left % 60)} s left" if left >= 60 else f", about {int(left)} s left"
+
+
 def status_bar(context: bpy.types.Context, text: str | None) -> None:
     """Text in the status bar while a job runs (None gives the bar back to Blender)."""
     workspace = getattr(context, "workspace", None)

@@ -122,7 +122,8 @@ class HGCA_OT_complete(bpy.types.Operator):
             return self._finish(context)
         if job is None or not job.running:
             return self._finish(context)
-        jobs.status_bar(context, f"hGCA: {job.status} ({job.progress * 100:.0f}%)  Esc: cancel")
+        jobs.status_bar(context, f"hGCA: {job.status} ({job.progress * 100:.0f}%{jobs.time_left(job)})  "
+                                 "Esc: cancel")
         return {"PASS_THROUGH"}
 
     def _finish(self, context: bpy.types.Context) -> set[str]:

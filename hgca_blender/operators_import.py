@@ -190,6 +190,14 @@ class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
         layout.prop(self, "point_size")
 
 
+class HGCA_OT_import_scan_script(HGCA_OT_import_scan):
+    """Import LiDAR scans as one point object (the File > Import operator under the add-on's own name, for
+    scripts: `bpy.ops.hgca.import_scan(filepath=...)` or `directory=FOLDER, frames="0:5"`)"""
+
+    bl_idname = "hgca.import_scan"
+    bl_label = "Import LiDAR Scan"
+
+
 class HGCA_FH_lidar(bpy.types.FileHandler):
     """Drag and drop of scan files onto the 3D viewport or outliner (Blender 4.1+).
 
@@ -210,7 +218,7 @@ def menu_import(self: bpy.types.Menu, _context: bpy.types.Context) -> None:
     self.layout.operator(HGCA_OT_import_scan.bl_idname, text="LiDAR Scan (hgca)")
 
 
-CLASSES = (HGCA_OT_import_scan, HGCA_FH_lidar)
+CLASSES = (HGCA_OT_import_scan, HGCA_OT_import_scan_script, HGCA_FH_lidar)
 
 
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(CLASSES)

@@ -107,3 +107,23 @@ def test_region_numbers_reach_the_core_as_typed(addon) -> None:
     props.region_center, props.region_size, props.region_yaw = (1.1, -2.3, 0.7), (9.6, 12.8, 4.4), np.radians(30)
     got = addon_module("operators_complete").panel_region(bpy.context)
     assert got == (1.1, -2.3, 0.7, 9.6, 12.8, 4.4, 30.0)
+
+
+def test_operators_are_callable_from_scripts_under_hgca(addon, tmp_path: Path) -> None:
+    """A script imports, boxes and completes with `bpy.ops.hgca.*` alone (the drive operators live there too)."""
+    require_fixture(NUSCENES)
+    assert bpy.ops.hgca.import_scan(filepath=str(NUSCENES), color_by="HEIGHT") == {"FINISHED"}
+    scan = next(o for o in bpy.data.objects if o.get("hgca_role") == "scan")
+    scan.select_set(True)
+    bpy.context.view_layer.objects.active = scan
+    bpy.context.scene.hgca.region_size = (9.6, 9.6, 4.0)
+    assert bpy.ops.hgca.add_region_box() == {"FINISHED"}
+    assert {"complete", "cancel", "drive", "drive_plan"} <= set(dir(bpy.ops.hgca))
+
+
+def test_time_left_follows_the_rate_so_far(addon) -> None:
+    jobs = addon_module("jobs")
+    job = SimpleNamespace(progress=0.25, started=time.monotonic() - 30.0)
+    assert jobs.time_left(job) == ", about 1 min 30 s left"
+    job.progress = 0.01
+    assert jobs.time_left(job) == ""
