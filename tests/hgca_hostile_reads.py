@@ -453,7 +453,8 @@ info_or_read("npz holding 'points' twice", "'points' 2 times", _npz_repeated_mem
 def _(d):
     scan = good_npz(d)
     moved = json.dumps(_moved((4.0, 0.0, 0.0)).tolist())
-    (d / "poses.json").write_text('{"scans": [{"file": "scan.npz", "pose": %s, "pose": %s}]}' % (json.dumps(EYE), moved))
+    text = '{"scans": [{"file": "scan.npz", "pose": %s, "pose": %s}]}' % (json.dumps(EYE), moved)
+    (d / "poses.json").write_text(text)
     return read_cmd(scan, d, "--poses", d / "poses.json")
 
 

@@ -18,7 +18,6 @@ import numpy as np
 from hgca_core.errors import InputError
 from hgca_core.io.scan import Scan
 
-_SPLIT = re.compile(r"[,;\s]+")
 _HEX = re.compile(r"^[+-]?0x[0-9a-f]*\.?[0-9a-f]*(p[+-]?\d+)?$", re.IGNORECASE)
 _DECIMAL_COMMA = re.compile(r"^[+-]?\d+,\d+$")
 _UNIT = re.compile(r"\s*[\[(][^\])]*[\])]$")   # "x [m]", "Easting (m)"
