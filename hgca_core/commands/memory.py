@@ -20,8 +20,30 @@ BASE_BYTES = 64 * 2**20
 RECORD_BYTES = {".bin": 16, ".pcd.bin": 20}   # KITTI x, y, z, intensity; nuScenes adds the ring, all float32
 
 
+# The fewest bytes a point takes in each format (LAS records are at least 20 bytes, LAZ compresses them about
+# tenfold, text needs "0 0 0\n"): a header claiming more points than its file can hold is the reader's to
+# report as truncated, not a memory need.
+MIN_POINT_BYTES = {".las": 20, ".laz": 2, ".ply": 6, ".pcd": 6, ".npy": 6}
+
+
 def _header_count(path: str) -> int | None:
-    """Points a PLY, PCD, LAS/LAZ or NPY file says it holds, from its first bytes; None when it does not say."""
+    """Points a PLY, PCD, LAS/LAZ or NPY file says it holds, from its first bytes, at most what its size can
+    hold (compressed PCD excepted: it inflates); None when it does not say."""
+    count = _claimed(path)
+    if count is None:
+        return None
+    ext = os.path.splitext(path.lower())[1]
+    try:
+        with open(path, "rb") as f:
+            compressed = ext == ".pcd" and b"DATA binary_compressed" in f.read(4096)
+        size = os.path.getsize(path)
+    except OSError:
+        return None
+    return count if compressed else min(count, size // MIN_POINT_BYTES[ext])
+
+
+def _claimed(path: str) -> int | None:
+    """The point count a header states."""
     name = path.lower()
     try:
         with open(path, "rb") as f:
