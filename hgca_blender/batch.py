@@ -51,6 +51,17 @@ def script_args(argv: list[str]) -> list[str]:
     return argv[argv.index("--") + 1:] if "--" in argv else argv[1:]
 
 
+def _size(text: str) -> tuple[int, int]:
+    """`--render-size 1280x720`."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must be WIDTHxHEIGHT, got {text!r}") from None
+    if not (16 <= w <= 16384 and 16 <= h <= 16384):
+        raise argparse.ArgumentTypeError(f"size must be 16..16384 pixels a side, got {text!r}")
+    return w, h
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="hgca_blender.batch", description=__doc__.split("\n")[0])
     p.add_argument("scans", nargs="+", help="scan files (any format `hgca read` accepts)")
@@ -71,6 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--python", default=None, help="interpreter with hgca_core (default: auto-detect)")
     p.add_argument("--render", default=None, help="also render a preview PNG with Cycles (CPU)")
     p.add_argument("--render-samples", type=int, default=16)
+    p.add_argument("--render-size", type=_size, default=(640, 480), metavar="WxH", help="preview size in pixels")
     p.add_argument("--timeout", type=float, default=3600.0, help="give up on the completion after this many seconds")
     p.add_argument("--drive", default=None, metavar="DIR",
                    help="complete the whole drive tile by tile (`hgca drive`, scans in trajectory order) into DIR "
@@ -135,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
     _log(f"{job.status} after {time.perf_counter() - t0:.1f} s")
     if args.render:
         preview.add_camera_and_sun(scene, box)
-        preview.configure_cycles(scene, samples=args.render_samples)
+        preview.configure_cycles(scene, samples=args.render_samples, resolution=args.render_size)
     out = Path(args.out).resolve()
     out.parent.mkdir(parents=True, exist_ok=True)
     bpy.ops.wm.save_as_mainfile(filepath=str(out), check_existing=False)

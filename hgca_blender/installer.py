@@ -7,6 +7,11 @@ running Blender (its `sys.executable`: Blender's bundled 3.11 in Blender 4.2-5.0
 bpy module) unless the user picks another Python 3.11+ in the preferences. hgca's wheel travels inside the
 extension (`core/`, put there by `build_extension`); torch and the other dependencies come from the package
 index (torch's CPU index by default), which needs Blender's online access, or from a folder of wheels offline.
+
+Tested on Linux with the bpy module (4.2, 5.0), whose `sys.executable` is the host Python. In Blender itself
+`sys.executable` is its bundled Python, which ships venv and ensurepip on Linux; where a build lacks them the
+check says so and the user picks a Python 3.11 as Base Python. Windows (Scripts/python.exe) and macOS go through
+the same code but are untested: on macOS PyPI's torch is the CPU/MPS build, so its Torch Index can be empty.
 """
 from __future__ import annotations
 

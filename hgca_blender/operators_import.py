@@ -114,13 +114,8 @@ def import_scans(python: str, paths: list[Path], collection: bpy.types.Collectio
     return obj, skipped, dropped
 
 
-class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
-    """Import LiDAR scans (PLY, LAS/LAZ, PCD, XYZ/CSV, NPY/NPZ, KITTI/nuScenes .bin, AV2 .feather) as one point
-    object, or a sequence folder (KITTI, Argoverse 2 log, nuScenes sweeps: open the folder, select no file)"""
-
-    bl_idname = "import_scene.hgca_lidar"
-    bl_label = "Import LiDAR Scan"
-    bl_options = {"REGISTER", "UNDO"}
+class _ImportScan:
+    """What both import operators share: the options, the paths picked, and the import itself."""
 
     filter_glob: StringProperty(default=";".join(f"*{e}" for e in EXTENSIONS), options={"HIDDEN"})
     files: CollectionProperty(type=bpy.types.OperatorFileListElement, options={"HIDDEN", "SKIP_SAVE"})
@@ -151,12 +146,6 @@ class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
             return [Path(bpy.path.abspath(self.filepath))]
         # a folder opened in the browser with no file selected: the folder is the input (a sequence)
         return [Path(bpy.path.abspath(self.directory))] if self.directory else []
-
-    def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
-        # files dropped on the viewport (FileHandler) arrive with paths set: confirm in a popup
-        if self.properties.is_property_set("filepath") and hasattr(self, "invoke_popup"):
-            return self.invoke_popup(context)
-        return ImportHelper.invoke(self, context, event)
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         paths = self._paths()
@@ -190,12 +179,32 @@ class HGCA_OT_import_scan(bpy.types.Operator, ImportHelper):
         layout.prop(self, "point_size")
 
 
-class HGCA_OT_import_scan_script(HGCA_OT_import_scan):
-    """Import LiDAR scans as one point object (the File > Import operator under the add-on's own name, for
-    scripts: `bpy.ops.hgca.import_scan(filepath=...)` or `directory=FOLDER, frames="0:5"`)"""
+
+class HGCA_OT_import_scan(_ImportScan, bpy.types.Operator, ImportHelper):
+    """Import LiDAR scans (PLY, LAS/LAZ, PCD, XYZ/CSV, NPY/NPZ, KITTI/nuScenes .bin, AV2 .feather) as one point
+    object, or a sequence folder (KITTI, Argoverse 2 log, nuScenes sweeps: open the folder, select no file)"""
+
+    bl_idname = "import_scene.hgca_lidar"
+    bl_label = "Import LiDAR Scan"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
+        # files dropped on the viewport (FileHandler) arrive with paths set: confirm in a popup
+        if self.properties.is_property_set("filepath") and hasattr(self, "invoke_popup"):
+            return self.invoke_popup(context)
+        return ImportHelper.invoke(self, context, event)
+
+
+
+class HGCA_OT_import_scan_script(_ImportScan, bpy.types.Operator):
+    """Import LiDAR scans as one point object (File > Import's operator under the add-on's own name, for
+    scripts: `bpy.ops.hgca.import_scan(filepath=...)`, or `directory=FOLDER, frames="0:5"`)"""
 
     bl_idname = "hgca.import_scan"
     bl_label = "Import LiDAR Scan"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filepath: StringProperty(name="File Path", subtype="FILE_PATH", options={"SKIP_SAVE"})
 
 
 class HGCA_FH_lidar(bpy.types.FileHandler):

@@ -34,11 +34,11 @@ def test_batch_completes_saves_and_renders(tmp_path: Path) -> None:
     blend, png = tmp_path / "scene.blend", tmp_path / "preview.png"
     args = [str(scan), "--samples", "2", "--stage", "coarse", "--t1", "2", "--python", CORE_PYTHON,
             "--region", ",".join(map(str, SMALL_REGION)), "--out", str(blend), "--render", str(png),
-            "--render-samples", "2"]
+            "--render-samples", "2", "--render-size", "320x200"]
     proc = run_batch(args, tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "Done: 2 samples" in proc.stdout
-    assert png_size(png) == (640, 480)
+    assert png_size(png) == (320, 200)
 
     bpy.ops.wm.open_mainfile(filepath=str(blend))
     colls = [c for c in bpy.data.collections if c.name.startswith("hGCA ")]
