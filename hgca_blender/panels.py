@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import georef, jobs, mesh_build
+from . import georef, jobs, mesh_build, operators_results
 
 
 class _SidebarTab:
@@ -26,6 +26,21 @@ def draw_point_size(layout: bpy.types.UILayout, obj: bpy.types.Object | None) ->
             return
 
 
+def draw_results(layout: bpy.types.UILayout, obj: bpy.types.Object | None) -> None:
+    """For an active completion result: which sample it is, stepping through them, and its colours."""
+    objects = operators_results.run_objects(obj)
+    if not objects:
+        return
+    col = layout.column(heading="Result")
+    row = col.row(align=True)
+    row.operator("hgca.step_sample", text="", icon="TRIA_LEFT").step = -1
+    row.label(text=f"Sample {int(obj[operators_results.SAMPLE_KEY])} of {len(objects)}")
+    row.operator("hgca.step_sample", text="", icon="TRIA_RIGHT").step = 1
+    row = col.row(align=True)
+    row.operator("hgca.result_colors", text="Generated").mode = "OBSERVED"
+    row.operator("hgca.result_colors", text="Agreement").mode = "AGREEMENT"
+
+
 class HGCA_PT_main(_SidebarTab, bpy.types.Panel):
     bl_idname = "HGCA_PT_main"
     bl_label = "hGCA Scene Completion"
@@ -45,6 +60,7 @@ class HGCA_PT_main(_SidebarTab, bpy.types.Panel):
             col.label(text=f"{n} selected object(s)")
 
         draw_point_size(layout, context.active_object)
+        draw_results(layout, context.active_object)
 
         col = layout.column(heading="Region")
         col.prop(props, "region_mode", expand=True)

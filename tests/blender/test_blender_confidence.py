@@ -84,3 +84,21 @@ def test_solid_view_draws_the_generated_colour(addon, tmp_path: Path) -> None:
     image = bpy.data.images.load(str(tmp_path / "solid.png"))
     r, g, b, _ = np.array(image.pixels[:]).reshape(16, 16, 4)[8, 8]
     assert r > 0.9 and r - b > 0.5 and r > g > b, (r, g, b)  # orange (sRGB of 0.95, 0.45, 0.1), not grey
+
+
+def test_step_through_samples_and_colour_by_agreement(addon, tmp_path: Path) -> None:
+    mesh_build = addon_module("mesh_build")
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=np.float32)
+    paths = [write_sample(tmp_path / f"out_s{i}.npz", verts + [0, 0, i], np.zeros(3)) for i in range(3)]
+    coll = mesh_build.build_results(bpy.context.scene, paths, "hGCA test")
+    objs = sorted(coll.objects, key=lambda o: o["hgca_sample"])
+    bpy.context.view_layer.objects.active = objs[0]
+    assert bpy.ops.hgca.step_sample(step=1) == {"FINISHED"}
+    assert bpy.context.view_layer.objects.active is objs[1]
+    assert [o.visible_get() for o in objs] == [False, True, False] and not objs[1].hide_render
+    assert bpy.ops.hgca.step_sample(step=-2) == {"FINISHED"}
+    assert bpy.context.view_layer.objects.active is objs[2]
+    assert bpy.ops.hgca.result_colors(mode="AGREEMENT") == {"FINISHED"}
+    assert {o.data.color_attributes.active_color.name for o in objs} == {mesh_build.AGREEMENT_COLOR}
+    assert bpy.ops.hgca.result_colors(mode="OBSERVED") == {"FINISHED"}
+    assert {o.data.color_attributes.active_color.name for o in objs} == {mesh_build.OBSERVED_COLOR}

@@ -27,13 +27,17 @@ class Recorder:
     row = column = box = split = _sub
 
     def prop(self, data, name: str, **_k) -> None:
-        assert name in data.bl_rna.properties, f"{type(data).__name__} has no property {name!r}"
+        if name.startswith('["'):  # an ID property (a modifier's node-group input)
+            assert name[2:-2] in data.keys(), f"{data.name!r} has no input {name!r}"
+        else:
+            assert name in data.bl_rna.properties, f"{type(data).__name__} has no property {name!r}"
         self.log.append(("prop", name))
 
-    def operator(self, idname: str, **_k) -> None:
+    def operator(self, idname: str, **_k):
         category, name = idname.split(".")
         assert hasattr(getattr(bpy.ops, category), name), f"no operator {idname}"
         self.log.append(("operator", idname))
+        return type("OperatorProperties", (), {})()
 
     def label(self, text: str = "", **_k) -> None:
         self.log.append(("label", text))
@@ -62,6 +66,26 @@ def test_panels_draw_every_setting(addon) -> None:
     assert ("operator", "hgca.add_region_box") in main
     assert {name for kind, name in draw(panels.HGCA_PT_advanced) if kind == "prop"} == {"t1", "t2"}
     assert panels.HGCA_PT_main.bl_category == "hGCA" and panels.HGCA_PT_main.bl_region_type == "UI"
+
+
+def test_main_panel_shows_the_active_scans_point_size_and_a_results_samples(addon, tmp_path) -> None:
+    import numpy as np
+
+    panels, mesh_build = addon_module("panels"), addon_module("mesh_build")
+    pts = np.random.default_rng(0).uniform(0, 1, (50, 3)).astype(np.float32)
+    scan, _ = mesh_build.build_point_object("scan", pts, {}, bpy.context.scene.collection)
+    bpy.context.view_layer.objects.active = scan
+    assert any(kind == "prop" and name.startswith('["') for kind, name in draw(panels.HGCA_PT_main))
+    paths = []
+    for i in range(2):
+        paths.append(tmp_path / f"out_s{i}.npz")
+        np.savez(paths[-1], vertices=np.eye(3, dtype=np.float32) + i, faces=np.array([[0, 1, 2]], np.int32),
+                 observed_distance=np.zeros(3, np.float32))
+    coll = mesh_build.build_results(bpy.context.scene, paths, "hGCA test")
+    bpy.context.view_layer.objects.active = next(o for o in coll.objects if o["hgca_sample"] == 0)
+    log = draw(panels.HGCA_PT_main)
+    assert ("label", "Sample 0 of 2") in log and ("operator", "hgca.step_sample") in log
+    assert ("operator", "hgca.result_colors") in log
 
 
 def test_job_panel_shows_progress_and_cancel_while_running(addon) -> None:
