@@ -40,8 +40,9 @@ demo: $(STAMP)
 PYTEST_PARALLEL := -n auto --maxprocesses 4
 
 test: $(STAMP) .venv-bpy42/.installed
-	$(BIN)/python -m pytest -q $(PYTEST_PARALLEL) tests
-	$(call BLENDER_TESTS,.venv-bpy42)
+	@# -m "not slow": Install Core for real (a venv with torch, ~4 min on 2 cores) runs in test-blender only
+	$(BIN)/python -m pytest -q $(PYTEST_PARALLEL) -m "not slow" tests
+	$(call BLENDER_TESTS,.venv-bpy42) -m "not slow"
 
 test-blender: $(STAMP) .venv-bpy42/.installed .venv-bpy45/.installed
 	$(BIN)/python -m pytest -q tests/blender
