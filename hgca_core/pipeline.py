@@ -28,6 +28,7 @@ from hgca_core.geometry.region import Region, default_region
 from hgca_core.geometry.voxel import COARSE, FINE, voxelize
 from hgca_core.geometry.voxel_mesh import voxel_mesh
 from hgca_core.hardware import release_free_memory
+from hgca_core.nn.precision import DEFAULT_PRECISION
 
 if TYPE_CHECKING:
     from hgca_core.models.autoencoder import Autoencoder
@@ -234,7 +235,7 @@ def observed_free(local: np.ndarray, region: Region, models: Models, mode: str, 
 
 def complete_local(local: np.ndarray, region: Region, models: Models, stage: str = "coarse", samples: int = 1,
                    seed: int = 0, t1: int | None = None, t2: int | None = None, progress: ProgressFn | None = None,
-                   precision: str = "auto", max_faces: int | None = None, origins: np.ndarray | None = None,
+                   precision: str = DEFAULT_PRECISION, max_faces: int | None = None, origins: np.ndarray | None = None,
                    origin_index: np.ndarray | None = None, free_space: str = "auto",
                    fixed_cells: np.ndarray | None = None) -> list[LocalCompletion]:
     """The region-frame core: `local` (N, 3) points in `region`'s frame (metres; only the region's size is used
@@ -340,7 +341,7 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
              samples: int = 1, seed: int = 0, stage: str = "coarse", device: str = "cpu",
              t1: int | None = None, t2: int | None = None, weights: str | Path | None = None,
              fine_weights: str | Path | None = None, progress: ProgressFn | None = None,
-             precision: str = "auto", max_faces: int | None = None, origin_index: np.ndarray | None = None,
+             precision: str = DEFAULT_PRECISION, max_faces: int | None = None, origin_index: np.ndarray | None = None,
              free_space: str = "auto") -> list[Completion]:
     """Complete accumulated LiDAR points (world frame). Sample i uses seed + i, so a (seed, i) pair names one mesh.
 

@@ -7,6 +7,7 @@ from pathlib import Path
 from hgca_core.commands.arguments import (MAX_STEPS, check_device, check_seed_span, device_arg, max_faces_arg,
                                           samples_arg, seed_arg)
 from hgca_core.errors import InputError
+from hgca_core.nn.precision import DEFAULT_PRECISION, PRECISIONS
 
 __all__ = ["device_arg", "steps_arg", "add_arguments", "run", "output_paths"]
 
@@ -54,10 +55,12 @@ def add_free_space_argument(p: argparse.ArgumentParser, what: str = "") -> None:
 
 
 def add_precision_argument(p: argparse.ArgumentParser) -> None:
-    """`--precision`, shared by complete, eval and bench. The choices are `hgca_core.nn.conv.PRECISIONS`, spelt
-    out so that parsing arguments does not import torch (a test holds the two equal)."""
-    p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
-                   help="GEMM precision of the sparse convs while sampling (auto: bf16 where the hardware has it)")
+    """`--precision`, shared by complete, drive, eval and bench (names from the torch-free
+    `hgca_core.nn.precision`)."""
+    p.add_argument("--precision", choices=PRECISIONS, default=DEFAULT_PRECISION,
+                   help="GEMM precision of the sparse convs while sampling (default fp32: the same mesh on any "
+                        "thread count; bf16 is faster where the CPU has AVX512-BF16/AMX but its mesh may differ "
+                        "between thread counts; auto: bf16 where the hardware has it)")
 
 
 def steps_arg(text: str) -> int:

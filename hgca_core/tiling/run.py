@@ -22,6 +22,7 @@ import numpy as np
 from hgca_core.errors import HgcaWarning, InputError
 from hgca_core.geometry.region import DEFAULT_SIZE, Region
 from hgca_core.io.digest import file_digest
+from hgca_core.nn.precision import DEFAULT_PRECISION
 from hgca_core.tiling.merge import merge_sample, write_piece
 from hgca_core.tiling.inputs import DriveScan, read_drive_inputs
 from hgca_core.tiling.plan import MIN_OVERLAP, TilePlan, neighbours, plan_tiles, tile_region
@@ -53,7 +54,7 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
           fmt: str | None = None, size: float = DEFAULT_SIZE[0], overlap: float = MIN_OVERLAP,
           scans_per_tile: int = 5, samples: int = 1, seed: int = 0, stage: str = "full", t1: int | None = None,
           t2: int | None = None, weights: str | None = None, fine_weights: str | None = None,
-          precision: str = "auto", max_faces: int | None = None, device: str = "cpu", workers: int = 1,
+          precision: str = DEFAULT_PRECISION, max_faces: int | None = None, device: str = "cpu", workers: int = 1,
           address: str | None = None, threads: int | None = None, tile_memory: float | None = None,
           seams: bool = True, mesh_format: str = "ply", frames: str | None = None, free_space: str = "auto",
           report: Report | None = None, on_tile: Callable[[int, int, int, str], None] | None = None,
