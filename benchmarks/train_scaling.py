@@ -5,8 +5,8 @@ recipe and the same chains a step in all (the ranks split them), interleaved A B
     python benchmarks/train_scaling.py --data data/tiny [--steps 30] [--batch 2] [--procs 2] [--repeats 2] \
         [--out benchmarks/results/train_scaling.json]
 
-Each run is `hgca train coarse` itself in a fresh process, from the shipped coarse.pt, with the recipe of the
-shipped weights' last fine-tune (free space, --free-weight 8 --cut 0.5 --focus 0.5, bf16 GEMMs); its seconds are
+Each run is `hgca train --recipe coarse-shipped` itself in a fresh process (the recipe that made the shipped
+coarse.pt, starting from it: free space, free weight 8, cut 0.5, focus 0.5, bf16 GEMMs); its seconds are
 the trainer's own summed step wall time (the run record in the run's checkpoint), so start-up and the first
 chains' set-up are out, and the free-space sidecars are computed before the first run. Why: on a CPU the choice is
 one run on all cores or several one-thread runs side by side, and only a measurement on the machine says which.
@@ -24,22 +24,20 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-RECIPE = ["--init-from", str(ROOT / "hgca_core/weights/coarse.pt"), "--free-space", "--free-weight", "8",
-          "--cut", "0.5", "--focus", "0.5", "--precision", "bf16", "--no-progress", "--device", "cpu"]
+RECIPE = ["--recipe", "coarse-shipped", "--set", "val_every=100000", "--no-progress", "--device", "cpu"]
 
 
 def command(kind: str, data: str, out: Path, steps: int, batch: int, procs: int, port: int) -> tuple[list[str], dict]:
     """The `hgca train` command line and environment of one configuration."""
     env = {**os.environ, "OMP_NUM_THREADS": "1" if kind != "threads" else str(procs)}
-    train = ["train", "coarse", "--data", data, "--out", str(out), "--max-steps", str(steps), "--minutes", "60",
-             "--val-every", "100000", *RECIPE]
+    train = ["train", "--data", data, "--out", str(out), "--max-steps", str(steps), "--minutes", "60", *RECIPE]
     if kind == "ranks":
         if batch % procs:
             raise ValueError(f"--batch {batch} does not split over {procs} ranks")
         return ([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", str(procs), "--master_port",
-                 str(port), "-m", "hgca_core.cli", *train, "--batch", str(batch // procs), "--threads", "1"], env)
+                 str(port), "-m", "hgca_core.cli", *train, "--set", f"batch={batch // procs}", "--threads", "1"], env)
     threads = procs if kind == "threads" else 1
-    return [sys.executable, "-m", "hgca_core.cli", *train, "--batch", str(batch), "--threads", str(threads)], env
+    return [sys.executable, "-m", "hgca_core.cli", *train, "--set", f"batch={batch}", "--threads", str(threads)], env
 
 
 def session(out: Path) -> dict:
