@@ -151,7 +151,7 @@ def lineage(path: str | os.PathLike, meta: dict) -> dict:
     """The record of the weights at `path` that a file made from them keeps (a blend's two sources, a run's
     `--init-from`): content digest, steps, wall time, data, seed, sessions and notes, and their own blend or start,
     nested. Why: a file's card must name every session and device its tensors come from, not only the last
-    run's (a blend of a blend, or a fine-tune of one, lost the earlier hardware and steps before session 37)."""
+    run's (a blend of a blend, or a fine-tune of one, would otherwise lose the earlier hardware and steps)."""
     return {"file": str(path), "sha256": file_digest(path), **{k: meta[k] for k in LINEAGE_KEYS if k in meta}}
 
 

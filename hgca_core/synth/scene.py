@@ -29,7 +29,7 @@ STYLES = ("city", "suburb", "town", "strip")
 STYLE_P = (0.3, 0.25, 0.15, 0.3)
 # The seed's style draw of each generator version (`dataset.GENERATOR_VERSION`): version 7 added "strip"; with
 # the draw of version 6 every seed gives its version-6 scene again, so data built by it (synth2, the val and
-# test splits of every table before session 12) can be rebuilt exactly.
+# test splits of the earlier tables) can be rebuilt exactly.
 STYLE_DRAWS = {6: (STYLES[:3], (0.45, 0.35, 0.2)), 7: (STYLES, STYLE_P)}
 GENERATOR_VERSION = max(STYLE_DRAWS)   # bumped whenever the same seed would produce different content
 GROUND_HALF = 78.0  # the ground reaches further, so a bent layout still stands on it

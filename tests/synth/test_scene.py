@@ -197,8 +197,8 @@ def test_tilted_placement_keeps_solids_outward():
 
 def test_generator_6_makes_the_synth2_scenes_again():
     """Version 7 added the strip style to the seed's draw, which changed most seeds' scenes; generator 6 draws as
-    version 6 did, so synth2 (and the val / test scenes of every table before session 12) can be rebuilt. The
-    styles and face counts are those of the rebuilt synth2 test scenes whose scores matched the session-12
+    version 6 did, so synth2 (and the val / test scenes of the earlier tables) can be rebuilt. The
+    styles and face counts are those of the rebuilt synth2 test scenes whose scores matched the earlier
     test table (`hgca eval --methods input`: equal ground-truth patches, equal or within 1 % scores)."""
     for seed, style, faces in ((2_000_000, "town", 30_180), (2_000_001, "city", 30_902), (2_000_003, "suburb", 41_002)):
         old = make_scene(seed, generator=6)

@@ -28,7 +28,7 @@ def test_card_renders_weights_metadata_and_eval_provenance(tmp_path):
     assert "training data: data/synth2 (train split): 1 samples, seeds 3-3" in card
     assert "77 steps in 12.5 s, device cpu (EPYC), 1 thread(s), world size 1, bf16 GEMMs, crop 64, focus share 0.5" in card
     assert ("device cuda (NVIDIA H200), 5 thread(s), world size 1, bf16 GEMMs, learning rate 0.00015, 6 chains a step, "
-            "weight average decay 0.9998, crop 64") in card           # the batch (session 27 on), the decay (33 on)
+            "weight average decay 0.9998, crop 64") in card           # the batch and the decay the run recorded
     assert "- note: selected on validation" in card and "step 77: val_iou 0.5000" in card
     assert "Scenes (data/synth2, test split): sample_2000000.npz; k = 3 samples; T1 = default; free space off." in card
     assert "- hGCA coarse (planner): 12.5 s per completion" in card
@@ -75,7 +75,7 @@ def test_card_says_a_blend_is_one_and_lists_both_trainings(tmp_path):
 
 def test_card_names_every_session_of_a_blend_of_a_blend_and_of_a_warm_start(tmp_path):
     """Blend a blend with a run started from it: the card lists the sessions and devices of all four trainings
-    (before session 37 the inner blend's second source and the run's start were lost)."""
+    (the inner blend's second source and the run's start included)."""
     from hgca_core.models.weights import blend_files, lineage, load_file, save_file
 
     def ses(day, steps, device="cpu", name=None):
