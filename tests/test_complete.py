@@ -176,7 +176,7 @@ def test_region_too_large_for_memory_is_refused_before_any_work(small_weights, s
     import hgca_core
 
     pts = np.load(scan)["points"]
-    with pytest.raises(hgca_core.InputError, match=r"needs about [0-9.]+ GiB.*split it into tiles"):
+    with pytest.raises(hgca_core.InputError, match=r"needs about [0-9.,]+ GiB.*split it into tiles"):
         hgca_core.complete(pts, region=hgca_core.Region.parse("103,203,1,2000,2000,8"), weights=small_weights)
     res = _run(scan, "-o", "/tmp/never.ply", "--weights", small_weights, "--region", "103,203,1,2000,2000,8")
     assert res.returncode == 2 and "GiB" in res.stderr and "Traceback" not in res.stderr

@@ -233,7 +233,7 @@ def check_config(config: dict, kind: str, what: str, path: str) -> None:
         if isinstance(default, bool):
             problem = "" if isinstance(value, bool) else "must be true or false"
         elif isinstance(default, int) or (default is None and key == "crop"):
-            if value is None and default is None:
+            if value is None and (default is None or key == "crop"):   # crop None: the trainer's whole-scene crops
                 continue
             if isinstance(value, bool) or not isinstance(value, int):
                 problem = "must be a whole number"
