@@ -10,6 +10,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -158,7 +159,11 @@ def test_signal_during_decimation_stops_at_once(tmp_path, sig):
     proc = subprocess.Popen([sys.executable, "-c", DECIMATE], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, cwd=tmp_path)
     assert proc.stdout.readline().strip() == "ready"
-    time.sleep(3.0)  # past loading the mesh into the library (~1.7 s), inside the collapse itself (~7 s)
+    children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and children.exists() and not children.read_text().split():
+        time.sleep(0.05)   # until the collapse's forked child runs (a loaded machine takes longer to get there)
+    time.sleep(1.0)   # inside the collapse itself (~7 s)
     proc.send_signal(sig)
     sent = time.monotonic()
     try:   # the run has stopped when its process exits (what a shell waits for), not when the pipes close
