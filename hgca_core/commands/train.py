@@ -48,9 +48,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "the union of their train splits, validate on the first one's val split")
     p.add_argument("--out", default=None, metavar="DIR", help="run folder (default runs/<recipe>)")
     p.add_argument("--minutes", type=_minutes, default=10.0,
-                   help="wall-time budget of this session (0: no training, only --export of the run)")
+                   help="wall-time budget of this invocation (0: no training, only --export of the run)")
     p.add_argument("--max-steps", type=counted(1, MAX_STEPS), default=None, metavar="N",
-                   help="stop after this many steps of this session (a resumed run counts from where it resumes)")
+                   help="stop after this many steps of this invocation (a resumed run counts from where it resumes)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out (its checkpoint, with the recipe saved in it)")
     p.add_argument("--device", type=device_arg, default="cpu",

@@ -289,7 +289,7 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
         return {**state, "sessions": [*state["sessions"], session_record()]}
 
     def session_record() -> dict:
-        """This session so far, as the run's record (and the model card) lists it."""
+        """This invocation of the trainer so far, as the run's record (and the model card) lists it."""
         train_files = getattr(task, "train_files", [])
         return {"ended": time.strftime("%Y-%m-%d %H:%M:%S"), "steps": steps_this_session,
                 "wall_s": round(time.time() - session_start, 1), "world_size": world,
