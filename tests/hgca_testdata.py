@@ -3,6 +3,7 @@ tests stay fast and independent of the scene generator, and the one way to reach
 (importable from any test as `hgca_testdata`)."""
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -81,3 +82,22 @@ def write_las(path, points: np.ndarray, scale: float = 0.001, offset=None) -> np
     las.write(str(path))
     back = laspy.read(str(path))
     return np.column_stack([np.asarray(back.x), np.asarray(back.y), np.asarray(back.z)])
+
+
+@contextlib.contextmanager
+def small_tmpfs(root: Path, size: str):
+    """`root` made a tmpfs of `size` (e.g. "64k": a real ENOSPC once full) for the block; a skip where mounting is
+    not allowed (not root, no mount)."""
+    import shutil
+    import subprocess
+
+    root.mkdir()
+    if shutil.which("mount") is None or os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root")
+    res = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(root)], capture_output=True)
+    if res.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs: {res.stderr.decode()[:200]}")
+    try:
+        yield root
+    finally:
+        subprocess.run(["umount", str(root)], capture_output=True)

@@ -165,20 +165,10 @@ def test_python_api_refuses_negative_steps(small_weights):
 @pytest.fixture
 def full_disk(tmp_path):
     """A folder on a 16 kB tmpfs (a real ENOSPC); where mounting is not allowed, the test is skipped."""
-    import os
-    import shutil
+    from hgca_testdata import small_tmpfs
 
-    root = tmp_path / "full"
-    root.mkdir()
-    if shutil.which("mount") is None or os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs needs root")
-    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=16k", "tmpfs", str(root)], capture_output=True)
-    if res.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs: {res.stderr.decode()[:200]}")
-    try:
+    with small_tmpfs(tmp_path / "full", "16k") as root:
         yield root
-    finally:
-        subprocess.run(["umount", str(root)], capture_output=True)
 
 
 def one_disk_full_line(res: subprocess.CompletedProcess, command: str) -> None:

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import subprocess
 import sys
 
@@ -47,17 +45,10 @@ def test_a_truncated_cache_entry_is_recomputed_with_a_warning(drive_weights, tmp
 
 @pytest.fixture
 def small_disk(tmp_path):
-    root = tmp_path / "full"
-    root.mkdir()
-    if shutil.which("mount") is None or os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs needs root")
-    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(root)], capture_output=True)
-    if res.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs: {res.stderr.decode()[:200]}")
-    try:
+    from hgca_testdata import small_tmpfs
+
+    with small_tmpfs(tmp_path / "full", "64k") as root:
         yield root
-    finally:
-        subprocess.run(["umount", str(root)], capture_output=True)
 
 
 def test_disk_full_during_a_drive_is_one_error_line(drive_weights, tmp_path, small_disk):
