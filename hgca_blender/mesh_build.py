@@ -14,19 +14,17 @@ import bpy
 import numpy as np
 
 from . import colors, confidence, georef
+from .point_display import (DEFAULT_RADIUS, POINT_NODE_GROUP, RADIUS_INPUT, RENDER_POINTS_INPUT,  # noqa: F401
+                            ROLE_KEY, point_display_group, point_radius, set_point_radius, set_render_points)
 
-ROLE_KEY = "hgca_role"  # custom property marking objects the add-on created: "scan", "region", "result"
 OBSERVED_ATTRIBUTE = "observed_distance"
 # Vertices closer than this to an input point count as observed, farther ones as generated (metres).
 OBSERVED_NEAR = confidence.OBSERVED_NEAR
 OBSERVED_FAR = confidence.OBSERVED_FAR
-POINT_NODE_GROUP = "hGCA Points"
 POINT_MATERIAL = "hGCA point colours"
 OBSERVED_COLOR = "hgca_observed_color"     # colour attributes of results: observed (grey) / generated (orange)
 AGREEMENT_ATTRIBUTE = "hgca_agreement"     # share of the k samples with surface at the vertex
 AGREEMENT_COLOR = "hgca_agreement_color"
-RADIUS_INPUT = "Radius"
-DEFAULT_RADIUS = 0.03
 
 
 class Created:
@@ -111,60 +109,9 @@ def points_mesh(name: str, points: np.ndarray) -> bpy.types.Mesh:
     return mesh
 
 
-def point_display_group(created: Created) -> bpy.types.NodeTree:
-    """Geometry Nodes group "Mesh to Points", so loose vertices show (and render) as points; its "Radius" input
-    is set per object on the modifier, so each scan keeps its own point size."""
-    existing = bpy.data.node_groups.get(POINT_NODE_GROUP)
-    if (existing is not None and existing.get(ROLE_KEY) == "points" and existing.bl_idname == "GeometryNodeTree"
-            and RADIUS_INPUT in existing.interface.items_tree):
-        return existing
-    ng = bpy.data.node_groups.new(POINT_NODE_GROUP, "GeometryNodeTree")
-    created.node_groups.append(ng)
-    ng[ROLE_KEY] = "points"
-    ng.interface.new_socket(name="Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
-    radius = ng.interface.new_socket(name=RADIUS_INPUT, in_out="INPUT", socket_type="NodeSocketFloat")
-    radius.default_value, radius.min_value = DEFAULT_RADIUS, 0.0
-    ng.interface.new_socket(name="Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
-    nodes, links = ng.nodes, ng.links
-    node_in = nodes.new("NodeGroupInput")
-    node_out = nodes.new("NodeGroupOutput")
-    to_points = nodes.new("GeometryNodeMeshToPoints")
-    node_in.location, to_points.location, node_out.location = (-300, 0), (0, 0), (300, 0)
-    links.new(node_in.outputs[0], to_points.inputs["Mesh"])
-    links.new(node_in.outputs[RADIUS_INPUT], to_points.inputs["Radius"])
-    links.new(to_points.outputs["Points"], node_out.inputs[0])
-    return ng
-
-
-def set_point_radius(obj: bpy.types.Object, radius: float) -> bool:
-    """Set the point size of a scan shown by the "hGCA Points" modifier; False when it has none."""
-    for mod in obj.modifiers:
-        if mod.type == "NODES" and mod.node_group is not None and mod.node_group.get(ROLE_KEY) == "points":
-            item = mod.node_group.interface.items_tree.get(RADIUS_INPUT)
-            if item is not None:
-                mod[item.identifier] = float(radius)
-                obj.update_tag()
-                return True
-    return False
-
-
-def point_radius(obj: bpy.types.Object) -> float | None:
-    for mod in obj.modifiers:
-        if mod.type == "NODES" and mod.node_group is not None and mod.node_group.get(ROLE_KEY) == "points":
-            item = mod.node_group.interface.items_tree.get(RADIUS_INPUT)
-            if item is not None:
-                return float(mod[item.identifier])
-    return None
-
-
 def add_point_colors(mesh: bpy.types.Mesh, rgba: np.ndarray) -> bpy.types.Attribute:
     """The scan's colours as its active colour attribute (what Solid view draws with colour = Attribute)."""
-    attr = mesh.color_attributes.new(colors.COLOR_ATTRIBUTE, "FLOAT_COLOR", "POINT")
-    attr.data.foreach_set("color", np.ascontiguousarray(rgba, dtype=np.float32).ravel())
-    mesh.color_attributes.active_color = attr
-    if hasattr(mesh.color_attributes, "render_color_index"):
-        mesh.color_attributes.render_color_index = mesh.color_attributes.active_color_index
-    return attr
+    return add_color(mesh, colors.COLOR_ATTRIBUTE, rgba, active=True)
 
 
 def point_color_material(created: Created) -> bpy.types.Material:
@@ -311,10 +258,20 @@ def observed_material(name: str = "hGCA observed/generated") -> bpy.types.Materi
     return mat
 
 
-def add_color(mesh: bpy.types.Mesh, name: str, rgba: np.ndarray) -> bpy.types.Attribute:
+def add_color(mesh: bpy.types.Mesh, name: str, rgba: np.ndarray, active: bool = False) -> bpy.types.Attribute:
+    """A point-domain colour attribute from (N, 4) RGBA; `active` makes it the one Solid view and renders use."""
     attr = mesh.color_attributes.new(name, "FLOAT_COLOR", "POINT")
     attr.data.foreach_set("color", np.ascontiguousarray(rgba, dtype=np.float32).ravel())
+    if active:
+        set_active_color(mesh, attr)
     return attr
+
+
+def set_active_color(mesh: bpy.types.Mesh, attr: bpy.types.Attribute) -> None:
+    """`attr` becomes the colour attribute Solid view (colour = Attribute) and renders draw."""
+    mesh.color_attributes.active_color = attr
+    if hasattr(mesh.color_attributes, "render_color_index"):
+        mesh.color_attributes.render_color_index = mesh.color_attributes.active_color_index
 
 
 def result_object(name: str, arrays: ResultArrays, material: bpy.types.Material, created: Created,
@@ -332,9 +289,7 @@ def result_object(name: str, arrays: ResultArrays, material: bpy.types.Material,
         share = mesh.attributes.new(AGREEMENT_ATTRIBUTE, "FLOAT", "POINT")
         share.data.foreach_set("value", np.ascontiguousarray(agreement, dtype=np.float32))
         add_color(mesh, AGREEMENT_COLOR, confidence.agreement_colors(agreement, colors.RAMP))
-    mesh.color_attributes.active_color = observed
-    if hasattr(mesh.color_attributes, "render_color_index"):
-        mesh.color_attributes.render_color_index = mesh.color_attributes.active_color_index
+    set_active_color(mesh, observed)
     mesh.materials.append(material)
     obj = bpy.data.objects.new(name, mesh)
     created.objects.append(obj)

@@ -72,9 +72,7 @@ class HGCA_OT_result_colors(bpy.types.Operator):
         for o in run_objects(context.active_object):
             attr = o.data.color_attributes.get(name)
             if attr is not None:
-                o.data.color_attributes.active_color = attr
-                if hasattr(o.data.color_attributes, "render_color_index"):
-                    o.data.color_attributes.render_color_index = o.data.color_attributes.active_color_index
+                mesh_build.set_active_color(o.data, attr)
                 changed += 1
         if not changed:
             self.report({"WARNING"}, "agreement needs a completion with 2 or more samples")

@@ -23,6 +23,9 @@ def draw_point_size(layout: bpy.types.UILayout, obj: bpy.types.Object | None) ->
         item = group.interface.items_tree.get(mesh_build.RADIUS_INPUT) if group is not None else None
         if item is not None and group.get(mesh_build.ROLE_KEY) == "points":
             layout.prop(mod, f'["{item.identifier}"]', text="Point Radius")
+            as_points = group.interface.items_tree.get(mesh_build.RENDER_POINTS_INPUT)
+            if as_points is not None:
+                layout.prop(mod, f'["{as_points.identifier}"]', text="Render as Points")
             return
 
 
