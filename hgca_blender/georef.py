@@ -60,13 +60,36 @@ def has_origin(scene: bpy.types.Scene) -> bool:
     return scene.get(ORIGIN_KEY) is not None or (scene.get(GIS_X) is not None and scene.get(GIS_Y) is not None)
 
 
+def check_crs(scene: bpy.types.Scene, crs: str | None) -> None:
+    """Refuse data in a CRS other than the scene's (its coordinates would mean other places); None passes."""
+    have = scene.get(GIS_CRS)
+    if crs and have and str(have) != crs:
+        raise ValueError(f"the scan's CRS is {short_crs(crs)} but the scene's is {short_crs(str(have))}: reproject "
+                         "the scan (for example with PDAL) or import it into another scene")
+
+
+def set_crs(scene: bpy.types.Scene, crs: str | None) -> None:
+    """Keep a file's CRS ("EPSG:n" or WKT) in the scene key BlenderGIS reads, when the scene has none yet."""
+    check_crs(scene, crs)
+    if crs and not scene.get(GIS_CRS):
+        scene[GIS_CRS] = crs
+
+
+def short_crs(crs: str) -> str:
+    """A CRS for a label: "EPSG:n" as it is, a WKT by its name (the first quoted string)."""
+    if len(crs) <= 24:
+        return crs
+    name = crs.split('"')[1] if crs.count('"') >= 2 else crs[:24]
+    return name if len(name) <= 40 else name[:39] + "\u2026"
+
+
 def origin_keys(scene: bpy.types.Scene) -> dict:
     """The georeferencing keys the scene holds now (to put back if an import fails)."""
-    return {k: scene[k] for k in (ORIGIN_KEY, GIS_X, GIS_Y) if k in scene}
+    return {k: scene[k] for k in (ORIGIN_KEY, GIS_X, GIS_Y, GIS_CRS) if k in scene}
 
 
 def restore_keys(scene: bpy.types.Scene, keys: dict) -> None:
-    for k in (ORIGIN_KEY, GIS_X, GIS_Y):
+    for k in (ORIGIN_KEY, GIS_X, GIS_Y, GIS_CRS):
         if k in keys:
             scene[k] = keys[k]
         elif k in scene:

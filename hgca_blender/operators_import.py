@@ -34,10 +34,12 @@ def object_name(paths: list[Path], frames: str = "") -> str:
 
 
 def read_scans(python: str, paths: list[Path], poses: Path | None = None, frames: str = ""
-               ) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray | None, np.ndarray, dict[str, int]]:
+               ) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray | None, np.ndarray, str | None,
+                          dict[str, int]]:
     """Run `hgca read` into a temporary .npz; returns (points (N,3) float32, per-point attributes, sensor
-    origins (world, float64) or None, the points' float64 offset: world = points + offset, the returns the reader
-    left out by reason, e.g. {"returns off the recording vehicle": 8526}). `paths` may be one sequence folder,
+    origins (world, float64) or None, the points' float64 offset: world = points + offset, the CRS the LAS/LAZ
+    files declare ("EPSG:n" or WKT) or None, the returns the reader left out by reason, e.g.
+    {"returns off the recording vehicle": 8526}). `paths` may be one sequence folder,
     with `frames` START:STOP[:STEP] (empty: the core's default, 5 around the middle)."""
     tmpdir = Path(tempfile.mkdtemp(prefix="hgca_read_"))
     try:
@@ -66,7 +68,10 @@ def read_scans(python: str, paths: list[Path], poses: Path | None = None, frames
     dropped = summary.get("dropped") or {}
     if not isinstance(dropped, dict) or not all(isinstance(n, int) for n in dropped.values()):
         raise core.CoreError(f"hgca read printed a bad 'dropped' record {dropped!r}")
-    return points, attributes, origins, offset, dropped
+    crs = summary.get("crs")
+    if crs is not None and not isinstance(crs, str):
+        raise core.CoreError(f"hgca read printed a bad 'crs' {crs!r}")
+    return points, attributes, origins, offset, crs or None, dropped
 
 
 def dropped_text(dropped: dict[str, int]) -> str:
@@ -93,13 +98,15 @@ def import_scans(python: str, paths: list[Path], collection: bpy.types.Collectio
     if frames and not folder:
         raise core.CoreError("frames apply to a sequence folder, not to scan files")
     # a poses path that is no file (missing, a folder, a link loop) is described by `hgca read` itself
-    points, attributes, origins, offset, dropped = read_scans(python, paths, poses, frames)
+    points, attributes, origins, offset, crs, dropped = read_scans(python, paths, poses, frames)
     rgba, _mode = colors.point_colors(color_by, points, attributes)  # before anything is added: may refuse
-    radius = point_size / 2 if point_size > 0 else colors.default_point_radius(points, origins is not None)
     scene = scene or bpy.context.scene
+    georef.check_crs(scene, crs)
+    radius = point_size / 2 if point_size > 0 else colors.default_point_radius(points, origins is not None)
     centre = offset + (points.min(axis=0).astype(np.float64) + points.max(axis=0)) / 2
     previous = georef.origin_keys(scene)
     origin = georef.ensure_origin(scene, centre)
+    georef.set_crs(scene, crs)
     vertices, location = georef.place(points, offset, origin)
     try:
         obj, skipped = mesh_build.build_point_object(name or object_name(paths, frames), vertices, attributes,

@@ -29,6 +29,23 @@ def draw_point_size(layout: bpy.types.UILayout, obj: bpy.types.Object | None) ->
             return
 
 
+def draw_georef(layout: bpy.types.UILayout, scene: bpy.types.Scene) -> None:
+    """The scene's georeference origin and CRS (BlenderGIS's keys), and the button that sets them."""
+    box = layout.box()
+    crs = scene.get(georef.GIS_CRS)
+    if georef.has_origin(scene):
+        try:
+            x, y, z = georef.scene_origin(scene)
+            box.label(text=f"Origin {x:.3f}, {y:.3f}, {z:.3f}", icon="WORLD")
+        except ValueError as exc:
+            box.label(text=str(exc), icon="ERROR")
+    else:
+        box.label(text="No georeference origin", icon="WORLD")
+    if crs:
+        box.label(text=f"CRS {georef.short_crs(str(crs))}")
+    box.operator("hgca.set_origin", icon="ORIENTATION_GLOBAL")
+
+
 def draw_results(layout: bpy.types.UILayout, obj: bpy.types.Object | None) -> None:
     """For an active completion result: which sample it is, stepping through them, and its colours."""
     objects = operators_results.run_objects(obj)
@@ -74,14 +91,7 @@ class HGCA_PT_main(_SidebarTab, bpy.types.Panel):
             col.prop(props, "region_size")
             col.prop(props, "region_yaw")
         col.operator("hgca.add_region_box", icon="CUBE")
-        if georef.has_origin(context.scene):
-            try:
-                x, y, z = georef.scene_origin(context.scene)
-                crs = context.scene.get(georef.GIS_CRS)
-                col.label(text=f"Georeference origin: {x:.3f}, {y:.3f}, {z:.3f}" + (f" ({crs})" if crs else ""),
-                          icon="WORLD")
-            except ValueError as exc:
-                col.label(text=str(exc), icon="ERROR")
+        draw_georef(layout, context.scene)
 
         col = layout.column()
         col.prop(props, "samples")

@@ -155,6 +155,8 @@ def las_header_info(path: str) -> dict[str, Any]:
     """Header facts `hgca info` shows (version, point format, counts, scale, offset) without reading points."""
     import laspy
 
+    from hgca_core.io.las_crs import header_crs
+
     with laspy.open(path) as reader:
         h = reader.header
         vlr_ids = {(v.user_id, v.record_id) for v in h.vlrs}
@@ -168,4 +170,5 @@ def las_header_info(path: str) -> dict[str, Any]:
             "copc": ("copc", 1) in vlr_ids,
             "header_min": [float(v) for v in h.mins],
             "header_max": [float(v) for v in h.maxs],
+            "crs": header_crs(h),
         }

@@ -126,3 +126,66 @@ def test_scene_georeferenced_by_blendergis_places_the_scan_under_its_origin(addo
     world = co.reshape(-1, 3).astype(np.float64) + np.array(obj.location) + gis
     assert np.abs(world - held).max() < MM
     assert np.abs(np.array(obj.location)).max() < 1000  # near Blender's 0, not 5,000 km away
+
+
+def write_las_crs(path: Path, points: np.ndarray, epsg: int) -> Path:
+    """A LAS whose GeoTIFF keys name `epsg` as its projected CRS (ProjectedCSTypeGeoKey 3072)."""
+    import laspy
+    from laspy.vlrs.known import GeoKeyDirectoryVlr, GeoKeyEntryStruct
+
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales, header.offsets = [0.001] * 3, np.floor(points.min(axis=0))
+    vlr = GeoKeyDirectoryVlr()
+    vlr.geo_keys_header.key_directory_version, vlr.geo_keys_header.number_of_keys = 1, 1
+    key = GeoKeyEntryStruct()
+    key.id, key.tiff_tag_location, key.count, key.value_offset = 3072, 0, 1, epsg
+    vlr.geo_keys = [key]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+    las.vlrs.append(vlr)
+    las.write(str(path))
+    return path
+
+
+def test_import_keeps_the_files_crs_where_blendergis_reads_it(addon, tmp_path: Path) -> None:
+    """The CRS in a LAS file's GeoTIFF keys lands in the scene key `crs`; a scan in another CRS is then refused
+    and the scene stays as it was."""
+    from bl_helpers import snapshot
+
+    base = np.array(UTM_OFFSETS["utm"])
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([-30, -30, 0], [30, 30, 10], (500, 3)) + base
+    import_las(write_las_crs(tmp_path / "a.las", pts, 32617))
+    scene = bpy.context.scene
+    assert scene["crs"] == "EPSG:32617"
+    def keys() -> dict:
+        return {k: (list(scene[k]) if k == "hgca_origin" else scene[k]) for k in ("crs", "crs x", "crs y", "hgca_origin")}
+
+    held = keys()
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="EPSG:32618 but the scene's is EPSG:32617"):
+        bpy.ops.import_scene.hgca_lidar(filepath=str(write_las_crs(tmp_path / "b.las", pts, 32618)))
+    assert snapshot() == before
+    assert keys() == held
+
+
+def test_real_copc_brings_its_crs(addon) -> None:
+    from bl_helpers import FIXTURES, require_fixture
+
+    import_las(require_fixture(FIXTURES / "simple.copc.laz"))
+    assert bpy.context.scene["crs"] == "EPSG:2991"
+
+
+def test_set_origin_from_the_panel_keeps_float64_and_refuses_under_placed_objects(addon, tmp_path: Path) -> None:
+    scene = bpy.context.scene
+    assert bpy.ops.hgca.set_origin(x="631000.125", y="4833000.375", z="12.5", crs="EPSG:32617") == {"FINISHED"}
+    assert list(scene["hgca_origin"]) == [631000.125, 4833000.375, 12.5]
+    assert (scene["crs x"], scene["crs y"], scene["crs"]) == (631000.125, 4833000.375, "EPSG:32617")
+    with pytest.raises(RuntimeError, match="origin y is not a number"):
+        bpy.ops.hgca.set_origin(x="1", y="north", z="0")
+    base = np.array(UTM_OFFSETS["utm"])
+    write_las(tmp_path / "a.las", np.random.default_rng(4).uniform([-5, -5, 0], [5, 5, 2], (200, 3)) + base)
+    import_las(tmp_path / "a.las")
+    with pytest.raises(RuntimeError, match="placed relative to the current origin"):
+        bpy.ops.hgca.set_origin(x="0", y="0", z="0", crs="")
+    assert list(scene["hgca_origin"]) == [631000.125, 4833000.375, 12.5]
