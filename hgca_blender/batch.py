@@ -43,7 +43,7 @@ import time
 
 import bpy
 
-from . import core, georef, job_inputs, jobs, operators_import, preferences, preview, region, sources
+from . import core, georef, job_inputs, jobs, mesh_build, operators_import, preferences, preview, region, sources
 
 
 def script_args(argv: list[str]) -> list[str]:
@@ -78,6 +78,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--t1", type=int, default=0, help="coarse steps T1 (0: from the weights)")
     p.add_argument("--t2", type=int, default=0, help="fine steps T2 (0: from the weights)")
     p.add_argument("--max-faces", type=int, default=1_000_000, help="simplify each mesh to this many triangles (0: keep all)")
+    p.add_argument("--simplify", choices=("bake", "modifier"), default="bake",
+                   help="bake: the core simplifies to --max-faces; modifier: keep every triangle under a Decimate "
+                        "modifier showing --max-faces (tunable in Blender, larger .blend)")
+    p.add_argument("--color", choices=("observed", "agreement"), default="observed",
+                   help="colour the meshes by observed/generated or by agreement across --samples (2 or more)")
     p.add_argument("--weights", default=None, help="coarse weights passed to `hgca complete --weights`")
     p.add_argument("--python", default=None, help="interpreter with hgca_core (default: auto-detect)")
     p.add_argument("--render", default=None, help="also render a preview PNG with Cycles (CPU)")
@@ -131,7 +136,8 @@ def run(args: argparse.Namespace) -> int:
     params = jobs.CompletionParams(python=python, **job_inputs.source_inputs(scene, [obj]),
                                    region=world_box, samples=args.samples, seed=args.seed,
                                    stage=args.stage, device=args.device, t1=args.t1, t2=args.t2,
-                                   max_faces=args.max_faces,
+                                   max_faces=0 if args.simplify == "modifier" else args.max_faces,
+                                   decimate_to=args.max_faces if args.simplify == "modifier" else 0,
                                    scene_name=scene.name,
                                    extra_args=["--weights", args.weights] if args.weights else [])
     try:
@@ -145,13 +151,22 @@ def run(args: argparse.Namespace) -> int:
         _log(f"error: completion {state}: {job.error or job.status}")
         return 2
     _log(f"{job.status} after {time.perf_counter() - t0:.1f} s")
+    results = sorted(bpy.data.collections[job.collection_name].objects, key=lambda o: int(o["hgca_sample"]))
+    if args.color == "agreement" and not mesh_build.color_results_by(results, mesh_build.AGREEMENT_COLOR):
+        _log("error: --color agreement needs --samples 2 or more")
+        return 2
+    for obj in results:
+        mod = obj.modifiers.get(mesh_build.DECIMATE_MODIFIER)
+        _log(f"sample {int(obj['hgca_sample'])}: {len(obj.data.polygons):,} triangles"
+             + (f", {mod.face_count:,} shown by the Decimate modifier" if mod is not None else ""))
     if args.render:
         preview.add_camera_and_sun(scene, box)
         preview.configure_cycles(scene, samples=args.render_samples, resolution=args.render_size)
     out = Path(args.out).resolve()
     out.parent.mkdir(parents=True, exist_ok=True)
     bpy.ops.wm.save_as_mainfile(filepath=str(out), check_existing=False)
-    _log(f"saved {out}")
+    size = out.stat().st_size
+    _log(f"saved {out}: {size / 2**20:.1f} MiB, {size / 2**20 / max(len(results), 1):.1f} MiB a sample")
     if args.render:
         png = preview.render_png(scene, Path(args.render))
         _log(f"rendered {png}")

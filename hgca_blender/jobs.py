@@ -44,6 +44,7 @@ class CompletionParams:
     t1: int = 0                  # 0: the core's default, from the weights
     t2: int = 0                  # 0: the core's default, from the weights
     max_faces: int = 0           # 0: no limit
+    decimate_to: int = 0         # > 0: every triangle kept, a Decimate modifier shows this many
     scene_name: str = ""
     run_name: str = ""
     extra_args: list[str] = field(default_factory=list)
@@ -74,6 +75,8 @@ def validate_params(params: CompletionParams) -> np.ndarray:
         raise CoreError("T1 and T2 must be at least 1, or 0 for the weights' own step counts")
     if int(params.max_faces) != 0 and int(params.max_faces) < 1000:
         raise CoreError(f"max faces must be 0 (no limit) or at least 1000, got {params.max_faces}")
+    if int(params.decimate_to) < 0:
+        raise CoreError(f"the Decimate modifier's face count must be 0 (none) or more, got {params.decimate_to}")
     if params.origins is not None:
         origins = np.asarray(params.origins, dtype=np.float64)
         index = np.asarray(params.origin_index if params.origin_index is not None else [], dtype=np.int64)
@@ -158,7 +161,7 @@ class CompletionJob(Job):
         scene = self._scene()
         if scene is None:
             raise CoreError(f"scene {self.scene_name!r} no longer exists")
-        collection = mesh_build.build_results(scene, outputs, self.run_name)
+        collection = mesh_build.build_results(scene, outputs, self.run_name, int(self.params.decimate_to))
         self.collection_name = collection.name
         undo_push(f"hGCA: {self.run_name}")
 

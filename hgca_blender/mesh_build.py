@@ -25,6 +25,7 @@ POINT_MATERIAL = "hGCA point colours"
 OBSERVED_COLOR = "hgca_observed_color"     # colour attributes of results: observed (grey) / generated (orange)
 AGREEMENT_ATTRIBUTE = "hgca_agreement"     # share of the k samples with surface at the vertex
 AGREEMENT_COLOR = "hgca_agreement_color"
+DECIMATE_MODIFIER = "hGCA Max Faces"
 
 
 class Created:
@@ -274,6 +275,34 @@ def set_active_color(mesh: bpy.types.Mesh, attr: bpy.types.Attribute) -> None:
         mesh.color_attributes.render_color_index = mesh.color_attributes.active_color_index
 
 
+def color_results_by(objects: list, name: str) -> int:
+    """Show the colour attribute `name` (OBSERVED_COLOR or AGREEMENT_COLOR) on result `objects`: in Solid view
+    (the active colour attribute) and in renders (their material's Base Color); returns how many have it."""
+    changed, materials = 0, set()
+    for obj in objects:
+        attr = obj.data.color_attributes.get(name)
+        if attr is None:
+            continue
+        set_active_color(obj.data, attr)
+        materials.update(m for m in obj.data.materials if m is not None and m.get(ROLE_KEY) == "result")
+        changed += 1
+    for mat in materials:
+        nodes, links = mat.node_tree.nodes, mat.node_tree.links
+        bsdf = next((n for n in nodes if n.bl_idname == "ShaderNodeBsdfPrincipled"), None)
+        if bsdf is None:
+            continue
+        if name == OBSERVED_COLOR:
+            source = next((n for n in nodes if n.bl_idname == "ShaderNodeValToRGB"), None)
+        else:
+            source = next((n for n in nodes if n.bl_idname == "ShaderNodeVertexColor" and n.layer_name == name), None)
+            if source is None:
+                source = nodes.new("ShaderNodeVertexColor")
+                source.layer_name, source.location = name, (-400, -100)
+        if source is not None:
+            links.new(source.outputs["Color"], bsdf.inputs["Base Color"])
+    return changed
+
+
 def result_object(name: str, arrays: ResultArrays, material: bpy.types.Material, created: Created,
                   origin: np.ndarray | None = None, agreement: np.ndarray | None = None) -> bpy.types.Object:
     """One sample's mesh object, placed relative to the scene origin `origin` (see georef), with its
@@ -298,8 +327,22 @@ def result_object(name: str, arrays: ResultArrays, material: bpy.types.Material,
     return obj
 
 
-def build_results(scene: bpy.types.Scene, outputs: list[Path], run_name: str) -> bpy.types.Collection:
-    """A new collection `run_name` in `scene` with one mesh object per sample; only sample 0 visible.
+def add_decimate(obj: bpy.types.Object, faces: int) -> bpy.types.Modifier | None:
+    """A Decimate (collapse) modifier showing at most `faces` triangles of `obj`, whose mesh keeps every one;
+    None when the mesh has no more than that. Collapse keeps the colour attributes (interpolated)."""
+    total = len(obj.data.polygons)
+    if faces <= 0 or total <= faces:
+        return None
+    mod = obj.modifiers.new(DECIMATE_MODIFIER, "DECIMATE")
+    mod.decimate_type = "COLLAPSE"
+    mod.ratio = faces / total
+    return mod
+
+
+def build_results(scene: bpy.types.Scene, outputs: list[Path], run_name: str,
+                  decimate_to: int = 0) -> bpy.types.Collection:
+    """A new collection `run_name` in `scene` with one mesh object per sample; only sample 0 visible. With
+    `decimate_to` > 0 each mesh keeps every triangle under a Decimate modifier showing that many.
 
     All files are read and checked first; on any failure everything created here is removed.
     """
@@ -317,6 +360,7 @@ def build_results(scene: bpy.types.Scene, outputs: list[Path], run_name: str) ->
         for i, arr in enumerate(arrays):
             obj = result_object(f"{run_name} sample {i}", arr, material, created, origin, shares[i])
             obj["hgca_sample"] = i
+            add_decimate(obj, decimate_to)
             collection.objects.link(obj)
             objects.append(obj)
         scene.collection.children.link(collection)

@@ -68,12 +68,7 @@ class HGCA_OT_result_colors(bpy.types.Operator):
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         name = mesh_build.OBSERVED_COLOR if self.mode == "OBSERVED" else mesh_build.AGREEMENT_COLOR
-        changed = 0
-        for o in run_objects(context.active_object):
-            attr = o.data.color_attributes.get(name)
-            if attr is not None:
-                mesh_build.set_active_color(o.data, attr)
-                changed += 1
+        changed = mesh_build.color_results_by(run_objects(context.active_object), name)
         if not changed:
             self.report({"WARNING"}, "agreement needs a completion with 2 or more samples")
             return {"CANCELLED"}

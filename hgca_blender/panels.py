@@ -59,6 +59,10 @@ def draw_results(layout: bpy.types.UILayout, obj: bpy.types.Object | None) -> No
     row = col.row(align=True)
     row.operator("hgca.result_colors", text="Generated").mode = "OBSERVED"
     row.operator("hgca.result_colors", text="Agreement").mode = "AGREEMENT"
+    mod = obj.modifiers.get(mesh_build.DECIMATE_MODIFIER)
+    if mod is not None and mod.type == "DECIMATE":
+        col.prop(mod, "ratio", text="Decimate Ratio")
+        col.label(text=f"{mod.face_count:,} of {len(obj.data.polygons):,} triangles shown")
 
 
 class HGCA_PT_main(_SidebarTab, bpy.types.Panel):
@@ -102,6 +106,9 @@ class HGCA_PT_main(_SidebarTab, bpy.types.Panel):
         sub = row.row(align=True)
         sub.active = not props.keep_all_faces
         sub.prop(props, "max_faces", text="")
+        row = col.row()
+        row.active = not props.keep_all_faces
+        row.prop(props, "face_limit_mode", expand=True)
         col.prop(props, "device")
 
 

@@ -13,8 +13,13 @@ MIN_FACES = 1000  # the core's smallest face limit (hgca complete --max-faces: 0
 
 
 def face_limit(props: "HGCA_PG_scene") -> int:
-    """The `--max-faces` the settings ask for: 0 keeps every triangle."""
-    return 0 if props.keep_all_faces else int(props.max_faces)
+    """The `--max-faces` the settings ask for: 0 keeps every triangle (also when a modifier shows Max Faces)."""
+    return 0 if props.keep_all_faces or props.face_limit_mode == "MODIFIER" else int(props.max_faces)
+
+
+def decimate_limit(props: "HGCA_PG_scene") -> int:
+    """The triangles a Decimate modifier on each result shows (0: no modifier)."""
+    return int(props.max_faces) if props.face_limit_mode == "MODIFIER" and not props.keep_all_faces else 0
 
 
 class HGCA_PG_scene(bpy.types.PropertyGroup):
@@ -71,6 +76,11 @@ class HGCA_PG_scene(bpy.types.PropertyGroup):
                                              "million) instead of simplifying to Max Faces")
     max_faces: IntProperty(name="Max Faces", default=1_000_000, min=MIN_FACES, soft_max=10_000_000,
                            description="Simplify each completed mesh to at most this many triangles")
+    face_limit_mode: EnumProperty(
+        name="Simplify", default="BAKE",
+        items=[("BAKE", "Bake", "The core simplifies each mesh to Max Faces: smaller files, the rest is gone"),
+               ("MODIFIER", "Modifier", "Keep every triangle and show Max Faces through a Decimate modifier: "
+                                        "tune its ratio live, apply or remove it (larger files)")])
 
     drive_dir: StringProperty(name="Drive Folder", subtype="DIR_PATH", default="",
                               description="Folder the drive's tiles are kept in (running again resumes; empty: "
