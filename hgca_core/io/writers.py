@@ -22,6 +22,7 @@ import numpy as np
 from hgca_core.errors import InputError
 from hgca_core.io.atomic import AtomicBatch, atomic_write
 from hgca_core.io.georef import local_offset, needs_offset, to_local32
+from hgca_core.io.classes import CLASS_COLORS, CLASS_NAMES
 
 if TYPE_CHECKING:
     import trimesh
@@ -129,10 +130,13 @@ def write_points(path: str | os.PathLike, points: np.ndarray, attributes: Mappin
 
 def write_mesh_npz(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
                    observed_distance: np.ndarray, batch: AtomicBatch | None = None,
-                   normals: np.ndarray | None = None, face_material: np.ndarray | None = None) -> str:
+                   normals: np.ndarray | None = None, face_material: np.ndarray | None = None,
+                   face_label: np.ndarray | None = None, face_label_agreement: np.ndarray | None = None) -> str:
     """The mesh layout of CONTRACTS.md: `vertices` (V,3) f32 relative to `offset` (3,) f64, `faces` (F,3) i32,
-    `observed_distance` (V,) f32, and when given `normals` (V,3) f32 (unit per-vertex normals) and
-    `face_material` (F,) u8 (0 observed, 1 generated). World coordinates are `vertices + offset`, in float64."""
+    `observed_distance` (V,) f32, and when given `normals` (V,3) f32 (unit per-vertex normals),
+    `face_material` (F,) u8 (0 observed, 1 generated), `face_label` (F,) u8 (the class, an index into the
+    `label_names` array written with it) and `face_label_agreement` (F,) f32 (the share of the k samples that
+    agree on it). World coordinates are `vertices + offset`, in float64."""
     path = os.fspath(path)
     _extension(path, (".npz",))
     world = np.asarray(vertices, dtype=np.float64)
@@ -159,6 +163,15 @@ def write_mesh_npz(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndar
         if m.shape != (len(f),):
             raise ValueError(f"face_material must be ({len(f)},), got {m.shape}")
         arrays["face_material"] = m.astype(np.uint8)
+    for name, values, dtype in (("face_label", face_label, np.uint8),
+                                ("face_label_agreement", face_label_agreement, np.float32)):
+        if values is not None:
+            a = np.asarray(values)
+            if a.shape != (len(f),):
+                raise ValueError(f"{name} must be ({len(f)},), got {a.shape}")
+            arrays[name] = a.astype(dtype)
+    if face_label is not None:
+        arrays["label_names"] = np.array(CLASS_NAMES)
     return _save(path, lambda fh: np.savez(fh, **arrays), batch)
 
 
@@ -184,21 +197,38 @@ def _mesh_ply(mesh: "trimesh.Trimesh", out: BinaryIO) -> None:
 MATERIALS = {"observed": (0.55, 0.57, 0.6, 1.0), "generated": (0.95, 0.45, 0.1, 1.0)}
 
 
+def _srgb_to_linear(c: float) -> float:
+    return c / 12.92 if c <= 0.04045 else ((c + 0.055) / 1.055) ** 2.4
+
+
+# glTF base colours of the semantic classes (linear RGBA) from their display colours
+CLASS_MATERIALS = {n: (*(round(_srgb_to_linear(v / 255.0), 4) for v in rgb), 1.0)
+                   for n, rgb in zip(CLASS_NAMES, CLASS_COLORS)}
+
+
 def mesh_parts(mesh: "trimesh.Trimesh") -> list[tuple[str, "trimesh.Trimesh"]]:
-    """(name, part) per material for glTF: the faces of each value of the face attribute `material` (0 observed,
-    1 generated) with a PBR material of that name, their vertices' normals and scalar attributes; one part
-    "mesh" when the mesh has no `material`."""
+    """(name, part) per material for glTF: with the face attribute `label` (a semantic completion) the faces of
+    each class with a PBR material named for it (`CLASS_MATERIALS`); otherwise the faces of each value of the face
+    attribute `material` (0 observed, 1 generated) with a PBR material of that name; each part with its vertices'
+    normals and scalar attributes (a face's `label_agreement` as the vertex attribute `label_agreement`, the
+    lowest of its faces'). One part "mesh" when the mesh has neither."""
     import trimesh
     from trimesh.visual.material import PBRMaterial
 
     faces = np.asarray(mesh.faces)
+    label = mesh.face_attributes.get("label")
     material = mesh.face_attributes.get("material")
-    if material is None or np.asarray(material).shape != (len(faces),):
+    if label is not None and np.asarray(label).shape == (len(faces),):
+        groups, colours = np.asarray(label), CLASS_MATERIALS
+    elif material is not None and np.asarray(material).shape == (len(faces),):
+        groups, colours = np.asarray(material), MATERIALS
+    else:
         return [("mesh", mesh)]
+    agree = mesh.face_attributes.get("label_agreement")
     normals = np.asarray(mesh.vertex_normals)
     parts = []
-    for value, name in enumerate(MATERIALS):
-        sel = np.asarray(material) == value
+    for value, name in enumerate(colours):
+        sel = groups == value
         if not sel.any():
             continue
         used, f = np.unique(faces[sel], return_inverse=True)
@@ -207,7 +237,11 @@ def mesh_parts(mesh: "trimesh.Trimesh") -> list[tuple[str, "trimesh.Trimesh"]]:
         for key, values in mesh.vertex_attributes.items():
             if np.asarray(values).shape == (len(mesh.vertices),) and key not in ("nx", "ny", "nz"):
                 part.vertex_attributes[key] = np.asarray(values)[used]
-        part.visual = trimesh.visual.TextureVisuals(material=PBRMaterial(name=name, baseColorFactor=MATERIALS[name],
+        if agree is not None and np.asarray(agree).shape == (len(faces),):
+            low = np.ones(len(used), np.float32)
+            np.minimum.at(low, f, np.repeat(np.asarray(agree, np.float32)[sel], 3))
+            part.vertex_attributes["label_agreement"] = low
+        part.visual = trimesh.visual.TextureVisuals(material=PBRMaterial(name=name, baseColorFactor=colours[name],
                                                                          metallicFactor=0.0, roughnessFactor=0.9))
         parts.append((name, part))
     return parts

@@ -1,0 +1,318 @@
+"""The semantic head on completed streets: per-class IoU at 20 cm on the synthetic test split, label-free checks
+on the real logs, renderings coloured by class, and the head's time beside the completion's.
+
+    python benchmarks/semantics.py [--data data/synth2f] [--weights hgca_core/weights/semantics.pt] [--threads 1]
+
+Synthetic test split (labels known): each scene is completed by the shipped coarse stage (`pipeline.complete_local`,
+seed 0, as `hgca eval` runs it); the head labels the completion's 20 cm cells. A cell is scored where the completion
+and the ground truth both hold it (the geometry's own errors are `hgca eval`'s), observed cells (the input holds
+them) apart from generated ones. The "ground-truth cells" rows label the ground-truth state itself (with the input's
+observed flags): the head without the completion's errors.
+
+Real logs (no labels), label-free checks that a wrong labelling fails, each the share of cells of that class that
+passes: road and sidewalk within GROUND_TOL of the ground fitted to the cells; building cells on vertical surfaces
+(the normal of the building cells around them, within 0.6 m, at most VERTICAL_NZ from horizontal); car cells at
+most CAR_TOP above the ground; pole cells in thin vertical pieces (connected pole cells at most POLE_WIDTH across
+and taller than twice their width). The same checks on the synthetic ground truth show what a right labelling
+scores. Writes benchmarks/results/semantics.{md,json,png}.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+REAL = (  # name, path under --real-dir, frames, calibration (as hgca eval-real reads them)
+    ("av2_7fab2350", "av2/7fab2350-7eaf-3b7e-a39d-6937a4c1bede", "0:2", None),
+    ("av2_adcf7d18", "av2/adcf7d18-0510-35b0-a2fa-b4cea13a6d76", None,
+     "av2/7fab2350-7eaf-3b7e-a39d-6937a4c1bede/calibration/egovehicle_SE3_sensor.feather"),
+    ("nuscenes", "nuscenes_lidar_top_1532402927647951.pcd.bin", None, None),
+)
+GROUND_TOL = 0.5      # m: road and sidewalk cells within this of the fitted ground
+VERTICAL_NZ = 0.5     # |n_z| of a building cell's local surface normal at most this (60 degrees or steeper)
+CAR_TOP = 3.0         # m above the fitted ground
+POLE_WIDTH = 0.8      # m across (x and y) at most
+MIN_SHARE = 0.01      # classes with fewer cells than this share of a scene's are left out of its IoU means
+
+
+def hag(cells: np.ndarray) -> np.ndarray:
+    from hgca_core.models.semantics import fitted_ground
+
+    return (cells[:, 2] + 0.5) * 0.2 - fitted_ground(cells)
+
+
+def checks(cells: np.ndarray, labels: np.ndarray) -> dict[str, tuple[int, int]]:
+    """{check: (cells passing, cells checked)} of the label-free checks (module docstring)."""
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    from hgca_core.io.classes import CLASS_NAMES
+
+    idx = {n: i for i, n in enumerate(CLASS_NAMES)}
+    h = hag(cells)
+    out = {}
+    flat = np.isin(labels, [idx["road"], idx["sidewalk"]])
+    out["road and sidewalk within 0.5 m of the ground"] = (int((np.abs(h[flat]) <= GROUND_TOL).sum()), int(flat.sum()))
+    car = labels == idx["car"]
+    out["car cells at most 3 m above the ground"] = (int((h[car] <= CAR_TOP).sum()), int(car.sum()))
+    b = np.flatnonzero(labels == idx["building"])
+    ok = 0
+    if len(b):
+        p = (cells[b] + 0.5) * 0.2
+        tree = cKDTree(p)
+        nbrs = tree.query_ball_point(p, 0.6, workers=1)
+        for i, nb in enumerate(nbrs):
+            if len(nb) < 4:
+                continue
+            q = p[nb] - p[nb].mean(0)
+            n = np.linalg.eigh(q.T @ q)[1][:, 0]
+            ok += abs(n[2]) <= VERTICAL_NZ
+    out["building cells on vertical surfaces"] = (int(ok), int(len(b)))
+    pole = labels == idx["pole"]
+    passing = 0
+    if pole.any():
+        c = cells[pole]
+        lo = c.min(0)
+        grid = np.zeros(tuple(c.max(0) - lo + 1), bool)
+        grid[tuple((c - lo).T)] = True
+        comp, n = ndimage.label(grid, structure=np.ones((3, 3, 3)))
+        ids = comp[tuple((c - lo).T)]
+        for k in range(1, n + 1):
+            m = c[ids == k]
+            width = (m[:, :2].max(0) - m[:, :2].min(0) + 1).max() * 0.2
+            height = (m[:, 2].max() - m[:, 2].min() + 1) * 0.2
+            if width <= POLE_WIDTH and height >= 2 * width:
+                passing += len(m)
+    out["pole cells in thin vertical pieces"] = (int(passing), int(pole.sum()))
+    return out
+
+
+def scene_confusion(pred_cells: np.ndarray, pred_labels: np.ndarray, observed: np.ndarray, gt: dict) -> dict:
+    """{"observed", "generated"}: confusion matrices over the cells both the completion and the truth hold."""
+    from hgca_core.training.semantics import _keys, confusion
+
+    gk = _keys(gt["cells"])
+    order = np.argsort(gk)
+    pk = _keys(pred_cells)
+    pos = np.clip(np.searchsorted(gk[order], pk), 0, len(gk) - 1)
+    hit = gk[order][pos] == pk
+    truth = gt["labels"][order][pos]
+    return {name: confusion(pred_labels[hit & sel], truth[hit & sel])
+            for name, sel in (("observed", observed), ("generated", ~observed))}
+
+
+def render(cells: np.ndarray, labels: np.ndarray, ax, title: str) -> None:
+    """Cells as an oblique view coloured by class (painter's order, far first)."""
+    from hgca_core.io.classes import CLASS_COLORS
+
+    p = (cells + 0.5) * 0.2
+    view = np.array([-0.55, -0.75, 0.45])
+    view /= np.linalg.norm(view)
+    right = np.cross(view, [0, 0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, view)
+    depth = p @ view
+    order = np.argsort(depth)
+    col = np.asarray(CLASS_COLORS, float)[labels] / 255.0
+    shade = 0.75 + 0.25 * np.clip(hag(cells) / 6.0, 0, 1)
+    ax.scatter(p[order] @ right, p[order] @ up, c=col[order] * shade[order, None], s=0.6, marker="s", linewidths=0)
+    ax.set_title(title, fontsize=9)
+    ax.set_aspect("equal")
+    ax.axis("off")
+
+
+def iou_table(conf: np.ndarray) -> dict:
+    from hgca_core.io.classes import CLASS_NAMES
+    from hgca_core.training.semantics import class_iou
+
+    iou = class_iou(conf)
+    present = conf.sum(1) >= MIN_SHARE * max(conf.sum(), 1)
+    return {"per_class": {n: (None if not np.isfinite(v) else round(float(v) * 100, 1)) for n, v in
+                          zip(CLASS_NAMES, iou)},
+            "miou": round(float(np.nanmean(np.where(present, iou, np.nan))) * 100, 1),
+            "cells": int(conf.sum()), "accuracy": round(float(np.trace(conf) / max(conf.sum(), 1)) * 100, 1),
+            "classes": [n for n, k in zip(CLASS_NAMES, present) if k]}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", default="data/synth2f", help="dataset folder with a test split (hgca synth)")
+    p.add_argument("--weights", default=None, help="semantic head weights (default: the shipped semantics.pt)")
+    p.add_argument("--real-dir", default=str(ROOT / "tests" / "data" / "real"))
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--limit", type=int, default=None, help="first N test scenes only")
+    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "semantics.json"))
+    args = p.parse_args()
+    import matplotlib
+    import torch
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    torch.set_num_threads(args.threads)
+    from hgca_core.geometry.region import Region, default_region
+    from hgca_core.geometry.voxel import COARSE, voxelize
+    from hgca_core.io.classes import CLASS_COLORS, CLASS_NAMES
+    from hgca_core.models.semantics import label_mesh, observed_mask, predict
+    from hgca_core.models.weights import load_semantics, shipped
+    from hgca_core.pipeline import complete_local, load_models
+    from hgca_core.real_eval import read_input
+    from hgca_core.synth.dataset import load_sample
+    from hgca_core.synth.rays import input_rays
+    from hgca_core.training.data import split_files
+    from hgca_core.training.semantics import scene
+
+    head = load_semantics(args.weights)
+    models = load_models("coarse")
+    k = len(CLASS_NAMES)
+    zero = lambda: np.zeros((k, k), np.int64)   # noqa: E731
+    conf = {"completion": {"observed": zero(), "generated": zero()}, "gt": {"observed": zero(), "generated": zero()}}
+    per_scene, timing, gt_checks, panels = [], [], {}, []
+    files = split_files(args.data, "test")[: args.limit]
+    for path in files:
+        sample = load_sample(path)
+        rays, ray_scan = input_rays(sample)
+        region = Region.from_tuple(sample["region"])
+        t0 = time.perf_counter()
+        comp = complete_local(rays, region, models, "coarse", 1, 0, origins=sample["input_origins"],
+                              origin_index=ray_scan)[0]
+        t1 = time.perf_counter()
+        s0 = voxelize(rays[region.contains_local(rays)], COARSE, region.size)
+        labels, faces = label_mesh(head, np.asarray(comp.mesh.triangles_center), comp.coarse_cells, s0)
+        t2 = time.perf_counter()
+        timing.append({"scene": path.stem, "cells": int(len(comp.coarse_cells)), "faces": int(len(faces)),
+                       "completion_s": round(t1 - t0, 2), "semantics_s": round(t2 - t1, 2)})
+        gt = scene(path)
+        obs = observed_mask(comp.coarse_cells, s0)
+        c = scene_confusion(comp.coarse_cells, labels, obs, gt)
+        gl = predict(head, gt["cells"], gt["observed"])[0]
+        row = {"scene": path.stem}
+        for part in ("observed", "generated"):
+            conf["completion"][part] += c[part]
+            sel = gt["observed"] if part == "observed" else ~gt["observed"]
+            from hgca_core.training.semantics import confusion
+
+            g = confusion(gl[sel], gt["labels"][sel])
+            conf["gt"][part] += g
+            row[f"miou_{part}"] = iou_table(c[part])["miou"]
+        per_scene.append(row)
+        for name, (ok, n) in checks(gt["cells"], gt["labels"]).items():
+            a = gt_checks.setdefault(name, [0, 0])
+            a[0] += ok
+            a[1] += n
+        if len(panels) < 2:
+            panels.append((f"{path.stem}: ground truth", gt["cells"], gt["labels"]))
+            panels.append((f"{path.stem}: completion, labelled", comp.coarse_cells, labels))
+        print(json.dumps({**row, **timing[-1]}), flush=True)
+    real = []
+    for name, rel, frames, calib in REAL:
+        scan = read_input({"path": str(Path(args.real_dir) / rel), "frames": frames,
+                           "calibration": None if calib is None else str(Path(args.real_dir) / calib)})
+        region = default_region(scan.points, scan.origins)
+        from hgca_core.geometry.freespace import ray_origins
+
+        index = ray_origins(scan.origins, scan.attributes, scan.points)
+        local = region.to_local(scan.points)
+        t0 = time.perf_counter()
+        comp = complete_local(local, region, models, "coarse", 1, 0, origins=region.to_local(scan.origins),
+                              origin_index=index)[0]
+        t1 = time.perf_counter()
+        s0 = voxelize(local[region.contains_local(local)], COARSE, region.size)
+        labels, faces = label_mesh(head, np.asarray(comp.mesh.triangles_center), comp.coarse_cells, s0)
+        t2 = time.perf_counter()
+        timing.append({"scene": name, "cells": int(len(comp.coarse_cells)), "faces": int(len(faces)),
+                       "completion_s": round(t1 - t0, 2), "semantics_s": round(t2 - t1, 2)})
+        res = checks(comp.coarse_cells, labels)
+        real.append({"input": name, "checks": res,
+                     "class_share": {n: round(float((labels == i).mean()) * 100, 1) for i, n in enumerate(CLASS_NAMES)}})
+        panels.append((f"{name} (real): completion, labelled", comp.coarse_cells, labels))
+        print(json.dumps(real[-1]), flush=True)
+
+    out = Path(args.out)
+    tables = {src: {part: iou_table(m) for part, m in parts.items()} for src, parts in conf.items()}
+    tables_all = {src: iou_table(parts["observed"] + parts["generated"]) for src, parts in conf.items()}
+    comp_s = sum(t["completion_s"] for t in timing)
+    sem_s = sum(t["semantics_s"] for t in timing)
+    record = {"data": args.data, "files": [f.name for f in files], "weights": str(args.weights or shipped("semantics")),
+              "threads": args.threads, "cpu": platform.processor() or platform.machine(), "torch": torch.__version__,
+              "iou": tables, "iou_all": tables_all, "per_scene": per_scene, "real": real,
+              "gt_checks": {k2: v for k2, v in gt_checks.items()}, "timing": timing,
+              "semantics_share_of_coarse_completion": round(sem_s / max(comp_s, 1e-9) * 100, 1)}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(record, indent=1))
+
+    cols = 4
+    rows = (len(panels) + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.6 * rows + 0.6))
+    for ax in np.ravel(axes)[len(panels):]:
+        ax.axis("off")
+    for ax, (title, cells, labels) in zip(np.ravel(axes), panels):
+        render(cells, labels, ax, title)
+    handles = [plt.Line2D([], [], marker="s", ls="", color=np.asarray(c) / 255.0, label=n)
+               for n, c in zip(CLASS_NAMES, CLASS_COLORS)]
+    fig.legend(handles=handles, loc="lower center", ncol=len(CLASS_NAMES), fontsize=9, frameon=False)
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
+    fig.savefig(out.with_suffix(".png"), dpi=90)
+    out.with_suffix(".md").write_text(markdown(record))
+    print(f"wrote {out}, {out.with_suffix('.md')}, {out.with_suffix('.png')}")
+
+
+def markdown(r: dict) -> str:
+    from hgca_core.io.classes import CLASS_NAMES
+
+    def row(name: str, t: dict) -> str:
+        vals = [("-" if t["per_class"][n] is None else f"{t['per_class'][n]:.1f}") for n in CLASS_NAMES]
+        return f"| {name} | **{t['miou']:.1f}** | {' | '.join(vals)} | {t['cells']:,} |"
+
+    head = f"| cells | mIoU | {' | '.join(CLASS_NAMES)} | scored cells |"
+    lines = ["# Semantic head: classes of completed streets", "",
+             "Per-class IoU (%) at 20 cm on the synthetic test split "
+             f"({len(r['files'])} scenes of `{r['data']}`: {', '.join(r['files'])}), the shipped coarse stage's "
+             "completion (seed 0) labelled by the head (`hgca complete --semantics`). Cells are scored where the "
+             "completion and the ground truth both hold them; observed cells (the input holds them) apart from "
+             "generated ones. mIoU is over the classes holding at least 1 % of the scored cells "
+             f"({', '.join(r['iou_all']['completion']['classes'])}). Measured by `python benchmarks/semantics.py` "
+             f"({r['threads']} thread, {r['cpu']}, torch {r['torch']}); weights `{Path(r['weights']).name}`.", "",
+             head, "|" + " --- |" * (len(CLASS_NAMES) + 3)]
+    for src, label in (("completion", "completion"), ("gt", "ground-truth cells")):
+        for part in ("observed", "generated"):
+            lines.append(row(f"{label}, {part}", r["iou"][src][part]))
+        lines.append(row(f"{label}, all", r["iou_all"][src]))
+    lines += ["", "Per scene, completion mIoU (%): " + "; ".join(
+        f"{s['scene']} observed {s['miou_observed']:.1f}, generated {s['miou_generated']:.1f}" for s in r["per_scene"]),
+              "", "## Label-free checks on the real logs", "",
+              f"Share of a class's cells that passes (cells checked). Ground fitted to the completion's own cells; "
+              f"tolerances: road/sidewalk within {GROUND_TOL} m of it, building normals |n_z| <= {VERTICAL_NZ}, car "
+              f"cells at most {CAR_TOP} m up, pole pieces at most {POLE_WIDTH} m across and twice as tall. The last "
+              "column is the same check on the synthetic test split's ground truth (a right labelling).", ""]
+    names = list(r["gt_checks"])
+    lines.append("| check | " + " | ".join(x["input"] for x in r["real"]) + " | synthetic ground truth |")
+    lines.append("|" + " --- |" * (len(r["real"]) + 2))
+    for n in names:
+        cells = []
+        for x in r["real"]:
+            ok, tot = x["checks"][n]
+            cells.append(f"{ok / tot * 100:.0f} % ({tot:,})" if tot else "no cells")
+        ok, tot = r["gt_checks"][n]
+        cells.append(f"{ok / tot * 100:.0f} % ({tot:,})" if tot else "no cells")
+        lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    lines += ["", "Class shares of the real completions' cells (%): " + "; ".join(
+        f"{x['input']}: " + ", ".join(f"{k} {v:.1f}" for k, v in x["class_share"].items() if v >= 0.5)
+        for x in r["real"]), "", "## Time", "",
+              f"The head and the faces' labels took {r['semantics_share_of_coarse_completion']:.1f} % of the coarse "
+              "stage's completion time on the same inputs (the full stage takes longer, so its share is smaller):", "",
+              "| input | cells | faces | coarse completion (s) | semantics (s) |", "| --- | --- | --- | --- | --- |"]
+    lines += [f"| {t['scene']} | {t['cells']:,} | {t['faces']:,} | {t['completion_s']:.1f} | {t['semantics_s']:.2f} |"
+              for t in r["timing"]]
+    lines += ["", "![Completions coloured by class](semantics.png)", ""]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,244 @@
+"""Training the semantic head (`hgca train --recipe semantics`) on the synthetic streets' surface labels.
+
+Targets: each ground-truth 20 cm cell (`gt_occ20`) takes the majority label of the ground-truth surface samples
+inside it (`gt_surface_label`), or the nearest sample's where none falls inside. Inputs: those cells with the
+observed flag of the sample's own input, perturbed so that they look like a completed state rather than the
+ground truth: cells dropped and added next to others (a sampled state's fuzz), turns (90 degree steps and flips,
+or any yaw resampled to the grid), and cuts of the observed flag above a height and beyond a half-plane (what a
+sensor misses and the chain generates). The model and its features are `hgca_core.models.semantics`.
+
+The task plugs into the shared trainer (`hgca_core.training.trainer`) as a chain of one step: every example is
+used once. Validation scores fixed, perturbed full val scenes; `val_iou` is their mIoU over the classes present.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch import nn
+
+from hgca_core.geometry.voxel import COARSE, voxelize
+from hgca_core.models.semantics import CLASS_NAMES, SemanticHead, SemanticsConfig, cell_features, fitted_ground
+from hgca_core.training.buffer import Chain
+from hgca_core.training.data import load_arrays, split_files
+
+DROP = (0.0, 0.2)        # share of cells dropped per example (drawn uniformly)
+ADD = (0.0, 0.1)         # share of cells added next to others
+CUT_HEIGHT = (1.5, 3.0)  # metres above the fitted ground: the observed flag is cleared above a drawn height
+LABEL_SMOOTHING = 0.05
+
+
+def _keys(c: np.ndarray) -> np.ndarray:
+    c = np.asarray(c, dtype=np.int64)
+    return ((c[:, 0] + 4096) * 8192 + (c[:, 1] + 4096)) * 8192 + (c[:, 2] + 4096)
+
+
+def cell_labels(cells: np.ndarray, surface: np.ndarray, surface_label: np.ndarray) -> np.ndarray:
+    """(M,) uint8 label of each 20 cm cell: the majority of the surface samples inside, else the nearest's."""
+    c = np.asarray(cells, dtype=np.int64).reshape(-1, 3)
+    pc = np.floor(np.asarray(surface, dtype=np.float64) / COARSE).astype(np.int64)
+    lab = np.asarray(surface_label, dtype=np.int64)
+    k = _keys(pc) * 16 + lab
+    uk, counts = np.unique(k, return_counts=True)
+    cell_k, cell_lab = uk // 16, uk % 16
+    order = np.lexsort((-counts, cell_k))           # per cell, the most frequent label first
+    cell_k, cell_lab = cell_k[order], cell_lab[order]
+    first = np.r_[True, cell_k[1:] != cell_k[:-1]]
+    cell_k, cell_lab = cell_k[first], cell_lab[first]
+    ck = _keys(c)
+    pos = np.clip(np.searchsorted(cell_k, ck), 0, max(len(cell_k) - 1, 0))
+    hit = (cell_k[pos] == ck) if len(cell_k) else np.zeros(len(c), bool)
+    out = np.zeros(len(c), np.uint8)
+    out[hit] = cell_lab[pos[hit]]
+    if (~hit).any() and len(surface):
+        _, i = cKDTree(surface).query((c[~hit] + 0.5) * COARSE, k=1, workers=1)
+        out[~hit] = lab[i]
+    return out
+
+
+def scene(path: str | Path) -> dict[str, np.ndarray]:
+    """A sample's ground-truth cells (M, 3), their labels (M,) and observed flags (M,), and its 20 cm grid."""
+    a = load_arrays(str(path), ("region", "input_points", "gt_occ20", "gt_surface", "gt_surface_label"))
+    cells = a["gt_occ20"].astype(np.int64)
+    size = a["region"][3:6]
+    s0 = voxelize(a["input_points"], COARSE, size)
+    observed = np.isin(_keys(cells), _keys(s0))
+    return {"cells": cells, "labels": cell_labels(cells, a["gt_surface"], a["gt_surface_label"]),
+            "observed": observed, "grid": np.array([int(round(v / COARSE)) for v in size])}
+
+
+def perturb(cells: np.ndarray, labels: np.ndarray, observed: np.ndarray, rng: np.random.Generator,
+            crop: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(cells, labels, observed) of one training example: a crop of `crop` x `crop` cells (None: all), turned,
+    with cells dropped and added and the observed flag cut (see the module docstring)."""
+    c, lab, obs = np.asarray(cells, np.int64), np.asarray(labels), np.asarray(observed, bool)
+    if crop is not None and len(c):
+        lo, hi = c[:, :2].min(0), c[:, :2].max(0)
+        start = np.array([rng.integers(lo[i], max(lo[i] + 1, hi[i] - crop + 2)) for i in range(2)])
+        keep = np.all((c[:, :2] >= start) & (c[:, :2] < start + crop), 1)
+        c, lab, obs = c[keep] - np.r_[start, 0], lab[keep], obs[keep]
+    if len(c) == 0:
+        return c, lab, obs
+    centre = (c[:, :2].max(0) + c[:, :2].min(0)) / 2.0
+    xy = c[:, :2] + 0.5 - centre
+    if rng.random() < 0.5:                                      # any yaw, resampled to the grid
+        a = rng.uniform(0, 2 * np.pi)
+        rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        xy = xy @ rot.T
+    else:                                                       # 90 degree steps and a flip: exact
+        for _ in range(int(rng.integers(4))):
+            xy = np.c_[-xy[:, 1], xy[:, 0]]
+        if rng.random() < 0.5:
+            xy[:, 0] = -xy[:, 0]
+    c = np.c_[np.floor(xy - xy.min(0)).astype(np.int64), c[:, 2]]
+    _, first = np.unique(_keys(c), return_index=True)
+    c, lab, obs = c[first], lab[first], obs[first]
+    drop = rng.random(len(c)) < rng.uniform(*DROP) * np.where(obs, 0.3, 1.0)   # generated cells are the fuzzy ones
+    if drop.all():
+        drop[:] = False
+    c, lab, obs = c[~drop], lab[~drop], obs[~drop]
+    n_add = int(len(c) * rng.uniform(*ADD))
+    if n_add:
+        src = rng.integers(len(c), size=n_add)
+        step = rng.integers(-1, 2, size=(n_add, 3))
+        new = c[src] + step
+        new = new[new[:, 2] >= 0]
+        fresh = ~np.isin(_keys(new), _keys(c))
+        new = new[fresh]
+        _, first = np.unique(_keys(new), return_index=True)
+        new = new[first]
+        if len(new):
+            _, i = cKDTree(c).query(new, k=1, workers=1)
+            c, lab, obs = np.r_[c, new], np.r_[lab, lab[i]], np.r_[obs, np.zeros(len(new), bool)]
+            c = np.c_[c[:, :2] - c[:, :2].min(0), c[:, 2]]
+    obs = obs.copy()
+    if rng.random() < 0.5:
+        hag = (c[:, 2] + 0.5) * COARSE - fitted_ground(c)
+        obs &= hag < rng.uniform(*CUT_HEIGHT)
+    if rng.random() < 0.5:
+        a = rng.uniform(0, 2 * np.pi)
+        d = (c[:, :2] - c[:, :2].mean(0)) @ np.array([np.cos(a), np.sin(a)])
+        obs &= d < rng.uniform(-0.2, 0.5) * np.ptp(d)
+    return c, lab, obs
+
+
+def batch_coords(sets: Sequence[np.ndarray]) -> tuple[torch.Tensor, np.ndarray]:
+    """(N, 4) batched coords in key order for several cell sets, and the permutation from their concatenation."""
+    from hgca_core.geometry.coords import pack
+
+    coords = torch.cat([torch.cat([torch.full((len(s), 1), b, dtype=torch.long), torch.from_numpy(s)], 1)
+                        for b, s in enumerate(sets)])
+    order = torch.argsort(pack(coords))
+    return coords[order], order.numpy()
+
+
+class SemanticsLoss(nn.Module):
+    """Weighted cross-entropy of the head on a batch of examples (chains of one step)."""
+
+    def __init__(self, cfg: SemanticsConfig, class_weight: torch.Tensor | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.model = SemanticHead(cfg)
+        self.register_buffer("class_weight", class_weight if class_weight is not None else torch.ones(cfg.classes))
+
+    def forward(self, chains: list[Chain]) -> tuple[torch.Tensor, dict, list[torch.Tensor]]:
+        sets = [ch.state.cpu().numpy() for ch in chains]
+        coords, order = batch_coords(sets)
+        feats = torch.cat([ch.extra["feats"] for ch in chains])[order]
+        target = torch.cat([ch.extra["labels"] for ch in chains])[order].long()
+        dev = self.class_weight.device
+        logits = self.model(coords.to(dev), feats.to(dev))
+        loss = nn.functional.cross_entropy(logits.float(), target.to(dev), weight=self.class_weight,
+                                           label_smoothing=LABEL_SMOOTHING)
+        acc = float((logits.argmax(1) == target.to(dev)).float().mean())
+        return loss, {"acc": acc}, [torch.zeros((0, 3), dtype=torch.long) for _ in chains]
+
+
+def confusion(pred: np.ndarray, gt: np.ndarray, classes: int = len(CLASS_NAMES)) -> np.ndarray:
+    """(classes, classes) counts, rows ground truth, columns prediction."""
+    return np.bincount(np.asarray(gt, np.int64) * classes + np.asarray(pred, np.int64),
+                       minlength=classes * classes).reshape(classes, classes)
+
+
+def class_iou(conf: np.ndarray) -> np.ndarray:
+    """Per-class IoU from a confusion matrix; NaN for classes absent from both prediction and ground truth."""
+    tp = np.diag(conf).astype(np.float64)
+    union = conf.sum(0) + conf.sum(1) - tp
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(conf.sum(1) > 0, tp / np.maximum(union, 1), np.nan)
+
+
+@dataclass
+class SemanticsTask:
+    """The semantic head for the shared trainer."""
+
+    data_dir: str | Sequence[str]
+    cfg: SemanticsConfig = field(default_factory=SemanticsConfig)
+    crop: int = 96
+    val_count: int = 6
+    name: str = "semantics"
+
+    def __post_init__(self) -> None:
+        self.train_files = split_files(self.data_dir, "train")
+        self._scenes: dict[str, dict] = {}
+
+    def _scene(self, path: Path) -> dict:
+        key = str(path)
+        if key not in self._scenes:
+            self._scenes[key] = scene(path)
+        return self._scenes[key]
+
+    def class_weight(self, n: int = 8) -> torch.Tensor:
+        """1 / sqrt(frequency) of the classes over the first `n` train scenes, mean 1 over the classes seen."""
+        counts = np.zeros(self.cfg.classes)
+        for p in self.train_files[:n]:
+            counts += np.bincount(self._scene(p)["labels"], minlength=self.cfg.classes)[: self.cfg.classes]
+        w = np.where(counts > 0, 1.0 / np.sqrt(np.maximum(counts, 1) / max(counts.sum(), 1)), 0.0)
+        w = np.minimum(w / w[counts > 0].mean(), 5.0)
+        return torch.tensor(w, dtype=torch.float32)
+
+    def build(self) -> SemanticsLoss:
+        return SemanticsLoss(self.cfg, self.class_weight())
+
+    def recipe(self) -> dict:
+        return {"crop": self.crop, "drop": DROP, "add": ADD, "cut_height": CUT_HEIGHT}
+
+    def new_example(self, rng: np.random.Generator) -> Chain:
+        path = self.train_files[int(rng.integers(len(self.train_files)))]
+        s = self._scene(path)
+        c, lab, obs = perturb(s["cells"], s["labels"], s["observed"], rng, self.crop)
+        feats = torch.from_numpy(cell_features(c, obs, self.cfg.pe_freq))
+        t = torch.from_numpy(c)
+        grid = tuple(int(v) for v in np.maximum(c.max(0) + 1, 1)) if len(c) else (1, 1, 1)
+        return Chain(s0=t, gt=t, state=t, t=0, grid=grid,
+                     extra={"feats": feats, "labels": torch.from_numpy(lab.astype(np.int64))})
+
+    @torch.no_grad()
+    def validate(self, loss_module: SemanticsLoss, seed: int = 0) -> dict:
+        """mIoU (`val_iou`) and accuracy over fixed, perturbed full val scenes."""
+        from hgca_core.models.semantics import predict
+
+        conf = np.zeros((self.cfg.classes, self.cfg.classes), np.int64)
+        for k, path in enumerate(split_files(self.data_dir, "val")[: self.val_count]):
+            s = self._scene(path)
+            c, lab, obs = perturb(s["cells"], s["labels"], s["observed"], np.random.default_rng(1000 + k))
+            conf += confusion(predict(loss_module.model, c, obs)[0], lab, self.cfg.classes)
+        loss_module.train()
+        iou = class_iou(conf)
+        return {"val_iou": float(np.nanmean(iou)), "val_acc": float(np.trace(conf) / max(conf.sum(), 1)),
+                **{f"val_iou_{n}": float(v) for n, v in zip(CLASS_NAMES, iou) if np.isfinite(v)}}
+
+
+def export_semantics(ckpt_path: str | Path, dest: str | Path, meta: dict | None = None) -> Path:
+    """Write the head of a training checkpoint (its weight average) as weights of kind 'semantics'."""
+    from hgca_core.models.weights import load_file, save_weights, trained_weights
+    from hgca_core.training.trainer import run_record
+
+    ck = load_file(ckpt_path)
+    module = SemanticsLoss(SemanticsConfig.from_dict(ck["config"]))
+    module.load_state_dict(trained_weights(ck))
+    return save_weights(dest, module.model, {**run_record(ck), **(meta or {})})
