@@ -59,3 +59,18 @@ def test_shipped_weights_complete_the_example(example, stage, one_thread):
         tri = mesh.ray.intersects_first(np.c_[road[:, :2], road[:, 2] + 0.3], np.tile([0.0, 0.0, -1.0], (len(road), 1)))
         up = mesh.face_normals[tri[tri >= 0], 2]
         assert np.mean(up > 0.5) > 0.95
+
+
+def test_results_about_the_shipped_weights_name_their_current_digests():
+    """The evaluation on the weights record and the real-scan page name the shipped files by sha256: a file
+    changed without them (new tensors, or a rewritten record) would leave the pages describing another file."""
+    from pathlib import Path
+
+    from hgca_core.io.digest import file_digest
+
+    root = Path(__file__).resolve().parents[1]
+    ev = json.loads((root / "hgca_core/weights/eval_test.json").read_text())
+    assert ev["weights_sha256"] == {r: file_digest(root / p) for r, p in ev["weights"].items()}
+    real = json.loads((root / "benchmarks/results/real_scans.json").read_text())["config"]
+    assert real["weights_sha256"] == {r: file_digest(root / p) for r, p in real["weights"].items()}
+    assert all(not Path(p).is_absolute() for p in [*ev["weights"].values(), *real["weights"].values()])
