@@ -170,7 +170,7 @@ def turn_cells(sets: Sequence[np.ndarray], grid: tuple[int, int, int], yaw: floa
 
     Why: a synthetic region has its x axis along the drive, so without turning the model only sees streets along
     x, while real scans arrive in any frame (the Argoverse 2 city frame, the nuScenes sensor frame's y forward),
-    and on them it grows walls along the grid axes, not along the street (`violation_anatomy_s21_shipped.md`)."""
+    and on them it grows walls along the grid axes, not along the street."""
     from hgca_core.geometry.freespace import dense
 
     x, y = np.meshgrid(np.arange(grid[0]) + 0.5, np.arange(grid[1]) + 0.5, indexing="ij")

@@ -1,9 +1,9 @@
 """Packed coarse training samples: the 20 cm cell sets the coarse stage trains on (the input s^0, the ground truth,
 the observed free space) and, in val and test splits, the visible cells its validation scores, as bit grids.
 
-Why: a GPU machine is reached with a copy of the repository and at most 64 MiB beside it, and cannot build scenes
-itself (no Embree there, and its minutes are better spent training). A full sample is ~6 MB (points, surfaces,
-distance pairs, evaluation scans); packed, a scene is ~60 kB, so several hundred travel with the repository. The
+Why: a GPU machine often cannot build scenes itself (no Embree there, and its time is better spent training).
+A full sample is ~6 MB (points, surfaces, distance pairs, evaluation scans); packed, a scene is ~60 kB, so several
+hundred fit in a few tens of MB that are quick to copy to it. The
 full samples stay the one source: a packed file is derived from one by `pack.pack_sample` and gives the coarse stage
 the very cells its source gives (`training.data` reads both); the fine stage and `hgca eval` need the full files.
 """
