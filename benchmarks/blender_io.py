@@ -101,11 +101,11 @@ def main(argv: list[str] | None = None) -> int:
             t_read.append(time.perf_counter() - t0)
 
         def do_import() -> None:
-            obj, _ = operators_import.import_scans(python, [scan], bpy.context.scene.collection)
+            obj, *_ = operators_import.import_scans(python, [scan], bpy.context.scene.collection)
             assert len(obj.data.vertices) == args.points
 
         t_import = timed(do_import, args.repeat)
-        pts, attrs, _origins, _offset = operators_import.read_scans(python, [scan])
+        pts, attrs, *_ = operators_import.read_scans(python, [scan])
 
         def do_build() -> None:
             mesh_build.build_point_object("scan", pts, attrs, bpy.context.scene.collection)

@@ -72,8 +72,8 @@ class HGCA_PG_scene(bpy.types.PropertyGroup):
     # No `update` callback: on Blender 4.2 a scene property's callback crashes Blender on quit once the
     # extension was uninstalled. The core takes 0 (keep all) or >= MIN_FACES: a toggle and a hard minimum.
     keep_all_faces: BoolProperty(name="Keep All Faces", default=False,
-                                 description="Keep every triangle (a default region's full-stage mesh has 2-3 "
-                                             "million) instead of simplifying to Max Faces")
+                                 description="Keep every triangle (a default region's full-stage mesh has "
+                                             "1.9-3.1 million) instead of simplifying to Max Faces")
     max_faces: IntProperty(name="Max Faces", default=1_000_000, min=MIN_FACES, soft_max=10_000_000,
                            description="Simplify each completed mesh to at most this many triangles")
     face_limit_mode: EnumProperty(
