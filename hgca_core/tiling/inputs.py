@@ -5,7 +5,8 @@ all frames by default), or accumulated `.npz` files (`hgca read`'s output, or wh
 for an imported sequence) whose `scan_index` attribute says which points came from which scan. Whatever the
 input, a drive sees a list of `DriveScan`s in trajectory order: the tile planner needs each scan's sensor
 position, and a tile's observed free space needs every point's ray (origin -> hit), so the origins travel with
-the points into the tiles.
+the points into the tiles. The order of the files does not matter: `order` finds the drive's (a poses file's
+order, else time stamps, else the chain of sensor positions) and reports a jump between consecutive scans.
 """
 from __future__ import annotations
 
@@ -30,6 +31,7 @@ class DriveScan:
     points: np.ndarray
     origins: np.ndarray
     origin_index: np.ndarray
+    time: float | None = None          # when it was taken (`order.scan_time`), where the file says so
 
     @property
     def position(self) -> np.ndarray:
@@ -49,6 +51,7 @@ def split_scans(scan, name: str) -> list[DriveScan]:
     Each point keeps its origin (`origin_index`, else its scan's, else the only or the nearest one:
     `geometry.freespace.ray_origins`); each scan gets the origins its points use."""
     from hgca_core.geometry.freespace import ray_origins
+    from hgca_core.tiling.order import scan_time
 
     if scan.origins is None or not len(scan.origins):
         raise InputError("a drive needs each scan's sensor position: this scan has no origin; give --poses "
@@ -66,7 +69,8 @@ def split_scans(scan, name: str) -> list[DriveScan]:
         own = index[mask]
         used = np.unique(own)
         out.append(DriveScan(label, np.ascontiguousarray(scan.points[mask], dtype=np.float64), origins[used],
-                             np.searchsorted(used, own).astype(np.int32)))
+                             np.searchsorted(used, own).astype(np.int32),
+                             scan_time({k: v[mask] for k, v in scan.attributes.items()})))
     return out
 
 
@@ -74,10 +78,13 @@ def read_drive_inputs(inputs: Sequence[str | os.PathLike], poses: str | os.PathL
                       fmt: str | None = None, frames: str | None = None,
                       report: Report | None = None) -> list[DriveScan]:
     """The drive's scans in trajectory order, read one file at a time (the same readers, pose matching and
-    checks as `hgca complete`): a sequence folder's frames (`frames` START:STOP[:STEP], all by default), or
-    the scan files in the order given, an accumulated file split by its `scan_index`."""
+    checks as `hgca complete`): a sequence folder's frames (`frames` START:STOP[:STEP], all by default, in time
+    order), or the scan files, an accumulated file split by its `scan_index`, put in the drive's order
+    (`order`: the poses file's, else time stamps, else the chain of sensor positions). A jump between
+    consecutive scans is reported as a warning."""
     from hgca_core.io import read_scan, read_scans
     from hgca_core.io.sequence import is_sequence, open_sequence, select
+    from hgca_core.tiling.order import order_scans, poses_order, warn_jumps
 
     say = report or (lambda *a: None)
     paths = [os.fspath(p) for p in inputs]
@@ -93,12 +100,19 @@ def read_drive_inputs(inputs: Sequence[str | os.PathLike], poses: str | os.PathL
             scan = read_scans([f], poses=[mats[i]] if mats is not None else None, fmt=seq.fmt)
             out.extend(split_scans(scan, f))
             say("read", i + 1, len(files), os.path.basename(f), 0)
+        warn_jumps([s.name for s in out], np.array([s.position for s in out]))
         return out
     if frames is not None:
         raise InputError("--frames needs a sequence folder (KITTI, Argoverse 2 or nuScenes), not scan files")
+    if poses is not None:
+        paths = [paths[i] for i in poses_order(paths, poses)]
     for i, p in enumerate(paths):
         # without poses a file is read as it is, keeping its own `scan_index` (an accumulated .npz)
         scan = read_scan(p, fmt) if poses is None else read_scans([p], poses=poses, fmt=fmt)
         out.extend(split_scans(scan, p))
         say("read", i + 1, len(paths), os.path.basename(p), 0)
+    if poses is None:
+        order, _ = order_scans([s.name for s in out], np.array([s.position for s in out]), [s.time for s in out])
+        out = [out[i] for i in order]
+    warn_jumps([s.name for s in out], np.array([s.position for s in out]))
     return out

@@ -30,13 +30,15 @@ def street_surface(length: float, slope: float, rng: np.random.Generator, densit
     return np.concatenate([ground, *walls, *boxes])
 
 
-def save_scans(folder: Path, scans_world: list[np.ndarray], poses: list[np.ndarray]) -> tuple[list[Path], Path]:
-    """Each scan (world points, float64) in its sensor frame as scan_<i>.npz, and poses.json (sensor->world)."""
+def save_scans(folder: Path, scans_world: list[np.ndarray], poses: list[np.ndarray],
+               name: str = "scan_{:03d}.npz") -> tuple[list[Path], Path]:
+    """Each scan (world points, float64) in its sensor frame as `name`.format(i) (scan_<i>.npz), and poses.json
+    (sensor->world), its entries in scan order."""
     folder.mkdir(parents=True, exist_ok=True)
     paths, entries = [], []
     for i, (pts, pose) in enumerate(zip(scans_world, poses)):
         pose = np.asarray(pose, dtype=np.float64)
-        path = folder / f"scan_{i:03d}.npz"
+        path = folder / name.format(i)
         np.savez(path, points=(np.asarray(pts, dtype=np.float64) - pose[:3, 3]) @ pose[:3, :3])
         paths.append(path)
         entries.append({"file": path.name, "pose": pose.tolist()})
@@ -46,7 +48,8 @@ def save_scans(folder: Path, scans_world: list[np.ndarray], poses: list[np.ndarr
 
 
 def write_drive(folder: Path, length: float = 40.0, spacing: float = 4.0, slope: float = 0.0, seed: int = 0,
-                offset=(0.0, 0.0, 0.0), radius: float = 14.0, weave: float = 0.3) -> tuple[list[Path], Path]:
+                offset=(0.0, 0.0, 0.0), radius: float = 14.0, weave: float = 0.3,
+                name: str = "scan_{:03d}.npz") -> tuple[list[Path], Path]:
     """Scans (npz, sensor frame) every `spacing` m along x from 0 to `length`, sensor 2 m above the ground, and
     the poses JSON; the path weaves `weave` m sideways; the whole drive is shifted by `offset` (float64, e.g.
     UTM-sized)."""
@@ -61,7 +64,7 @@ def write_drive(folder: Path, length: float = 40.0, spacing: float = 4.0, slope:
         pose = np.eye(4)
         pose[:3, 3] = pos + off
         poses.append(pose)
-    return save_scans(folder, scans, poses)
+    return save_scans(folder, scans, poses, name)
 
 
 # A KITTI-like velodyne -> camera 0 transform (x forward, y left, z up -> x right, y down, z forward, an offset)
