@@ -29,7 +29,7 @@ from typing import Iterator
 import torch
 from torch.autograd.function import once_differentiable
 
-from hgca_core.nn.kernel_map import KernelMap
+from hgca_core.nn.kernel_map import TABLE_MIN_DENSITY, KernelMap  # noqa: F401  (the threshold, re-exported)
 from hgca_core.nn.precision import DEFAULT_PRECISION, PRECISIONS  # noqa: F401  (re-exported)
 
 # Elements (rows x channels) gathered per chunk: big enough that GEMMs amortise the per-call
@@ -57,9 +57,6 @@ def _mm(a: torch.Tensor, b: torch.Tensor, out: torch.Tensor | None = None) -> to
     return res if out is None else out.copy_(res)
 
 
-# Maps with at least this share of filled (output, offset) slots run output-stationary (`table_gemm`);
-# measured per layer on a coarse step: the table wins at level 0 (density 0.78), pairs win at 0.5 and below.
-TABLE_MIN_DENSITY = 0.6
 # Elements gathered per chunk on the table path (n rows x K * cin): 16 MB of float32.
 TABLE_CHUNK_ELEMENTS = 1 << 22
 

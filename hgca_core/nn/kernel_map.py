@@ -21,10 +21,14 @@ import torch
 
 from hgca_core.geometry.coords import offsets, pack, unpack
 from hgca_core.geometry.keys import OFFSET, delta
+from hgca_core.nn.row_grid import RowGrid, all_offsets, half_offsets, parents_dense
 
 # Coordinates (finest units) must stay this far inside pack's [-OFFSET, OFFSET) field so that neighbour
 # keys (c + d) never borrow from the next field and alias a different cell.
 COORD_LIMIT = OFFSET - 4096
+# Maps with at least this share of filled (output, offset) slots run output-stationary (`conv.table_gemm`);
+# measured per layer on a coarse step: the table wins at level 0 (density 0.78), pairs win at 0.5 and below.
+TABLE_MIN_DENSITY = 0.6
 
 
 @dataclass(frozen=True)
@@ -146,11 +150,15 @@ def _neighbours_half(keys: torch.Tensor, r: int, stride: int) -> tuple[torch.Ten
     return torch.cat([hit.view(m * k, n), own_hit]), torch.cat([rows.view(m * k, n), own_idx])
 
 
-def submanifold_map(keys: torch.Tensor, kernel_size: int, stride: int) -> KernelMap:
-    """Map of a submanifold conv (outputs = inputs) from the sorted keys of the active set.
+def submanifold_map(keys: torch.Tensor, kernel_size: int, stride: int,
+                    coords: torch.Tensor | None = None) -> KernelMap:
+    """Map of a submanifold conv (outputs = inputs) from the sorted keys of the active set (and its coords,
+    when the caller has them: `unpack(keys)`).
 
     Only the offsets before the centre are searched: the pairs of -d are those of d swapped, and the
-    centre is the identity.
+    centre is the identity. A set whose box is small enough (`row_grid.DENSE_MAP_LIMIT`) is searched in a dense
+    grid of row numbers, which also gives the neighbour `table` at once when the map is dense enough to run by
+    table; the map is the same either way.
     """
     if kernel_size % 2 != 1:
         raise ValueError(f"submanifold kernel_size must be odd, got {kernel_size}")
@@ -161,18 +169,35 @@ def submanifold_map(keys: torch.Tensor, kernel_size: int, stride: int) -> Kernel
     if kvol == 1 or n == 0:
         e = torch.empty(0, dtype=torch.long, device=dev)
         return KernelMap(e, e, (0,) * (kvol + 1), n, n, centre, True)
-    found, idx = _neighbours_half(keys, kernel_size // 2, stride)
-    nz = found.reshape(-1).nonzero().squeeze(1)
-    half_out = nz % n                                           # output row (the centre cell)
-    half_in = idx.reshape(-1)[nz]                               # input row (the cell at c + d)
-    counts = found.sum(1)
-    seg = _splits(counts)
-    ins, outs = [half_in], [half_out]
-    for k in range(centre - 1, -1, -1):                         # offset K-1-k = -d_k: swapped pairs
-        ins.append(half_out[seg[k]:seg[k + 1]])
-        outs.append(half_in[seg[k]:seg[k + 1]])
+    r = kernel_size // 2
+    grid = RowGrid(unpack(keys) if coords is None else coords, stride, r)
+    if grid.fits:
+        grid.fill()
+        rows = [grid.at(d) for d in half_offsets(r)]
+        found = [q >= 0 for q in rows]
+        half_out = [f.nonzero().squeeze(1) for f in found]
+        half_in = [q[o].long() for q, o in zip(rows, half_out)]
+        counts = torch.tensor([len(o) for o in half_out])
+    else:
+        found_all, idx = _neighbours_half(keys, r, stride)
+        counts = found_all.sum(1)
+        seg = _splits(counts)
+        nz = found_all.reshape(-1).nonzero().squeeze(1)
+        out_all, in_all = nz % n, idx.reshape(-1)[nz]
+        half_out = [out_all[seg[k]:seg[k + 1]] for k in range(centre)]
+        half_in = [in_all[seg[k]:seg[k + 1]] for k in range(centre)]
+    ins = half_in + half_out[::-1]                              # offset K-1-k = -d_k: swapped pairs
+    outs = half_out + half_in[::-1]
     all_counts = counts.tolist() + [0] + counts.flip(0).tolist()
-    return KernelMap(torch.cat(ins), torch.cat(outs), _splits(torch.tensor(all_counts)), n, n, centre, True)
+    kmap = KernelMap(torch.cat(ins), torch.cat(outs), _splits(torch.tensor(all_counts)), n, n, centre, True)
+    if grid.fits and kmap.density >= TABLE_MIN_DENSITY:
+        # the table `KernelMap.table` would build from the pairs, one gather per offset
+        t = torch.empty((n, kvol), dtype=torch.long, device=dev)
+        for k, d in enumerate(all_offsets(r)):
+            q = torch.arange(n, device=dev) if k == centre else (rows[k] if k < centre else grid.at(d))
+            t[:, k] = q if k == centre else torch.where(q >= 0, q.long(), n)
+        kmap.__dict__["table"] = t       # the cached_property's slot
+    return kmap
 
 
 def submanifold_map_reference(keys: torch.Tensor, kernel_size: int, stride: int) -> KernelMap:
@@ -229,11 +254,16 @@ def parent_coords(coords: torch.Tensor, parent_stride: int) -> torch.Tensor:
 def downsample_map(coords: torch.Tensor, stride: int, factor: int) -> tuple[torch.Tensor, KernelMap]:
     """Output coords (unique parents at stride * factor) and the map of a kernel=stride=factor conv."""
     par = parent_coords(coords, stride * factor)
-    out_keys, inv = torch.unique(pack(par), return_inverse=True)
+    dense = parents_dense(coords, stride, factor) if len(coords) else None
+    if dense is None:
+        out_keys, inv = torch.unique(pack(par), return_inverse=True)
+        out = unpack(out_keys)
+    else:
+        out, inv = dense
     k = _child_offset_index(coords, par, stride, factor)
     n = coords.shape[0]
-    kmap = _grouped(k, torch.arange(n, device=coords.device), inv, factor ** 3, n, out_keys.numel())
-    return unpack(out_keys), kmap
+    kmap = _grouped(k, torch.arange(n, device=coords.device), inv, factor ** 3, n, len(out))
+    return out, kmap
 
 
 def upsample_map(in_keys: torch.Tensor, target: torch.Tensor, target_stride: int, factor: int) -> KernelMap:

@@ -190,7 +190,7 @@ class SubMConv3d(_ConvBase):
         if self.kernel_size == 1:
             return x.replace_feats(self._apply_conv(x.feats, identity_map(len(x), x.device)))
         kmap = _cached(x.cache, ("subm", x.stride, self.kernel_size), (x.coords,),
-                       lambda: submanifold_map(x.keys, self.kernel_size, x.stride))
+                       lambda: submanifold_map(x.keys, self.kernel_size, x.stride, x.coords))
         return x.replace_feats(self._apply_conv(x.feats, kmap))
 
     def extra_repr(self) -> str:
