@@ -115,15 +115,9 @@ def add_point_colors(mesh: bpy.types.Mesh, rgba: np.ndarray) -> bpy.types.Attrib
     return add_color(mesh, colors.COLOR_ATTRIBUTE, rgba, active=True)
 
 
-def point_color_material(created: Created) -> bpy.types.Material:
-    """One material drawing the scan colour attribute, for Material Preview and renders."""
-    existing = bpy.data.materials.get(POINT_MATERIAL)
-    if existing is not None and existing.get(ROLE_KEY) == "points":
-        return existing
-    mat = bpy.data.materials.new(POINT_MATERIAL)
-    created.materials.append(mat)
-    mat[ROLE_KEY] = "points"
-    if mat.node_tree is None:
+def attribute_material(mat: bpy.types.Material, attribute: str) -> tuple:
+    """(nodes, links, Principled BSDF, Attribute node reading `attribute`) of `mat`, made to have them."""
+    if mat.node_tree is None:  # Blender 4.x; in 5.x materials always have a node tree
         mat.use_nodes = True
     nodes, links = mat.node_tree.nodes, mat.node_tree.links
     bsdf = next((n for n in nodes if n.bl_idname == "ShaderNodeBsdfPrincipled"), None)
@@ -134,7 +128,19 @@ def point_color_material(created: Created) -> bpy.types.Material:
         links.new(bsdf.outputs["BSDF"], output.inputs["Surface"])
     attr = nodes.new("ShaderNodeAttribute")
     attr.attribute_type = "GEOMETRY"
-    attr.attribute_name = colors.COLOR_ATTRIBUTE
+    attr.attribute_name = attribute
+    return nodes, links, bsdf, attr
+
+
+def point_color_material(created: Created) -> bpy.types.Material:
+    """One material drawing the scan colour attribute, for Material Preview and renders."""
+    existing = bpy.data.materials.get(POINT_MATERIAL)
+    if existing is not None and existing.get(ROLE_KEY) == "points":
+        return existing
+    mat = bpy.data.materials.new(POINT_MATERIAL)
+    created.materials.append(mat)
+    mat[ROLE_KEY] = "points"
+    nodes, links, bsdf, attr = attribute_material(mat, colors.COLOR_ATTRIBUTE)
     attr.location = (-400, 200)
     links.new(attr.outputs["Color"], bsdf.inputs["Base Color"])
     return mat
@@ -231,18 +237,7 @@ def observed_material(name: str = "hGCA observed/generated") -> bpy.types.Materi
     Attribute -> Map Range (OBSERVED_NEAR..OBSERVED_FAR -> 0..1) -> Color Ramp -> Principled Base Color.
     """
     mat = bpy.data.materials.new(name)
-    if mat.node_tree is None:  # Blender 4.x; in 5.x materials always have a node tree
-        mat.use_nodes = True
-    nodes, links = mat.node_tree.nodes, mat.node_tree.links
-    bsdf = next((n for n in nodes if n.bl_idname == "ShaderNodeBsdfPrincipled"), None)
-    if bsdf is None:
-        bsdf = nodes.new("ShaderNodeBsdfPrincipled")
-        output = next((n for n in nodes if n.bl_idname == "ShaderNodeOutputMaterial"), None) \
-            or nodes.new("ShaderNodeOutputMaterial")
-        links.new(bsdf.outputs["BSDF"], output.inputs["Surface"])
-    attr = nodes.new("ShaderNodeAttribute")
-    attr.attribute_type = "GEOMETRY"
-    attr.attribute_name = OBSERVED_ATTRIBUTE
+    nodes, links, bsdf, attr = attribute_material(mat, OBSERVED_ATTRIBUTE)
     remap = nodes.new("ShaderNodeMapRange")
     remap.inputs["From Min"].default_value = OBSERVED_NEAR
     remap.inputs["From Max"].default_value = OBSERVED_FAR
@@ -340,7 +335,7 @@ def add_decimate(obj: bpy.types.Object, faces: int) -> bpy.types.Modifier | None
 
 
 def build_results(scene: bpy.types.Scene, outputs: list[Path], run_name: str,
-                  decimate_to: int = 0) -> bpy.types.Collection:
+                  decimate_to: int = 0, class_collections: bool = False) -> bpy.types.Collection:
     """A new collection `run_name` in `scene` with one mesh object per sample; only sample 0 visible. With
     `decimate_to` > 0 each mesh keeps every triangle under a Decimate modifier showing that many.
 
@@ -363,6 +358,9 @@ def build_results(scene: bpy.types.Scene, outputs: list[Path], run_name: str,
             add_decimate(obj, decimate_to)
             collection.objects.link(obj)
             objects.append(obj)
+        from . import semantics   # labelled results (`--semantics`): a material per class, collections optional
+
+        semantics.label_results(objects, outputs, collection, run_name, created, per_class=class_collections)
         scene.collection.children.link(collection)
         hide_in_scene(scene, objects[1:])
     except Exception:

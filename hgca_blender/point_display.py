@@ -103,15 +103,19 @@ def _points_input(obj: bpy.types.Object, name: str):
     return None
 
 
-def set_point_radius(obj: bpy.types.Object, radius: float) -> bool:
-    """Set the point size of a scan shown by the "hGCA Points" modifier; False when it has none."""
-    found = _points_input(obj, RADIUS_INPUT)
+def _set_input(obj: bpy.types.Object, name: str, value: float | bool) -> bool:
+    found = _points_input(obj, name)
     if found is None:
         return False
     mod, key = found
-    mod[key] = float(radius)
+    mod[key] = value
     obj.update_tag()
     return True
+
+
+def set_point_radius(obj: bpy.types.Object, radius: float) -> bool:
+    """Set the point size of a scan shown by the "hGCA Points" modifier; False when it has none."""
+    return _set_input(obj, RADIUS_INPUT, float(radius))
 
 
 def point_radius(obj: bpy.types.Object) -> float | None:
@@ -121,10 +125,4 @@ def point_radius(obj: bpy.types.Object) -> float | None:
 
 def set_render_points(obj: bpy.types.Object, as_points: bool) -> bool:
     """Renders draw round points (True) or the viewport's coloured shapes (False); False when not a scan."""
-    found = _points_input(obj, RENDER_POINTS_INPUT)
-    if found is None:
-        return False
-    mod, key = found
-    mod[key] = bool(as_points)
-    obj.update_tag()
-    return True
+    return _set_input(obj, RENDER_POINTS_INPUT, bool(as_points))

@@ -34,6 +34,13 @@ CORE_PYTHON = os.environ.get("HGCA_PYTHON") or sys.executable
 SMALL_REGION = (0.0, 0.0, -0.5, 9.6, 9.6, 4.0, 0.0)
 
 
+def ply_rgb(rows: list[tuple[float, float, float, int, int, int]]) -> str:
+    """An ASCII PLY of points with 8-bit red, green, blue."""
+    head = ["ply", "format ascii 1.0", f"element vertex {len(rows)}", *(f"property float {a}" for a in "xyz"),
+            *(f"property uchar {c}" for c in ("red", "green", "blue")), "end_header"]
+    return "\n".join(head + [" ".join(str(v) for v in row) for row in rows]) + "\n"
+
+
 def require_fixture(path: Path) -> Path:
     """A real fixture file: skipped where missing, a failure under CI (`hgca_testdata.require_real`)."""
     return require_real(path)

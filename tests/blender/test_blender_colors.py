@@ -7,23 +7,9 @@ import bpy
 import numpy as np
 import pytest
 
-from bl_helpers import FIXTURES, NUSCENES, addon_module, require_fixture, snapshot
+from bl_helpers import FIXTURES, NUSCENES, addon_module, ply_rgb, require_fixture, snapshot
 
-PLY_RGB = """ply
-format ascii 1.0
-element vertex 4
-property float x
-property float y
-property float z
-property uchar red
-property uchar green
-property uchar blue
-end_header
-0 0 0 255 0 0
-1 0 0 0 255 0
-0 1 0 0 0 255
-1 1 1 255 255 51
-"""
+PLY_RGB = ply_rgb([(0, 0, 0, 255, 0, 0), (1, 0, 0, 0, 255, 0), (0, 1, 0, 0, 0, 255), (1, 1, 1, 255, 255, 51)])
 
 
 def import_one(**kwargs) -> bpy.types.Object:

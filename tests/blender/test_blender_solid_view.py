@@ -10,20 +10,9 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from bl_helpers import addon_module
+from bl_helpers import addon_module, ply_rgb
 
-RED_POINT = """ply
-format ascii 1.0
-element vertex 1
-property float x
-property float y
-property float z
-property uchar red
-property uchar green
-property uchar blue
-end_header
-0 0 0 255 0 0
-"""
+RED_POINT = ply_rgb([(0, 0, 0, 255, 0, 0)])
 SIZE = 32
 
 
