@@ -1,21 +1,71 @@
 """The user guide's pages link to files that exist, and every figure they quote from a results page is on that page:
-a link or a number that drifts from the tree fails here."""
+a link, an image, a path or a number that drifts from the tree fails here."""
 import re
+import subprocess
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-PAGES = ["README.md", "MODEL_CARD.md", "CHANGELOG.md", *sorted(str(p.relative_to(REPO))
-                                                               for p in (REPO / "docs").glob("*.md"))]
-LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
+PAGES = ["README.md", "MODEL_CARD.md", "CHANGELOG.md", "hgca_core/weights/MODEL_CARD.md", "tests/data/real/README.md",
+         *sorted(str(p.relative_to(REPO)) for p in (REPO / "docs").rglob("*.md")),
+         *sorted(str(p.relative_to(REPO)) for p in (REPO / "benchmarks/results").glob("*.md"))]
+LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")          # [text](target) and ![alt](image)
+IMAGE = re.compile(r"!\[[^\]]*\]\(([^)\s]+)\)|<img [^>]*src=\"([^\"]+)\"")
+# a path into the repository named in the text (a command's file, a recipe): `tests/data/real/simple.laz`
+PATH = re.compile(r"(?<![\w/.<{:-])((?:tests|hgca_core|hgca_blender|docs|benchmarks|scripts)/[\w./*-]*[\w*])(?![{\w])")
+
+
+def tracked() -> set[str] | None:
+    """The files git tracks (a link to a file only this checkout has would break in a clone), or None outside git."""
+    try:
+        out = subprocess.run(["git", "-C", str(REPO), "ls-files", "-z"], capture_output=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    files = {f for f in out.decode().split("\0") if f}
+    return files | {str(Path(f).parent) for f in files} | {str(p) for f in files for p in Path(f).parents}
+
+
+TRACKED = tracked()
+
+
+def _in_tree(path: Path) -> bool:
+    """The path (or, with *, something it matches) exists here and, in a git checkout, is in the tree."""
+    matches = list(REPO.glob(str(path.relative_to(REPO)))) if "*" in str(path) else [path] if path.exists() else []
+    return bool(matches) and (TRACKED is None or any(str(m.resolve().relative_to(REPO)) in TRACKED for m in matches))
 
 
 @pytest.mark.parametrize("page", PAGES)
 def test_relative_links_resolve(page):
     text = (REPO / page).read_text()
-    missing = [t for t in LINK.findall(text) if "://" not in t and not (REPO / page).parent.joinpath(t).exists()]
+    missing = [t for t in LINK.findall(text) if "://" not in t and not t.startswith("mailto:")
+               and not _in_tree(((REPO / page).parent / t).resolve())]
     assert not missing, missing
+
+
+@pytest.mark.parametrize("page", PAGES)
+def test_images_are_in_the_tree(page):
+    text = (REPO / page).read_text()
+    images = [a or b for a, b in IMAGE.findall(text)]
+    missing = [t for t in images if "://" not in t and not _in_tree(((REPO / page).parent / t).resolve())]
+    assert not missing, missing
+
+
+@pytest.mark.parametrize("page", ["README.md", "MODEL_CARD.md", *[p for p in PAGES if p.startswith("docs/")]])
+def test_paths_the_pages_name_are_in_the_tree(page):
+    """Files a reader is told to open or pass to a command (`hgca complete tests/data/real/...`) are in the tree;
+    placeholders (<name>, {a,b}) are not paths."""
+    text = (REPO / page).read_text()
+    missing = sorted({m for m in PATH.findall(text) if not _in_tree((REPO / m.rstrip(".")).resolve())})
+    assert not missing, missing
+
+
+def test_the_checks_can_fail(tmp_path):
+    assert LINK.findall("see [a](docs/nope.md) and ![b](img/x.png)") == ["docs/nope.md", "img/x.png"]
+    assert not _in_tree(REPO / "docs/nope.md") and _in_tree(REPO / "docs/cli.md")
+    assert _in_tree(REPO / "hgca_core/examples/street_scan*.laz") and not _in_tree(REPO / "hgca_core/examples/x*.laz")
+    assert PATH.findall("run `hgca info tests/data/real/simple.laz`.") == ["tests/data/real/simple.laz"]
+    assert PATH.findall("`7f06b18:scripts/gone.sh`, benchmarks/<name>.py, a/tests/x") == []
 
 
 def test_the_user_guide_pages_exist():
@@ -65,3 +115,121 @@ def test_roundings_accept_fewer_decimals_only():
     assert _roundings("15.78") == {"15.78", "15.8", "16"}
     assert _shown("15.8", "coarse 15.8 s") and not _shown("15.8", "coarse 115.8 s") and not _shown("5.8", "15.8")
     assert not any(_shown(f, "took 15.7 s") for f in _roundings("15.78"))
+
+
+def md_tables(text: str) -> list[list[dict[str, str]]]:
+    """Every markdown table of `text` as rows of {header: cell}."""
+    tables, lines = [], text.splitlines()
+    for i in range(len(lines) - 1):
+        if lines[i].startswith("|") and re.fullmatch(r"\|(?:\s*:?-+:?\s*\|)+", lines[i + 1].strip()):
+            head = [c.strip() for c in lines[i].strip().strip("|").split("|")]
+            rows = []
+            for line in lines[i + 2:]:
+                if not line.startswith("|"):
+                    break
+                rows.append(dict(zip(head, (c.strip() for c in line.strip().strip("|").split("|")))))
+            tables.append(rows)
+    return tables
+
+
+def first_number(cell: str) -> float:
+    """'45.1 [42.0–48.6]' -> 45.1, '18.0 s' -> 18.0, '6,962' -> 6962."""
+    return float(re.search(r"-?\d[\d,]*(?:\.\d+)?", cell).group(0).replace(",", ""))
+
+
+def table_with(text: str, *headers: str) -> list[dict[str, str]]:
+    found = [t for t in md_tables(text) if t and all(h in t[0] for h in headers)]
+    assert len(found) == 1, (headers, len(found))
+    return found[0]
+
+
+def _readme_table(*headers: str) -> list[dict[str, str]]:
+    return table_with((REPO / "README.md").read_text(), *headers)
+
+
+def _page(path: str) -> str:
+    text = (REPO / "README.md").read_text()
+    assert f"]({path})" in text, f"README.md does not link {path}"
+    return (REPO / path).read_text()
+
+
+def test_readme_real_scans_table_is_its_results_page():
+    """Row by row: the README's real-scan figures are the hGCA coarse rows of real_scans.md (2 m cut; whole input)."""
+    page = _page("benchmarks/results/real_scans.md")
+    whole = {r["input"]: r for r in table_with(page, "input", "method", "in observed empty (%) ↓", "swept (%) ↓")
+             if r["method"] == "hGCA coarse"}
+    cut = {r["input"]: r for r in table_with(page, "cut", "recall (%) ↑") if r["method"] == "hGCA coarse"
+           and r["cut"] == "2 m"}
+    rows = _readme_table("2 m cut recall ↑")
+    names = {"Argoverse 2 log 7fab2350": "av2_7fab2350", "Argoverse 2 log adcf7d18": "av2_adcf7d18",
+             "nuScenes LIDAR_TOP": "nuscenes_1532402927647951"}
+    assert len(rows) == 3
+    for row in rows:
+        key = next(v for k, v in names.items() if row["input"].startswith(k))
+        assert first_number(row["2 m cut recall ↑"]) == first_number(cut[key]["recall (%) ↑"]), key
+        assert first_number(row["above the cut in observed empty ↓"]) == first_number(
+            cut[key]["above cut in observed empty (%) ↓"]), key
+        assert first_number(row["whole input in observed empty ↓"]) == first_number(
+            whole[key]["in observed empty (%) ↓"]), key
+        assert cut[key]["k"] == whole[key]["k"] == "12"   # the README says k = 12
+
+
+def test_readme_synthetic_table_is_the_eval_page():
+    page = _page("hgca_core/weights/eval_test.md")
+    rows = {r["Method"]: r for r in md_tables(page)[0]}
+    names = {"input": "input", "Poisson (Open3D)": "Poisson (Open3D)", "GCA (no planner)": "GCA (no planner)",
+             "hGCA coarse (20 cm)": "hGCA coarse (planner)", "hGCA full (implicit)": "hGCA (implicit)"}
+    readme = _readme_table("method", "ReSim min ↓")
+    assert [r["method"] for r in readme] == list(names)
+    for row in readme:
+        for col in ("ReSim min ↓", "IoU (%) ↑", "Street CD min ↓"):
+            assert row[col] == rows[names[row["method"]]][col], (row["method"], col)
+
+
+@pytest.mark.parametrize("stage, page", [("coarse (20 cm voxels)", "benchmarks/results/completion_coarse_cpu.md"),
+                                         ("full (mesh)", "benchmarks/results/completion_full_cpu.md")])
+def test_readme_speed_table_is_the_bench_page(stage, page):
+    text = _page(page)
+    measured = next(r for r in table_with(text, "region (m)", "total (s)") if r["region (m)"] == "38.4 x 38.4")
+    row = next(r for r in _readme_table("stage", "time", "peak memory") if r["stage"] == stage)
+    assert first_number(row["time"]) == first_number(measured["total (s)"])
+    assert first_number(row["peak memory"]) == first_number(measured["peak RSS (GiB)"])
+    assert "bf16" in text.splitlines()[0]   # the README names the precision the page was measured at
+
+
+def test_md_tables_reads_rows():
+    t = md_tables("x\n| a | b |\n|---|---:|\n| 1 | 2 [0–3] |\n\n")
+    assert t == [[{"a": "1", "b": "2 [0–3]"}]] and first_number(t[0][0]["b"]) == 2.0
+
+
+def readme_commands() -> list[list[str]]:
+    """The `hgca ...` lines of the README's shell blocks, continuation lines joined, globs expanded in the clone."""
+    import glob
+    import shlex
+
+    text = (REPO / "README.md").read_text()
+    commands = []
+    for block in re.findall(r"```sh\n(.*?)```", text, re.S):
+        for line in block.replace("\\\n", " ").splitlines():
+            words = shlex.split(line, comments=True)
+            if words[:1] == ["hgca"]:
+                commands.append([w2 for w in words[1:]
+                                 for w2 in (sorted(glob.glob(w, root_dir=REPO)) if "*" in w else [w])])
+    return commands
+
+
+def test_readme_commands_parse_and_name_files_in_the_clone():
+    """A newcomer runs the quick start as written, from the clone: each command and option exists, and every input
+    it names is in the tree (outputs go to out/, which the block makes)."""
+    from hgca_core.cli import build_parser
+
+    commands = readme_commands()
+    assert len(commands) >= 4
+    for argv in commands:
+        args = build_parser(argv).parse_args(argv)   # an unknown option or command exits here
+        inputs = getattr(args, "scans", None) or getattr(args, "files", None) or []
+        for name in [*inputs, getattr(args, "poses", None)]:
+            if name:
+                assert _in_tree((REPO / name).resolve()), (argv, name)
+        out = getattr(args, "out", None)
+        assert out is None or out.startswith("out/"), argv
