@@ -38,6 +38,7 @@ from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel
 from hgca_core.models.config import Config
 from hgca_core.models.gca import GCAConfig, GCAKernel
+from hgca_core.models.semantics import SemanticHead, SemanticsConfig
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
 
@@ -59,6 +60,8 @@ KINDS: dict[str, Kind] = {
                  "`hgca complete --fine-weights`"),
     "autoencoder": Kind(AutoencoderConfig, Autoencoder, "autoencoder weights (the fine stage's autoencoder alone)",
                         "`hgca train fine --autoencoder`"),
+    "semantics": Kind(SemanticsConfig, SemanticHead, "semantic head weights (a class per 20 cm cell)",
+                      "`hgca complete --semantics-weights`"),
 }
 
 
@@ -336,7 +339,8 @@ def _read(path: str | os.PathLike | None, want: str, default_stage: str) -> tupl
     p = str(path if path is not None else shipped(default_stage))
     hints = {"coarse": " (train one with `hgca train coarse --export`, or pass --weights)",
              "fine": " (train them with `hgca train fine --export`, or pass --fine-weights; or use --stage coarse)",
-             "autoencoder": " (train one with `hgca train autoencoder --export`, or pass --autoencoder)"}
+             "autoencoder": " (train one with `hgca train autoencoder --export`, or pass --autoencoder)",
+             "semantics": " (train one with `hgca train --recipe semantics --export`, or pass --semantics-weights)"}
     return p, load_file(p, hints[want])
 
 
@@ -419,6 +423,23 @@ def load_autoencoder(path: str | os.PathLike | None = None, device: str | torch.
     if kind != "autoencoder" or checkpoint:
         raise _wrong_kind(path, kind, checkpoint, "autoencoder")
     return build("autoencoder", blob.get("config"), blob["state_dict"], path).to(device)
+
+
+def load_semantics(path: str | os.PathLike | None = None, device: str | torch.device = "cpu") -> SemanticHead:
+    """The semantic head (`hgca_core.models.semantics`) of semantics weights or a semantics training checkpoint
+    (default: the packaged semantics.pt), eval mode, float32, on `device`; cached per file and device."""
+    return _load_semantics(_cache_key(path, "semantics"), str(device))
+
+
+@lru_cache(maxsize=4)
+def _load_semantics(key: Key, device: str) -> SemanticHead:
+    path, blob = _read(key[0], "semantics", "semantics")
+    kind, checkpoint = identify(blob)
+    if kind != "semantics":
+        raise _wrong_kind(path, kind, checkpoint, "semantics")
+    sd = ({k.removeprefix("model."): v for k, v in trained_weights(blob).items() if k.startswith("model.")}
+          if checkpoint else blob["state_dict"])
+    return build("semantics", blob.get("config"), sd, path).to(device)
 
 
 # -- warm start -------------------------------------------------------------------------------------------------

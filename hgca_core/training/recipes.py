@@ -24,7 +24,7 @@ from typing import Any
 
 from hgca_core.errors import InputError
 
-STAGES = ("coarse", "coarse-noplanner", "autoencoder", "fine")
+STAGES = ("coarse", "coarse-noplanner", "autoencoder", "fine", "semantics")
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
 
 
@@ -75,6 +75,8 @@ RECIPES: dict[str, Recipe] = {
     "coarse-noplanner-shipped": Recipe(stage="coarse-noplanner", precision="bf16", free_space=True, focus=0.5,
                                        init_from=shipped_file("coarse-noplanner")),
     "fine-shipped": Recipe(stage="fine", precision="bf16", free_space=True, init_from=shipped_file("fine")),
+    # the semantic head (hgca_core.models.semantics): a one-step task on perturbed ground-truth cells, 80-cell crops
+    "semantics": Recipe(stage="semantics", batch=2, buffer=2, lr=1e-3, crop=80, val_every=8.0),
 }
 DEFAULT = "coarse"
 
@@ -179,6 +181,8 @@ def check(r: Recipe) -> Recipe:
     if r.stage == "autoencoder" and (r.free_space or r.init_from):
         raise InputError(f"recipe field {'free_space' if r.free_space else 'init_from'} is for the coarse and fine "
                          "stages (the autoencoder has neither)")
+    if r.stage == "semantics" and (r.free_space or r.init_from):
+        raise InputError(f"recipe field {'free_space' if r.free_space else 'init_from'} is not for the semantic head")
     if r.autoencoder and r.stage != "fine":
         raise InputError("recipe field autoencoder is for the fine stage")
     if r.free_weight and not r.free_space:
