@@ -64,7 +64,7 @@ def _load(name: str, argv: list[str]):
 
 # OpenMP threads that busy-wait between parallel regions steal the cores of every other process: on a shared
 # 2-core machine (or beside Blender) a 2-thread decode took 21.7 s busy-waiting, 5.1 s with PASSIVE
-# (benchmarks/results/mesh_quality_s5.md). The variable is read once, when torch loads its OpenMP runtime, so it is
+# (benchmarks/mesh_quality.py). The variable is read once, when torch loads its OpenMP runtime, so it is
 # set before any command imports torch; a value the user set wins.
 OMP_DEFAULTS = {"OMP_WAIT_POLICY": "PASSIVE"}
 # Every command but `train` runs with glibc's allocator set up by `hardware.tune_allocator` (one arena): measured on

@@ -271,8 +271,8 @@ def format_tables(results: dict) -> str:
              "to a hit excluded): the sensor saw through them. In its core: in the free cells whose six "
              "neighbours are free too; the free space's rim holds true surface where rays graze it. Swept: in the "
              "free cells whose volume the rays crossed at least half of (counted on 5 cm sub-cells): what the rays "
-             "disproved rather than grazed. A perfect completion of a synthetic single sweep (64 val scenes, "
-             "`freespace_floor_val64.md`) scores 0.9-14 % (mean 5.8 %) in the free space, 0-0.6 % in its core "
+             "disproved rather than grazed. A perfect completion of a synthetic single sweep (64 val scenes) "
+             "scores 0.9-14 % (mean 5.8 %) in the free space, 0-0.6 % in its core "
              "and 0-1.5 % swept.", "",
              "| input | method | k | generated cells | in observed empty (%) ↓ | in its core (%) ↓ "
              "| swept (%) ↓ | s / completion |",

@@ -24,6 +24,7 @@ PATTERNS: list[tuple[str, re.Pattern[str]]] = [
     ("shipped since / in a number", re.compile(r"\bshipped (?:since|in|at) (?:session |round )?\d+\b", re.I)),
     ("a session-numbered name", re.compile(r"(?:^|[/_(\s`'\"])[swr]\d{2,3}(?=[/._)\s`'\"]|$)", re.M)),
     ("a session-numbered name", re.compile(r"\b(?:recipe|runs?|probe|notes?)_s\d+\b", re.I)),
+    ("a session-numbered page", re.compile(r"[\w-]_s\d+\.(?:md|json|log)\b")),
     ("a borrowed machine", re.compile(r"\b(?:borrowed|lent|loaned|on loan)\b[^.\n]{0,40}\b(?:GPU|machine|device|H200|H100)s?\b"
                                       r"|\b(?:GPU|machine|device)s? (?:loans?|leases?)\b", re.I)),
     ("a transfer limit", re.compile(r"\btransfer (?:limits?|caps?|budget)\b|\bat most \d+ MiB beside\b"
@@ -69,12 +70,14 @@ def test_patterns_catch_the_ways_history_was_told():
     """Each pattern hits what it is for and leaves ordinary product text alone, so a clean scan means something."""
     told = ["coarse.pt of session 33", "session 31's run EC at step 5,831", "shipped since 39", "in round 12",
             "benchmarks/results/recipe_s33.md", "runs/s31/ec", "checkpoints/coarse_w38.pt", "sessions 11-12",
-            "a borrowed H200 GPU", "at most 64 MiB beside it", "the machine's transfer limit", "the 12th session"]
+            "a borrowed H200 GPU", "at most 64 MiB beside it", "the machine's transfer limit", "the 12th session",
+            "benchmarks/results/mesh_quality_s5.md"]
     for text in told:
         assert findings("x", text), text
     ordinary = ["each session ended 2026-11-24: 12810 steps", "over 3 session(s)", "data/s6a + data/s7a",
                 "a 64 MiB mmap threshold", "run on an existing Ray cluster", "a later run may add cut levels",
-                "Run the model on an NVIDIA GPU", "seeds 0-11, k = 12", "round to 3 decimals", "--stride 25.6"]
+                "Run the model on an NVIDIA GPU", "seeds 0-11, k = 12", "round to 3 decimals", "--stride 25.6",
+                "demo_out/completion_s0.png", "tiles/<i>_s<k>.ply"]
     for text in ordinary:
         assert not findings("x", text), (text, findings("x", text))
 

@@ -4,7 +4,7 @@ Why: a real scan holds every return, and `hgca complete` walks the free space al
 region to hit a facade or a tree 40 m out mark the space above cars and between facades as seen empty. Samples up to
 format 2 kept only the hits inside the region, so the free space the coarse model trained on lacked those rays (over
 low objects the space above was seen open in 26 % of synthetic columns against 37-71 % on the real inputs:
-benchmarks/results/low_object_tops.md). From format 3 a sample also stores the hits beyond the region
+benchmarks/results/low_object_tops.md in git at 7f06b18). From format 3 a sample also stores the hits beyond the region
 (`input_far_points`, `input_far_scan_index`); this module is the one place that joins them. Numpy only: the trainer
 imports it on machines without the scene generator's dependencies.
 """
