@@ -57,6 +57,33 @@ def write(d: Path, name: str, data: bytes | str) -> Path:
     return path
 
 
+def special_file(d: Path, name: str, kind: str) -> Path:
+    """`d/name` made as something a reader must refuse before it opens it for content: a fifo (a read would
+    hang), a symlink loop, a dangling symlink, a folder, or an empty file."""
+    path = d / name
+    if kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "symlink loop":
+        path.symlink_to(path)
+    elif kind == "dangling symlink":
+        path.symlink_to(d / f"nowhere{path.suffix}")
+    elif kind == "folder":
+        path.mkdir()
+    elif kind == "empty":
+        path.write_text("")
+    else:
+        raise ValueError(kind)
+    return path
+
+
+def special_file_cases(group: str, cmd: Callable[[Path, Path], list[str]],
+                       table: list[tuple[str, str, str, str]]) -> None:
+    """A case for each (name, expected message, file name, kind) of `table`: `cmd(d, path)` given the
+    `special_file` it makes."""
+    for name, expect, file, kind in table:
+        case(name, expect, group=group)(lambda d, f=file, k=kind: cmd(d, special_file(d, f, k)))
+
+
 def read_cmd(scan: Path, d: Path, *extra) -> list[str]:
     return ["read", str(scan), *map(str, extra), "-o", str(d / "out.npz")]
 
@@ -217,22 +244,11 @@ def _(d):
     return read_cmd(d / "dir.ply", d)
 
 
-@case("read: symlink loop as scan", "symbolic link loop", group="paths")
-def _(d):
-    (d / "loop.las").symlink_to(d / "loop.las")
-    return read_cmd(d / "loop.las", d)
-
-
-@case("read: dangling symlink as scan", "missing target", group="paths")
-def _(d):
-    (d / "gone.las").symlink_to(d / "nowhere.las")
-    return read_cmd(d / "gone.las", d)
-
-
-@case("read: a fifo as scan", "not a regular file", group="paths")
-def _(d):
-    os.mkfifo(d / "pipe.xyz")
-    return read_cmd(d / "pipe.xyz", d)
+special_file_cases("paths", lambda d, path: read_cmd(path, d), [
+    ("read: symlink loop as scan", "symbolic link loop", "loop.las", "symlink loop"),
+    ("read: dangling symlink as scan", "missing target", "gone.las", "dangling symlink"),
+    ("read: a fifo as scan", "not a regular file", "pipe.xyz", "fifo"),
+])
 
 
 @case("read: /dev/zero as scan", "not a regular file", group="paths")
@@ -296,22 +312,11 @@ poses_case("nested 100000 deep", '{"scans": ' + "[" * 100_000 + "]" * 100_000 + 
 poses_case("utf-16", lambda s: json.dumps({"scans": []}).encode("utf-16").decode("latin-1"), "")
 
 
-@case("read: poses is a folder", "is a folder", group="poses")
-def _(d):
-    (d / "poses").mkdir()
-    return read_cmd(good_npz(d), d, "--poses", d / "poses")
-
-
-@case("read: poses is a symlink loop", "symbolic link loop", group="poses")
-def _(d):
-    (d / "poses.json").symlink_to(d / "poses.json")
-    return read_cmd(good_npz(d), d, "--poses", d / "poses.json")
-
-
-@case("read: poses is empty", "empty", group="poses")
-def _(d):
-    (d / "poses.json").write_text("")
-    return read_cmd(good_npz(d), d, "--poses", d / "poses.json")
+special_file_cases("poses", lambda d, path: read_cmd(good_npz(d), d, "--poses", path), [
+    ("read: poses is a folder", "is a folder", "poses", "folder"),
+    ("read: poses is a symlink loop", "symbolic link loop", "poses.json", "symlink loop"),
+    ("read: poses is empty", "empty", "poses.json", "empty"),
+])
 
 
 # --- outputs ----------------------------------------------------------------------------------------------------
@@ -414,10 +419,9 @@ def _(d):
     return complete_cmd(good_npz(d), d, "--weights", d / "w.pt")
 
 
-@case("complete: --weights is a folder", "", group="flags")
-def _(d):
-    (d / "w.pt").mkdir()
-    return complete_cmd(good_npz(d), d, "--weights", d / "w.pt")
+special_file_cases("flags", lambda d, path: complete_cmd(good_npz(d), d, "--weights", path), [
+    ("complete: --weights is a folder", "", "w.pt", "folder"),
+])
 
 
 # --- degenerate scans --------------------------------------------------------------------------------------------

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hgca_hostile import case, complete_cmd, good_npz
+from hgca_hostile import case, complete_cmd, good_npz, special_file_cases
 
 LONG = "a" * 246   # with an extension the name fits NAME_MAX (255), its temp file while writing does not
 NO_WRITE = "nothing was written"
@@ -193,34 +193,17 @@ flags("demo", lambda d, *f: ["demo", *f, "--out", str(d / "demo")], {
 
 # --- weights files: hangs, tracebacks, empty meshes ---------------------------------------------------------------
 
-@case("complete: --weights is a fifo", "not a regular file", group="flags")
-def _(d):
-    os.mkfifo(d / "w.pt")
-    return complete_cmd(good_npz(d), d, "--weights", d / "w.pt")
-
-
-@case("drive: --weights is a fifo", "not a regular file", group="flags")
-def _(d):
-    os.mkfifo(d / "w.pt")
-    return drive_cmd(d, "--weights", d / "w.pt")
-
-
-@case("complete: --fine-weights is a fifo", "not a regular file", group="flags")
-def _(d):
-    os.mkfifo(d / "f.pt")
-    return complete_cmd(good_npz(d), d, "--fine-weights", d / "f.pt")
-
-
-@case("complete: --weights is a symlink loop", "symbolic link loop", group="flags")
-def _(d):
-    (d / "w.pt").symlink_to(d / "w.pt")
-    return complete_cmd(good_npz(d), d, "--weights", d / "w.pt")
-
-
-@case("complete: --weights is a dangling symlink", "missing target", group="flags")
-def _(d):
-    (d / "w.pt").symlink_to(d / "gone.pt")
-    return complete_cmd(good_npz(d), d, "--weights", d / "w.pt")
+special_file_cases("flags", lambda d, path: complete_cmd(good_npz(d), d, "--weights", path), [
+    ("complete: --weights is a fifo", "not a regular file", "w.pt", "fifo"),
+    ("complete: --weights is a symlink loop", "symbolic link loop", "w.pt", "symlink loop"),
+    ("complete: --weights is a dangling symlink", "missing target", "w.pt", "dangling symlink"),
+])
+special_file_cases("flags", lambda d, path: drive_cmd(d, "--weights", path), [
+    ("drive: --weights is a fifo", "not a regular file", "w.pt", "fifo"),
+])
+special_file_cases("flags", lambda d, path: complete_cmd(good_npz(d), d, "--fine-weights", path), [
+    ("complete: --fine-weights is a fifo", "not a regular file", "f.pt", "fifo"),
+])
 
 
 @case("complete: weights config steps is a string", "'steps' must be a whole number", group="flags")
@@ -315,8 +298,7 @@ TRAIN_FLAGS = {   # name: (extra argv, expected message part)
     "--minutes 0 --max-steps": (["--minutes", "0", "--max-steps", "3", "--export"], "a session of 0 minutes"),
     "--minutes 0 --export without a run": (["--minutes", "0", "--export", "w.pt"], "nothing to export"),
 }
-for _name, (_extra, _says) in TRAIN_FLAGS.items():
-    case(f"train: {_name}", _says, group="flags")(lambda d, extra=_extra: train_cmd(d, *extra))
+flags("train", train_cmd, TRAIN_FLAGS)
 
 
 @case("train: data folder without samples", "no samples in", group="paths")

@@ -6,6 +6,7 @@ import json
 import os
 import struct
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -36,6 +37,12 @@ def info_or_read(name: str, expect: str, build, group: str) -> None:
     @case(f"info: {name}", expect, group)
     def _(d, build=build):
         return ["info", str(build(d))]
+
+
+def info_or_read_each(group: str, table: list[tuple[str, str, Callable[[Path], Path]]]) -> None:
+    """`info_or_read` of every (name, expected message, file builder) of `table`."""
+    for name, expect, build in table:
+        info_or_read(name, expect, build, group)
 
 
 # --- georeferenced precision: points that no float32 frame with one float64 offset holds to 1 mm ---------------
@@ -111,7 +118,7 @@ def _pcd_stray(d: Path) -> Path:
     return write(d, "stray.pcd", head.encode() + pts.astype("<f8").tobytes())
 
 
-for _name, _expect, _build in [
+info_or_read_each("georeferenced precision", [
     ("ply stray point at (0, 0, 0) among UTM points", "1 of 2000 points lies", _stray_ply),
     ("las stray point at (0, 0, 0) among UTM points", "1 of 2000 points lies", _stray_las),
     ("xyz 3 points 1e8 m from the others", "3 of 500 points lie", _three_far_xyz),
@@ -123,8 +130,7 @@ for _name, _expect, _build in [
     ("npy stray point at (0, 0, 0) among UTM points", "1 of 300 points lies", _npy_stray),
     ("npz stray point at (0, 0, 0) after its offset", "1 of 300 points lies", _npz_stray),
     ("pcd stray point at (0, 0, 0) among UTM points", "1 of 200 points lies", _pcd_stray),
-]:
-    info_or_read(_name, _expect, _build, "georeferenced precision")
+])
 
 
 def _posed(d: Path, poses: list[np.ndarray], scans: int = 1) -> list[str]:
@@ -212,14 +218,13 @@ def _ply_ascii_count_low(d: Path) -> Path:
     return write(d, "low_ascii.ply", head + rows + "\n")
 
 
-for _name, _expect, _build in [
+info_or_read_each("silently wrong reads", [
     ("las header counts 1500 of 2000 points", "file holds 2000 point records", _las_count_low),
     ("las 1.4 header counts 1500 of 2000 points", "file holds 2000 point records", _las14_count_low),
     ("laz header counts 3/4 of its points", "compressed data holds", _laz_count_low),
     ("ply header counts 1500 of 2000 vertices", "500 more vertex records", _ply_count_low),
     ("ply ascii header counts 15 of 20 vertices", "20 rows (5 more)", _ply_ascii_count_low),
-]:
-    info_or_read(_name, _expect, _build, "silently wrong reads")
+])
 
 
 # --- text tables: columns by name, not by position; numbers Python does not read ------------------------------
@@ -242,9 +247,10 @@ def _utf16(d: Path) -> Path:
     return write(d, "u16.csv", "x,y,z\n1,2,3\n".encode("utf-16"))
 
 
-for _name, (_file, _text, _expect) in TEXT_FILES.items():
-    info_or_read(_name, _expect, lambda d, f=_file, t=_text: write(d, f, t), "silently wrong reads")
-info_or_read("csv in utf-16", "UTF-16", _utf16, "silently wrong reads")
+info_or_read_each("silently wrong reads", [
+    *[(n, e, lambda d, f=f, t=t: write(d, f, t)) for n, (f, t, e) in TEXT_FILES.items()],
+    ("csv in utf-16", "UTF-16", _utf16),
+])
 
 
 # --- arrays, PCD, AV2 ------------------------------------------------------------------------------------------
@@ -276,13 +282,12 @@ PCD_FILES = {
         "POINTS", "VIEWPOINT 0 inf 0 1 0 0 0\nPOINTS") + "1 2 3\n", "VIEWPOINT has NaN or infinite"),
 }
 
-for _name, _expect, _build in [
+info_or_read_each("silently wrong reads", [
     ("npy of shape (3, 500)", "more columns than rows", _npy_transposed),
     ("npz points of shape (4, 500)", "more columns than rows", _npz_transposed),
     ("npz origin_index beyond its origins", "2 sensor origin(s)", _npz_origin_index),
     *[(n, e, lambda d, t=t: write(d, "f.pcd", t)) for n, (t, e) in PCD_FILES.items()],
-]:
-    info_or_read(_name, _expect, _build, "silently wrong reads")
+])
 
 
 def _feather(path: Path, columns: dict) -> Path:
@@ -305,13 +310,13 @@ def _av2_sweep(d: Path, **change) -> Path:
     return _feather(d / "315966070159854000.feather", {**_sweep_columns(), **change})
 
 
-for _name, _change, _expect in [
-    ("av2 sweep x column of strings", {"x": [f"{v:.3f}" for v in np.linspace(0, 5, 50)]}, "'x' holds strings"),
-    ("av2 sweep z column of strings", {"z": ["1.0"] * 50}, "'z' holds strings"),
-    ("av2 laser_number of fractions", {"laser_number": np.linspace(0, 3, 50)}, "whole numbers"),
-    ("av2 intensity of strings", {"intensity": ["bright"] * 50}, "'intensity' holds strings"),
-]:
-    info_or_read(_name, _expect, lambda d, c=_change: _av2_sweep(d, **c), "silently wrong reads")
+info_or_read_each("silently wrong reads", [
+    (n, e, lambda d, c=c: _av2_sweep(d, **c)) for n, c, e in [
+        ("av2 sweep x column of strings", {"x": [f"{v:.3f}" for v in np.linspace(0, 5, 50)]}, "'x' holds strings"),
+        ("av2 sweep z column of strings", {"z": ["1.0"] * 50}, "'z' holds strings"),
+        ("av2 laser_number of fractions", {"laser_number": np.linspace(0, 3, 50)}, "whole numbers"),
+        ("av2 intensity of strings", {"intensity": ["bright"] * 50}, "'intensity' holds strings"),
+    ]])
 
 
 def _av2_log(d: Path, poses: dict | None = None, calibration: dict | None = None) -> Path:
