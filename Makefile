@@ -33,7 +33,7 @@ BLENDER_TESTS = HGCA_PYTHON=$(abspath $(BIN)/python) $(1)/bin/python -m pytest -
 	touch $@
 
 demo: $(STAMP)
-	$(BIN)/hgca demo
+	$(BIN)/hgca demo --out demo_out
 
 # The core's tests in a worker per core (at most 4: each completion holds up to ~2.5 GiB); the Blender tests (~80 s)
 # stay in one process.
