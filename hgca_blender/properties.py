@@ -89,7 +89,7 @@ class HGCA_PG_scene(bpy.types.PropertyGroup):
                                    description="Side of each square tile along the trajectory")
     drive_overlap: FloatProperty(name="Overlap", default=6.4, min=0.5, soft_max=20.0, unit="LENGTH",
                                  description="Overlap of consecutive tiles (the seams are conditioned across it)")
-    drive_workers: IntProperty(name="Workers", default=1, min=1, soft_max=16,
+    drive_workers: IntProperty(name="Workers", default=1, min=1, max=4096, soft_max=16,
                                description="Tiles at once (more than 1 runs them on a local Ray: needs hgca[ray])")
 
     progress: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")

@@ -14,7 +14,26 @@ _os.environ.setdefault("MKL_CBWR", "AUTO,STRICT")
 
 from hgca_core.errors import HgcaError, InputError  # noqa: E402
 
-__version__ = "0.1.0"
+def _version() -> str:
+    """The version pyproject.toml declares (its one home): the installed distribution's metadata, or, for a source
+    tree on sys.path without an install, the pyproject.toml beside the package."""
+    from importlib import metadata
+    from pathlib import Path
+
+    source = Path(__file__).resolve().parents[1] / "pyproject.toml"
+    if source.is_file():                  # a checkout (an editable install too): its own pyproject is the truth
+        import tomllib
+
+        project = tomllib.loads(source.read_text()).get("project", {})
+        if project.get("name") == "hgca":
+            return project["version"]
+    try:
+        return metadata.version("hgca")
+    except metadata.PackageNotFoundError:
+        return "0+unknown"
+
+
+__version__ = _version()
 
 __all__ = ["HgcaError", "InputError", "__version__", "complete", "drive", "Region"]
 

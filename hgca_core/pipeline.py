@@ -11,7 +11,6 @@ Two layers, so that `hgca eval` scores exactly what `hgca complete` ships:
 """
 from __future__ import annotations
 
-import numbers
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,14 +20,16 @@ import numpy as np
 import torch
 import trimesh
 
+from hgca_core.config import (FREE_SPACE_MODES, MIN_FACES, SEED_MAX, CompletionConfig, check_device_name,
+                              check_seed_span)
 from hgca_core.errors import HgcaWarning, InputError
 from hgca_core.geometry import coords as cs
 from hgca_core.geometry.nearest import PointIndex
+from hgca_core.geometry.points import check_points
 from hgca_core.geometry.region import Region, default_region
 from hgca_core.geometry.voxel import COARSE, FINE, voxelize
 from hgca_core.geometry.voxel_mesh import voxel_mesh
 from hgca_core.hardware import release_free_memory
-from hgca_core.nn.precision import DEFAULT_PRECISION
 
 if TYPE_CHECKING:
     from hgca_core.models.autoencoder import Autoencoder
@@ -36,35 +37,29 @@ if TYPE_CHECKING:
     from hgca_core.models.gca import GCAKernel
 
 ProgressFn = Callable[[str, int, int, str, int], None]  # (stage, step, total, message, sample index)
-# Observed free space (`--free-space`): feature = the input of the networks trained with it; mask = that input where
-# taken, and the free space's core (seen-empty cells whose six neighbours are seen empty too,
-# `geometry.freespace.confident`) forbidden in every sampled state; auto = mask for weights trained with the
+# Observed free space (`--free-space`, `config.FREE_SPACE_MODES`): feature = the input of the networks trained with
+# it; mask = that input where taken, and the free space's core (seen-empty cells whose six neighbours are seen empty
+# too, `geometry.freespace.confident`) forbidden in every sampled state; auto = mask for weights trained with the
 # feature (the shipped ones), nothing for weights without it (their results stay those of before); off = neither
 # (networks trained with it see "unknown" everywhere). The core, not the whole free space: grazing rays cross the
 # top of ground cells between LiDAR rings, so the free space's rim holds true surface
-# (benchmarks/results/freespace_floor.md); forbidding the core changed no val score (62.02 -> 62.03 % IoU).
-FREE_SPACE_MODES = ("auto", "feature", "mask", "off")
+# (benchmarks/results/freespace_floor.md in git at 7f06b18); forbidding the core changed no val score (62.02 -> 62.03 % IoU).
 # Peak memory of a full-stage completion, linear in the region's area: benchmarks/results/completion_full_cpu
 # measured 2.90 GiB at 40 x 40 m and 5.31 GiB at 40 x 120 m (0.81 MB per m^2 on top of ~1.7 GiB). With margin,
 # used to refuse regions that cannot fit before spending minutes on them.
+DEFAULTS = CompletionConfig()
 BASE_BYTES = 2.0 * 2**30
 BYTES_PER_M2 = 1.5e6
 MEASURED_HEIGHT = 8.0   # metres: the height of the regions the slope was measured on
 # Fewer occupied 20 cm cells than this inside the region is no scan (one point, one spot measured 50k times):
 # the chain has nothing to grow from, and an empty mesh with exit 0 would look like success.
 MIN_INPUT_CELLS = 10
-# Sample i of a run uses seed + i (drive tile i, sample k: seed + i * samples + k); torch's generators take at most
-# 2**64 - 1, so every seed a run uses stays within a signed 64-bit integer.
-SEED_MAX = 2**63 - 1
-MIN_FACES = 1000   # `max_faces` below this is no mesh of a street
 
 
 def check_device(device: str) -> None:
-    """Refuse a device this torch build or machine does not have, before any work."""
-    import re
-
-    if not re.fullmatch(r"cpu|cuda(:\d+)?", str(device)):
-        raise InputError(f"unknown device {device!r}: use cpu, cuda or cuda:N")
+    """Refuse a device this torch build or machine does not have, before any work (the name's form is checked by
+    `config.check_device_name`)."""
+    check_device_name(device)
     if not device.startswith("cuda"):
         return
     if not torch.cuda.is_available():
@@ -76,24 +71,10 @@ def check_device(device: str) -> None:
 
 def check_settings(samples: int, seed: int, max_faces: int | None, t1: int | None, t2: int | None,
                    span: int | None = None) -> None:
-    """The numbers of a completion, checked before any work: samples >= 1, seeds within SEED_MAX for all `span`
-    (default `samples`) seeds a run uses, max_faces 0 or at least MIN_FACES, steps 0 to MAX_STEPS."""
-    from hgca_core.models.weights import MAX_STEPS
-
-    for name, value, low in (("samples", samples, 1), ("seed", seed, 0)):
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
-            raise InputError(f"{name} must be a whole number of at least {low}, got {value!r}")
-    seed, samples = int(seed), int(samples)
-    used = span if span is not None else samples
-    if seed + used - 1 > SEED_MAX:
-        raise InputError(f"seed {seed} with {used} samples would use seeds up to {seed + used - 1}, past 2**63 - 1; "
-                         f"choose a seed of at most {SEED_MAX - used + 1}")
-    if max_faces is not None and max_faces != 0 and max_faces < MIN_FACES:
-        raise InputError(f"max_faces must be 0 (keep every triangle) or at least {MIN_FACES}, got {max_faces}")
-    for name, steps in (("t1", t1), ("t2", t2)):
-        if steps is not None and (int(steps) != steps or not 0 <= steps <= MAX_STEPS):
-            raise InputError(f"{name} must be a whole number >= 0 and at most {MAX_STEPS} (0: the weights' own), "
-                             f"got {steps}")
+    """The numbers of a completion, checked before any work (`CompletionConfig`'s checks), with every one of the
+    `span` (default `samples`) seeds a run uses within SEED_MAX."""
+    CompletionConfig(samples=samples, seed=seed, max_faces=max_faces, t1=t1, t2=t2)
+    check_seed_span(int(seed), span if span is not None else int(samples))
 
 
 @dataclass
@@ -138,17 +119,6 @@ class Models:
     coarse: "GCAKernel"
     fine: "CGCAKernel | None" = None
     autoencoder: "Autoencoder | None" = None
-
-
-def check_points(points: np.ndarray, what: str = "input") -> np.ndarray:
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise InputError(f"{what}: points must be an (N, 3) array, got shape {p.shape}")
-    if len(p) == 0:
-        raise InputError(f"{what}: there are no points")
-    if not np.all(np.isfinite(p)):
-        raise InputError(f"{what}: {int((~np.isfinite(p)).any(1).sum())} points have NaN or infinite coordinates")
-    return p
 
 
 def memory_need(region: Region) -> float:
@@ -233,11 +203,12 @@ def observed_free(local: np.ndarray, region: Region, models: Models, mode: str, 
     return free, forbid, f"{note}: {int(free.sum())} cells"
 
 
-def complete_local(local: np.ndarray, region: Region, models: Models, stage: str = "coarse", samples: int = 1,
+def complete_local(local: np.ndarray, region: Region, models: Models, stage: str | None = None, samples: int = 1,
                    seed: int = 0, t1: int | None = None, t2: int | None = None, progress: ProgressFn | None = None,
-                   precision: str = DEFAULT_PRECISION, max_faces: int | None = None, origins: np.ndarray | None = None,
-                   origin_index: np.ndarray | None = None, free_space: str = "auto",
-                   fixed_cells: np.ndarray | None = None) -> list[LocalCompletion]:
+                   precision: str = DEFAULTS.precision, max_faces: int | None = None,
+                   origins: np.ndarray | None = None, origin_index: np.ndarray | None = None,
+                   free_space: str = DEFAULTS.free_space, fixed_cells: np.ndarray | None = None
+                   ) -> list[LocalCompletion]:
     """The region-frame core: `local` (N, 3) points in `region`'s frame (metres; only the region's size is used
     here) -> `samples` completions, meshes in the same frame. Sample i uses seed + i.
 
@@ -250,6 +221,9 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
     (`hgca_core.meshing.udf_mesh`). Runs on the models' device. See `complete` for `precision`; `max_faces`
     None or 0 keeps every triangle here.
 
+    `stage` None is the stage `models` were loaded for (`load_models(config.stage)`): full when they hold the fine
+    kernel, else coarse.
+
     `fixed_cells` ((M, 3) 20 cm cells in this frame) join the initial state s0 exactly as observed cells do:
     `hgca drive` passes the cells its finished neighbours generated in a tile's overlap, so the joins agree.
     Cells outside the grid are ignored; None (or none inside) leaves the run unchanged.
@@ -257,6 +231,8 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
     from hgca_core.models.gca import sample as gca_sample
     from hgca_core.nn.conv import gemm_precision, resolve_precision
 
+    if stage is None:
+        stage = "full" if models.fine is not None else "coarse"
     if stage == "full" and (models.fine is None or models.autoencoder is None):
         raise InputError("the full stage needs the fine kernel and its autoencoder (load_models('full', ...))")
     for name, steps in (("t1", t1), ("t2", t2)):
@@ -300,7 +276,7 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
     results = []
     for i in range(samples):
         tag = f"sample {i + 1}/{samples}"
-        gen = torch.Generator(device=device).manual_seed(seed + i)
+        gen = torch.Generator().manual_seed(seed + i)   # on the CPU on any device: one seed, one mesh
         with gemm_precision(gemm_dtype):
             occ = gca_sample(models.coarse, cs.with_batch(torch.from_numpy(s0).to(device)), grid, steps, gen,
                              lambda t, n: report("planner" if t == 0 else "coarse", t, n, tag, i), free, forbid)
@@ -338,27 +314,28 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
 
 
 def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarray | None = None,
-             samples: int = 1, seed: int = 0, stage: str = "coarse", device: str = "cpu",
-             t1: int | None = None, t2: int | None = None, weights: str | Path | None = None,
-             fine_weights: str | Path | None = None, progress: ProgressFn | None = None,
-             precision: str = DEFAULT_PRECISION, max_faces: int | None = None, origin_index: np.ndarray | None = None,
-             free_space: str = "auto") -> list[Completion]:
-    """Complete accumulated LiDAR points (world frame). Sample i uses seed + i, so a (seed, i) pair names one mesh.
+             config: CompletionConfig | None = None, *, progress: ProgressFn | None = None,
+             origin_index: np.ndarray | None = None, **settings) -> list[Completion]:
+    """Complete accumulated LiDAR points (world frame) as `config` says (`CompletionConfig`, default: its
+    defaults); `settings` (any of its fields: stage=, samples=, seed=, t1=, ...) change single ones. Sample i
+    uses seed + i, so a (seed, i) pair names one mesh; a (seed, precision) pair names one result.
 
-    `origins` (S, 3, world frame) are the sensor positions and `origin_index` (N,) names each point's (a reader's
-    `origin_index` / `scan_index`, see `geometry.freespace.ray_origins`; None: the nearest origin). With them the
-    observed free space is computed and used as `free_space` says (FREE_SPACE_MODES, default auto).
+    `region` None is `geometry.region.default_region` around the first sensor. `origins` (S, 3, world frame) are
+    the sensor positions and `origin_index` (N,) names each point's (a reader's `origin_index` / `scan_index`,
+    see `geometry.freespace.ray_origins`; None: the nearest origin). With them the observed free space is
+    computed and used as `config.free_space` says. Each mesh is simplified to at most `config.max_faces`
+    triangles (0: every one) and carries per-vertex normals, `observed_distance` and an observed / generated
+    face `material` (`hgca_core.meshing.finish_mesh`). The work itself is `complete_local`'s, in the region
+    frame; this wrapper moves points in and meshes out."""
+    cfg = (config or DEFAULTS).with_(**settings) if settings else (config or DEFAULTS)
+    check_device(cfg.device)
+    models = load_models(cfg.stage, cfg.weights, cfg.fine_weights, cfg.device)   # both files checked before work
+    head = None
+    if cfg.semantics:
+        from hgca_core.models.weights import load_semantics
 
-    `precision` is the GEMM precision of the sparse convs while sampling ('auto': bf16 where the hardware has
-    it, see `hgca_core.nn.conv.resolve_precision`); a (seed, precision) pair names one result. `max_faces`
-    simplifies each mesh to at most that many triangles (`hgca_core.meshing.decimate`; None: the default
-    `hgca_core.meshing.DEFAULT_MAX_FACES`, 0: every triangle). Each mesh carries per-vertex normals,
-    `observed_distance` and an observed / generated face `material` (`hgca_core.meshing.finish_mesh`). The work
-    itself is `complete_local`'s, in the region frame; this wrapper moves points in and meshes out."""
-    check_settings(samples, seed, max_faces, t1, t2)
-    check_device(device)
-    models = load_models(stage, weights, fine_weights, device)   # both files are checked before any work
-    from hgca_core.meshing import DEFAULT_MAX_FACES, finish_mesh
+        head = load_semantics(cfg.semantics_weights, cfg.device)
+    from hgca_core.meshing import finish_mesh
 
     pts = check_points(points)
     if region is None:
@@ -374,12 +351,15 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
         raise InputError(f"origin_index has {len(origin_index)} entries for {len(pts)} points")
     origins_local = None if origins is None or len(origins) == 0 else region.to_local(np.asarray(origins, np.float64))
     results = []
-    for r in complete_local(local, region, models, stage, samples, seed, t1, t2, progress, precision,
-                            DEFAULT_MAX_FACES if max_faces is None else max_faces, origins_local, origin_index,
-                            free_space):
+    for r in complete_local(local, region, models, cfg.stage, cfg.samples, cfg.seed, cfg.t1, cfg.t2, progress,
+                            cfg.precision, cfg.max_faces, origins_local, origin_index, cfg.free_space):
         mesh = r.mesh
         mesh.vertices = region.to_world(mesh.vertices)
         mesh = finish_mesh(mesh, r.observed_distance)
         results.append(Completion(mesh=mesh, observed_distance=r.observed_distance, coarse_cells=r.coarse_cells,
                                   region=region, seed=r.seed))
+    if head is not None:   # after the geometry, which it reads and never changes
+        from hgca_core.models.semantics import label_completions
+
+        label_completions(head, results, voxelize(local[inside], COARSE, region.size), region.to_local)
     return results

@@ -25,6 +25,12 @@ Every command reports bad input as one `hgca COMMAND: error: ...` line on stderr
 nothing; Ctrl-C or SIGTERM stops a command within about 2 s (exit 130 / 143) without leaving partial outputs.
 Set `HGCA_DEBUG=1` to also print the Python traceback of an unexpected failure.
 
+`-o/--out` is where a command writes, and its placeholder says what it is: `DIR` is a folder the command creates
+and writes several files into (`drive`, `demo`, `bench`, `synth`, `train`); anything else is one file's path
+(`complete -o MESH` writes MESH_s<i>.<format> per sample, `read -o FILE.npz`, `poses`, `eval` and `eval-real`
+`-o FILE.json`). `complete` and `drive` take the mesh format from `--mesh-format` (`complete`: else from MESH's
+extension). The defaults of the completion options are one set, `hgca_core.config.CompletionConfig`.
+
 """
 
 

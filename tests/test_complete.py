@@ -130,8 +130,8 @@ def test_python_api_returns_arrays_and_is_seeded(small_weights, scan):
     assert light.stdout.strip() == "False"
     pts = np.load(scan)["points"]
     region = hgca_core.Region.parse(REGION)
-    a = hgca_core.complete(pts, region=region, samples=2, seed=5, weights=small_weights)
-    b = hgca_core.complete(pts, region=region, samples=2, seed=5, weights=small_weights)
+    a = hgca_core.complete(pts, region=region, samples=2, seed=5, weights=small_weights, stage="coarse")
+    b = hgca_core.complete(pts, region=region, samples=2, seed=5, weights=small_weights, stage="coarse")
     assert [r.seed for r in a] == [5, 6]
     for r, s in zip(a, b):
         assert r.vertices.shape[1] == 3 and r.faces.shape[1] == 3 and len(r.observed_distance) == len(r.vertices)
@@ -243,7 +243,8 @@ def test_world_wrapper_is_the_region_core_moved_to_the_world(small_weights, scan
 
     pts = np.load(scan)["points"]
     region = hgca_core.Region.parse(REGION + ",30")               # a turned box: the frames really differ
-    world = hgca_core.complete(pts, region=region, samples=2, seed=7, weights=small_weights, precision="fp32")
+    world = hgca_core.complete(pts, region=region, samples=2, seed=7, weights=small_weights, precision="fp32",
+                               stage="coarse")
     local = complete_local(region.to_local(pts), region, load_models("coarse", small_weights), samples=2, seed=7,
                            precision="fp32")
     assert len(world) == len(local) == 2

@@ -138,6 +138,7 @@ def test_eval_scores_what_complete_ships(small_split):
     world = region.to_world(rays)
     origins = region.to_world(np.asarray(sample["input_origins"], dtype=np.float64))   # eval gives each ray's origin
     shipped = hgca_core.complete(world, region=region, seed=3, t1=2, weights=shipped("coarse"), precision="fp32",
+                                 stage="coarse",
                                  origins=origins, origin_index=scan)[0]
     mesh = shipped.mesh.copy()
     mesh.vertices = region.to_local(mesh.vertices)

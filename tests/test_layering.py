@@ -16,6 +16,7 @@ LOW = UTIL | {"io", "geometry"}
 # own API (`hgca_core.complete`), for the front ends only
 ALLOWED = {
     "errors": set(),
+    "config": {"errors", "nn"},   # nn.precision's names only (test_config_is_light)
     "io": {"errors"},
     "geometry": UTIL,
     "nn": UTIL | {"geometry"},
@@ -23,10 +24,10 @@ ALLOWED = {
     "meshing": LOW,
     "synth": LOW,
     "render": LOW,
-    "metrics": LOW | {"nn", "models", "meshing", "pipeline", "render", "synth"},
-    "training": LOW | {"nn", "models", "meshing", "metrics", "synth"},
-    "pipeline": LOW | {"nn", "models", "meshing"},
-    "tiling": LOW | {"nn", "models", "meshing", "pipeline"},
+    "metrics": LOW | {"config", "nn", "models", "meshing", "pipeline", "render", "synth"},
+    "training": LOW | {"config", "nn", "models", "meshing", "metrics", "synth"},
+    "pipeline": LOW | {"config", "nn", "models", "meshing"},
+    "tiling": LOW | {"config", "nn", "models", "meshing", "pipeline"},
 }
 FRONT_ENDS = {"commands", "cli"}   # above every layer; nothing in the core imports them
 
@@ -66,6 +67,19 @@ def test_each_layer_imports_only_the_layers_below_it(name):
     bad = sorted(f"{f.relative_to(CORE)} imports {d}" for m, f in files for d in imported_modules(f)
                  if layer(d) != name and layer(d) not in ALLOWED[name])
     assert not bad, bad
+
+
+def test_config_is_light():
+    """The settings module is read while parsing arguments: from the core it imports errors and the precision
+    names only, and no torch or numpy (a fresh interpreter would pay seconds for them)."""
+    import subprocess
+    import sys
+
+    path = MODULES["hgca_core.config"]
+    assert imported_modules(path) <= {"hgca_core.errors", "hgca_core.nn.precision"}, imported_modules(path)
+    code = "import sys, hgca_core.config; print(sorted({'torch', 'numpy'} & set(sys.modules)))"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=True).stdout.strip() == "[]"
 
 
 def test_no_layer_imports_the_front_ends():

@@ -1,5 +1,7 @@
-"""Argument types and checks shared by the commands, so a flag out of range fails while parsing or before any
-work, with the flag's name, and never as an overflow or a traceback minutes later.
+"""The commands' shared options, each defined once, and the argument types and checks behind them, so a flag out
+of range fails while parsing or before any work, with the flag's name, and never as an overflow or a traceback
+minutes later. Defaults and bounds come from `hgca_core.config`; `completion_config` maps parsed options back to
+a `CompletionConfig`, so a command maps argv to a config and calls the library.
 
 Parsing types (`argparse` calls them) turn a bad value into `hgca CMD: error: argument --flag: ...`, exit 2.
 Checks of combinations (a seed plus its samples, a stride from size and overlap) raise `InputError`.
@@ -12,15 +14,13 @@ import math
 import re
 from typing import Callable
 
+from hgca_core.config import (FREE_SPACE_MODES, MAX_SAMPLES, MAX_STEPS, MAX_THREADS, MAX_WORKERS, MESH_FORMATS,
+                              MIN_FACES, SEED_MAX, STAGES, CompletionConfig, check_seed_span as _check_seed_span)
 from hgca_core.errors import InputError
+from hgca_core.nn.precision import PRECISIONS
 
-# The bounds of pipeline.SEED_MAX, pipeline.MIN_FACES and models.weights.MAX_STEPS, spelt out so that parsing
-# arguments does not import torch (a test holds them equal).
-SEED_MAX = 2**63 - 1
-MIN_FACES = 1000
-MAX_STEPS = 1000
-MAX_SAMPLES = 1000
-MAX_WORKERS = 4096
+DEFAULTS = CompletionConfig()
+PROGRESS_MODES = ("bar", "jsonl", "none")
 
 
 def _int(text: str) -> int:
@@ -62,26 +62,22 @@ def max_faces_arg(text: str) -> int:
     return value
 
 
-def positive_float(text: str) -> float:
-    """A finite number > 0 (metres, GiB)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a finite number above 0, got {text!r}")
-    return value
+def number(predicate: Callable[[float], bool], must: str) -> Callable[[str], float]:
+    """A type for one finite number that satisfies `predicate` (`must` says what it must be, for the message)."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if not math.isfinite(value) or not predicate(value):
+            raise argparse.ArgumentTypeError(f"must be {must}, got {text!r}")
+        return value
+    parse.__name__ = "number"
+    return parse
 
 
-def finite_float(text: str) -> float:
-    """A finite number (degrees, metres that may be 0 or negative)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
-    return value
+positive_float = number(lambda v: v > 0, "a finite number above 0")   # metres, GiB
+finite_float = number(lambda v: True, "a finite number")                # degrees, metres that may be 0 or negative
 
 
 def device_arg(text: str) -> str:
@@ -100,9 +96,10 @@ def check_device(device: str) -> None:
 
 def check_seed_span(seed: int, count: int, what: str = "samples") -> None:
     """Refuse a seed whose last use (seed + count - 1) leaves the 64-bit range, before the first sample runs."""
-    if seed + max(count, 1) - 1 > SEED_MAX:
-        raise InputError(f"--seed {seed} with {count} {what} would use seeds up to {seed + count - 1}, past "
-                         f"2**63 - 1; choose a seed of at most {SEED_MAX - count + 1}")
+    try:
+        _check_seed_span(seed, count, what)
+    except InputError as exc:
+        raise InputError(f"--{exc}") from None
 
 
 def floats_arg(what: str, positive: bool = False) -> Callable[[str], list[float]]:
@@ -124,3 +121,102 @@ def floats_arg(what: str, positive: bool = False) -> Callable[[str], list[float]
         return values
     parse.__name__ = "numbers"
     return parse
+
+
+def steps_arg(text: str) -> int:
+    """`--t1` / `--t2` type: a step count in [0, MAX_STEPS], where 0 (like leaving the option out) means the
+    weights' own; a bound, since each step is a pass of the network (10^9 steps would never end)."""
+    value = _int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 (the weights' own step count) or more, got {value}")
+    if value > MAX_STEPS:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_STEPS} steps, got {value}")
+    return value
+
+
+# The options of a completion (`CompletionConfig`'s fields), one definition each; `add_completion_arguments`
+# adds those a command takes and `completion_config` maps them back. Defaults come from the config.
+def add_stage_argument(p: argparse.ArgumentParser, help: str | None = None) -> None:
+    p.add_argument("--stage", choices=STAGES, default=DEFAULTS.stage,
+                   help=help or f"full: 20 cm coarse GCA, 10 cm cGCA upsampling and an implicit mesh; coarse: the "
+                                f"20 cm voxels only (faster); default {DEFAULTS.stage}")
+
+
+def add_precision_argument(p: argparse.ArgumentParser) -> None:
+    """`--precision`, shared by complete, drive, eval, eval-real and bench."""
+    p.add_argument("--precision", choices=PRECISIONS, default=DEFAULTS.precision,
+                   help=f"GEMM precision of the sparse convs while sampling (default {DEFAULTS.precision}: the same "
+                        "mesh on any thread count; bf16 is faster where the CPU has AVX512-BF16/AMX but its mesh "
+                        "may differ between thread counts; auto: bf16 where the hardware has it)")
+
+
+def add_free_space_argument(p: argparse.ArgumentParser, what: str = "") -> None:
+    """`--free-space`, shared by complete, drive, eval and eval-real (`config.FREE_SPACE_MODES`)."""
+    p.add_argument("--free-space", choices=FREE_SPACE_MODES, default=DEFAULTS.free_space,
+                   help=f"observed free space{what}: what the sensor saw through (needs sensor origins). feature = "
+                        "give it to weights trained with it; mask = also never output a cell deep in it (seen-empty "
+                        "cells whose six neighbours are seen empty); off = neither; auto (default) = mask where the "
+                        "weights take the feature (the shipped coarse.pt, coarse_noplanner.pt and fine.pt do) and "
+                        "the scans have sensor origins, nothing for weights without it")
+
+
+def add_steps_arguments(p: argparse.ArgumentParser, which: tuple[str, ...] = ("t1", "t2")) -> None:
+    """`--t1` and `--t2`, shared by complete, drive, eval, eval-real and bench."""
+    text = {"t1": "coarse steps T1 (0 or left out: the weights' own, 30 for the shipped ones)",
+            "t2": "fine steps T2 (0 or left out: the weights' own, 15 for the shipped ones)"}
+    for name in which:
+        p.add_argument(f"--{name}", type=steps_arg, default=None, help=text[name])
+
+
+def add_device_argument(p: argparse.ArgumentParser, help: str = "cpu, cuda or cuda:N") -> None:
+    p.add_argument("--device", type=device_arg, default=DEFAULTS.device, help=f"{help} (default {DEFAULTS.device})")
+
+
+def add_weights_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--weights", default=None, help="coarse weights file (default: the shipped coarse.pt)")
+    p.add_argument("--fine-weights", default=None, help="fine weights file, stage full (default: the shipped fine.pt)")
+
+
+def add_completion_arguments(p: argparse.ArgumentParser, seed_help: str, max_faces_help: str | None = None,
+                             free_space_what: str = "") -> None:
+    """The `CompletionConfig` options of `hgca complete` and `hgca drive`."""
+    p.add_argument("--samples", type=samples_arg, default=DEFAULTS.samples,
+                   help=f"number of completions k, one mesh each (default {DEFAULTS.samples})")
+    p.add_argument("--seed", type=seed_arg, default=DEFAULTS.seed, help=f"{seed_help} (default {DEFAULTS.seed})")
+    add_stage_argument(p)
+    add_device_argument(p)
+    p.add_argument("--max-faces", type=max_faces_arg, default=None,
+                   help=max_faces_help or f"simplify each mesh to at most this many triangles (default "
+                                          f"{DEFAULTS.max_faces:,}; 0 keeps every triangle: a default region's "
+                                          "full-stage mesh has 1.9-3.1 M)")
+    add_precision_argument(p)
+    add_steps_arguments(p)
+    add_weights_arguments(p)
+    add_free_space_argument(p, free_space_what)
+
+
+def completion_config(args: argparse.Namespace, base: CompletionConfig = DEFAULTS) -> CompletionConfig:
+    """The `CompletionConfig` of a command's parsed options (those it has; the rest from `base`)."""
+    names = ("stage", "samples", "seed", "t1", "t2", "weights", "fine_weights", "device", "precision", "max_faces",
+             "free_space", "semantics", "semantics_weights")
+    given = {n: getattr(args, n) for n in names if hasattr(args, n)}
+    if given.get("max_faces") is None:
+        given.pop("max_faces", None)
+    return base.with_(**given)
+
+
+def add_progress_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--progress", choices=PROGRESS_MODES, default="bar",
+                   help="bar: a progress bar on stderr (default); jsonl: one JSON object per line on stdout (what "
+                        "the Blender add-on reads); none: quiet")
+
+
+def add_mesh_format_argument(p: argparse.ArgumentParser, default: str | None, help: str) -> None:
+    """`--mesh-format`, shared by complete and drive (`config.MESH_FORMATS`)."""
+    p.add_argument("--mesh-format", choices=MESH_FORMATS, default=default, help=help)
+
+
+def add_out_argument(p: argparse.ArgumentParser, metavar: str, help: str, **kw) -> None:
+    """`-o/--out`, in every command that writes: a folder where the metavar is DIR (the command writes several
+    files into it), else the one file's path (its metavar names the kind: MESH, FILE.npz, FILE.json)."""
+    p.add_argument("-o", "--out", metavar=metavar, help=help, **kw)

@@ -6,19 +6,21 @@ from pathlib import Path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from hgca_core.commands.arguments import floats_arg
-    from hgca_core.commands.complete import add_precision_argument, device_arg, steps_arg
+    from hgca_core.commands.arguments import (add_device_argument, add_out_argument, add_precision_argument,
+                                              add_stage_argument, add_steps_arguments, add_weights_arguments,
+                                              floats_arg)
 
     p.add_argument("--widths", type=floats_arg("--widths", positive=True), default="40,60,80,100,120",
                    help="strip widths w (m) of 40 x w regions; '' for none")
     p.add_argument("--no-default", action="store_true", help="skip the default 38.4 x 38.4 m region")
-    p.add_argument("--stage", choices=("coarse", "full"), default="coarse")
-    p.add_argument("--device", type=device_arg, default="cpu")
-    p.add_argument("--t1", type=steps_arg, default=None)
-    p.add_argument("--weights", default=None, help="coarse weights file (default: the shipped ones)")
-    p.add_argument("--fine-weights", default=None, help="fine weights file, stage full (default: the shipped ones)")
+    add_stage_argument(p)
+    add_device_argument(p)
+    add_steps_arguments(p, ("t1",))
+    add_weights_arguments(p)
     add_precision_argument(p)
-    p.add_argument("--out", default="benchmarks/results")
+    add_out_argument(p, "DIR", required=True,
+                     help="folder for the result (<name>.json, .md and .png; the repository's pages: "
+                          "benchmarks/results)")
     p.add_argument("--name", default=None, help="result file stem (default completion_<stage>_<device>)")
 
 
@@ -35,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     name = args.name or f"completion_{args.stage}_{args.device.split(':')[0]}"
     load_models(args.stage, args.weights, args.fine_weights, "cpu")   # a bad file fails here, before any run
     out = Path(args.out)
-    if not out.exists():          # a new results folder is made (the default is benchmarks/results); what is there
+    if not out.exists():          # a new results folder is made; what is there
         try:                      # already, a file in its place or an unwritable folder, `check_outputs` judges
             out.mkdir(parents=True)
         except OSError as exc:

@@ -1,17 +1,18 @@
-"""`hgca complete SCAN... -o OUT.ext`: one mesh per sample, written atomically as OUT_s<i>.ext."""
+"""`hgca complete SCAN... -o MESH`: one mesh per sample, written atomically as MESH_s<i>.<format>."""
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from hgca_core.commands.arguments import (MAX_STEPS, check_device, check_seed_span, device_arg, max_faces_arg,
-                                          samples_arg, seed_arg)
+from hgca_core.commands.arguments import (MESH_FORMATS, add_completion_arguments, add_mesh_format_argument,
+                                          add_out_argument, add_precision_argument, add_progress_argument,
+                                          check_device, completion_config, device_arg, steps_arg)
 from hgca_core.errors import InputError
-from hgca_core.nn.precision import DEFAULT_PRECISION, PRECISIONS
 
-__all__ = ["device_arg", "steps_arg", "add_arguments", "run", "output_paths"]
+__all__ = ["device_arg", "steps_arg", "add_arguments", "add_precision_argument", "run", "output_paths",
+           "mesh_format"]
 
-MESH_EXTS = (".ply", ".obj", ".glb", ".npz")
+MESH_EXTS = tuple("." + f for f in MESH_FORMATS)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -20,77 +21,43 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scans", nargs="+", help="scan files (ply, las/laz, pcd, xyz/csv, npy/npz, KITTI .bin, nuScenes "
                                             ".pcd.bin, AV2 .feather) or one sequence folder (KITTI, AV2, nuScenes)")
     add_frames_argument(p)
-    p.add_argument("-o", "--out", required=True, help="output path; sample i goes to OUT_s<i>.ext (ply, obj, glb, npz)")
+    add_out_argument(p, "MESH", required=True,
+                     help="the mesh file's name; sample i goes to MESH_s<i>.<format>, the format from "
+                          "--mesh-format or else MESH's extension (.ply, .obj, .glb, .npz)")
+    add_mesh_format_argument(p, None, "mesh format (default: MESH's extension)")
     p.add_argument("--poses", help="JSON with a sensor->world 4x4 pose per scan")
     p.add_argument("--format", dest="fmt", help="force the scan format instead of guessing from the extension")
     p.add_argument("--region", help="cx,cy,cz,sx,sy,sz[,yaw_deg] in the world frame (default: 38.4 x 38.4 x 8 m "
                                     "around the first scan's sensor, from 1 m below the ground)")
-    p.add_argument("--samples", type=samples_arg, default=1, help="number of completions k (each its own mesh)")
-    p.add_argument("--seed", type=seed_arg, default=0, help="sample i uses seed + i: same seed, same mesh")
-    p.add_argument("--stage", choices=("coarse", "full"), default="full",
-                   help="full (default): 20 cm coarse GCA, 10 cm cGCA upsampling and an implicit mesh; "
-                        "coarse: the 20 cm voxels only (faster)")
-    p.add_argument("--device", type=device_arg, default="cpu", help="cpu, cuda or cuda:N")
-    p.add_argument("--max-faces", type=max_faces_arg, default=None,
-                   help="simplify each mesh to at most this many triangles (default 1,000,000; 0 keeps every "
-                        "triangle: a default region's full-stage mesh has ~2 M)")
-    add_precision_argument(p)
-    add_steps_arguments(p)
-    p.add_argument("--weights", default=None, help="coarse weights file (default: the shipped ones)")
-    p.add_argument("--fine-weights", default=None, help="fine weights file (default: the shipped ones)")
-    p.add_argument("--progress", choices=("bar", "jsonl", "none"), default="bar")
-    add_free_space_argument(p)
+    add_completion_arguments(p, "sample i uses seed + i: same seed, same mesh")
+    p.add_argument("--semantics", action="store_true",
+                   help="label every face with a class (road, sidewalk, building, car, tree, pole, fence, shelter, "
+                        "person): a PLY face property `label`, NPZ `face_label`, one GLB primitive per class; with "
+                        "--samples k also each face's class agreement across the samples. The geometry is unchanged")
+    p.add_argument("--semantics-weights", default=None, help="semantic head weights (default: the shipped "
+                                                             "semantics.pt); implies --semantics")
+    add_progress_argument(p)
 
 
-def add_free_space_argument(p: argparse.ArgumentParser, what: str = "") -> None:
-    """`--free-space`, shared by complete, drive, eval and eval-real. The choices are
-    `hgca_core.pipeline.FREE_SPACE_MODES`, spelt out so that parsing arguments does not import torch."""
-    p.add_argument("--free-space", choices=("auto", "feature", "mask", "off"), default="auto",
-                   help=f"observed free space{what}: what the sensor saw through (needs sensor origins). feature = "
-                        "give it to weights trained with it; mask = also never output a cell deep in it (seen-empty "
-                        "cells whose six neighbours are seen empty); off = "
-                        "neither; auto (default) = mask where the weights take the feature (the shipped coarse.pt, "
-                        "coarse_noplanner.pt and fine.pt do) and the scans have sensor origins, nothing for "
-                        "weights without it")
+def mesh_format(out: str, asked: str | None) -> str:
+    """The mesh format of `hgca complete -o out [--mesh-format asked]`: the one asked for, else the extension's;
+    an extension that is a mesh format and disagrees with the one asked for is refused."""
+    ext = Path(out).suffix.lower()
+    if asked is None:
+        if ext not in MESH_EXTS:
+            raise InputError(f"output must end in one of {', '.join(MESH_EXTS)} (or give --mesh-format)", out)
+        return ext[1:]
+    if ext in MESH_EXTS and ext[1:] != asked:
+        raise InputError(f"the output's extension {ext} disagrees with --mesh-format {asked}", out)
+    return asked
 
 
-def add_precision_argument(p: argparse.ArgumentParser) -> None:
-    """`--precision`, shared by complete, drive, eval and bench (names from the torch-free
-    `hgca_core.nn.precision`)."""
-    p.add_argument("--precision", choices=PRECISIONS, default=DEFAULT_PRECISION,
-                   help="GEMM precision of the sparse convs while sampling (default fp32: the same mesh on any "
-                        "thread count; bf16 is faster where the CPU has AVX512-BF16/AMX but its mesh may differ "
-                        "between thread counts; auto: bf16 where the hardware has it)")
-
-
-def steps_arg(text: str) -> int:
-    """`--t1` / `--t2` type: a step count in [0, MAX_STEPS], where 0 (like leaving the option out) means the
-    weights' own; a bound, since each step is a pass of the network (10^9 steps would never end)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 (the weights' own step count) or more, got {value}")
-    if value > MAX_STEPS:
-        raise argparse.ArgumentTypeError(f"must be at most {MAX_STEPS} steps, got {value}")
-    return value
-
-
-def add_steps_arguments(p: argparse.ArgumentParser) -> None:
-    """`--t1` and `--t2`, shared by complete, eval and bench."""
-    p.add_argument("--t1", type=steps_arg, default=None,
-                   help="coarse steps T1 (0 or left out: the weights' own, 30 for the shipped ones)")
-    p.add_argument("--t2", type=steps_arg, default=None,
-                   help="fine steps T2 (0 or left out: the weights' own, 15 for the shipped ones)")
-
-
-def output_paths(out: str, samples: int) -> list[Path]:
-    """OUT_s<i>.ext for each sample (the names every sample's mesh is written to)."""
+def output_paths(out: str, samples: int, fmt: str | None = None) -> list[Path]:
+    """MESH_s<i>.<format> for each sample (the names every sample's mesh is written to)."""
     path = Path(out)
-    if path.suffix.lower() not in MESH_EXTS:
-        raise InputError(f"output must end in one of {', '.join(MESH_EXTS)}", out)
-    return [path.with_name(f"{path.stem}_s{i}{path.suffix}") for i in range(samples)]
+    fmt = mesh_format(out, fmt)
+    stem = path.stem if path.suffix.lower() in MESH_EXTS else path.name
+    return [path.with_name(f"{stem}_s{i}.{fmt}") for i in range(samples)]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -115,10 +82,12 @@ def _run(args: argparse.Namespace, progress) -> list[Path]:
     from hgca_core.io.paths import check_outputs
     from hgca_core.pipeline import check_memory
 
-    paths = output_paths(args.out, args.samples)
-    check_seed_span(args.seed, args.samples)
-    check_outputs(paths, [*args.scans, args.poses, args.weights, args.fine_weights])
-    check_device(args.device)
+    config = completion_config(args)
+    paths = output_paths(args.out, config.samples, args.mesh_format)
+    if config.semantics_weights is not None and not config.semantics:
+        config = config.with_(semantics=True)
+    check_outputs(paths, [*args.scans, args.poses, config.weights, config.fine_weights, config.semantics_weights])
+    check_device(config.device)
     check_read_memory(args.scans)
     region_arg = Region.parse(args.region) if args.region else None
     if region_arg is not None:
@@ -129,28 +98,31 @@ def _run(args: argparse.Namespace, progress) -> list[Path]:
     from hgca_core.io.sequence import read_inputs
     from hgca_core.pipeline import complete, load_models
 
-    load_models(args.stage, args.weights, args.fine_weights, args.device)   # bad weights fail before any work;
-    # complete() gets the same models again from the cache
+    if config.semantics:
+        from hgca_core.models.weights import load_semantics
+
+        load_semantics(config.semantics_weights, config.device)
+    load_models(config.stage, config.weights, config.fine_weights, config.device)   # bad weights fail before any
+    # work; complete() gets the same models again from the cache
     progress("read", 0, 1, f"{len(args.scans)} scan(s)", 0)
     scan = read_inputs(args.scans, poses=args.poses, fmt=args.fmt, frames=args.frames)
     progress("read", 1, 1, f"{len(scan.points)} points", 0)
-    region = region_arg
     index = None
-    if scan.origins is not None and len(scan.origins) and args.free_space != "off":
+    if scan.origins is not None and len(scan.origins) and config.free_space != "off":
         from hgca_core.geometry.freespace import ray_origins
 
         index = ray_origins(scan.origins, scan.attributes, scan.points)
-    results = complete(scan.points, region=region, origins=scan.origins, samples=args.samples, seed=args.seed,
-                       stage=args.stage, device=args.device, t1=args.t1, t2=args.t2, weights=args.weights,
-                       fine_weights=args.fine_weights, progress=progress, precision=args.precision,
-                       max_faces=args.max_faces, origin_index=index, free_space=args.free_space)
+    results = complete(scan.points, region=region_arg, origins=scan.origins, config=config, progress=progress,
+                       origin_index=index)
     with AtomicBatch() as batch:  # every sample or none: an interrupted write leaves nothing behind
         for i, (res, path) in enumerate(zip(results, paths)):
             progress("write", i, len(paths), path.name, i)
             if path.suffix.lower() == ".npz":
                 write_mesh_npz(path, res.mesh.vertices, res.mesh.faces, res.observed_distance, batch=batch,
                                normals=res.mesh.vertex_normals,
-                               face_material=res.mesh.face_attributes.get("material"))
+                               face_material=res.mesh.face_attributes.get("material"),
+                               face_label=res.mesh.face_attributes.get("label"),
+                               face_label_agreement=res.mesh.face_attributes.get("label_agreement"))
             else:
                 write_mesh(path, res.mesh, batch=batch)
         batch.commit()

@@ -9,14 +9,19 @@ EXAMPLE_DIR = Path(__file__).resolve().parents[1] / "examples"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from hgca_core.commands.arguments import samples_arg, seed_arg
+    from hgca_core.commands.arguments import (DEFAULTS, add_out_argument, add_progress_argument,
+                                              add_stage_argument, samples_arg, seed_arg)
 
-    p.add_argument("--out", default="demo_out", help="folder for the mesh and its rendering")
-    p.add_argument("--samples", type=samples_arg, default=1)
-    p.add_argument("--seed", type=seed_arg, default=0)
-    p.add_argument("--stage", choices=("coarse", "full"), default=None,
-                   help="default: full when fine weights are shipped, else coarse")
-    p.add_argument("--progress", choices=("bar", "jsonl", "none"), default="bar")
+    add_out_argument(p, "DIR", required=True,
+                     help="folder for the meshes (completion_s<i>.ply) and their renderings (`make demo`: demo_out)")
+    p.add_argument("--samples", type=samples_arg, default=DEFAULTS.samples,
+                   help=f"number of completions k, one mesh each (default {DEFAULTS.samples})")
+    p.add_argument("--seed", type=seed_arg, default=DEFAULTS.seed,
+                   help=f"sample i uses seed + i (default {DEFAULTS.seed})")
+    add_stage_argument(p)
+    p.add_argument("--semantics", action="store_true",
+                   help="label every face with its class (the PLY face property `label`; see hgca complete)")
+    add_progress_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -28,7 +33,6 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.errors import InputError
     from hgca_core.io import read_scans
     from hgca_core.io.poses import load_poses
-    from hgca_core.models.weights import shipped
     from hgca_core.render import render_mesh
 
     poses = EXAMPLE_DIR / "poses.json"
@@ -40,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.commands.arguments import check_seed_span
     from hgca_core.io.paths import check_output_folder, check_outputs
 
-    stage = args.stage or ("full" if shipped("fine").exists() else "coarse")
+    stage = args.stage
     out_dir = Path(args.out)
     check_seed_span(args.seed, args.samples)
     check_output_folder(out_dir, [EXAMPLE_DIR])
@@ -56,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     complete_arguments(parser)
     complete_run(parser.parse_args([*scans, "-o", str(mesh_path), f"--poses={poses}", f"--region={region}",
                                     f"--samples={args.samples}", f"--seed={args.seed}", f"--stage={stage}",
-                                    f"--progress={args.progress}"]))
+                                    f"--progress={args.progress}", *(["--semantics"] if args.semantics else [])]))
     seconds = time.time() - t0
     from plyfile import PlyData
     import trimesh

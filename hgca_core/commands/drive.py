@@ -12,62 +12,71 @@ import argparse
 import json
 import sys
 
-from hgca_core.commands.arguments import (MAX_WORKERS, check_device, counted, device_arg, max_faces_arg,
-                                          positive_float, samples_arg, seed_arg)
-from hgca_core.commands.complete import add_free_space_argument, add_precision_argument, steps_arg
+from hgca_core.commands.arguments import (MAX_THREADS, MAX_WORKERS, add_completion_arguments,
+                                          add_mesh_format_argument, add_out_argument, add_progress_argument,
+                                          check_device, completion_config, counted, positive_float)
+from hgca_core.config import MAX_SCANS_PER_TILE, DriveConfig
 from hgca_core.errors import InputError
+
+DEFAULTS = DriveConfig()
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scans", nargs="+", help="scan files in trajectory order (any format `hgca complete` reads), or "
                    "one sequence folder (KITTI, Argoverse 2 log, nuScenes sweeps)")
-    p.add_argument("--out", "-o", metavar="DIR", help="drive folder (created; re-running resumes)")
+    add_out_argument(p, "DIR", help="the drive folder (created; re-running resumes): tiles/<i>_s<k>.<format>, "
+                                    "drive_s<k>.<format> and drive.json")
     p.add_argument("--poses", help="JSON with a sensor->world 4x4 pose per scan (see docs/CONTRACTS.md)")
     p.add_argument("--frames", default=None, metavar="START:STOP[:STEP]",
                    help="frames of a sequence folder (default: all of them)")
     p.add_argument("--format", dest="fmt", help="force the scan format instead of guessing from the extension")
-    p.add_argument("--size", type=positive_float, default=38.4, help="tile side in metres (default 38.4, the paper's region)")
-    p.add_argument("--overlap", type=positive_float, default=6.4, help="overlap of consecutive tiles in metres (default 6.4)")
-    p.add_argument("--scans-per-tile", type=counted(1, 10_000), default=5, help="each tile is completed from its N nearest scans")
+    p.add_argument("--size", type=positive_float, default=DEFAULTS.size,
+                   help=f"tile side in metres (default {DEFAULTS.size}, the paper's region)")
+    p.add_argument("--overlap", type=positive_float, default=DEFAULTS.overlap,
+                   help=f"overlap of consecutive tiles in metres (default {DEFAULTS.overlap})")
+    p.add_argument("--scans-per-tile", type=counted(1, MAX_SCANS_PER_TILE), default=DEFAULTS.scans_per_tile,
+                   help=f"each tile is completed from its N nearest scans (default {DEFAULTS.scans_per_tile})")
     p.add_argument("--plan-only", action="store_true",
                    help="print the tiles (regions along the trajectory, their scans) and stop; writes nothing")
     p.add_argument("--json", action="store_true", help="--plan-only: print the plan as one JSON object")
-    p.add_argument("--samples", type=samples_arg, default=1, help="number of completions k (one merged mesh each)")
-    p.add_argument("--seed", type=seed_arg, default=0, help="sample k of tile i uses seed + i * samples + k")
-    p.add_argument("--stage", choices=("coarse", "full"), default="full", help="as `hgca complete --stage`")
-    p.add_argument("--device", type=device_arg, default="cpu", help="cpu, cuda or cuda:N")
-    p.add_argument("--max-faces", type=max_faces_arg, default=None, help="simplify each tile's mesh to at most N triangles")
-    add_precision_argument(p)
-    add_free_space_argument(p, " from each scan's rays")
-    p.add_argument("--t1", type=steps_arg, default=None, help="coarse steps T1 (default from the weights)")
-    p.add_argument("--t2", type=steps_arg, default=None, help="fine steps T2 (default from the weights)")
-    p.add_argument("--weights", default=None, help="coarse weights file (default: the shipped ones)")
-    p.add_argument("--fine-weights", default=None, help="fine weights file (default: the shipped ones)")
+    add_completion_arguments(p, "sample k of tile i uses seed + i * samples + k",
+                             max_faces_help="simplify each tile's mesh to at most N triangles (default 0: every "
+                                            "triangle, so the tiles' surfaces meet at the seams as computed)",
+                             free_space_what=" from each scan's rays")
     p.add_argument("--no-seams", dest="seams", action="store_false",
                    help="do not condition tiles on their finished neighbours (faster start, joins may disagree)")
-    p.add_argument("--workers", type=counted(1, MAX_WORKERS), default=1,
+    p.add_argument("--workers", type=counted(1, MAX_WORKERS), default=DEFAULTS.workers,
                    help="tiles at once; more than 1 starts a local Ray in this process (needs hgca[ray])")
     p.add_argument("--address", default=None, help="run on an existing Ray cluster (ray://host:port)")
-    p.add_argument("--threads", type=counted(1, 4096), default=None, help="torch threads per tile (default: cores / workers)")
+    p.add_argument("--threads", type=counted(1, MAX_THREADS), default=None,
+                   help="torch threads per tile (default: cores / workers)")
     p.add_argument("--tile-memory", type=positive_float, default=None, metavar="GIB",
                    help="memory each tile declares to Ray (default: estimated from the tile's area)")
-    p.add_argument("--mesh-format", choices=("ply", "glb", "obj", "npz"), default="ply", help="tile and drive meshes")
-    p.add_argument("--progress", choices=("bar", "jsonl", "none"), default="bar")
+    add_mesh_format_argument(p, DEFAULTS.mesh_format, f"tile and drive meshes (default {DEFAULTS.mesh_format})")
+    add_progress_argument(p)
+
+
+def drive_config(args: argparse.Namespace) -> DriveConfig:
+    """The `DriveConfig` of `hgca drive`'s parsed options."""
+    return DriveConfig(completion=completion_config(args, DEFAULTS.completion), size=args.size,
+                       overlap=args.overlap, scans_per_tile=args.scans_per_tile, seams=args.seams,
+                       workers=args.workers, address=args.address, threads=args.threads,
+                       tile_memory=args.tile_memory * 2**30 if args.tile_memory else None,
+                       mesh_format=args.mesh_format)
 
 
 def run(args: argparse.Namespace) -> int:
     from hgca_core.commands.memory import check_read_memory
-    from hgca_core.tiling.plan import check_stride
 
     if args.plan_only:
-        check_stride(args.size, args.overlap)
+        drive_config(args)
         return _plan_only(args)
     from hgca_core.progress import Progress
     from hgca_core.tiling.run import drive
 
     progress = Progress(args.progress if args.progress != "bar" else "none", samples=args.samples)
     try:
-        check_stride(args.size, args.overlap)
+        config = drive_config(args)
         check_device(args.device)
         check_read_memory(args.scans)
         if not args.out:
@@ -92,13 +101,7 @@ def run(args: argparse.Namespace) -> int:
         progress.record("plan", 0, len(plan["tiles"]), f"{len(plan['tiles'])} tiles", plan=plan)
 
     try:
-        doc = drive(args.scans, args.out, poses=args.poses, fmt=args.fmt, size=args.size, overlap=args.overlap,
-                    scans_per_tile=args.scans_per_tile, samples=args.samples, seed=args.seed, stage=args.stage,
-                    t1=args.t1, t2=args.t2, weights=args.weights, fine_weights=args.fine_weights,
-                    precision=args.precision, max_faces=args.max_faces, device=args.device, workers=args.workers,
-                    address=args.address, threads=args.threads,
-                    tile_memory=args.tile_memory * 2**30 if args.tile_memory else None, seams=args.seams,
-                    mesh_format=args.mesh_format, frames=args.frames, free_space=args.free_space,
+        doc = drive(args.scans, args.out, poses=args.poses, fmt=args.fmt, frames=args.frames, config=config,
                     report=progress, on_tile=on_tile, on_plan=on_plan)
     except Exception as exc:
         progress.error(str(exc))

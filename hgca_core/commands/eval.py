@@ -11,13 +11,13 @@ DEFAULT_METHODS = ("input", "poisson", "gca", "hgca")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from hgca_core.commands.arguments import counted, samples_arg, seed_arg
-    from hgca_core.commands.complete import add_free_space_argument, add_precision_argument, steps_arg
+    from hgca_core.commands.arguments import (add_free_space_argument, add_out_argument, add_precision_argument,
+                                              add_stage_argument, counted, samples_arg, seed_arg, steps_arg)
 
     p.add_argument("--data", default="data/synth", help="dataset folder (hgca synth --split test)")
-    p.add_argument("--split", default="test", choices=("val", "test"))
-    p.add_argument("--stage", default="coarse", choices=("coarse", "full"),
-                   help="full adds the fine stage's rows (hGCA 10 cm voxels and implicit mesh; needs fine weights)")
+    p.add_argument("--split", default="test", choices=("val", "test"), help="the split to score (default test)")
+    add_stage_argument(p, help="full (default) adds the fine stage's rows (hGCA 10 cm voxels and implicit mesh; "
+                               "needs fine weights) to the coarse ones")
     p.add_argument("--weights", default=None, help="hGCA coarse weights or checkpoint (default: the shipped coarse.pt)")
     p.add_argument("--noplanner-weights", default=None,
                    help="GCA (no planner) weights or checkpoint (default: the shipped coarse_noplanner.pt)")
@@ -29,9 +29,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--methods", default=None,
                    help=f"comma list of {', '.join(METHODS)} (default: the coarse ones, plus hgca-full with --stage full)")
     p.add_argument("--t1", type=steps_arg, default=None, help="coarse steps (default from the weights)")
-    p.add_argument("--seed", type=seed_arg, default=0)
+    p.add_argument("--seed", type=seed_arg, default=0, help="sample i of every input uses seed + i (default 0)")
     add_free_space_argument(p, " for the model rows (compare runs to ablate it)")
-    p.add_argument("--out", default=None, help="write the rows as JSON and the table as .md next to it")
+    add_out_argument(p, "FILE.json", default=None, help="write the rows as JSON and the table as .md next to it")
     p.add_argument("--render", default=None, metavar="PNG",
                    help="also write a PNG of the first scene: its ground truth, input and each row's first "
                         "completion from one viewpoint (grey where the input lies, blue where it was generated)")

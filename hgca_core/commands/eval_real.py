@@ -14,8 +14,8 @@ import math
 import time
 from pathlib import Path
 
-from hgca_core.commands.arguments import counted, finite_float, samples_arg, seed_arg
-from hgca_core.commands.complete import add_free_space_argument, add_precision_argument, steps_arg
+from hgca_core.commands.arguments import (add_free_space_argument, add_out_argument, add_precision_argument,
+                                          counted, finite_float, samples_arg, seed_arg, steps_arg)
 from hgca_core.real_eval import METHODS
 
 # The real fixtures shipped with the repository (tests/data/real), wherever the command is run from
@@ -36,14 +36,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--real-dir", default=DEFAULT_REAL, help="the real fixtures folder (for the default inputs)")
     p.add_argument("--frames", metavar="START:STOP[:STEP]", help="frames of the sequence inputs given")
     p.add_argument("--calibration", help="AV2 egovehicle_SE3_sensor table for logs given without one")
-    p.add_argument("--out", default="benchmarks/results/real_scans.json",
-                   help="results JSON; the table goes to .md beside it, renderings to <stem>_<input>*.png")
+    add_out_argument(p, "FILE.json", default="benchmarks/results/real_scans.json",
+                     help="results JSON; the table goes to .md beside it, renderings to <stem>_<input>*.png")
     p.add_argument("--methods", default=",".join(METHODS), help=f"comma list of {', '.join(METHODS)}")
     p.add_argument("--cuts", default="1.5,2.0", help="cut heights above the ground, metres")
     p.add_argument("--full-cuts", default="2.0", help="cut heights where the full stage runs (it is slow)")
     p.add_argument("--samples", type=samples_arg, default=3, help="k for the sampling rows")
     p.add_argument("--full-samples", type=samples_arg, default=None, help="k for the full-stage rows (default --samples)")
-    p.add_argument("--seed", type=seed_arg, default=0)
+    p.add_argument("--seed", type=seed_arg, default=0, help="sample i uses seed + i (default 0)")
     p.add_argument("--yaw", type=finite_float, default=0.0, metavar="DEG",
                    help="turn each input's region by DEG degrees about the vertical (default 0: the region's axes "
                         "along the scan's frame, as `hgca complete` picks it); a model trained on regions along the "

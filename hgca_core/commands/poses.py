@@ -14,7 +14,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("sequence", help="sequence folder (KITTI velodyne/ + poses.txt + calib.txt, Argoverse 2 log, "
                                     "nuScenes *.pcd.bin with poses.json)")
     p.add_argument("--frames", metavar="START:STOP[:STEP]", help="frames to write (default: all)")
-    p.add_argument("-o", "--out", required=True, metavar="POSES.json", help="output JSON (docs/CONTRACTS.md)")
+    p.add_argument("-o", "--out", required=True, metavar="FILE.json", help="output JSON (docs/CONTRACTS.md)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -21,7 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="JSON with a sensor->world 4x4 pose per scan (see docs/CONTRACTS.md)")
     p.add_argument("--format", dest="fmt", metavar="F",
                    help="force the format (ply, las, pcd, xyz, npy, npz, kitti, nuscenes) instead of the extension's")
-    p.add_argument("-o", "--out", required=True, metavar="OUT.npz",
+    p.add_argument("-o", "--out", required=True, metavar="FILE.npz",
                    help="output .npz: points (N,3) f32 relative to offset (3,) f64, attributes, origins")
     p.add_argument("--json", action="store_true",
                    help="print one JSON object (out, points, scans, attributes, dropped: returns the reader left "

@@ -12,7 +12,7 @@ import argparse
 import json
 import time
 
-from hgca_core.commands.arguments import MAX_WORKERS, counted, seed_arg
+from hgca_core.commands.arguments import MAX_WORKERS, add_out_argument, counted, seed_arg
 from hgca_core.errors import InputError
 from hgca_core.synth.lidar import PROFILES
 from hgca_core.synth.scene import GENERATOR_VERSION, STYLE_DRAWS, STYLES
@@ -44,7 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-preview", action="store_true", help="skip the preview PNG (with --seed)")
     p.add_argument("--quick", action="store_true",
                    help="smoke-test density: a quarter of the azimuth steps and sparser ground truth (not for training)")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    add_out_argument(p, "DIR", required=True, help="output folder")
 
 
 def run(args: argparse.Namespace) -> int:

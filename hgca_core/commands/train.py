@@ -16,7 +16,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from hgca_core.commands.arguments import counted, device_arg, seed_arg
+from hgca_core.commands.arguments import add_out_argument, counted, device_arg, seed_arg
 from hgca_core.errors import InputError
 from hgca_core.training.recipes import DEFAULT, RECIPES, Recipe, parse_sets, resolve, resumed
 
@@ -46,7 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", default=["data/synth"], nargs="+", metavar="DIR",
                    help="dataset folder with train/ and val/ splits (hgca synth --split); several folders: train on "
                         "the union of their train splits, validate on the first one's val split")
-    p.add_argument("--out", default=None, metavar="DIR", help="run folder (default runs/<recipe>)")
+    add_out_argument(p, "DIR", default=None, help="run folder (default runs/<recipe>)")
     p.add_argument("--minutes", type=_minutes, default=10.0,
                    help="wall-time budget of this invocation (0: no training, only --export of the run)")
     p.add_argument("--max-steps", type=counted(1, MAX_STEPS), default=None, metavar="N",

@@ -32,6 +32,13 @@ class PointIndex:
         d = np.where(none, np.inf, d)
         return d, i
 
+    def k_nearest(self, queries: np.ndarray, k: int) -> np.ndarray:
+        """(Q, k) int64 indices of each query's k nearest points, nearest first (k at most the point count)."""
+        q = np.ascontiguousarray(np.asarray(queries, dtype=np.float64).reshape(-1, 3))
+        if self._tree is None or len(q) == 0:
+            return np.zeros((len(q), k), dtype=np.int64)
+        return self._tree.query(q, k=k)[1].astype(np.int64).reshape(len(q), k)
+
     def distances(self, queries: np.ndarray, upper: float | None = None) -> np.ndarray:
         """(Q,) distance of each query to its nearest point (inf beyond `upper`)."""
         return self.nearest(queries, upper)[0]

@@ -7,7 +7,7 @@ from typing import Sequence
 
 import numpy as np
 import trimesh
-from scipy.spatial import cKDTree
+from hgca_core.geometry.nearest import PointIndex
 
 from hgca_core.errors import HgcaError, InputError
 from hgca_core.geometry.voxel import COARSE, voxelize
@@ -51,7 +51,7 @@ def available_cores() -> int:
 
 def orient_towards(points: np.ndarray, normals: np.ndarray, origins: np.ndarray) -> np.ndarray:
     """Flip each normal to face the nearest sensor origin: a LiDAR only sees a surface's outward side."""
-    _, idx = cKDTree(origins).query(points, k=1, workers=-1)
+    idx = PointIndex(origins).nearest(points)[1]
     flip = np.einsum("ij,ij->i", normals, origins[idx] - points) < 0
     out = np.array(normals, dtype=np.float64, copy=True)
     out[flip] *= -1

@@ -7,28 +7,20 @@ evaluation uses, where an empty prediction is a legitimate (bad) outcome that mu
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from hgca_core.errors import InputError
+from hgca_core.geometry.nearest import PointIndex
+from hgca_core.geometry.points import check_points
 
 
 def as_points(a: np.ndarray, name: str = "points", allow_empty: bool = False) -> np.ndarray:
-    """(N, 3) float64 view of `a`, with a clear error for wrong shapes, non-finite values or emptiness."""
-    p = np.asarray(a, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise InputError(f"{name} must be an (N, 3) array, got shape {p.shape}")
-    if len(p) == 0 and not allow_empty:
-        raise InputError(f"{name} is empty: Chamfer distance needs at least one point on each side")
-    if not np.all(np.isfinite(p)):
-        raise InputError(f"{name} holds non-finite coordinates")
-    return p
+    """(N, 3) float64 view of `a` (`geometry.points.check_points`: wrong shapes, non-finite values, emptiness)."""
+    return check_points(a, name, allow_empty)
 
 
-def nn_distances(query: np.ndarray, reference: np.ndarray | cKDTree) -> np.ndarray:
-    """Distance from each query point to its nearest reference point (a prebuilt tree may be passed)."""
-    tree = reference if isinstance(reference, cKDTree) else cKDTree(reference)
-    d, _ = tree.query(query, k=1, workers=-1)
-    return d
+def nn_distances(query: np.ndarray, reference: np.ndarray | PointIndex) -> np.ndarray:
+    """Distance from each query point to its nearest reference point (a prebuilt index may be passed)."""
+    index = reference if isinstance(reference, PointIndex) else PointIndex(reference)
+    return index.distances(query)
 
 
 def directed_chamfer(a: np.ndarray, b: np.ndarray) -> float:

@@ -7,6 +7,7 @@ import numpy as np
 import trimesh
 
 from hgca_core.errors import InputError
+from hgca_core.geometry.nearest import PointIndex
 
 
 def sample_surface(mesh: trimesh.Trimesh, spacing: float = 0.05, seed: int = 0,
@@ -73,18 +74,16 @@ def point_mesh_distance(points: np.ndarray, mesh: trimesh.Trimesh, k: int = 16, 
     """Distance from each point to the mesh surface, over the `k` triangles with the nearest centroids (exact when
     the nearest triangle is among them, else an upper bound: enough for meshes whose triangles are small next to
     the distances of interest, e.g. comparing a mesh with its simplification)."""
-    from scipy.spatial import cKDTree
-
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     tri = np.asarray(mesh.vertices, dtype=np.float64)[np.asarray(mesh.faces)]
     if len(tri) == 0 or len(p) == 0:
         return np.full(len(p), np.inf)
     k = min(k, len(tri))
-    tree = cKDTree(tri.mean(1))
+    tree = PointIndex(tri.mean(1))
     out = np.empty(len(p))
     for s in range(0, len(p), chunk):
         q = p[s:s + chunk]
-        idx = tree.query(q, k=k)[1].reshape(len(q), k)
+        idx = tree.k_nearest(q, k)
         t = tri[idx.reshape(-1)]
         cp = _closest_on_triangles(np.repeat(q, k, axis=0), t[:, 0], t[:, 1], t[:, 2])
         out[s:s + chunk] = np.sqrt(((cp - np.repeat(q, k, axis=0)) ** 2).sum(1)).reshape(len(q), k).min(1)

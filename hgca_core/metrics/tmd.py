@@ -6,7 +6,7 @@ from itertools import combinations
 from typing import Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
+from hgca_core.geometry.nearest import PointIndex
 
 from hgca_core.errors import InputError
 from hgca_core.metrics.chamfer import as_points, nn_distances
@@ -22,7 +22,7 @@ def tmd(samples: Sequence[np.ndarray], empty_penalty: float | None = None) -> fl
     if len(samples) < 2:
         raise InputError(f"TMD needs at least 2 samples, got {len(samples)}")
     pts = [as_points(s, f"sample {i}", allow_empty=empty_penalty is not None) for i, s in enumerate(samples)]
-    trees = [cKDTree(p) if len(p) else None for p in pts]
+    trees = [PointIndex(p) if len(p) else None for p in pts]
     pair_cd = []
     for i, j in combinations(range(len(pts)), 2):
         if trees[i] is None or trees[j] is None:

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hgca_core.config import check_stride as config_check_stride
 from hgca_core.errors import InputError
 from hgca_core.geometry.region import DEFAULT_SIZE, Region
 
@@ -78,22 +79,13 @@ class TilePlan:
         return 1 + self.index % 2
 
 
-MIN_STRIDE = 0.2       # metres between tile centres: one coarse cell (a finer stride only repeats tiles)
 MAX_TILES = 100_000    # a drive of 3,200 km at the default stride; more is a typo, not a drive
 
 
 def check_stride(size: float, overlap: float) -> float:
-    """The stride `size - overlap` between tiles, or an `InputError` naming the flags: a stride of micrometres
-    (--overlap 12.79999 --size 12.8) would plan millions of identical tiles."""
-    if not (np.isfinite(size) and size > 0):
-        raise InputError(f"--size must be a finite tile side above 0 m, got {size}")
-    if not (np.isfinite(overlap) and 0 < overlap < size):
-        raise InputError(f"--overlap must be between 0 and the tile size (--size {size} m), got {overlap}")
-    stride = size - overlap
-    if stride < MIN_STRIDE - 1e-9:
-        raise InputError(f"--size {size} with --overlap {overlap} leaves {stride:.6g} m between tiles; the stride "
-                         f"must be at least {MIN_STRIDE} m (one coarse cell): lower --overlap")
-    return stride
+    """The stride `size - overlap` between tiles, or an `InputError` naming the flags (`config.check_stride`,
+    the drive settings' one check)."""
+    return config_check_stride(size, overlap)
 
 
 def plan_tiles(positions: np.ndarray, size: float = DEFAULT_SIZE[0], overlap: float = MIN_OVERLAP,

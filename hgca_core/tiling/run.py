@@ -19,22 +19,21 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from hgca_core.config import MESH_FORMATS, TILE_OVERLAP, TILE_SIZE, DriveConfig, check_seed_span
 from hgca_core.errors import HgcaWarning, InputError
 from hgca_core.geometry.region import DEFAULT_SIZE, Region
 from hgca_core.io.digest import file_digest
-from hgca_core.nn.precision import DEFAULT_PRECISION
 from hgca_core.tiling.merge import merge_sample, write_piece
 from hgca_core.tiling.inputs import DriveScan, read_drive_inputs
-from hgca_core.tiling.plan import MIN_OVERLAP, TilePlan, neighbours, plan_tiles, tile_region
+from hgca_core.tiling.plan import TilePlan, neighbours, plan_tiles, tile_region
 from hgca_core.tiling.store import DriveStore
 from hgca_core.tiling.tile import Settings, TileJob, cells_of, weight_files
 
-MESH_FORMATS = ("ply", "glb", "obj", "npz")
 Report = Callable[[str, int, int, str, int], None]   # (stage, step, total, message, sample): pipeline.ProgressFn
 
 
-def plan_drive(scans: list[DriveScan], size: float = DEFAULT_SIZE[0], overlap: float = MIN_OVERLAP,
-               scans_per_tile: int = 5) -> tuple[list[TilePlan], list[Region], dict]:
+def plan_drive(scans: list[DriveScan], size: float = TILE_SIZE, overlap: float = TILE_OVERLAP,
+               scans_per_tile: int = DriveConfig.scans_per_tile) -> tuple[list[TilePlan], list[Region], dict]:
     """The tiles of a drive (`plan.plan_tiles` on the scans' sensor positions), each placed on its own ground,
     and the plan as JSON (`plan_document`): what `hgca drive --plan-only --json` prints and a run reports."""
     positions = np.array([s.position for s in scans])
@@ -51,16 +50,13 @@ def plan_drive(scans: list[DriveScan], size: float = DEFAULT_SIZE[0], overlap: f
 
 
 def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str | os.PathLike | None = None,
-          fmt: str | None = None, size: float = DEFAULT_SIZE[0], overlap: float = MIN_OVERLAP,
-          scans_per_tile: int = 5, samples: int = 1, seed: int = 0, stage: str = "full", t1: int | None = None,
-          t2: int | None = None, weights: str | None = None, fine_weights: str | None = None,
-          precision: str = DEFAULT_PRECISION, max_faces: int | None = None, device: str = "cpu", workers: int = 1,
-          address: str | None = None, threads: int | None = None, tile_memory: float | None = None,
-          seams: bool = True, mesh_format: str = "ply", frames: str | None = None, free_space: str = "auto",
+          fmt: str | None = None, frames: str | None = None, config: DriveConfig | None = None, *,
           report: Report | None = None, on_tile: Callable[[int, int, int, str], None] | None = None,
-          on_plan: Callable[[dict], None] | None = None) -> dict:
+          on_plan: Callable[[dict], None] | None = None, **settings) -> dict:
     """Complete the drive seen by `scans` (scan files in trajectory order, or one sequence folder with `frames`)
-    into DIR=`out`; returns drive.json's content.
+    into DIR=`out` as `config` says (`DriveConfig`, default: its defaults); `settings` change single fields,
+    the drive's (size=, workers=, ...) or each tile's completion's (stage=, seed=, t1=, ...). Returns
+    drive.json's content.
 
     Tiles are `size` m squares (8 m high) along the sensor positions, `overlap` m apart; each is completed from
     its `scans_per_tile` nearest scans with their rays (`free_space` as `hgca complete --free-space`), sample k
@@ -74,22 +70,18 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     (`DriveStore.lock`); a signal that ends the `hgca` CLI leaves drive.json "interrupted".
     """
     from hgca_core.interrupt import last_words
-    from hgca_core.pipeline import (FREE_SPACE_MODES, check_device, check_memory, check_settings, load_models,
-                                    memory_need)
+    from hgca_core.pipeline import check_device, check_memory, load_models, memory_need
+
+    cfg = (config or DriveConfig()).with_(**settings) if settings else (config or DriveConfig())
+    c = cfg.completion
+    stage, samples, seed, t1, t2 = c.stage, c.samples, c.seed, c.t1, c.t2
+    weights, fine_weights, device = c.weights, c.fine_weights, c.device
+    workers, threads, address = cfg.workers, cfg.threads, cfg.address
 
     t_start = time.perf_counter()
     say = report or (lambda *a: None)
     tell = on_tile or (lambda *a: None)
-    if mesh_format not in MESH_FORMATS:
-        raise InputError(f"mesh format must be one of {', '.join(MESH_FORMATS)}, not {mesh_format!r}")
-    if free_space not in FREE_SPACE_MODES:
-        raise InputError(f"free space must be one of {', '.join(FREE_SPACE_MODES)}, not {free_space!r}")
-    check_settings(samples, seed, max_faces, t1, t2)
     check_device(device)
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise InputError(f"workers must be at least 1, got {workers!r}")
-    if threads is not None and threads < 1:
-        raise InputError(f"threads must be at least 1, got {threads}")
     if workers > 1 or address:
         from hgca_core.tiling.runners import require_ray
 
@@ -99,25 +91,25 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
         raise InputError("no scan files given")
     store = DriveStore(out)
     store.check()
-    ext = "." + mesh_format
+    ext = "." + cfg.mesh_format
     _check_outputs(paths, poses, store, weight_files(stage, weights, fine_weights))
     threads = threads or max(1, (os.cpu_count() or 1) // workers)
-    settings = Settings(stage=stage, samples=samples, seed=seed, t1=t1, t2=t2, precision=precision,
-                        max_faces=max_faces, weights=weights, fine_weights=fine_weights, device=device,
-                        threads=threads, free_space=free_space)
+    # max_faces 0 (keep every triangle) is None in a tile's key, as it was before the config named it
+    tile = Settings(stage=stage, samples=samples, seed=seed, t1=t1, t2=t2, precision=c.precision,
+                    max_faces=c.max_faces or None, weights=weights, fine_weights=fine_weights, device=device,
+                    threads=threads, free_space=c.free_space)
     load_models(stage, weights, fine_weights, device)              # bad weights fail before reading a scan
     digests = tuple(file_digest(p) for p in weight_files(stage, weights, fine_weights))
 
     inputs = read_drive_inputs(paths, poses, fmt, frames, say)
     t_read = time.perf_counter()
-    plans, regions, plan_doc = plan_drive(inputs, size, overlap, scans_per_tile)
-    tile_size = tuple(plan_doc["size"])
-    memory = tile_memory or memory_need(regions[0])
+    plans, regions, plan_doc = plan_drive(inputs, cfg.size, cfg.overlap, cfg.scans_per_tile)
+    memory = cfg.tile_memory or memory_need(regions[0])
     if workers == 1 and not address:
         check_memory(regions[0])                                  # on Ray, each node is checked instead
-    check_settings(samples, seed, max_faces, t1, t2, span=len(plans) * samples)   # every tile's seeds
+    check_seed_span(seed, len(plans) * samples, "tiles x samples")   # every tile's seeds
     scan_digests = [s.digest() for s in inputs]
-    jobs = _jobs(plans, regions, scan_digests, seed, samples, settings, digests, seams)
+    jobs = _jobs(plans, regions, scan_digests, seed, samples, tile, digests, cfg.seams)
 
     store.prepare()
     for job in jobs:                  # a cache entry cut short (a full disk, a copy) is recomputed, not fatal
@@ -129,10 +121,10 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     doc: dict = {}
     try:
         with last_words(lambda signum: _stopped(store, doc, signum)):
-            run_no = _start_manifest(store, doc, inputs, plans, jobs, plan_doc, settings, digests, samples, ext,
+            run_no = _start_manifest(store, doc, inputs, plans, jobs, plan_doc, tile, digests, samples, ext,
                                      {"engine": "ray" if (workers > 1 or address) else "local", "workers": workers,
                                       "threads": threads, "address": address, "tile_memory": memory,
-                                      "seams": seams, "mesh_format": mesh_format,
+                                      "seams": cfg.seams, "mesh_format": cfg.mesh_format,
                                       "read_s": round(t_read - t_start, 3)})
             store.write_manifest(doc)
             if on_plan:
