@@ -74,3 +74,22 @@ def test_results_about_the_shipped_weights_name_their_current_digests():
     real = json.loads((root / "benchmarks/results/real_scans.json").read_text())["config"]
     assert real["weights_sha256"] == {r: file_digest(root / p) for r, p in real["weights"].items()}
     assert all(not Path(p).is_absolute() for p in [*ev["weights"].values(), *real["weights"].values()])
+
+
+def test_model_card_table_names_each_files_size_and_parameters():
+    """The model card's table of files against the files: a retrained or rewritten file changes its row."""
+    import re
+    from pathlib import Path
+
+    from hgca_core.models.weights import load_file
+
+    root = Path(__file__).resolve().parents[1]
+    card = (root / "MODEL_CARD.md").read_text()
+    for path in sorted((root / "hgca_core/weights").glob("*.pt")):
+        blob = load_file(path)
+        dicts = [blob["state_dict"]] + ([blob["autoencoder"]["state_dict"]] if "autoencoder" in blob else [])
+        params = sum(v.numel() for d in dicts for v in d.values())
+        row = re.search(rf"^\| `{re.escape(path.name)}` \| [^|]+ \| ([\d,]+) \| ([\d.]+) MB \|", card, re.M)
+        assert row, path.name
+        assert int(row.group(1).replace(",", "")) == params, path.name
+        assert row.group(2) == f"{path.stat().st_size / 1e6:.2f}", path.name
