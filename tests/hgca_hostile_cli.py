@@ -101,6 +101,19 @@ def _(d):
     return ["demo", "--out", str(d / "demo"), "--progress", "none"]
 
 
+# --- no --out: a command that writes results never writes into the current folder unasked ------------------
+
+REQUIRED = "required: -o/--out"
+for _cmd, _expect, _build in (
+        ("eval-real", REQUIRED, lambda d: ["eval-real", str(good_npz(d)), "--methods", "input", "--no-render"]),
+        ("bench", REQUIRED, lambda d: ["bench", "--widths", "", "--no-default"]),
+        ("demo", REQUIRED, lambda d: ["demo", "--progress", "none"]),
+        ("synth", REQUIRED, lambda d: ["synth", "--seed", "1"]),
+        ("complete", REQUIRED, lambda d: ["complete", str(good_npz(d)), "--progress", "none"]),
+        ("drive", "--out DIR is required", lambda d: ["drive", str(good_npz(d)), "--progress", "none"])):
+    case(f"{_cmd}: no --out", _expect, group="outputs")(_build)
+
+
 # --- names too long, checked before any work (sample and temp names included) ---------------------------------
 
 @case("drive: --out folder name of 300 characters", "too long", group="outputs")

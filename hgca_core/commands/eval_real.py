@@ -36,8 +36,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--real-dir", default=DEFAULT_REAL, help="the real fixtures folder (for the default inputs)")
     p.add_argument("--frames", metavar="START:STOP[:STEP]", help="frames of the sequence inputs given")
     p.add_argument("--calibration", help="AV2 egovehicle_SE3_sensor table for logs given without one")
-    add_out_argument(p, "FILE.json", default="benchmarks/results/real_scans.json",
-                     help="results JSON; the table goes to .md beside it, renderings to <stem>_<input>*.png")
+    add_out_argument(p, "FILE.json", required=True,
+                     help="results JSON; the table goes to .md beside it, renderings to <stem>_<input>*.png "
+                          "(the repository's page: benchmarks/results/real_scans.json)")
     p.add_argument("--methods", default=",".join(METHODS), help=f"comma list of {', '.join(METHODS)}")
     p.add_argument("--cuts", default="1.5,2.0", help="cut heights above the ground, metres")
     p.add_argument("--full-cuts", default="2.0", help="cut heights where the full stage runs (it is slow)")
@@ -47,7 +48,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--yaw", type=finite_float, default=0.0, metavar="DEG",
                    help="turn each input's region by DEG degrees about the vertical (default 0: the region's axes "
                         "along the scan's frame, as `hgca complete` picks it); a model trained on regions along the "
-                        "drive may score otherwise on a turned box (benchmarks/region_heading.py)")
+                        "drive may score otherwise on a turned box")
     p.add_argument("--threads", type=counted(1, 4096), default=1, help="torch / Open3D threads")
     p.add_argument("--t1", type=steps_arg, default=None, help="coarse steps (default from the weights)")
     p.add_argument("--t2", type=steps_arg, default=None, help="fine steps (default from the weights)")
