@@ -25,7 +25,8 @@ PATTERNS: list[tuple[str, re.Pattern[str]]] = [
     ("a session-numbered name", re.compile(r"(?:^|[/_(\s`'\"])[swr]\d{2,3}(?=[/._)\s`'\"]|$)", re.M)),
     ("a session-numbered name", re.compile(r"\b(?:recipe|runs?|probe|notes?)_s\d+\b", re.I)),
     ("a session-numbered page", re.compile(r"[\w-]_s\d+\.(?:md|json|log)\b")),
-    ("a borrowed machine", re.compile(r"\b(?:borrowed|lent|loaned|on loan)\b[^.\n]{0,40}\b(?:GPU|machine|device|H200|H100)s?\b"
+    ("a borrowed machine", re.compile(r"\b(?:borrowed|lent|loaned|on loan)\b[^.\n]{0,40}"
+                                      r"\b(?:GPU|machine|device|H200|H100)s?\b"
                                       r"|\b(?:GPU|machine|device)s? (?:loans?|leases?)\b", re.I)),
     ("a transfer limit", re.compile(r"\btransfer (?:limits?|caps?|budget)\b|\bat most \d+ MiB beside\b"
                                     r"|\b\d+ MiB (?:beside|that travels?|carried)\b", re.I)),
@@ -35,7 +36,7 @@ PATTERNS: list[tuple[str, re.Pattern[str]]] = [
 
 def product_files() -> list[Path]:
     """The text a user reads: documentation, result pages and the source of the core and the add-on."""
-    files = [ROOT / "README.md", ROOT / "MODEL_CARD.md", ROOT / "CHANGELOG.md", ROOT / "hgca_core/weights/MODEL_CARD.md"]
+    files = [ROOT / name for name in ("README.md", "MODEL_CARD.md", "CHANGELOG.md", "hgca_core/weights/MODEL_CARD.md")]
     files += sorted(p for p in (ROOT / "docs").rglob("*") if p.suffix in (".md", ".json", ".txt"))
     files += sorted((ROOT / "benchmarks/results").glob("*.md"))
     for package in ("hgca_core", "hgca_blender"):
