@@ -52,8 +52,11 @@ def run(args: argparse.Namespace) -> int:
     write_points(args.out, scan.points, attributes, origins=scan.origins)
     scans = int(scan.attributes["scan_index"].max()) + 1
     if args.json:
+        from hgca_core.io.las_crs import files_crs
+
         print(json.dumps({"out": args.out, "points": len(scan), "scans": scans, "attributes": list(attributes),
-                          "dropped": {why: int(n) for why, n in scan.dropped.items()}}))
+                          "dropped": {why: int(n) for why, n in scan.dropped.items()},
+                          "crs": files_crs([str(s) for s in args.scans])}))
     else:
         print(f"{args.out}: {len(scan)} points from {scans} scan(s), attributes: {', '.join(attributes) or 'none'}"
               + "".join(f"; left out {n} {why}" for why, n in scan.dropped.items()))
