@@ -221,7 +221,8 @@ def page(result: dict) -> str:
     cpu = result["cpu"]
     lines = ["# Where a completion's seconds go", "",
              "The default region of `hgca demo` (the bundled example, 38.4 x 38.4 x 8 m, 5 scans), the shipped "
-             "weights, fp32, seed 0, one fresh process per row (`python benchmarks/profile_completion.py`).", "",
+             "weights, fp32, seed 0, one fresh process per row (`python benchmarks/profile_completion.py`), code at "
+             f"commit {result['code']}.", "",
              f"CPU: {cpu['model']}; AVX-512: {', '.join(cpu['avx512']) or 'none'}; AMX: "
              f"{', '.join(cpu['amx']) or 'none'}; AVX2: {'yes' if cpu['avx2'] else 'no'}. "
              f"{result['cores']} cores, torch {result['torch']}, {result['date']} UTC, load average at the start "
@@ -298,7 +299,12 @@ def main() -> int:
     import torch
 
     pyspy = None if args.no_pyspy else (shutil.which("py-spy") or shutil.which("py-spy", path=str(Path(sys.executable).parent)))
-    result = {"cpu": cpu_flags(), "cores": len(os.sched_getaffinity(0)), "torch": torch.__version__,
+    import hgca_core
+
+    root = Path(hgca_core.__file__).resolve().parents[1]
+    commit = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True).stdout.strip()
+    result = {"code": commit, "cpu": cpu_flags(), "cores": len(os.sched_getaffinity(0)), "torch": torch.__version__,
               "date": time.strftime("%Y-%m-%d %H:%M", time.gmtime()), "load": round(os.getloadavg()[0], 2), "rows": []}
     for stage in args.stages:
         for t in args.threads:

@@ -119,9 +119,21 @@ def _rays(points: np.ndarray, origins: np.ndarray, origin_index: np.ndarray | No
     return pts, org[idx]
 
 
-def _walk(pts: np.ndarray, o: np.ndarray, shape: tuple[int, ...], size: float, stop_short: float) -> np.ndarray:
+def default_workers() -> int:
+    """Threads for the ray walk: torch's thread count where torch is loaded (the pipeline's, so a Ray worker with one
+    thread per tile stays on its core), else 1."""
+    import sys
+
+    torch = sys.modules.get("torch")
+    return max(1, int(torch.get_num_threads())) if torch is not None else 1
+
+
+def _walk(pts: np.ndarray, o: np.ndarray, shape: tuple[int, ...], size: float, stop_short: float,
+          workers: int = 1) -> np.ndarray:
     """Dense bool grid of `size` cells (covering the 20 cm grid `shape`) every ray o -> pts touches until
-    `stop_short` metres before its hit."""
+    `stop_short` metres before its hit. Chunks of rays are marked by `workers` threads side by side (numpy's
+    kernels release the GIL; every thread only sets cells True, so the grid is the same whatever the count), each
+    chunk at most CHUNK_EVENTS / workers crossings, so the memory in flight stays that of one thread."""
     n = int(round(COARSE / size))
     fine = tuple(int(v) * n for v in shape)
     grid = np.zeros(fine, dtype=bool)
@@ -136,24 +148,34 @@ def _walk(pts: np.ndarray, o: np.ndarray, shape: tuple[int, ...], size: float, s
     start, end = start[keep], end[keep]
     if len(start):
         cum = np.cumsum(np.abs(_cell(end, size) - _cell(start, size)).sum(axis=1) + 1)
-        cuts = np.searchsorted(cum, np.arange(CHUNK_EVENTS, cum[-1], CHUNK_EVENTS))
-        for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(start)]):
-            if b > a:
+        per = max(1, min(CHUNK_EVENTS // workers, -(-int(cum[-1]) // workers)))   # >= `workers` chunks
+        cuts = np.searchsorted(cum, np.arange(per, cum[-1], per))
+        spans = [(a, b) for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(start)]) if b > a]
+        if workers > 1 and len(spans) > 1:
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(workers) as pool:
+                list(pool.map(lambda ab: _mark_crossings(start[ab[0]:ab[1]], end[ab[0]:ab[1]], grid, size), spans))
+        else:
+            for a, b in spans:
                 _mark_crossings(start[a:b], end[a:b], grid, size)
     return grid
 
 
 def observed_empty(points: np.ndarray, origins: np.ndarray, origin_index: np.ndarray | None,
-                   grid_shape: tuple[int, int, int], stop_short: float = STOP_SHORT) -> np.ndarray:
+                   grid_shape: tuple[int, int, int], stop_short: float = STOP_SHORT,
+                   workers: int | None = None) -> np.ndarray:
     """Dense bool grid (20 cm cells, region frame) of cells observed empty.
 
     `points` (N, 3) are hits and `origins` (S, 3) sensor positions, both in the region frame;
     `origin_index` (N,) names each point's origin (None: all from origins[0]). Every hit in `points` counts
-    for the "next to a hit" rule, inside the region or not.
+    for the "next to a hit" rule, inside the region or not. `workers`: threads of the walk (default
+    `default_workers()`); the grid does not depend on it.
     """
     pts, o = _rays(points, origins, origin_index)
     shape = tuple(int(v) for v in grid_shape)
-    return _walk(pts, o, shape, COARSE, stop_short) & ~dense(voxelize(pts, COARSE), shape, dilate=1)
+    workers = default_workers() if workers is None else max(1, int(workers))
+    return _walk(pts, o, shape, COARSE, stop_short, workers) & ~dense(voxelize(pts, COARSE), shape, dilate=1)
 
 
 def swept(points: np.ndarray, origins: np.ndarray, origin_index: np.ndarray | None,

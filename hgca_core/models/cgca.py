@@ -40,6 +40,7 @@ from hgca_core.models.autoencoder import Autoencoder
 from hgca_core.models import free as fs
 from hgca_core.models.config import Config
 from hgca_core.nn.encoding import sinusoidal
+from hgca_core.nn.row_grid import member_rows
 from hgca_core.nn.sparse import SparseConv3d, SparseConvTranspose3d, SparseTensor
 from hgca_core.nn.unet import SparseUNet
 
@@ -167,10 +168,13 @@ class CGCAKernel(nn.Module):
         if self.cfg.free_space and free is not None:
             rows = fs.at(free, nbhd).nonzero().squeeze(1)
             h.index_add_(0, rows, w[:, -1].expand(len(rows), -1))
-        nk = cs.pack(nbhd)
+        nk = None
         for col, (cells, z) in enumerate(((state, z_state), (x0, z0))):
-            keys, zs = _table(cells, z)
-            idx = cs.lookup(nk, keys)
+            idx, zs = member_rows(nbhd, cells), z        # rows of the (unique) cells: a dense grid's gather
+            if idx is None:                              # a box too large for the grid: the sorted keys
+                nk = cs.pack(nbhd) if nk is None else nk
+                keys, zs = _table(cells, z)
+                idx = cs.lookup(nk, keys)
             rows = (idx >= 0).nonzero().squeeze(1)
             lat = w[:, 2 + col * k: 2 + (col + 1) * k]
             h.index_add_(0, rows, (zs[idx[rows]] @ lat.T) + w[:, col])   # membership flag + latent block
@@ -197,12 +201,14 @@ def sample(model: CGCAKernel, x0: torch.Tensor, z0: torch.Tensor, grid: tuple[in
         if last:
             keep = logits > 0
         else:
-            keep = torch.rand(logits.shape, generator=generator, device=logits.device) < torch.sigmoid(logits)
+            # drawn where the generator is (the CPU's: `pipeline`), so a seed gives one chain on any device
+            keep = (torch.rand(logits.shape, generator=generator, device=generator.device).to(logits.device)
+                    < torch.sigmoid(logits))
         if forbid is not None:
             keep &= ~fs.at(forbid, nbhd)
         state, z = nbhd[keep], mu[keep]
         if not last:   # latent noise only for the cells kept (~1/5 of N(x))
-            z = z + model.cfg.sigma * torch.randn(z.shape, generator=generator, device=z.device)
+            z = z + model.cfg.sigma * torch.randn(z.shape, generator=generator, device=generator.device).to(z.device)
         if progress is not None:
             progress(t + 1, steps)
         if len(state) == 0:  # the chain died out: nothing left to grow from

@@ -27,6 +27,7 @@ from hgca_core.models import free as fs
 from hgca_core.models.config import Config
 from hgca_core.models.planner import BevOutput, Planner, pillar_index
 from hgca_core.nn.encoding import sinusoidal
+from hgca_core.nn.row_grid import member_rows
 from hgca_core.nn.sparse import SparseTensor
 from hgca_core.nn.unet import SparseUNet
 
@@ -91,7 +92,7 @@ class GCAKernel(nn.Module):
                 grid: tuple[int, int, int], bev: BevOutput | None, free: torch.Tensor | None = None) -> torch.Tensor:
         """`free`: (B, *grid) bool seen-empty cells (`hgca_core.models.free`); read only with cfg.free_space,
         where None means all unknown."""
-        cols = [cs.isin(nbhd, state).float()[:, None], cs.isin(nbhd, s0).float()[:, None]]
+        cols = [_isin(nbhd, state).float()[:, None], _isin(nbhd, s0).float()[:, None]]
         if self.cfg.free_space:
             cols.append(fs.at(free, nbhd).float()[:, None])
         g = torch.tensor(grid, dtype=torch.float32, device=nbhd.device)[self.pe_axes]
@@ -115,6 +116,12 @@ class GCAKernel(nn.Module):
             return x.replace_feats(x.feats.mul_(g.add_(1)).add_(b))     # inference: the U-Net's own map, in place
 
         return modulate
+
+
+def _isin(query: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+    """`coords.isin` by a dense grid's gather where the cells' box allows (the same answer, no sort and search)."""
+    rows = member_rows(query, cells)
+    return cs.isin(query, cells) if rows is None else rows >= 0
 
 
 def transition(model: GCAKernel, state: torch.Tensor, s0: torch.Tensor, grid: tuple[int, int, int],
@@ -150,7 +157,8 @@ def sample(model: GCAKernel, s0: torch.Tensor, grid: tuple[int, int, int], steps
         if t == steps - 1:
             keep = prob > model.cfg.keep
         else:
-            keep = torch.rand(prob.shape, generator=generator, device=prob.device) < prob
+            # drawn where the generator is (the CPU's: `pipeline`), so a seed gives one chain on any device
+            keep = torch.rand(prob.shape, generator=generator, device=generator.device).to(prob.device) < prob
         if forbid is not None:
             keep &= ~fs.at(forbid, nbhd)
         state = nbhd[keep]

@@ -93,3 +93,22 @@ def parents_dense(coords: torch.Tensor, stride: int, factor: int) -> tuple[torch
         rest = rest - q * grid.strides[a]
     out[:, 1:] *= s
     return out, inv
+
+
+def member_rows(query: torch.Tensor, cells: torch.Tensor) -> torch.Tensor | None:
+    """(M,) int64: the row of each query cell ((M, 4) [b, x, y, z]) in `cells` ((N, 4), unique), -1 where it is
+    not one of them; what a `searchsorted` in the cells' sorted keys says, by one gather from a dense grid of
+    the cells' rows. None when their box is too large for one."""
+    if len(cells) == 0 or len(query) == 0:
+        return torch.full((len(query),), -1, dtype=torch.long, device=query.device)
+    grid = RowGrid(cells, 1, 0)
+    if not grid.fits:
+        return None
+    grid.fill()
+    hi = grid.lo + torch.tensor(grid.shape, device=cells.device) - 1
+    inside = ((query >= grid.lo) & (query <= hi)).all(1)
+    out = torch.full((len(query),), -1, dtype=torch.long, device=query.device)
+    if bool(inside.all()):
+        return torch.index_select(grid.rows, 0, grid.flat_of(query)).long()
+    out[inside] = torch.index_select(grid.rows, 0, grid.flat_of(query[inside])).long()
+    return out

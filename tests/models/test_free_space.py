@@ -37,6 +37,22 @@ def test_free_set_of_a_hand_made_ray():
     np.testing.assert_array_equal(observed_empty(hit, origin, None, expected.shape), expected)
 
 
+def test_free_set_is_the_same_on_any_number_of_threads(monkeypatch):
+    """The ray walk marks chunks of rays on `workers` threads; the grid is the same on 1, 2 or 3 (many chunks:
+    a small chunk size forces them, and the rays cross each other's cells)."""
+    from hgca_core.geometry import freespace
+
+    rng = np.random.default_rng(0)
+    origins = np.array([[3.0, 3.0, 1.5], [4.0, 2.0, 1.8]])
+    hits = rng.uniform([0, 0, 0], [8, 6, 0.1], (600, 3))       # on the ground: the rays cross the air above
+    index = rng.integers(0, 2, len(hits))
+    monkeypatch.setattr(freespace, "CHUNK_EVENTS", 4000)
+    grids = [observed_empty(hits, origins, index, (40, 30, 20), workers=w) for w in (1, 2, 3)]
+    assert grids[0].sum() > 1000
+    for g in grids[1:]:
+        np.testing.assert_array_equal(g, grids[0])
+
+
 def _stem_input(model, *args):
     """The feature matrix the coarse kernel's U-Net receives."""
     seen = {}
