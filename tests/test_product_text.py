@@ -1,8 +1,8 @@
 """The product's text says what hgca is and does, never how it was built: no numbered rounds or sessions of work
 ("session 31", "round 12", "run EC", "shipped since 39", `recipe_s33.md`), no borrowed machines or their transfer
-limits. Scanned: the README, docs/, both model cards, the changelog, the benchmark pages, every comment and
-docstring of the core and the add-on, and the text records inside the shipped weights files (the weights record
-renders them verbatim)."""
+limits. Scanned: the README, docs/, both model cards, the changelog, the benchmarks and their pages, scripts/,
+the build files, every comment and docstring of the core and the add-on, and the text records inside the shipped
+weights files (the weights record renders them verbatim)."""
 from __future__ import annotations
 
 import re
@@ -38,7 +38,9 @@ def product_files() -> list[Path]:
     """The text a user reads: documentation, result pages and the source of the core and the add-on."""
     files = [ROOT / name for name in ("README.md", "MODEL_CARD.md", "CHANGELOG.md", "hgca_core/weights/MODEL_CARD.md")]
     files += sorted(p for p in (ROOT / "docs").rglob("*") if p.suffix in (".md", ".json", ".txt"))
-    files += sorted((ROOT / "benchmarks/results").glob("*.md"))
+    files += sorted((ROOT / "benchmarks/results").glob("*.md")) + sorted((ROOT / "benchmarks").glob("*.py"))
+    files += sorted(p for p in (ROOT / "scripts").glob("*") if p.is_file())
+    files += [ROOT / name for name in ("Makefile", "pyproject.toml", "blender_manifest.toml", "tests/data/real/README.md")]
     for package in ("hgca_core", "hgca_blender"):
         files += sorted(p for p in (ROOT / package).rglob("*.py") if "__pycache__" not in p.parts)
     return [p for p in files if p.is_file()]
