@@ -67,7 +67,7 @@ def test_the_fixtures_readme_names_each_licence():
 def test_eval_real_defaults_to_the_repository_fixtures(tmp_path):
     """`hgca eval-real` finds the fixtures from any working folder, not only from the repository root."""
     code = ("import argparse; from hgca_core.commands import eval_real as e; p = argparse.ArgumentParser(); "
-            "e.add_arguments(p); print(p.parse_args([]).real_dir)")
+            "e.add_arguments(p); print(p.parse_args(['--out', 'r.json']).real_dir)")
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, check=True)
     assert Path(out.stdout.strip()).resolve() == REAL_FIXTURES
     from hgca_core.commands.eval_real import default_items
