@@ -1,20 +1,22 @@
-"""Whole-drive benchmark (run by hand): `hgca drive` on a synthetic drive of two street scenes end to end.
+"""Whole-drive benchmark (run by hand): `hgca drive` on a 250 m and a 1 km synthetic drive, end to end.
 
-    .venv/bin/python benchmarks/drive.py [--stage coarse|full] [--work DIR] [--spacing 8]
+    .venv/bin/python benchmarks/drive.py [--stage coarse|full] [--length 1000] [--short 250] [--until HH:MM]
 
-Two seeded straight city scenes (`hgca_core.synth.scene`, 120 m each) one after the other make a street of
-240 m; the ego vehicle drives ~230 m along it and scans every `--spacing` m (the Waymo profile, the paper's
-noise). Then, each as the CLI in its
-own process: `hgca drive` on 1 worker (in-process), on 2 local Ray workers, and without neighbour
-conditioning (`--no-seams`, phase-one tiles taken from the 1-worker run's cache: they are the same tiles).
-Measured: wall time, tiles per minute, peak RSS of the driver and of each worker, and seam quality: IoU of the
-merged result's 20 cm cells against the scenes' ground truth in the overlap bands (places two tiles cover)
-vs inside tiles (places one tile covers), and how well neighbouring tiles agree in their overlaps.
-Results: benchmarks/results/drive.{md,json,png}.
+Seeded straight city scenes (`hgca_core.synth.scene`, 120 m each, two layouts taken in turn) one after the other
+make a street; the ego vehicle drives along it and scans every `--spacing` m (the Waymo profile, the paper's
+noise). Then, each as the CLI in its own process: `hgca drive` on the short and on the long drive, on 1 worker
+(in-process) and on 2 local Ray workers. Measured: wall time, tiles per minute, peak RSS of the driver and of each
+worker (flat in the drive's length: a worker holds one tile), and seams on the long drive: IoU of the merged
+result's 20 cm cells against the scenes' ground truth in the overlap bands (places two tiles cover) vs inside
+tiles, how well neighbouring tiles agree in their overlaps, and every 4 m slab along the drive (recall and IoU
+against the ground truth), the worst against the median away from the drive's two ends. `--until` skips a run
+that would end after that UTC time (estimated from the tiles measured so far). Results:
+benchmarks/results/drive.{md,json,png}.
 """
 from __future__ import annotations
 
 import argparse
+import datetime as dt
 import json
 import os
 import shutil
@@ -25,97 +27,121 @@ from pathlib import Path
 
 import numpy as np
 
+from hgca_core.geometry.keys import pack
+from hgca_core.geometry.region import Region
+from hgca_core.geometry.voxel import COARSE, cell_centers, voxelize
+from hgca_core.hardware import machine
+from hgca_core.tiling.plan import footprint_contains, owned
+from hgca_core.tiling.store import DriveStore
+
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tests" / "drive"))
-
-from drive_data import save_scans  # noqa: E402  (the tests' scan writer: npz in the sensor frame + poses.json)
-
-from hgca_core.geometry.keys import pack, unpack  # noqa: E402
-from hgca_core.geometry.region import Region  # noqa: E402
-from hgca_core.geometry.voxel import COARSE, cell_centers, voxelize  # noqa: E402
-from hgca_core.hardware import machine  # noqa: E402
-from hgca_core.tiling.plan import footprint_contains, owned  # noqa: E402
-from hgca_core.tiling.store import DriveStore  # noqa: E402
-
 SEEDS = (4_000_011, 4_000_010)   # two straight city streets (flat; a 0.9 % grade), both driven towards +x
-SCENE = 120.0                    # the layout square of a scene; the second goes 120 m further along x
+SCENE = 120.0                    # the layout square of a scene; scene k is moved k * 120 m along x
+SLAB = 4.0                       # metres along the drive per slab of the seam table
+ENDS = 20.0                      # metres at either end of the drive left out of the slab comparison
 WRAP = ("import resource, sys; from hgca_core.cli import main; rc = main(sys.argv[1:]); "
         "print('MAXRSS', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr); sys.exit(rc)")
 
 
-def scenes() -> list[tuple]:
-    """(scene, shift): the second scene moved so that its drive starts where the first one's ends (x + 120 m,
-    the road heights matched)."""
+def scenes(count: int) -> list[tuple]:
+    """(scene, shift) for `count` scenes in a row, the layouts taken in turn, each moved so that its drive starts
+    where the previous one's ends (x + 120 m, the road heights matched)."""
     from hgca_core.synth.scene import make_scene
 
-    a, b = (make_scene(s, "city") for s in SEEDS)
-    shift = np.array([SCENE, *(a.drive[-1, 1:] - b.drive[0, 1:])])
-    shift[1] = 0.0
-    return [(a, np.zeros(3)), (b, shift)]
+    layouts = [make_scene(s, "city") for s in SEEDS]
+    out, z = [], 0.0
+    for k in range(count):
+        scene = layouts[k % 2]
+        if k:
+            prev, shift_prev = out[-1]
+            z = prev.drive[-1, 2] + shift_prev[2] - scene.drive[0, 2]
+        out.append((scene, np.array([k * SCENE, 0.0, z])))
+    return out
 
 
-def _side(x: np.ndarray, k: int) -> np.ndarray:
-    """Which world x belong to scene k of the stitched street (the first up to x = 60 m, the second beyond)."""
-    return x < SCENE / 2 if k == 0 else x >= SCENE / 2
+def _side(x: np.ndarray, k: int, count: int) -> np.ndarray:
+    """Which world x belong to scene k of the stitched street (each its 120 m, the two ends open)."""
+    lo = -np.inf if k == 0 else (k - 0.5) * SCENE
+    hi = np.inf if k == count - 1 else (k + 0.5) * SCENE
+    return (x >= lo) & (x < hi)
 
 
-def build_drive(folder: Path, spacing: float, seed: int = 0) -> tuple[list[Path], Path, float]:
-    """The stitched street scanned by the paper's sensor (WAYMO64 geometry, the paper's noise) every `spacing` m."""
+def save_scans(folder: Path, scans_world: list[np.ndarray], poses: list[np.ndarray]) -> tuple[list[Path], Path]:
+    """Each scan (world points, float64) in its sensor frame as scan_<i>.npz, and poses.json (sensor->world)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    paths, entries = [], []
+    for i, (pts, pose) in enumerate(zip(scans_world, poses)):
+        path = folder / f"scan_{i:04d}.npz"
+        np.savez(path, points=(np.asarray(pts, dtype=np.float64) - pose[:3, 3]) @ pose[:3, :3])
+        paths.append(path)
+        entries.append({"file": path.name, "pose": np.asarray(pose, dtype=np.float64).tolist()})
+    poses_path = folder / "poses.json"
+    poses_path.write_text(json.dumps({"scans": entries}))
+    return paths, poses_path
+
+
+def build_drive(folder: Path, length: float, spacing: float, seed: int = 0) -> tuple[list[Path], Path, float, list]:
+    """The stitched street scanned by the paper's sensor (WAYMO64 geometry, the paper's noise) every `spacing` m
+    over `length` m; each scan sees the scenes around it."""
     import trimesh
 
     from hgca_core.geometry.raycast import make_intersector
     from hgca_core.synth.dataset import Drive
     from hgca_core.synth.lidar import PAPER_EFFECTS, PROFILES, Unit, scan
 
-    meshes, materials, drive, up = [], [], [], []
-    for k, (scene, shift) in enumerate(scenes_cached()):
-        m = scene.mesh.copy()
+    count = int(np.ceil((length + 4.0 - 116.0) / SCENE)) + 1
+    placed = scenes(count)
+    pieces, drive, up = [], [], []
+    for k, (sc, shift) in enumerate(placed):
+        m = sc.mesh.copy()
         m.apply_translation(shift)
-        keep = _side(m.triangles_center[:, 0], k)          # each scene's ground reaches past the join: cut it
+        keep = _side(m.triangles_center[:, 0], k, count)      # each scene's ground reaches past the join: cut it
         m.update_faces(keep)
-        meshes.append(m)
-        materials.append(np.asarray(scene.face_materials)[keep])
-        drive.append(scene.drive + shift)
-        up.append(scene.drive_up)
-    inter = make_intersector(trimesh.util.concatenate(meshes))
+        pieces.append((m, np.asarray(sc.face_materials)[keep]))
+        drive.append(sc.drive + shift)
+        up.append(sc.drive_up)
     path = Drive(np.concatenate(drive), np.concatenate(up))
     rng = np.random.default_rng(seed)
     unit = Unit.draw(PROFILES["waymo"], rng, PAPER_EFFECTS)
-    arcs = np.arange(2.0, path.length - 2.0 + 1e-9, spacing)
-    scans = [scan(inter, np.concatenate(materials), path.pose(a), unit, rng, PAPER_EFFECTS) for a in arcs]
+    start = 2.0
+    arcs = np.arange(start, min(path.length - 2.0, start + length) + 1e-9, spacing)
+    inters: dict[int, tuple] = {}
+    scans = []
+    for a in arcs:
+        pose = path.pose(a)
+        k = int(np.clip(np.round(pose[0, 3] / SCENE), 0, count - 1))
+        if k not in inters:              # the scene the car is in and its two neighbours (a scan reaches ~80 m)
+            near = [pieces[j] for j in range(max(0, k - 1), min(count, k + 2))]
+            inters = {k: (make_intersector(trimesh.util.concatenate([m for m, _ in near])),
+                          np.concatenate([f for _, f in near]))}
+        inter, mats = inters[k]
+        scans.append(scan(inter, mats, pose, unit, rng, PAPER_EFFECTS))
     paths, poses_path = save_scans(folder, [sc.points for sc in scans], [sc.pose for sc in scans])
-    return paths, poses_path, float(arcs[-1] - arcs[0])
+    return paths, poses_path, float(arcs[-1] - arcs[0]), placed
 
 
-def ground_truth(region: Region, density: float = 400.0) -> np.ndarray:
+def ground_truth(region: Region, placed: list, density: float = 400.0) -> np.ndarray:
     """20 cm cells (region frame) of the street's surface a complete scan could see (`synth.groundtruth`), each
-    scene's on its side of the join."""
+    scene's on its side of its joins; only the scenes the region reaches."""
     from hgca_core.synth.groundtruth import RegionSurface
 
     cells = []
-    for k, (scene, shift) in enumerate(scenes_cached()):
+    reach = float(np.hypot(*region.size[:2])) / 2 + SCENE / 2
+    for k, (scene, shift) in enumerate(placed):
+        if abs(region.center[0] - shift[0]) > reach:
+            continue
         moved = Region(region.center - shift, region.size, region.yaw)    # same frame, scene coordinates
         surf = RegionSurface(scene.mesh, scene.face_labels, scene.solids, moved, np.random.default_rng(k), density,
                              terrain=scene.terrain, ground_faces=scene.ground_faces)
         occ = surf.occupancy()[1].astype(np.int64)
-        cells.append(occ[_side(region.to_world(cell_centers(occ, COARSE))[:, 0], k)])
+        cells.append(occ[_side(region.to_world(cell_centers(occ, COARSE))[:, 0], k, len(placed))])
     return np.unique(np.concatenate(cells), axis=0)
-
-
-_SCENES: list = []
-
-
-def scenes_cached() -> list[tuple]:
-    if not _SCENES:
-        _SCENES.extend(scenes())
-    return _SCENES
 
 
 def run_cli(args: list, log: Path) -> dict:
     t = time.perf_counter()
     proc = subprocess.run([sys.executable, "-c", WRAP, "drive", *map(str, args), "--progress", "none"],
-                          capture_output=True, text=True, cwd=REPO)
+                          capture_output=True, text=True, cwd=log.parent)   # not the checkout: -c puts the cwd first
     wall = time.perf_counter() - t
     log.write_text(proc.stderr)
     if proc.returncode != 0:
@@ -127,13 +153,13 @@ def run_cli(args: list, log: Path) -> dict:
 def summarise(out: Path, measured: dict) -> dict:
     doc = json.loads((out / "drive.json").read_text())
     workers: dict[str, int] = {}
-    for t in doc["tiles"]:
-        if t.get("run") == doc["runs"]:
-            workers[t["worker"]] = max(workers.get(t["worker"], 0), t["peak_rss"])
+    mine = [t for t in doc["tiles"] if t.get("run") == doc["runs"]]
+    for t in mine:
+        workers[t["worker"]] = max(workers.get(t["worker"], 0), t["peak_rss"])
     return {**measured, "tiles": len(doc["tiles"]), "computed": doc["timings"]["tiles_computed"],
             "tiles_s": doc["timings"]["tiles_s"], "engine_start_s": doc["timings"].get("engine_start_s", 0.0),
             "merge_s": doc["timings"]["merge_s"], "tiles_per_min": doc["timings"]["tiles_per_min"],
-            "tile_s_mean": round(float(np.mean([t["seconds"] for t in doc["tiles"] if t.get("run") == doc["runs"]])), 1),
+            "tile_s_mean": round(float(np.mean([t["seconds"] for t in mine])), 1),
             "worker_peak_rss_gib": sorted(round(v / 2**30, 2) for v in workers.values())}
 
 
@@ -142,29 +168,29 @@ def centre_cells(cells: np.ndarray, source: Region, target: Region) -> np.ndarra
     return voxelize(target.to_local(source.to_world(cell_centers(cells, COARSE))), COARSE, target.size)
 
 
-def seam_scores(out: Path, gts: list[np.ndarray]) -> dict:
-    """IoU against ground truth in the overlap bands and inside tiles (each place scored on the tile that owns
-    it in the merged mesh), and the IoU between neighbours' cells in their overlaps."""
+def seam_scores(out: Path, gts: list[np.ndarray], x0: float, x1: float) -> dict:
+    """On the merged result (each place scored on the tile that owns it): IoU against ground truth in the overlap
+    bands and inside tiles, IoU between neighbours' cells in their overlaps, and recall / IoU per `SLAB` m along x
+    (the drive runs along x) between x0 and x1, the worst slab against the median `ENDS` m away from either end."""
     doc = json.loads((out / "drive.json").read_text())
     store = DriveStore(out)
     regions = [Region.from_tuple(t["region"]) for t in doc["tiles"]]
     cells = [store.load(t["key"], only=0)["samples"][0]["cells"].astype(np.int64) for t in doc["tiles"]]
     counts = {"band": [0, 0], "interior": [0, 0]}
-
-    def where(c: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray]:
-        xy = regions[i].to_world(cell_centers(c, COARSE))[:, :2]
-        mine = owned(xy, i, regions)
-        cover = sum(footprint_contains(r, xy).astype(int) for r in regions)
-        return mine & (cover >= 2), mine & (cover == 1)
-
+    edges = np.arange(x0, x1 + SLAB, SLAB)
+    slab = np.zeros((3, len(edges) - 1))                   # hits, ground truth, predicted
     for i, (pred, gt) in enumerate(zip(cells, gts)):
-        kp, kg = pack(pred), pack(gt)
-        both = np.union1d(kp, kg)
-        hit = np.isin(both, kp) & np.isin(both, kg)
-        band, inner = where(unpack(both, batched=False), i)
-        for name, m in (("band", band), ("interior", inner)):
-            counts[name][0] += int((hit & m).sum())
-            counts[name][1] += int(m.sum())
+        both = np.unique(np.concatenate([pred, gt]), axis=0)
+        keys = pack(both)
+        in_p, in_g = np.isin(keys, pack(pred)), np.isin(keys, pack(gt))
+        w = regions[i].to_world(cell_centers(both, COARSE))
+        mine = owned(w[:, :2], i, regions)
+        cover = sum(footprint_contains(r, w[:, :2]).astype(int) for r in regions)
+        for row, m in enumerate((in_p & in_g, in_g, in_p)):
+            slab[row] += np.histogram(w[m & mine, 0], edges)[0]
+            if row < 2:
+                counts["band"][row] += int((m & mine & (cover >= 2)).sum())
+                counts["interior"][row] += int((m & mine & (cover == 1)).sum())
     agree = []
     for i in range(len(regions) - 1):
         a, b = cells[i], centre_cells(cells[i + 1], regions[i + 1], regions[i])
@@ -172,8 +198,21 @@ def seam_scores(out: Path, gts: list[np.ndarray]) -> dict:
         kb = pack(b[footprint_contains(regions[i + 1], regions[i].to_world(cell_centers(b, COARSE))[:, :2])])
         agree.append(np.intersect1d(ka, kb).size / max(1, np.union1d(ka, kb).size))
     band, inner = (counts[k][0] / max(1, counts[k][1]) for k in ("band", "interior"))
+    mid = (edges[:-1] + edges[1:]) / 2
+    away = (mid > x0 + ENDS) & (mid < x1 - ENDS) & (slab[1] > 0)
+    recall = slab[0] / np.maximum(slab[1], 1)
+    iou = slab[0] / np.maximum(slab[1] + slab[2] - slab[0], 1)
+    worst = {}
+    for name, v in (("recall", recall), ("iou", iou)):
+        j = int(np.flatnonzero(away)[np.argmin(v[away])])
+        med = float(np.median(v[away]))
+        worst[name] = {"worst": round(float(v[j]), 4), "at_x": round(float(mid[j]), 1), "median": round(med, 4),
+                       "ratio": round(float(v[j]) / med, 3)}
     return {"iou_band": round(band, 4), "iou_interior": round(inner, 4), "ratio": round(band / inner, 3),
-            "neighbour_agreement": round(float(np.mean(agree)), 4), "agreement_per_overlap": [round(a, 3) for a in agree]}
+            "neighbour_agreement": round(float(np.mean(agree)), 4),
+            "agreement_per_overlap": [round(a, 3) for a in agree], "slabs": worst,
+            "slab_x": mid.round(1).tolist(), "slab_recall": recall.round(4).tolist(),
+            "slab_iou": iou.round(4).tolist(), "slab_away": away.tolist()}
 
 
 def plot(out: Path, path: Path, scores: dict) -> None:
@@ -183,35 +222,33 @@ def plot(out: Path, path: Path, scores: dict) -> None:
     import matplotlib.pyplot as plt
 
     doc = json.loads((out / "drive.json").read_text())
-    store = DriveStore(out)
     regions = [Region.from_tuple(t["region"]) for t in doc["tiles"]]
-    fig, ax = plt.subplots(2, 1, figsize=(14, 6.0), gridspec_kw={"height_ratios": [1.4, 1]})
+    fig, ax = plt.subplots(2, 1, figsize=(16, 6.5), gridspec_kw={"height_ratios": [1, 1.2]}, sharex=True)
     cmap = plt.get_cmap("tab10")
-    for i, (t, r) in enumerate(zip(doc["tiles"], regions)):
-        c = store.load(t["key"], only=0)["samples"][0]["cells"].astype(np.int64)
-        w = r.to_world(cell_centers(c, COARSE))
-        w = w[owned(w[:, :2], i, regions) & (w[:, 2] > r.center[2] - r.size[2] / 2 + 1.3)]   # above the road
-        ax[0].scatter(w[:, 0], w[:, 1], s=0.05, color=cmap(i % 10), rasterized=True)
+    for i, r in enumerate(regions):
         corners = r.to_world(np.array([[0, 0, 0], [r.size[0], 0, 0], [r.size[0], r.size[1], 0], [0, r.size[1], 0],
                                        [0, 0, 0]], float))
-        ax[0].plot(corners[:, 0], corners[:, 1], color=cmap(i % 10), lw=0.8)
+        ax[0].plot(corners[:, 0], corners[:, 1] + (i % 2) * 0.6, color=cmap(i % 10), lw=0.8)
     pos = np.array([s["position"] for s in doc["scans"]])
-    ax[0].plot(pos[:, 0], pos[:, 1], "k.", ms=3, label="scan positions")
-    ax[0].set_aspect("equal")
-    ax[0].set_title(f"merged drive, sample 0, cells above the road coloured by owning tile ({len(regions)} tiles, "
-                    "boxes = tile footprints)")
+    ax[0].plot(pos[:, 0], pos[:, 1], "k.", ms=2, label="scan positions")
+    ax[0].set_title(f"tile footprints along the drive ({len(regions)} tiles; odd tiles drawn 0.6 m up to tell them "
+                    "apart)")
     ax[0].legend(loc="upper right")
-    names = ["with neighbour conditioning", "without"]
-    vals = [scores["seams"], scores["no_seams"]]
-    x = np.arange(2)
-    ax[1].bar(x - 0.2, [v["iou_interior"] for v in vals], 0.2, label="IoU inside tiles")
-    ax[1].bar(x, [v["iou_band"] for v in vals], 0.2, label="IoU in overlap bands")
-    ax[1].bar(x + 0.2, [v["neighbour_agreement"] for v in vals], 0.2, label="neighbours agree (IoU)")
-    ax[1].set_xticks(x, names)
-    ax[1].legend(loc="lower right", fontsize=8)
+    x = np.array(scores["slab_x"])
+    away = np.array(scores["slab_away"])
+    for key, label in (("slab_recall", "recall of the ground truth"), ("slab_iou", "IoU")):
+        v = np.array(scores[key])
+        ax[1].plot(x[away], v[away], ".-", lw=0.8, ms=3, label=f"{label} per {SLAB:g} m slab")
+    for r in regions[:-1]:
+        ax[1].axvline(r.center[0] + (regions[1].center[0] - regions[0].center[0]) / 2, color="0.85", lw=0.6, zorder=0)
+    w = scores["slabs"]["recall"]
+    ax[1].axhline(w["median"], color="C0", ls=":", lw=0.8)
+    ax[1].axhline(0.8 * w["median"], color="C3", ls="--", lw=0.8, label="0.8 x median recall")
     ax[1].set_ylim(0, 1)
+    ax[1].set_xlabel("x along the drive (m); grey lines: ownership seams between tiles")
+    ax[1].legend(loc="lower right", fontsize=8, ncol=3)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=80)
     plt.close(fig)
 
 
@@ -219,72 +256,127 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--stage", choices=("coarse", "full"), default="coarse")
     ap.add_argument("--spacing", type=float, default=8.0)
+    ap.add_argument("--length", type=float, default=1000.0)
+    ap.add_argument("--short", type=float, default=250.0)
     ap.add_argument("--work", type=Path, default=Path("/tmp/hgca_drive_bench"))
     ap.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results")
-    ap.add_argument("--t1", type=int, default=None)
+    ap.add_argument("--t1", type=int, default=None, help="coarse GCA steps per tile (default: the weights')")
+    ap.add_argument("--weights", default=None, help="coarse weights (default: the shipped ones)")
+    ap.add_argument("--until", default=None, help="UTC HH:MM: skip a run expected to end after it")
     ap.add_argument("--threads", type=int, default=1,
                     help="torch threads per tile in every run (1: a shared machine's cores are busy; more threads "
                          "than free cores wait for each other)")
     args = ap.parse_args()
-    if args.work.exists():
-        shutil.rmtree(args.work)
-    t = time.perf_counter()
-    scans, poses, length = build_drive(args.work / "scans", args.spacing)
-    print(f"{len(scans)} scans along {length:.0f} m in {time.perf_counter() - t:.0f} s", flush=True)
-    common = [*scans, "--poses", poses, "--stage", args.stage, "--threads", args.threads] + (
-        ["--t1", args.t1] if args.t1 else [])
-    runs = {}
-    runs["1 worker (in-process)"] = summarise(args.work / "w1", run_cli(
-        [*common, "--out", args.work / "w1", "--workers", 1], args.work / "w1.log"))
-    print(runs, flush=True)
-    runs["2 workers (local Ray)"] = summarise(args.work / "w2", run_cli(
-        [*common, "--out", args.work / "w2", "--workers", 2], args.work / "w2.log"))
-    print(runs, flush=True)
-    same = all((args.work / "w1" / f).read_bytes() == (args.work / "w2" / f).read_bytes() for f in ["drive_s0.ply"])
-    shutil.copytree(args.work / "w1" / "cache", args.work / "noseams" / "cache")   # phase one is the same tiles
-    run_cli([*common, "--out", args.work / "noseams", "--no-seams"], args.work / "noseams.log")
-    doc = json.loads((args.work / "w1" / "drive.json").read_text())
-    gts = [ground_truth(Region.from_tuple(t["region"])) for t in doc["tiles"]]
-    scores = {"seams": seam_scores(args.work / "w1", gts), "no_seams": seam_scores(args.work / "noseams", gts)}
-    result = {"machine": machine(), "load_average": [round(v, 1) for v in os.getloadavg()],
-              "threads_per_tile": args.threads, "stage": args.stage, "t1": args.t1, "length_m": round(length, 1),
-              "scans": len(scans), "spacing_m": args.spacing, "plan": doc["plan"], "runs": runs,
-              "ray_equals_in_process": same, "seams": scores}
-    args.results.mkdir(parents=True, exist_ok=True)
-    (args.results / "drive.json").write_text(json.dumps(result, indent=1))
-    (args.results / "drive.md").write_text(table(result))
-    plot(args.work / "w1", args.results / "drive.png", scores)
+    deadline = None
+    if args.until:
+        h, m = map(int, args.until.split(":"))
+        now = dt.datetime.now(dt.timezone.utc)
+        deadline = now.replace(hour=h, minute=m, second=0).timestamp()
+    result = {"machine": machine(), "threads_per_tile": args.threads, "stage": args.stage, "t1": args.t1,
+              "spacing_m": args.spacing, "drives": {}, "runs": {}, "skipped": []}
+    built = {}
+    for name, length in (("short", args.short), ("long", args.length)):
+        t = time.perf_counter()
+        folder = args.work / f"scans_{name}"
+        done = folder / "built.json"         # the same drive built before (same length and spacing): reused
+        if done.is_file() and json.loads(done.read_text())["asked"] == [length, args.spacing]:
+            info = json.loads(done.read_text())
+            scans, poses = sorted(folder.glob("scan_*.npz")), folder / "poses.json"
+            placed = scenes(int(np.ceil((length + 4.0 - 116.0) / SCENE)) + 1)
+        else:
+            shutil.rmtree(folder, ignore_errors=True)
+            scans, poses, got, placed = build_drive(folder, length, args.spacing)
+            info = {"asked": [length, args.spacing], "length_m": round(got, 1), "scans": len(scans),
+                    "build_s": round(time.perf_counter() - t, 1)}
+            done.write_text(json.dumps(info))
+        built[name] = (scans, poses, placed)
+        result["drives"][name] = {k: info[k] for k in ("length_m", "scans", "build_s")}
+        print(name, result["drives"][name], flush=True)
+    tile_s: list[float] = []
+    for name, workers in (("long", 2), ("short", 2), ("short", 1), ("long", 1)):
+        label = f"{result['drives'][name]['length_m']:.0f} m, {workers} worker{'s' * (workers > 1)}"
+        scans, poses, _ = built[name]
+        if deadline and tile_s:
+            tiles = 2 + int(np.ceil((result["drives"][name]["length_m"] + 6.4 - 38.4) / 32.0))
+            if time.time() + 1.15 * tiles * np.mean(tile_s) / workers + 60 > deadline:
+                result["skipped"].append(label)
+                continue
+        out = args.work / f"{name}_w{workers}"
+        shutil.rmtree(out, ignore_errors=True)
+        run = run_cli([*scans, "--poses", poses, "--stage", args.stage, "--threads", args.threads, "--out", out,
+                       *(["--t1", args.t1] if args.t1 else []),
+                       "--workers", workers, *(["--weights", args.weights] if args.weights else [])],
+                      args.work / f"{name}_w{workers}.log")
+        result["runs"][label] = {"drive": name, "workers": workers, **summarise(out, run)}
+        tile_s.append(result["runs"][label]["tile_s_mean"])
+        print(label, result["runs"][label], flush=True)
+        write(result, args.results)
+    long_runs = [v for v in result["runs"].values() if v["drive"] == "long"]
+    if len(long_runs) == 2:
+        a, b = (args.work / f"long_w{w}" / "drive_s0.ply" for w in (1, 2))
+        result["ray_equals_in_process"] = a.read_bytes() == b.read_bytes()
+    if long_runs:
+        out = args.work / f"long_w{long_runs[0]['workers']}"
+        doc = json.loads((out / "drive.json").read_text())
+        t = time.perf_counter()
+        gts = [ground_truth(Region.from_tuple(t["region"]), built["long"][2]) for t in doc["tiles"]]
+        xs = np.array([s["position"][0] for s in doc["scans"]])
+        result["seams"] = seam_scores(out, gts, float(xs.min()), float(xs.max()))
+        result["seams"]["scored_run"] = f"long drive, {long_runs[0]['workers']} workers"
+        result["seams"]["ground_truth_s"] = round(time.perf_counter() - t, 1)
+        plot(out, args.results / "drive.png", result["seams"])
+    result["load_average"] = [round(v, 1) for v in os.getloadavg()]
+    write(result, args.results)
     print(table(result))
     return 0
 
 
+def write(result: dict, folder: Path) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "drive.json").write_text(json.dumps(result, indent=1))
+    (folder / "drive.md").write_text(table(result))
+
+
 def table(r: dict) -> str:
     m = r["machine"]
-    lines = [f"# Whole-drive benchmark: `hgca drive`, stage {r['stage']}, T1 = {r['t1'] or 'default'}", "",
-             f"Machine: {m['cpu']}, {m['cores']} cores shared with other jobs (load average {r['load_average']} "
-             f"at the end), torch {m['torch']}, {r['threads_per_tile']} torch thread(s) per tile, {m['date']}. "
-             "A synthetic drive of "
-             f"{r['length_m']} m (two seeded city scenes, {r['scans']} Waymo-profile scans every {r['spacing_m']} m), "
-             f"{r['plan']['size'][0]} m tiles overlapping {r['plan']['overlap']} m, {r['plan']['scans_per_tile']} "
-             "scans per tile.", "",
+    d = r["drives"]
+    lines = [f"# Whole-drive benchmark: `hgca drive` on {d['short']['length_m']:.0f} m and "
+             f"{d['long']['length_m']:.0f} m, stage {r['stage']}, T1 = {r['t1'] or 'default'}", "",
+             f"Machine: {m['cpu']}, {m['cores']} cores shared with other jobs (load average "
+             f"{r.get('load_average', 'n/a')} at the end), torch {m['torch']}, {r['threads_per_tile']} torch "
+             f"thread(s) per tile, {m['date']}. Synthetic drives along seeded city scenes ({d['short']['scans']} and "
+             f"{d['long']['scans']} Waymo-profile scans every {r['spacing_m']} m), 38.4 m tiles overlapping 6.4 m, "
+             "5 scans per tile.", "",
              "| run | tiles | wall (s) | Ray start (s) | tiles (s) | merge (s) | tiles/min | mean tile (s) | "
              "driver peak RSS (GiB) | worker peak RSS (GiB) |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for name, v in r["runs"].items():
         lines.append(f"| {name} | {v['tiles']} | {v['wall_s']} | {v['engine_start_s']} | {v['tiles_s']} | "
                      f"{v['merge_s']} | {v['tiles_per_min']} | {v['tile_s_mean']} | {v['driver_peak_rss_gib']} | "
                      f"{', '.join(map(str, v['worker_peak_rss_gib']))} |")
-    lines += ["", f"Ray's merged mesh is byte-identical to the in-process one: {r['ray_equals_in_process']}.", "",
-              "| 20 cm cells vs ground truth | IoU inside tiles | IoU in overlap bands | bands / inside | "
-              "neighbours agree in overlaps (IoU) |", "|---|---:|---:|---:|---:|"]
-    for name, key in (("with neighbour conditioning", "seams"), ("without (--no-seams)", "no_seams")):
-        s = r["seams"][key]
-        lines.append(f"| {name} | {s['iou_interior']} | {s['iou_band']} | {s['ratio']} | {s['neighbour_agreement']} |")
-    lines += ["", "Overlap bands: places two tiles cover, scored on the tile that owns them in the merged mesh; "
-              "inside: places one tile covers. Ground truth: the scenes' surface a complete scan could see "
-              "(`synth.groundtruth.RegionSurface`), no visibility mask. Neighbour agreement: IoU of two consecutive "
-              "tiles' cells in their overlap (the second's mapped by cell centre into the first's grid).",
-              "", "![drive](drive.png)", ""]
-    return "\n".join(lines)
+    for name in r["skipped"]:
+        lines.append(f"| {name} | not run: it would have ended after the time set for the benchmark | | | | | | | | |")
+    lines.append("")
+    lines.append("On 1 worker the tiles run in the driver process, so its peak RSS holds every scan of the drive as "
+                 "well as one tile; a Ray worker holds one tile at a time.")
+    if "ray_equals_in_process" in r:
+        lines += ["", f"Ray's merged mesh is byte-identical to the in-process one: {r['ray_equals_in_process']}."]
+    s = r.get("seams")
+    if s:
+        lines += ["", f"Seams ({s['scored_run']}), 20 cm cells of the merged result against the ground truth:", "",
+                  "| IoU inside tiles | IoU in overlap bands | bands / inside | neighbours agree in overlaps (IoU) |",
+                  "|---:|---:|---:|---:|",
+                  f"| {s['iou_interior']} | {s['iou_band']} | {s['ratio']} | {s['neighbour_agreement']} |", "",
+                  f"| per {SLAB:g} m slab, {ENDS:g} m from either end left out | worst | at x (m) | median | "
+                  "worst / median |", "|---|---:|---:|---:|---:|"]
+        for key, label in (("recall", "recall of the ground truth"), ("iou", "IoU")):
+            w = s["slabs"][key]
+            lines.append(f"| {label} | {w['worst']} | {w['at_x']} | {w['median']} | {w['ratio']} |")
+        lines += ["", "Overlap bands: places two tiles cover, scored on the tile that owns them in the merged mesh; "
+                  "inside: places one tile covers. Ground truth: the scenes' surface a complete scan could see "
+                  "(`synth.groundtruth.RegionSurface`), no visibility mask. Neighbour agreement: IoU of two "
+                  "consecutive tiles' cells in their overlap (the second's mapped by cell centre into the first's "
+                  "grid).", "", "![drive](drive.png)"]
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":
