@@ -1,8 +1,10 @@
 """hgca_core: headless hGCA (hierarchical Generative Cellular Automata) for LiDAR scene extrapolation.
 
-`hgca_core.complete(points, region=..., samples=..., seed=...)` is the Python API of `hgca complete`
-(`hgca_core.pipeline.complete`) and `hgca_core.drive(scans, out, poses=...)` that of `hgca drive`
-(`hgca_core.tiling.run.drive`); both are imported on first use, so `import hgca_core` stays light (no torch).
+`hgca_core.complete(points, region=..., config=CompletionConfig(...))` is the Python API of `hgca complete`
+(`hgca_core.pipeline.complete`) and `hgca_core.drive(scans, out, poses=..., config=DriveConfig(...))` that of
+`hgca drive` (`hgca_core.tiling.run.drive`); single settings may be given as keywords (`stage="coarse"`). The
+configs (`hgca_core.config`) hold every default. All are imported on first use, so `import hgca_core` stays
+light (no torch).
 """
 import os as _os
 
@@ -35,7 +37,7 @@ def _version() -> str:
 
 __version__ = _version()
 
-__all__ = ["HgcaError", "InputError", "__version__", "complete", "drive", "Region"]
+__all__ = ["HgcaError", "InputError", "__version__", "complete", "drive", "Region", "CompletionConfig", "DriveConfig"]
 
 
 def __getattr__(name: str):
@@ -47,6 +49,10 @@ def __getattr__(name: str):
         from hgca_core.tiling.run import drive
 
         return drive
+    if name in ("CompletionConfig", "DriveConfig"):
+        from hgca_core import config
+
+        return getattr(config, name)
     if name == "Region":
         from hgca_core.geometry.region import Region
 

@@ -39,6 +39,13 @@ def test_every_completing_command_and_the_api_default_to_one_stage(monkeypatch):
     with pytest.raises(InputError, match="stop here"):
         pipeline.complete(np.zeros((20, 3)))
     assert seen == [want] == ["full"]
+    import hgca_core
+
+    with pytest.raises(InputError, match="stop here"):       # a config, and a keyword over it
+        hgca_core.complete(np.zeros((20, 3)), config=hgca_core.CompletionConfig(stage="coarse", seed=3), stage="full")
+    with pytest.raises(InputError, match="stop here"):
+        hgca_core.complete(np.zeros((20, 3)), config=hgca_core.CompletionConfig(stage="coarse"))
+    assert seen == ["full", "full", "coarse"]
 
 
 def test_the_commands_shared_options_carry_the_configs_defaults():

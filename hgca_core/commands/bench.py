@@ -32,7 +32,10 @@ def run(args: argparse.Namespace) -> int:
 
     from hgca_core.commands.arguments import check_device
 
+    from hgca_core.commands.arguments import completion_config
+
     widths = list(args.widths)
+    completion_config(args)       # every setting checked as `hgca complete` checks it, before any run
     check_device(args.device)
     name = args.name or f"completion_{args.stage}_{args.device.split(':')[0]}"
     load_models(args.stage, args.weights, args.fine_weights, "cpu")   # a bad file fails here, before any run

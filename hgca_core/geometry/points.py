@@ -13,7 +13,7 @@ def check_points(points: np.ndarray, what: str = "input", allow_empty: bool = Fa
     if p.ndim != 2 or p.shape[1] != 3:
         raise InputError(f"{what}: points must be an (N, 3) array, got shape {p.shape}")
     if len(p) == 0 and not allow_empty:
-        raise InputError(f"{what}: there are no points")
+        raise InputError(f"{what} is empty: there are no points")
     if not np.all(np.isfinite(p)):
         raise InputError(f"{what}: {int((~np.isfinite(p)).any(1).sum())} points have NaN or infinite coordinates")
     return p
