@@ -83,13 +83,16 @@ def _section(path: Path, blob: dict) -> str:
     return "\n".join(lines)
 
 
-def _origins(rec: dict, indent: str) -> list[str]:
+def _origins(rec: dict, indent: str, listed: str = "") -> list[str]:
     """The weights a record's tensors came from besides its own sessions, nested (`weights.lineage`): the file
     its run started from and the two files it is a blend of, each with its sessions, so every device and step
-    in a file's history is on the card."""
+    in a file's history is on the card. A start from the file `listed` (by sha256: a blend's a, whose history
+    is already on the card) is named, not repeated."""
     lines = []
     init = rec.get("init")
-    if init:
+    if init and listed and init.get("sha256") == listed:
+        lines.append(f"{indent}- started from {_named(init)}, which is a above")
+    elif init:
         lines.append(f"{indent}- started from {_named(init)}: {_trained(init)}")
         lines += [indent + _session(s) for s in init.get("sessions", [])]
         lines += [f"{indent}  - its note: {n}" for n in init.get("notes", [])]
@@ -103,7 +106,7 @@ def _origins(rec: dict, indent: str) -> list[str]:
         lines += [indent + _session(s) for s in b.get("sessions", [])]
         lines += [f"{indent}  - note of b: {n}" for n in b.get("notes", [])]
         lines += _origins({"blend": a["blend"]} if "blend" in a else {}, indent + "  ")   # a's start is above
-        lines += _origins(b, indent + "  ")
+        lines += _origins(b, indent + "  ", listed=str(a.get("sha256", "")))
     return lines
 
 
