@@ -261,3 +261,21 @@ def test_readme_python_quick_start_runs_from_the_clone(monkeypatch):
     assert len(calls) == 1 and exported == ["out/completion_0.ply"]
     # the example's five scans, and each point's sensor
     assert len(calls[0]["points"]) == len(calls[0]["origin_index"]) > 100_000
+
+
+@pytest.mark.parametrize("page", [p for p in PAGES if p.startswith("docs/") and p != "docs/cli.md"])
+def test_the_guides_commands_parse(page):
+    """Every `hgca ...` line of a guide page's shell blocks names a command and options that exist (its files may
+    be the reader's own)."""
+    import shlex
+
+    from hgca_core.cli import build_parser
+
+    for block in re.findall(r"```(?:sh|bash|console)\n(.*?)```", (REPO / page).read_text(), re.S):
+        for line in block.replace("\\\n", " ").splitlines():
+            words = shlex.split(line, comments=True)
+            if words[:1] == ["hgca"]:
+                try:
+                    build_parser(words[1:]).parse_args(words[1:])
+                except SystemExit:
+                    pytest.fail(f"{page}: {line.strip()}")
