@@ -110,7 +110,8 @@ for _cmd, _expect, _build in (
         ("demo", REQUIRED, lambda d: ["demo", "--progress", "none"]),
         ("synth", REQUIRED, lambda d: ["synth", "--seed", "1"]),
         ("complete", REQUIRED, lambda d: ["complete", str(good_npz(d)), "--progress", "none"]),
-        ("drive", "--out DIR is required", lambda d: ["drive", str(good_npz(d)), "--progress", "none"])):
+        ("drive", "--out DIR is required", lambda d: ["drive", str(good_npz(d)), "--progress", "none"]),
+        ("train", REQUIRED, lambda d: ["train", "--data", str(d), "--max-steps", "1", "--no-progress"])):
     case(f"{_cmd}: no --out", _expect, group="outputs")(_build)
 
 

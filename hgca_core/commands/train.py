@@ -46,7 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", default=["data/synth"], nargs="+", metavar="DIR",
                    help="dataset folder with train/ and val/ splits (hgca synth --split); several folders: train on "
                         "the union of their train splits, validate on the first one's val split")
-    add_out_argument(p, "DIR", default=None, help="run folder (default runs/<recipe>)")
+    add_out_argument(p, "DIR", required=True, help="run folder (its checkpoint, logs and recipe)")
     p.add_argument("--minutes", type=_minutes, default=10.0,
                    help="wall-time budget of this invocation (0: no training, only --export of the run)")
     p.add_argument("--max-steps", type=counted(1, MAX_STEPS), default=None, metavar="N",
@@ -84,7 +84,7 @@ def plan(args: argparse.Namespace) -> tuple[str, Recipe, dict | None, Path]:
         raise InputError("--minutes 0 trains nothing: give a budget, or --export to export the run only")
     if args.minutes == 0 and args.max_steps:
         raise InputError("--max-steps with --minutes 0: a session of 0 minutes runs no step; give a budget")
-    out = Path(args.out or f"runs/{(args.recipe or DEFAULT).replace('-', '_')}")
+    out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError("--out names a run folder, and this is a file", out)
     ckpt = out / "ckpt.pt"

@@ -172,9 +172,10 @@ def test_free_weight_weighs_the_loss_on_seen_empty_negatives(dataset, capsys, mo
     assert s_weighted["seen_empty"] == pytest.approx(float(seen.float().mean()))
     assert task.recipe()["free_weight"] == 5.0
     capsys.readouterr()
-    assert main(["train", "--data", str(dataset), "--set", "free_weight=2", "--max-steps", "1"]) == 2
+    run = ["--out", str(dataset.parent / "run")]
+    assert main(["train", "--data", str(dataset), *run, "--set", "free_weight=2", "--max-steps", "1"]) == 2
     assert "free_space=true" in capsys.readouterr().err                 # nothing to weigh without the free space
-    assert main(["train", "--data", str(dataset), "--set", "free_space=true", "--set", "free_weight=-1",
+    assert main(["train", "--data", str(dataset), *run, "--set", "free_space=true", "--set", "free_weight=-1",
                  "--max-steps", "1"]) == 2
     assert "free_weight must lie in [0" in capsys.readouterr().err
 
@@ -248,6 +249,6 @@ def test_cut_free_loss_weighs_what_the_uncut_scan_saw_empty(dataset, monkeypatch
     _, cut_only, _ = loss(chains)
     assert torch.equal(model_free[0], model_free[1])                   # the model sees the cut's view both times
     assert with_uncut["seen_empty"] > cut_only["seen_empty"]
-    assert main(["train", "--data", str(dataset), "--set", "free_space=true", "--set", "free_weight=2",
-                 "--set", "cut_free_loss=true", "--max-steps", "1"]) == 2
+    assert main(["train", "--data", str(dataset), "--out", str(dataset.parent / "run"), "--set", "free_space=true",
+                 "--set", "free_weight=2", "--set", "cut_free_loss=true", "--max-steps", "1"]) == 2
     assert "needs cut" in capsys.readouterr().err
