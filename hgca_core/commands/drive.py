@@ -22,8 +22,9 @@ DEFAULTS = DriveConfig()
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scans", nargs="+", help="scan files in trajectory order (any format `hgca complete` reads), or "
-                   "one sequence folder (KITTI, Argoverse 2 log, nuScenes sweeps)")
+    p.add_argument("scans", nargs="+", help="scan files in any order (taken in the drive's: --poses' order, else time "
+                   "stamps, else the chain of sensor positions; any format `hgca complete` reads), or one sequence "
+                   "folder (KITTI, Argoverse 2 log, nuScenes sweeps)")
     add_out_argument(p, "DIR", help="the drive folder (created; re-running resumes): tiles/<i>_s<k>.<format>, "
                                     "drive_s<k>.<format> and drive.json")
     p.add_argument("--poses", help="JSON with a sensor->world 4x4 pose per scan (see docs/CONTRACTS.md)")

@@ -53,7 +53,8 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
           fmt: str | None = None, frames: str | None = None, config: DriveConfig | None = None, *,
           report: Report | None = None, on_tile: Callable[[int, int, int, str], None] | None = None,
           on_plan: Callable[[dict], None] | None = None, **settings) -> dict:
-    """Complete the drive seen by `scans` (scan files in trajectory order, or one sequence folder with `frames`)
+    """Complete the drive seen by `scans` (scan files in any order,
+    `order` finds the drive's; or one sequence folder with `frames`)
     into DIR=`out` as `config` says (`DriveConfig`, default: its defaults); `settings` change single fields,
     the drive's (size=, workers=, ...) or each tile's completion's (stage=, seed=, t1=, ...). Returns
     drive.json's content.
