@@ -1,7 +1,7 @@
 """Where the seconds of a completion go: the default region of `hgca demo`, coarse and full, on 1 and 2 threads.
 
-    python benchmarks/profile_completion.py [--stages coarse full] [--threads 1 2] [--no-torch] [--no-pyspy]
-                                            [--out profile]
+    python benchmarks/profile_completion.py [--stages coarse full] [--threads 1 2] [--torch-threads 2]
+                                            [--pyspy-stages full] [--no-pyspy] [--out profile]
 
 Each configuration runs in a fresh process three ways:
 * timers: the product's functions wrapped by exclusive wall-clock timers (a function's time minus that of the
@@ -292,7 +292,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--stages", nargs="+", default=["coarse", "full"], choices=["coarse", "full"])
     ap.add_argument("--threads", nargs="+", type=int, default=[1, 2])
-    ap.add_argument("--no-torch", action="store_true", help="skip the torch.profiler runs")
+    ap.add_argument("--torch-threads", nargs="*", type=int, default=None,
+                    help="thread counts of the torch.profiler runs (default: every --threads; none: skip them)")
+    ap.add_argument("--pyspy-stages", nargs="*", default=None, help="stages py-spy samples (default: every one)")
     ap.add_argument("--no-pyspy", action="store_true", help="skip the py-spy runs")
     ap.add_argument("--out", default="profile")
     args = ap.parse_args()
@@ -308,11 +310,12 @@ def main() -> int:
               "date": time.strftime("%Y-%m-%d %H:%M", time.gmtime()), "load": round(os.getloadavg()[0], 2), "rows": []}
     for stage in args.stages:
         for t in args.threads:
-            for mode in ["timers"] + ([] if args.no_torch else ["torch"]):
+            torch_threads = args.threads if args.torch_threads is None else args.torch_threads
+            for mode in ["timers"] + (["torch"] if t in torch_threads else []):
                 result["rows"].append(run_worker(stage, t, mode))
                 print(json.dumps({k: v for k, v in result["rows"][-1].items() if k in ("stage", "threads", "mode",
                                                                                       "seconds")}), flush=True)
-            if pyspy and t == max(args.threads):
+            if pyspy and t == max(args.threads) and (args.pyspy_stages is None or stage in args.pyspy_stages):
                 result["rows"].append(run_worker(stage, t, "plain", pyspy))
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{args.out}.json").write_text(json.dumps(result, indent=1))

@@ -192,11 +192,10 @@ def submanifold_map(keys: torch.Tensor, kernel_size: int, stride: int,
     kmap = KernelMap(torch.cat(ins), torch.cat(outs), _splits(torch.tensor(all_counts)), n, n, centre, True)
     if grid.fits and kmap.density >= TABLE_MIN_DENSITY:
         # the table `KernelMap.table` would build from the pairs, one gather per offset
-        t = torch.empty((n, kvol), dtype=torch.long, device=dev)
-        for k, d in enumerate(all_offsets(r)):
-            q = torch.arange(n, device=dev) if k == centre else (rows[k] if k < centre else grid.at(d))
-            t[:, k] = q if k == centre else torch.where(q >= 0, q.long(), n)
-        kmap.__dict__["table"] = t       # the cached_property's slot
+        cols = [torch.arange(n, dtype=torch.int32, device=dev) if k == centre else
+                (rows[k] if k < centre else grid.at(d)) for k, d in enumerate(all_offsets(r))]
+        t = torch.stack(cols, dim=1)                                 # (n, K) int32, -1 where none
+        kmap.__dict__["table"] = torch.where(t >= 0, t, n).long()   # the cached_property's slot
     return kmap
 
 
