@@ -93,3 +93,20 @@ def test_model_card_table_names_each_files_size_and_parameters():
         assert row, path.name
         assert int(row.group(1).replace(",", "")) == params, path.name
         assert row.group(2) == f"{path.stat().st_size / 1e6:.2f}", path.name
+
+
+def test_weights_record_is_the_rendering_of_the_shipped_files(tmp_path):
+    """hgca_core/weights/MODEL_CARD.md is what `training.card` renders from the files beside it today (the torch
+    version line aside): a record rewritten inside a file, or a file replaced, without re-rendering fails here."""
+    import shutil
+    from pathlib import Path
+
+    from hgca_core.training.card import write_model_card
+
+    weights = Path(__file__).resolve().parents[1] / "hgca_core" / "weights"
+    copy = tmp_path / "weights"
+    shutil.copytree(weights, copy, ignore=shutil.ignore_patterns("MODEL_CARD.md", "__pycache__"))
+    fresh = write_model_card(copy).read_text().splitlines()
+    shipped = (weights / "MODEL_CARD.md").read_text().splitlines()
+    assert [line for line in fresh if not line.startswith("Card written with torch")] == \
+        [line for line in shipped if not line.startswith("Card written with torch")]
