@@ -64,3 +64,17 @@ def test_a_box_too_large_for_a_grid_is_searched(gen: torch.Generator) -> None:
     m = submanifold_map(pack(c), 3, 1, c)
     ref = submanifold_map_reference(pack(c), 3, 1)
     assert torch.equal(m.in_idx, ref.in_idx) and m.splits == ref.splits and m.num_pairs == 3 + 2
+
+
+def test_member_rows_are_the_sorted_search(gen: torch.Generator) -> None:
+    """Rows of query cells in a set (-1 where absent), queries outside the set's box included: what a search in
+    the sorted keys gives, for the set in its sorted order."""
+    from hgca_core.geometry.coords import lookup
+    from hgca_core.nn.row_grid import member_rows
+
+    cells = _cells(gen, 2, 8, 0.3, 1)
+    query = _cells(gen, 3, 12, 0.5, 1)                      # a larger box and a batch the set lacks
+    rows = member_rows(query, cells)
+    assert torch.equal(rows, lookup(query, pack(cells)))
+    assert (rows >= 0).sum() > 10 and (rows < 0).sum() > 10
+    assert torch.equal(member_rows(query[:0], cells), torch.zeros(0, dtype=torch.long))
