@@ -109,8 +109,11 @@ class CompletionConfig:
         _whole("seed", self.seed, 0, SEED_MAX)
         check_seed_span(self.seed, self.samples)
         for name in ("t1", "t2"):
-            if getattr(self, name) is not None:
-                _whole(name, getattr(self, name), 0, MAX_STEPS)
+            steps = getattr(self, name)
+            if steps is not None and (isinstance(steps, bool) or not isinstance(steps, numbers.Integral)
+                                      or not 0 <= steps <= MAX_STEPS):
+                raise InputError(f"{name} must be a whole number >= 0 and at most {MAX_STEPS} (0: the weights' "
+                                 f"own), got {steps!r}")
         max_faces = _whole("max_faces", self.max_faces, 0)
         if max_faces and max_faces < MIN_FACES:
             raise InputError(f"max_faces must be 0 (keep every triangle) or at least {MIN_FACES}, got {max_faces}")

@@ -20,8 +20,8 @@ import numpy as np
 import torch
 import trimesh
 
-from hgca_core.config import (FREE_SPACE_MODES, MIN_FACES, SEED_MAX, CompletionConfig, check_device_name,
-                              check_seed_span)
+from hgca_core.config import (FREE_SPACE_MODES, MIN_FACES, SEED_MAX, CompletionConfig,  # noqa: F401 (the bounds'
+                              check_device_name, check_seed_span)                     # names, re-exported)
 from hgca_core.errors import HgcaWarning, InputError
 from hgca_core.geometry import coords as cs
 from hgca_core.geometry.nearest import PointIndex
@@ -37,6 +37,7 @@ if TYPE_CHECKING:
     from hgca_core.models.gca import GCAKernel
 
 ProgressFn = Callable[[str, int, int, str, int], None]  # (stage, step, total, message, sample index)
+DEFAULTS = CompletionConfig()   # every setting's default (`hgca_core.config`)
 # Observed free space (`--free-space`, `config.FREE_SPACE_MODES`): feature = the input of the networks trained with
 # it; mask = that input where taken, and the free space's core (seen-empty cells whose six neighbours are seen empty
 # too, `geometry.freespace.confident`) forbidden in every sampled state; auto = mask for weights trained with the
@@ -47,7 +48,6 @@ ProgressFn = Callable[[str, int, int, str, int], None]  # (stage, step, total, m
 # Peak memory of a full-stage completion, linear in the region's area: benchmarks/results/completion_full_cpu
 # measured 2.90 GiB at 40 x 40 m and 5.31 GiB at 40 x 120 m (0.81 MB per m^2 on top of ~1.7 GiB). With margin,
 # used to refuse regions that cannot fit before spending minutes on them.
-DEFAULTS = CompletionConfig()
 BASE_BYTES = 2.0 * 2**30
 BYTES_PER_M2 = 1.5e6
 MEASURED_HEIGHT = 8.0   # metres: the height of the regions the slope was measured on

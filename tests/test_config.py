@@ -84,7 +84,7 @@ def test_commands_map_argv_to_the_config_the_library_gets():
     ({"samples": True}, "samples must be a whole number"),
     ({"seed": -1}, "seed must be a whole number between 0 and 2\\*\\*63 - 1"),
     ({"seed": 2**63 - 1, "samples": 2}, "past 2\\*\\*63 - 1"),
-    ({"t1": 1001}, "t1 must be a whole number between 0 and 1000"),
+    ({"t1": 1001}, "t1 must be a whole number >= 0 and at most 1000 \\(0: the weights' own\\)"),
     ({"t2": 2.5}, "t2 must be a whole number"),
     ({"max_faces": 10}, "max_faces must be 0 \\(keep every triangle\\) or at least 1000"),
     ({"device": "tpu"}, "unknown device 'tpu'"),
