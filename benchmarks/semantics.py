@@ -64,15 +64,18 @@ def checks(cells: np.ndarray, labels: np.ndarray) -> dict[str, tuple[int, int]]:
     b = np.flatnonzero(labels == idx["building"])
     ok = 0
     if len(b):
+        from scipy.sparse import coo_matrix, identity
+
         p = (cells[b] + 0.5) * 0.2
-        tree = cKDTree(p)
-        nbrs = tree.query_ball_point(p, 0.6, workers=1)
-        for i, nb in enumerate(nbrs):
-            if len(nb) < 4:
-                continue
-            q = p[nb] - p[nb].mean(0)
-            n = np.linalg.eigh(q.T @ q)[1][:, 0]
-            ok += abs(n[2]) <= VERTICAL_NZ
+        pairs = cKDTree(p).query_pairs(0.6, output_type="ndarray")
+        adj = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(p), len(p))).tocsr()
+        adj = adj + adj.T + identity(len(p), format="csr")
+        n = np.asarray(adj.sum(1)).ravel()
+        mean = (adj @ p) / n[:, None]
+        outer = (adj @ (p[:, :, None] * p[:, None, :]).reshape(-1, 9)).reshape(-1, 3, 3) / n[:, None, None]
+        cov = outer - mean[:, :, None] * mean[:, None, :]
+        normal = np.linalg.eigh(cov)[1][:, :, 0]          # the direction of least spread
+        ok = int(((np.abs(normal[:, 2]) <= VERTICAL_NZ) & (n >= 4)).sum())
     out["building cells on vertical surfaces"] = (int(ok), int(len(b)))
     pole = labels == idx["pole"]
     passing = 0
@@ -121,7 +124,7 @@ def render(cells: np.ndarray, labels: np.ndarray, ax, title: str) -> None:
     order = np.argsort(depth)
     col = np.asarray(CLASS_COLORS, float)[labels] / 255.0
     shade = 0.75 + 0.25 * np.clip(hag(cells) / 6.0, 0, 1)
-    ax.scatter(p[order] @ right, p[order] @ up, c=col[order] * shade[order, None], s=0.6, marker="s", linewidths=0)
+    ax.scatter(p[order] @ right, p[order] @ up, c=col[order] * shade[order, None], s=1.2, marker="s", linewidths=0)
     ax.set_title(title, fontsize=9)
     ax.set_aspect("equal")
     ax.axis("off")
@@ -148,6 +151,15 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--limit", type=int, default=None, help="first N test scenes only")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "semantics.json"))
+    p.add_argument("--cache", default="runs/semantics_bench",
+                   help="folder keeping each input's completion (cells, face centres, seconds): the completions do "
+                        "not depend on the head, so a second run with other head weights reuses them")
+    p.add_argument("--complete-only", action="store_true", help="make the cached completions and stop")
+    p.add_argument("--inputs", choices=("all", "real", "synthetic"), default="all",
+                   help="which completions to make (with --complete-only)")
+    p.add_argument("--cached-only", action="store_true",
+                   help="score only the inputs whose completion is cached (the ground-truth rows still cover every "
+                        "test scene)")
     args = p.parse_args()
     import matplotlib
     import torch
@@ -168,70 +180,105 @@ def main() -> None:
     from hgca_core.training.data import split_files
     from hgca_core.training.semantics import scene
 
-    head = load_semantics(args.weights)
+    cache = Path(args.cache)
+    cache.mkdir(parents=True, exist_ok=True)
     models = load_models("coarse")
+
+    def completed(name: str, run) -> dict:
+        """{cells, s0, centres, completion_s} of one input's coarse completion, from the cache or made now."""
+        f = cache / f"{name}.npz"
+        if not f.exists():
+            t0 = time.perf_counter()
+            comp, s0 = run()
+            secs = time.perf_counter() - t0
+            np.savez(f, cells=comp.coarse_cells, s0=s0, centres=np.asarray(comp.mesh.triangles_center, np.float32),
+                     completion_s=secs)
+        with np.load(f) as z:
+            return {k: z[k] for k in z.files}
+
+    def synthetic_run(path: Path):
+        sample = load_sample(path)
+        rays, ray_scan = input_rays(sample)
+        region = Region.from_tuple(sample["region"])
+        comp = complete_local(rays, region, models, "coarse", 1, 0, origins=sample["input_origins"],
+                              origin_index=ray_scan)[0]
+        return comp, voxelize(rays[region.contains_local(rays)], COARSE, region.size)
+
+    def real_run(rel: str, frames: str | None, calib: str | None):
+        from hgca_core.geometry.freespace import ray_origins
+
+        scan = read_input({"path": str(Path(args.real_dir) / rel), "frames": frames,
+                           "calibration": None if calib is None else str(Path(args.real_dir) / calib)})
+        region = default_region(scan.points, scan.origins)
+        index = ray_origins(scan.origins, scan.attributes, scan.points)
+        local = region.to_local(scan.points)
+        comp = complete_local(local, region, models, "coarse", 1, 0, origins=region.to_local(scan.origins),
+                              origin_index=index)[0]
+        return comp, voxelize(local[region.contains_local(local)], COARSE, region.size)
+
+    files = split_files(args.data, "test")[: args.limit]
+    if not args.cached_only:
+        for name, rel, frames, calib in (REAL if args.inputs != "synthetic" else ()):
+            completed(name, lambda: real_run(rel, frames, calib))
+            print(f"completed {name}", flush=True)
+        for path in (files if args.inputs != "real" else ()):
+            completed(path.stem, lambda: synthetic_run(path))
+            print(f"completed {path.stem}", flush=True)
+    have = lambda name: (cache / f"{name}.npz").exists()   # noqa: E731
+    if args.complete_only:
+        return
+    head = load_semantics(args.weights)
     k = len(CLASS_NAMES)
     zero = lambda: np.zeros((k, k), np.int64)   # noqa: E731
     conf = {"completion": {"observed": zero(), "generated": zero()}, "gt": {"observed": zero(), "generated": zero()}}
     per_scene, timing, gt_checks, panels = [], [], {}, []
-    files = split_files(args.data, "test")[: args.limit]
-    for path in files:
-        sample = load_sample(path)
-        rays, ray_scan = input_rays(sample)
-        region = Region.from_tuple(sample["region"])
-        t0 = time.perf_counter()
-        comp = complete_local(rays, region, models, "coarse", 1, 0, origins=sample["input_origins"],
-                              origin_index=ray_scan)[0]
-        t1 = time.perf_counter()
-        s0 = voxelize(rays[region.contains_local(rays)], COARSE, region.size)
-        labels, faces = label_mesh(head, np.asarray(comp.mesh.triangles_center), comp.coarse_cells, s0)
-        t2 = time.perf_counter()
-        timing.append({"scene": path.stem, "cells": int(len(comp.coarse_cells)), "faces": int(len(faces)),
-                       "completion_s": round(t1 - t0, 2), "semantics_s": round(t2 - t1, 2)})
-        gt = scene(path)
-        obs = observed_mask(comp.coarse_cells, s0)
-        c = scene_confusion(comp.coarse_cells, labels, obs, gt)
-        gl = predict(head, gt["cells"], gt["observed"])[0]
-        row = {"scene": path.stem}
-        for part in ("observed", "generated"):
-            conf["completion"][part] += c[part]
-            sel = gt["observed"] if part == "observed" else ~gt["observed"]
-            from hgca_core.training.semantics import confusion
+    from hgca_core.training.semantics import confusion
 
-            g = confusion(gl[sel], gt["labels"][sel])
-            conf["gt"][part] += g
-            row[f"miou_{part}"] = iou_table(c[part])["miou"]
-        per_scene.append(row)
+    scored = []
+    for path in files:
+        gt = scene(path)
+        gl = predict(head, gt["cells"], gt["observed"])[0]
+        for part in ("observed", "generated"):
+            sel = gt["observed"] if part == "observed" else ~gt["observed"]
+            conf["gt"][part] += confusion(gl[sel], gt["labels"][sel])
         for name, (ok, n) in checks(gt["cells"], gt["labels"]).items():
             a = gt_checks.setdefault(name, [0, 0])
             a[0] += ok
             a[1] += n
+        if not have(path.stem):
+            continue
+        scored.append(path.name)
+        done = completed(path.stem, lambda: synthetic_run(path))
+        t1 = time.perf_counter()
+        labels, faces = label_mesh(head, done["centres"], done["cells"], done["s0"])
+        t2 = time.perf_counter()
+        timing.append({"scene": path.stem, "cells": int(len(done["cells"])), "faces": int(len(faces)),
+                       "completion_s": round(float(done["completion_s"]), 2), "semantics_s": round(t2 - t1, 2)})
+        obs = observed_mask(done["cells"], done["s0"])
+        c = scene_confusion(done["cells"], labels, obs, gt)
+        row = {"scene": path.stem}
+        for part in ("observed", "generated"):
+            conf["completion"][part] += c[part]
+            row[f"miou_{part}"] = iou_table(c[part])["miou"]
+        per_scene.append(row)
         if len(panels) < 2:
             panels.append((f"{path.stem}: ground truth", gt["cells"], gt["labels"]))
-            panels.append((f"{path.stem}: completion, labelled", comp.coarse_cells, labels))
+            panels.append((f"{path.stem}: completion, labelled", done["cells"], labels))
         print(json.dumps({**row, **timing[-1]}), flush=True)
     real = []
     for name, rel, frames, calib in REAL:
-        scan = read_input({"path": str(Path(args.real_dir) / rel), "frames": frames,
-                           "calibration": None if calib is None else str(Path(args.real_dir) / calib)})
-        region = default_region(scan.points, scan.origins)
-        from hgca_core.geometry.freespace import ray_origins
-
-        index = ray_origins(scan.origins, scan.attributes, scan.points)
-        local = region.to_local(scan.points)
-        t0 = time.perf_counter()
-        comp = complete_local(local, region, models, "coarse", 1, 0, origins=region.to_local(scan.origins),
-                              origin_index=index)[0]
+        if not have(name):
+            continue
+        done = completed(name, lambda: real_run(rel, frames, calib))
         t1 = time.perf_counter()
-        s0 = voxelize(local[region.contains_local(local)], COARSE, region.size)
-        labels, faces = label_mesh(head, np.asarray(comp.mesh.triangles_center), comp.coarse_cells, s0)
+        labels, faces = label_mesh(head, done["centres"], done["cells"], done["s0"])
         t2 = time.perf_counter()
-        timing.append({"scene": name, "cells": int(len(comp.coarse_cells)), "faces": int(len(faces)),
-                       "completion_s": round(t1 - t0, 2), "semantics_s": round(t2 - t1, 2)})
-        res = checks(comp.coarse_cells, labels)
+        timing.append({"scene": name, "cells": int(len(done["cells"])), "faces": int(len(faces)),
+                       "completion_s": round(float(done["completion_s"]), 2), "semantics_s": round(t2 - t1, 2)})
+        res = checks(done["cells"], labels)
         real.append({"input": name, "checks": res,
                      "class_share": {n: round(float((labels == i).mean()) * 100, 1) for i, n in enumerate(CLASS_NAMES)}})
-        panels.append((f"{name} (real): completion, labelled", comp.coarse_cells, labels))
+        panels.append((f"{name} (real): completion, labelled", done["cells"], labels))
         print(json.dumps(real[-1]), flush=True)
 
     out = Path(args.out)
@@ -239,7 +286,7 @@ def main() -> None:
     tables_all = {src: iou_table(parts["observed"] + parts["generated"]) for src, parts in conf.items()}
     comp_s = sum(t["completion_s"] for t in timing)
     sem_s = sum(t["semantics_s"] for t in timing)
-    record = {"data": args.data, "files": [f.name for f in files], "weights": str(args.weights or shipped("semantics")),
+    record = {"data": args.data, "files": [f.name for f in files], "completed_files": scored, "weights": str(args.weights or shipped("semantics")),
               "threads": args.threads, "cpu": platform.processor() or platform.machine(), "torch": torch.__version__,
               "iou": tables, "iou_all": tables_all, "per_scene": per_scene, "real": real,
               "gt_checks": {k2: v for k2, v in gt_checks.items()}, "timing": timing,
@@ -249,7 +296,7 @@ def main() -> None:
 
     cols = 4
     rows = (len(panels) + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.6 * rows + 0.6))
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.4 * rows + 0.6), squeeze=False)
     for ax in np.ravel(axes)[len(panels):]:
         ax.axis("off")
     for ax, (title, cells, labels) in zip(np.ravel(axes), panels):
@@ -268,16 +315,19 @@ def markdown(r: dict) -> str:
 
     def row(name: str, t: dict) -> str:
         vals = [("-" if t["per_class"][n] is None else f"{t['per_class'][n]:.1f}") for n in CLASS_NAMES]
-        return f"| {name} | **{t['miou']:.1f}** | {' | '.join(vals)} | {t['cells']:,} |"
+        miou = "-" if not np.isfinite(t["miou"]) else f"{t['miou']:.1f}"
+        return f"| {name} | **{miou}** | {' | '.join(vals)} | {t['cells']:,} |"
 
     head = f"| cells | mIoU | {' | '.join(CLASS_NAMES)} | scored cells |"
     lines = ["# Semantic head: classes of completed streets", "",
              "Per-class IoU (%) at 20 cm on the synthetic test split "
-             f"({len(r['files'])} scenes of `{r['data']}`: {', '.join(r['files'])}), the shipped coarse stage's "
-             "completion (seed 0) labelled by the head (`hgca complete --semantics`). Cells are scored where the "
-             "completion and the ground truth both hold them; observed cells (the input holds them) apart from "
-             "generated ones. mIoU is over the classes holding at least 1 % of the scored cells "
-             f"({', '.join(r['iou_all']['completion']['classes'])}). Measured by `python benchmarks/semantics.py` "
+             f"({len(r['files'])} scenes of `{r['data']}`: {', '.join(r['files'])}). Completion rows: the shipped "
+             f"coarse stage's completion (seed 0) of {len(r['completed_files'])} of them "
+             f"({', '.join(r['completed_files']) or 'none'}) labelled by the head (`hgca complete --semantics`); "
+             "cells are scored where the completion and the ground truth both hold them. Ground-truth rows: the head "
+             "on every scene's true 20 cm state (the completion's geometry errors removed). Observed cells (the input "
+             "holds them) apart from generated ones. mIoU is over the classes holding at least 1 % of the scored "
+             f"cells ({', '.join(r['iou_all']['gt']['classes'])}). Measured by `python benchmarks/semantics.py` "
              f"({r['threads']} thread, {r['cpu']}, torch {r['torch']}); weights `{Path(r['weights']).name}`.", "",
              head, "|" + " --- |" * (len(CLASS_NAMES) + 3)]
     for src, label in (("completion", "completion"), ("gt", "ground-truth cells")):

@@ -30,6 +30,7 @@ DROP = (0.0, 0.2)        # share of cells dropped per example (drawn uniformly)
 ADD = (0.0, 0.1)         # share of cells added next to others
 CUT_HEIGHT = (1.5, 3.0)  # metres above the fitted ground: the observed flag is cleared above a drawn height
 LABEL_SMOOTHING = 0.05
+REFRESH = 50             # examples between looks for new train scenes (a split still being built)
 
 
 def _keys(c: np.ndarray) -> np.ndarray:
@@ -185,6 +186,7 @@ class SemanticsTask:
     def __post_init__(self) -> None:
         self.train_files = split_files(self.data_dir, "train")
         self._scenes: dict[str, dict] = {}
+        self._drawn = 0
 
     def _scene(self, path: Path) -> dict:
         key = str(path)
@@ -208,6 +210,9 @@ class SemanticsTask:
         return {"crop": self.crop, "drop": DROP, "add": ADD, "cut_height": CUT_HEIGHT}
 
     def new_example(self, rng: np.random.Generator) -> Chain:
+        self._drawn += 1
+        if self._drawn % REFRESH == 0:       # scenes still being built join the run as they are written
+            self.train_files = split_files(self.data_dir, "train")
         path = self.train_files[int(rng.integers(len(self.train_files)))]
         s = self._scene(path)
         c, lab, obs = perturb(s["cells"], s["labels"], s["observed"], rng, self.crop)
