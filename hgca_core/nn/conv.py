@@ -61,6 +61,9 @@ def _mm(a: torch.Tensor, b: torch.Tensor, out: torch.Tensor | None = None) -> to
 # the gather just wrote from cache. Rows are independent, so the chunk size does not change a bit of the output;
 # 16 MB chunks cost ~10 % more CPU time per coarse and fine step (1 thread, the default region).
 TABLE_CHUNK_ELEMENTS = 1 << 19
+# The weight gradient sums its chunks' products in turn, so its chunk size sets the order of that sum: it keeps the
+# 16 MB chunks its results were made with.
+TABLE_GRAD_CHUNK_ELEMENTS = 1 << 22
 
 
 # GEMM dtype of the convolutions that need no gradients (inference) and of those that do (training); None: as
@@ -106,8 +109,8 @@ def precision_name(dtype: torch.dtype | None) -> str:
     return "bf16" if dtype == torch.bfloat16 else "fp32"
 
 
-def _table_blocks(feats: torch.Tensor, table: torch.Tensor,
-                  dtype: torch.dtype) -> Iterator[tuple[int, int, torch.Tensor]]:
+def _table_blocks(feats: torch.Tensor, table: torch.Tensor, dtype: torch.dtype,
+                  chunk: int | None = None) -> Iterator[tuple[int, int, torch.Tensor]]:
     """(r0, r1, block): for each chunk of table rows, every offset's input row side by side, an (r1 - r0, K * cin)
     block in `dtype`, with zeros where the table says none (row len(feats)). The block's buffer is reused."""
     n_out, kvol = table.shape
@@ -115,7 +118,7 @@ def _table_blocks(feats: torch.Tensor, table: torch.Tensor,
     padded = feats.new_empty((len(feats) + 1, cin), dtype=dtype)   # one copy (and cast) of the features + a zero row
     padded[:-1] = feats
     padded[-1] = 0
-    rows = max(1, TABLE_CHUNK_ELEMENTS // (kvol * cin))
+    rows = max(1, (chunk or TABLE_CHUNK_ELEMENTS) // (kvol * cin))
     buf = padded.new_empty((min(rows, n_out) * kvol, cin))
     for r0 in range(0, n_out, rows):
         r1 = min(n_out, r0 + rows)
@@ -146,7 +149,7 @@ def table_weight_grad(feats: torch.Tensor, grad_out: torch.Tensor, table: torch.
     cin, cout = feats.shape[1], grad_out.shape[1]
     dt = dtype or feats.dtype
     grad = feats.new_zeros((kvol * cin, cout))
-    for r0, r1, block in _table_blocks(feats, table, dt):
+    for r0, r1, block in _table_blocks(feats, table, dt, TABLE_GRAD_CHUNK_ELEMENTS):
         if dt == grad.dtype:
             grad.addmm_(block.T, grad_out[r0:r1])
         else:
