@@ -160,7 +160,12 @@ def main() -> None:
     p.add_argument("--cached-only", action="store_true",
                    help="score only the inputs whose completion is cached (the ground-truth rows still cover every "
                         "test scene)")
+    p.add_argument("--markdown-only", action="store_true", help="rewrite the .md page from the .json record only")
     args = p.parse_args()
+    if args.markdown_only:
+        out = Path(args.out)
+        out.with_suffix(".md").write_text(markdown(json.loads(out.read_text())))
+        return
     import matplotlib
     import torch
 
@@ -286,7 +291,11 @@ def main() -> None:
     tables_all = {src: iou_table(parts["observed"] + parts["generated"]) for src, parts in conf.items()}
     comp_s = sum(t["completion_s"] for t in timing)
     sem_s = sum(t["semantics_s"] for t in timing)
-    record = {"data": args.data, "files": [f.name for f in files], "completed_files": scored, "weights": str(args.weights or shipped("semantics")),
+    from hgca_core.models.weights import load_file
+
+    wmeta = load_file(args.weights or shipped("semantics"))["meta"]
+    record = {"head_steps": wmeta.get("steps"), "head_train_scenes": len(wmeta.get("train_samples") or []),
+              "data": args.data, "files": [f.name for f in files], "completed_files": scored, "weights": str(args.weights or shipped("semantics")),
               "threads": args.threads, "cpu": platform.processor() or platform.machine(), "torch": torch.__version__,
               "iou": tables, "iou_all": tables_all, "per_scene": per_scene, "real": real,
               "gt_checks": {k2: v for k2, v in gt_checks.items()}, "timing": timing,
@@ -360,7 +369,12 @@ def markdown(r: dict) -> str:
               "| input | cells | faces | coarse completion (s) | semantics (s) |", "| --- | --- | --- | --- | --- |"]
     lines += [f"| {t['scene']} | {t['cells']:,} | {t['faces']:,} | {t['completion_s']:.1f} | {t['semantics_s']:.2f} |"
               for t in r["timing"]]
-    lines += ["", "![Completions coloured by class](semantics.png)", ""]
+    lines += ["", "Both times come from one shared 2-core machine under heavy load from other jobs (the coarse completions "
+              "took 13 to 16 min here; `completion_coarse_cpu.md` measured 18.0 s for one on an idle 2-core machine, bf16 on 2 threads): the "
+              "share, not the seconds, is the figure to read.",
+              "", f"The head: {r.get('head_steps')} training steps (`hgca train --recipe semantics`) on "
+              f"{r.get('head_train_scenes')} train scenes; classes with too few training cells (shelter, person) are "
+              "not learnt yet.", "", "![Completions coloured by class](semantics.png)", ""]
     return "\n".join(lines)
 
 
