@@ -18,7 +18,7 @@ beside them, so this page cannot disagree with the weights it describes. The mod
 data, evaluation, limitations) is MODEL_CARD.md at the top of the repository.
 
 Weights trained on procedural street scenes (`hgca_core/synth`), never on real scans. Each file below names its
-training data, one of three:
+training data; the three datasets of the completion stages:
 - `data/synth` (the first split): two styles, city and suburb; one Waymo-like 64-beam LiDAR with 1 cm point
   noise and 0.02 deg pitch noise; 5 scans per sample. Trained on it last: {synth1}.
 - synth2 (generator 6, recipe `docs/data/synth2_recipe.json`, rebuilt by `hgca synth --generator 6`): five sensor
@@ -63,8 +63,8 @@ def _section(path: Path, blob: dict) -> str:
     lines = [f"## `{path.name}` ({meta.get('stage', meta.get('kind'))})", "",
              f"- file size: {path.stat().st_size / 1e6:.2f} MB, parameters: {n_params:,}",
              f"- architecture: {json.dumps(cfg)}",
-             f"- training data: {meta.get('data')} (train split){_samples(meta.get('train_samples'))}, "
-             f"crop {meta.get('crop', cfg.get('crop'))} cells",
+             f"- training data: {meta.get('data')} (train split){_samples(meta.get('train_samples'))}"
+             + (f", crop {crop} cells" if (crop := meta.get("crop", cfg.get("crop"))) is not None else ""),
              f"- steps: {meta.get('steps')}, summed step wall time: {meta.get('train_wall_s')} s "
              f"over {len(sessions)} session(s)"]
     lines += [_session(s) for s in sessions]
@@ -143,7 +143,10 @@ def _by_dataset(blobs: dict[Path, dict]) -> dict[str, str]:
     names: dict[str, list[str]] = {"synth1": [], "synth2": [], "synth3": [], "free": []}
     for path, blob in blobs.items():
         data = str(blob["meta"].get("data", ""))
-        names["synth3" if "synth3" in data else "synth2" if "synth2" in data else "synth1"].append(f"`{path.name}`")
+        kind = ("synth3" if "synth3" in data else "synth2" if "synth2" in data
+                else "synth1" if data.rstrip("/").endswith("synth") else None)   # other data: its section says
+        if kind:
+            names[kind].append(f"`{path.name}`")
         if blob.get("config", {}).get("free_space"):
             names["free"].append(f"`{path.name}`")
     return {k: ", ".join(v) or "none of the files here" for k, v in names.items()}
