@@ -199,6 +199,11 @@ def build_task(recipe: Recipe, data: list[str], run_file: dict | None = None):
         return CoarseTask(data, cfg, crop=recipe.crop, focus_share=recipe.focus, free_weight=recipe.free_weight,
                           cut_share=recipe.cut, cut_free_loss=recipe.cut_free_loss, turn_share=recipe.turn,
                           distill=recipe.distill, teacher=teacher, teacher_sha256=digest)
+    if recipe.stage == "semantics":
+        from hgca_core.models.semantics import SemanticsConfig
+        from hgca_core.training.semantics import SemanticsTask
+
+        return SemanticsTask(data, SemanticsConfig.from_dict(saved) if saved else SemanticsConfig(), crop=recipe.crop)
     if recipe.stage == "autoencoder":
         from hgca_core.models.autoencoder import AutoencoderConfig
         from hgca_core.training.fine import AutoencoderTask
@@ -263,6 +268,10 @@ def export(recipe: Recipe, data: list[str], task, ckpt: Path, target: Path) -> P
             dest = save_file(blob, target)
         else:
             dest = save_weights(target, module.model, meta)
+    elif recipe.stage == "semantics":
+        from hgca_core.training.semantics import export_semantics
+
+        dest = export_semantics(ckpt, target, meta=extra)
     elif recipe.stage == "autoencoder":
         from hgca_core.training.fine import export_autoencoder
 
