@@ -27,18 +27,15 @@ from pathlib import Path
 
 import numpy as np
 
-from hgca_core.geometry.keys import pack
 from hgca_core.geometry.region import Region
-from hgca_core.geometry.voxel import COARSE, cell_centers, voxelize
+from hgca_core.geometry.voxel import COARSE, cell_centers
 from hgca_core.hardware import machine
-from hgca_core.tiling.plan import footprint_contains, owned
-from hgca_core.tiling.store import DriveStore
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from drive_scores import ENDS, SCENE, SLAB, plot, seam_scores, slab_sources, worker_growth  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SEEDS = (4_000_011, 4_000_010)   # two straight city streets (flat; a 0.9 % grade), both driven towards +x
-SCENE = 120.0                    # the layout square of a scene; scene k is moved k * 120 m along x
-SLAB = 4.0                       # metres along the drive per slab of the seam table
-ENDS = 20.0                      # metres at either end of the drive left out of the slab comparison
 WRAP = ("import resource, sys; from hgca_core.cli import main; rc = main(sys.argv[1:]); "
         "print('MAXRSS', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr); sys.exit(rc)")
 
@@ -120,10 +117,17 @@ def build_drive(folder: Path, length: float, spacing: float, seed: int = 0) -> t
     return paths, poses_path, float(arcs[-1] - arcs[0]), placed
 
 
-def ground_truth(region: Region, placed: list, density: float = 400.0) -> np.ndarray:
+def ground_truth(region: Region, placed: list, density: float = 400.0, cache: Path | None = None) -> np.ndarray:
     """20 cm cells (region frame) of the street's surface a complete scan could see (`synth.groundtruth`), each
-    scene's on its side of its joins; only the scenes the region reaches."""
+    scene's on its side of its joins; only the scenes the region reaches. `cache`: a folder keeping them by
+    region (they take a while; a tile's region does not change between runs)."""
+    import hashlib
+
     from hgca_core.synth.groundtruth import RegionSurface
+
+    key = hashlib.sha256(np.round(np.array(region.as_tuple(), dtype=np.float64), 6).tobytes()).hexdigest()[:20]
+    if cache is not None and (cache / f"{key}.npy").is_file():
+        return np.load(cache / f"{key}.npy")
 
     cells = []
     reach = float(np.hypot(*region.size[:2])) / 2 + SCENE / 2
@@ -135,7 +139,11 @@ def ground_truth(region: Region, placed: list, density: float = 400.0) -> np.nda
                              terrain=scene.terrain, ground_faces=scene.ground_faces)
         occ = surf.occupancy()[1].astype(np.int64)
         cells.append(occ[_side(region.to_world(cell_centers(occ, COARSE))[:, 0], k, len(placed))])
-    return np.unique(np.concatenate(cells), axis=0)
+    out = np.unique(np.concatenate(cells), axis=0)
+    if cache is not None:
+        cache.mkdir(parents=True, exist_ok=True)
+        np.save(cache / f"{key}.npy", out)
+    return out
 
 
 def run_cli(args: list, log: Path) -> dict:
@@ -163,95 +171,6 @@ def summarise(out: Path, measured: dict) -> dict:
             "worker_peak_rss_gib": sorted(round(v / 2**30, 2) for v in workers.values())}
 
 
-def centre_cells(cells: np.ndarray, source: Region, target: Region) -> np.ndarray:
-    """Cells of `source` by their centres into `target`'s grid (one cell each; for agreement between tiles)."""
-    return voxelize(target.to_local(source.to_world(cell_centers(cells, COARSE))), COARSE, target.size)
-
-
-def seam_scores(out: Path, gts: list[np.ndarray], x0: float, x1: float) -> dict:
-    """On the merged result (each place scored on the tile that owns it): IoU against ground truth in the overlap
-    bands and inside tiles, IoU between neighbours' cells in their overlaps, and recall / IoU per `SLAB` m along x
-    (the drive runs along x) between x0 and x1, the worst slab against the median `ENDS` m away from either end."""
-    doc = json.loads((out / "drive.json").read_text())
-    store = DriveStore(out)
-    regions = [Region.from_tuple(t["region"]) for t in doc["tiles"]]
-    cells = [store.load(t["key"], only=0)["samples"][0]["cells"].astype(np.int64) for t in doc["tiles"]]
-    counts = {"band": [0, 0], "interior": [0, 0]}
-    edges = np.arange(x0, x1 + SLAB, SLAB)
-    slab = np.zeros((3, len(edges) - 1))                   # hits, ground truth, predicted
-    for i, (pred, gt) in enumerate(zip(cells, gts)):
-        both = np.unique(np.concatenate([pred, gt]), axis=0)
-        keys = pack(both)
-        in_p, in_g = np.isin(keys, pack(pred)), np.isin(keys, pack(gt))
-        w = regions[i].to_world(cell_centers(both, COARSE))
-        mine = owned(w[:, :2], i, regions)
-        cover = sum(footprint_contains(r, w[:, :2]).astype(int) for r in regions)
-        for row, m in enumerate((in_p & in_g, in_g, in_p)):
-            slab[row] += np.histogram(w[m & mine, 0], edges)[0]
-            if row < 2:
-                counts["band"][row] += int((m & mine & (cover >= 2)).sum())
-                counts["interior"][row] += int((m & mine & (cover == 1)).sum())
-    agree = []
-    for i in range(len(regions) - 1):
-        a, b = cells[i], centre_cells(cells[i + 1], regions[i + 1], regions[i])
-        ka = pack(a[footprint_contains(regions[i + 1], regions[i].to_world(cell_centers(a, COARSE))[:, :2])])
-        kb = pack(b[footprint_contains(regions[i + 1], regions[i].to_world(cell_centers(b, COARSE))[:, :2])])
-        agree.append(np.intersect1d(ka, kb).size / max(1, np.union1d(ka, kb).size))
-    band, inner = (counts[k][0] / max(1, counts[k][1]) for k in ("band", "interior"))
-    mid = (edges[:-1] + edges[1:]) / 2
-    away = (mid > x0 + ENDS) & (mid < x1 - ENDS) & (slab[1] > 0)
-    recall = slab[0] / np.maximum(slab[1], 1)
-    iou = slab[0] / np.maximum(slab[1] + slab[2] - slab[0], 1)
-    worst = {}
-    for name, v in (("recall", recall), ("iou", iou)):
-        j = int(np.flatnonzero(away)[np.argmin(v[away])])
-        med = float(np.median(v[away]))
-        worst[name] = {"worst": round(float(v[j]), 4), "at_x": round(float(mid[j]), 1), "median": round(med, 4),
-                       "ratio": round(float(v[j]) / med, 3)}
-    return {"iou_band": round(band, 4), "iou_interior": round(inner, 4), "ratio": round(band / inner, 3),
-            "neighbour_agreement": round(float(np.mean(agree)), 4),
-            "agreement_per_overlap": [round(a, 3) for a in agree], "slabs": worst,
-            "slab_x": mid.round(1).tolist(), "slab_recall": recall.round(4).tolist(),
-            "slab_iou": iou.round(4).tolist(), "slab_away": away.tolist()}
-
-
-def plot(out: Path, path: Path, scores: dict) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    doc = json.loads((out / "drive.json").read_text())
-    regions = [Region.from_tuple(t["region"]) for t in doc["tiles"]]
-    fig, ax = plt.subplots(2, 1, figsize=(16, 6.5), gridspec_kw={"height_ratios": [1, 1.2]}, sharex=True)
-    cmap = plt.get_cmap("tab10")
-    for i, r in enumerate(regions):
-        corners = r.to_world(np.array([[0, 0, 0], [r.size[0], 0, 0], [r.size[0], r.size[1], 0], [0, r.size[1], 0],
-                                       [0, 0, 0]], float))
-        ax[0].plot(corners[:, 0], corners[:, 1] + (i % 2) * 0.6, color=cmap(i % 10), lw=0.8)
-    pos = np.array([s["position"] for s in doc["scans"]])
-    ax[0].plot(pos[:, 0], pos[:, 1], "k.", ms=2, label="scan positions")
-    ax[0].set_title(f"tile footprints along the drive ({len(regions)} tiles; odd tiles drawn 0.6 m up to tell them "
-                    "apart)")
-    ax[0].legend(loc="upper right")
-    x = np.array(scores["slab_x"])
-    away = np.array(scores["slab_away"])
-    for key, label in (("slab_recall", "recall of the ground truth"), ("slab_iou", "IoU")):
-        v = np.array(scores[key])
-        ax[1].plot(x[away], v[away], ".-", lw=0.8, ms=3, label=f"{label} per {SLAB:g} m slab")
-    for r in regions[:-1]:
-        ax[1].axvline(r.center[0] + (regions[1].center[0] - regions[0].center[0]) / 2, color="0.85", lw=0.6, zorder=0)
-    w = scores["slabs"]["recall"]
-    ax[1].axhline(w["median"], color="C0", ls=":", lw=0.8)
-    ax[1].axhline(0.8 * w["median"], color="C3", ls="--", lw=0.8, label="0.8 x median recall")
-    ax[1].set_ylim(0, 1)
-    ax[1].set_xlabel("x along the drive (m); grey lines: ownership seams between tiles")
-    ax[1].legend(loc="lower right", fontsize=8, ncol=3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--stage", choices=("coarse", "full"), default="coarse")
@@ -263,6 +182,12 @@ def main() -> int:
     ap.add_argument("--t1", type=int, default=None, help="coarse GCA steps per tile (default: the weights')")
     ap.add_argument("--weights", default=None, help="coarse weights (default: the shipped ones)")
     ap.add_argument("--until", default=None, help="UTC HH:MM: skip a run expected to end after it")
+    ap.add_argument("--runs", default="long:2,short:2,short:1,long:1", help="DRIVE:WORKERS, in order")
+    ap.add_argument("--gt-cache", type=Path, default=None, help="keep the tiles' ground truth here")
+    ap.add_argument("--gt-only", action="store_true", help="fill --gt-cache for the long 2-worker run's tiles")
+    ap.add_argument("--score-only", action="store_true",
+                    help="score the long run in --work and write the page from --results' drive.json (and --add)")
+    ap.add_argument("--add", type=Path, nargs="*", default=[], help="results JSONs of other runs to put on the page")
     ap.add_argument("--threads", type=int, default=1,
                     help="torch threads per tile in every run (1: a shared machine's cores are busy; more threads "
                          "than free cores wait for each other)")
@@ -293,7 +218,9 @@ def main() -> int:
         result["drives"][name] = {k: info[k] for k in ("length_m", "scans", "build_s")}
         print(name, result["drives"][name], flush=True)
     tile_s: list[float] = []
-    for name, workers in (("long", 2), ("short", 2), ("short", 1), ("long", 1)):
+    if args.gt_only or args.score_only:
+        return score(args, built)
+    for name, workers in [(r.split(":")[0], int(r.split(":")[1])) for r in args.runs.split(",")]:
         label = f"{result['drives'][name]['length_m']:.0f} m, {workers} worker{'s' * (workers > 1)}"
         scans, poses, _ = built[name]
         if deadline and tile_s:
@@ -311,21 +238,48 @@ def main() -> int:
         tile_s.append(result["runs"][label]["tile_s_mean"])
         print(label, result["runs"][label], flush=True)
         write(result, args.results)
+    result["load_average"] = [round(v, 1) for v in os.getloadavg()]
+    write(result, args.results)
+    if any(v["drive"] == "long" for v in result["runs"].values()):
+        return score(args, built)
+    print(table(result))
+    return 0
+
+
+def score(args, built: dict) -> int:
+    """Seams of the long drive's first run (its ground truth from --gt-cache where there), the page and the PNG;
+    with --gt-only just the ground truth."""
+    if args.gt_only:
+        doc = json.loads((args.work / "long_w2" / "drive.json").read_text())
+        for t in doc["tiles"]:
+            ground_truth(Region.from_tuple(t["region"]), built["long"][2], cache=args.gt_cache)
+        return 0
+    result = json.loads((args.results / "drive.json").read_text())
+    for extra in args.add:
+        other = json.loads(extra.read_text())
+        result["runs"].update(other["runs"])
+        result["drives"].update({k: v for k, v in other["drives"].items() if k not in result["drives"]})
+        result["skipped"] = [s for s in result["skipped"] if s not in other["runs"]]
+    for name, w in (("long", 2), ("short", 2), ("short", 1), ("long", 1)):    # the runs the time left out
+        label = f"{result['drives'][name]['length_m']:.0f} m, {w} worker{'s' * (w > 1)}"
+        if label not in result["runs"] and label not in result["skipped"]:
+            result["skipped"].append(label)
     long_runs = [v for v in result["runs"].values() if v["drive"] == "long"]
+    workers = long_runs[0]["workers"] if long_runs else 2
+    out = args.work / f"long_w{workers}"
+    doc = json.loads((out / "drive.json").read_text())
+    t = time.perf_counter()
+    gts = [ground_truth(Region.from_tuple(t["region"]), built["long"][2], cache=args.gt_cache) for t in doc["tiles"]]
     if len(long_runs) == 2:
         a, b = (args.work / f"long_w{w}" / "drive_s0.ply" for w in (1, 2))
         result["ray_equals_in_process"] = a.read_bytes() == b.read_bytes()
-    if long_runs:
-        out = args.work / f"long_w{long_runs[0]['workers']}"
-        doc = json.loads((out / "drive.json").read_text())
-        t = time.perf_counter()
-        gts = [ground_truth(Region.from_tuple(t["region"]), built["long"][2]) for t in doc["tiles"]]
-        xs = np.array([s["position"][0] for s in doc["scans"]])
-        result["seams"] = seam_scores(out, gts, float(xs.min()), float(xs.max()))
-        result["seams"]["scored_run"] = f"long drive, {long_runs[0]['workers']} workers"
-        result["seams"]["ground_truth_s"] = round(time.perf_counter() - t, 1)
-        plot(out, args.results / "drive.png", result["seams"])
-    result["load_average"] = [round(v, 1) for v in os.getloadavg()]
+    result["worker_growth"] = worker_growth(args.work)
+    xs = np.array([s["position"][0] for s in doc["scans"]])
+    result["seams"] = seam_scores(out, gts, float(xs.min()), float(xs.max()))
+    result["seams"].update(slab_sources(result["seams"], doc))
+    result["seams"]["scored_run"] = f"long drive, {workers} workers"
+    result["seams"]["ground_truth_s"] = round(time.perf_counter() - t, 1)
+    plot(out, args.results / "drive.png", result["seams"])
     write(result, args.results)
     print(table(result))
     return 0
@@ -356,6 +310,19 @@ def table(r: dict) -> str:
     for name in r["skipped"]:
         lines.append(f"| {name} | not run: it would have ended after the time set for the benchmark | | | | | | | | |")
     lines.append("")
+    if r.get("t1"):
+        lines.append(f"Stage {r['stage']} with T1 = {r['t1']} GCA steps per tile, fewer than the weights' own: on "
+                     "2 cores shared with other work (load average near 20 while it ran) the full stage or the full "
+                     "chain on 1 km would not have finished in the time set for the benchmark.")
+        lines.append("")
+    g = r.get("worker_growth")
+    if g:
+        lines.append(f"Memory per Ray worker follows the tiles it has run, not the drive's length: after its first "
+                     f"{g['n']} tiles a worker peaks at {g['short_at_n']} GiB on {d['short']['length_m']:.0f} m and "
+                     f"{g['long_at_n']} GiB on {d['long']['length_m']:.0f} m; on the long drive it then creeps by "
+                     f"{g['mib_per_tile']} MiB a tile (least squares over its tiles {g['n']} to {g['long_tiles']}), to "
+                     f"{g['long_last']} GiB after {g['long_tiles']} tiles.")
+        lines.append("")
     lines.append("On 1 worker the tiles run in the driver process, so its peak RSS holds every scan of the drive as "
                  "well as one tile; a Ray worker holds one tile at a time.")
     if "ray_equals_in_process" in r:
@@ -371,6 +338,14 @@ def table(r: dict) -> str:
         for key, label in (("recall", "recall of the ground truth"), ("iou", "IoU")):
             w = s["slabs"][key]
             lines.append(f"| {label} | {w['worst']} | {w['at_x']} | {w['median']} | {w['ratio']} |")
+        if "repeat_correlation" in s:
+            street = (s["recall_median_seam_slabs"] >= 0.95 * s["recall_median_other_slabs"]
+                      and s["repeat_correlation"] > 0.5)
+            lines += ["", f"Slabs that hold an ownership seam ({s['seam_slabs']}) recover a median "
+                      f"{s['recall_median_seam_slabs']} of the ground truth, the others "
+                      f"{s['recall_median_other_slabs']}; a slab's recall correlates {s['repeat_correlation']} with "
+                      f"the slab {2 * SCENE:g} m on (the street repeats its two layouts)"
+                      + (": the weak slabs are places of the street, not seams." if street else ".")]
         lines += ["", "Overlap bands: places two tiles cover, scored on the tile that owns them in the merged mesh; "
                   "inside: places one tile covers. Ground truth: the scenes' surface a complete scan could see "
                   "(`synth.groundtruth.RegionSurface`), no visibility mask. Neighbour agreement: IoU of two "
