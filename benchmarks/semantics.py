@@ -282,7 +282,8 @@ def main() -> None:
                        "completion_s": round(float(done["completion_s"]), 2), "semantics_s": round(t2 - t1, 2)})
         res = checks(done["cells"], labels)
         real.append({"input": name, "checks": res,
-                     "class_share": {n: round(float((labels == i).mean()) * 100, 1) for i, n in enumerate(CLASS_NAMES)}})
+                     "class_share": {n: round(float((labels == i).mean()) * 100, 1)
+                                     for i, n in enumerate(CLASS_NAMES)}})
         panels.append((f"{name} (real): completion, labelled", done["cells"], labels))
         print(json.dumps(real[-1]), flush=True)
 
@@ -295,7 +296,8 @@ def main() -> None:
 
     wmeta = load_file(args.weights or shipped("semantics"))["meta"]
     record = {"head_steps": wmeta.get("steps"), "head_train_scenes": len(wmeta.get("train_samples") or []),
-              "data": args.data, "files": [f.name for f in files], "completed_files": scored, "weights": str(args.weights or shipped("semantics")),
+              "data": args.data, "files": [f.name for f in files], "completed_files": scored,
+              "weights": str(args.weights or shipped("semantics")),
               "threads": args.threads, "cpu": platform.processor() or platform.machine(), "torch": torch.__version__,
               "iou": tables, "iou_all": tables_all, "per_scene": per_scene, "real": real,
               "gt_checks": {k2: v for k2, v in gt_checks.items()}, "timing": timing,
@@ -367,11 +369,11 @@ def markdown(r: dict) -> str:
               f"The head and the faces' labels took {r['semantics_share_of_coarse_completion']:.1f} % of the coarse "
               "stage's completion time on the same inputs (the full stage takes longer, so its share is smaller):", "",
               "| input | cells | faces | coarse completion (s) | semantics (s) |", "| --- | --- | --- | --- | --- |"]
-    lines += [f"| {t['scene']} | {t['cells']:,} | {t['faces']:,} | {t['completion_s']:.1f} | {t['semantics_s']:.2f} |"
-              for t in r["timing"]]
-    lines += ["", "Both times come from one shared 2-core machine under heavy load from other jobs (the coarse completions "
-              "took 13 to 16 min here; `completion_coarse_cpu.md` measured 18.0 s for one on an idle 2-core machine, bf16 on 2 threads): the "
-              "share, not the seconds, is the figure to read.",
+    lines += [f"| {t['scene']} | {t['cells']:,} | {t['faces']:,} | {t['completion_s']:.1f} | "
+              f"{t['semantics_s']:.2f} |" for t in r["timing"]]
+    lines += ["", "Both times come from one shared 2-core machine under heavy load from other jobs (the coarse "
+              "completions took 13 to 16 min here; `completion_coarse_cpu.md` measured 18.0 s for one on an idle "
+              "2-core machine, bf16 on 2 threads): the share, not the seconds, is the figure to read.",
               "", f"The head: {r.get('head_steps')} training steps (`hgca train --recipe semantics`) on "
               f"{r.get('head_train_scenes')} train scenes; classes with too few training cells (shelter, person) are "
               "not learnt yet.", "", "![Completions coloured by class](semantics.png)", ""]
