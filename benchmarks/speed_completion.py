@@ -54,7 +54,8 @@ def page(result: dict) -> str:
     for cfg in result["configs"]:
         r = cfg["report"]["rows"]
         lines += [f"## Stage {cfg['stage']}", "", f"New: {cfg['new']}; old: {cfg['old']}. {cfg['report']['header']}",
-                  f"Runs: {cfg['report']['runs']}; load average (1 min) at the start {cfg.get('load', '?')}.", "",
+                  f"Runs: {cfg['report']['runs']}" + (f"; load average (1 min) at the start {cfg['load']}." if "load" in cfg
+                                                      else "."), "",
                   "| measure | new (A) | old (B) | new / old |", "|---|---:|---:|---:|"]
         for key, name in (("wall s", "wall (s)"), ("cpu s", "CPU, user + sys (s)"), ("peak MiB", "peak RSS (MiB)")):
             a, b, ab = r.get(f"A {key}"), r.get(f"B {key}"), r.get(f"A/B {key.split()[0]}")
@@ -63,7 +64,8 @@ def page(result: dict) -> str:
                 lines.append(f"| {name} | {a[1]:.1f} [{a[0]:.1f} - {a[2]:.1f}] | {b[1]:.1f} [{b[0]:.1f} - {b[2]:.1f}] "
                              f"| {ratio} |")
         lines.append("")
-    lines += result.get("notes", [])
+    for note in result.get("notes", []):
+        lines += [note, ""]
     return "\n".join(lines) + "\n"
 
 
