@@ -11,7 +11,7 @@ For the nuScenes sweep and two sweeps of the Argoverse 2 log in tests/data/real,
 2. the saved .blend is opened again, coloured by agreement across the K samples, and rendered from the same camera;
 3. with the Decimate modifiers applied, the .blend is saved again: its size is that of 1 M-triangle samples.
 
-Writes benchmarks/results/blender_render.{md,json,png} and one PNG per render beside them.
+Writes benchmarks/results/blender_render.{md,json,png} and blender_render_<scan>_<colouring>.png beside them.
 """
 from __future__ import annotations
 
@@ -60,21 +60,43 @@ def run_batch(name: str, scans: list[Path], extra: list[str], blend: Path, png: 
             "blend_mib": float(saved.group(1)), "blend_mib_per_sample": float(saved.group(2)), "log": out}
 
 
+def blend_facts(blend: Path) -> dict:
+    """What a saved batch .blend holds (for --from-blend): scan points, triangles a sample, MiB a sample."""
+    import bpy
+
+    from hgca_blender import mesh_build
+
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    scans = [o for o in bpy.data.objects if o.get(mesh_build.ROLE_KEY) == "scan"]
+    results = sorted((o for o in bpy.data.objects if o.get(mesh_build.ROLE_KEY) == "result"),
+                     key=lambda o: int(o["hgca_sample"]))
+    size = blend.stat().st_size / 2**20
+    return {"points": sum(len(o.data.vertices) for o in scans), "triangles": [len(o.data.polygons) for o in results],
+            "blend_mib": round(size, 1), "blend_mib_per_sample": round(size / len(results), 1),
+            "import_s": None, "completed_after_s": None, "batch_wall_s": None}
+
+
 def agreement_and_baked(blend: Path, png: Path, baked: Path) -> dict:
     """Render the saved .blend coloured by agreement; then apply the Decimate modifiers and save a copy."""
     import bpy
 
     from hgca_blender import mesh_build, preview
 
+    if png.is_file() and baked.is_file():  # --from-blend: both made already, measure the baked copy
+        facts = blend_facts(baked)
+        return {"agreement_render_s": None, "baked_triangles": facts["triangles"],
+                "baked_blend_mib": facts["blend_mib"], "baked_blend_mib_per_sample": facts["blend_mib_per_sample"]}
     bpy.ops.wm.open_mainfile(filepath=str(blend))
     scene = bpy.context.scene
     results = sorted((o for o in bpy.data.objects if o.get(mesh_build.ROLE_KEY) == "result"),
                      key=lambda o: int(o["hgca_sample"]))
     if not mesh_build.color_results_by(results, mesh_build.AGREEMENT_COLOR):
         raise RuntimeError("no agreement colours: the completion needs 2 or more samples")
-    t0 = time.perf_counter()
-    preview.render_png(scene, png)
-    render_s = time.perf_counter() - t0
+    render_s = None
+    if not png.is_file():  # --from-blend keeps a render made already
+        t0 = time.perf_counter()
+        preview.render_png(scene, png)
+        render_s = round(time.perf_counter() - t0, 1)
     for obj in results:
         mod = obj.modifiers.get(mesh_build.DECIMATE_MODIFIER)
         if mod is not None:
@@ -83,7 +105,7 @@ def agreement_and_baked(blend: Path, png: Path, baked: Path) -> dict:
     faces = [len(o.data.polygons) for o in results]
     bpy.ops.wm.save_as_mainfile(filepath=str(baked), check_existing=False, copy=True)
     size = baked.stat().st_size / 2**20
-    return {"agreement_render_s": round(render_s, 1), "baked_triangles": faces,
+    return {"agreement_render_s": render_s, "baked_triangles": faces,
             "baked_blend_mib": round(size, 1), "baked_blend_mib_per_sample": round(size / len(results), 1)}
 
 
@@ -116,15 +138,20 @@ def write_page(results: dict, args: argparse.Namespace, out_dir: Path) -> None:
         "put a surface there (yellow: all of them; teal to purple: fewer): the model's own confidence.",
         "",
         "| scan | points | triangles per sample (all kept) | .blend MiB per sample, all kept | "
-        "1 M triangles (Decimate applied) | import (s) | completed after (s) | batch wall (s) | agreement render (s) |",
+        "MiB per sample at 1 M triangles (Decimate applied) | import (s) | completed after (s) | batch wall (s) | agreement render (s) |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
+    def cell(v) -> str:
+        return "-" if v is None else str(v)
+
     for name, r in results.items():
+        r = {k: cell(v) if k.endswith("_s") else v for k, v in r.items()}
         lines.append(f"| {name} | {r['points']:,} | {', '.join(f'{t:,}' for t in r['triangles'])} | "
                      f"{r['blend_mib_per_sample']} | {r['baked_blend_mib_per_sample']} | {r['import_s']} | "
                      f"{r['completed_after_s']} | {r['batch_wall_s']} | {r['agreement_render_s']} |")
-    lines += ["", "Each row's renders: " + ", ".join(f"[{n} observed]({n}_observed.png), [{n} agreement]"
-                                                    f"({n}_agreement.png)" for n in results), ""]
+    lines += ["", "A '-': not timed in this run (its .blend measured again with `--from-blend`).",
+              "", "Each row's renders: " + ", ".join(f"[{n} observed](blender_render_{n}_observed.png), "
+                                                    f"[{n} agreement](blender_render_{n}_agreement.png)" for n in results), ""]
     (out_dir / "blender_render.md").write_text("\n".join(lines))
 
 
@@ -137,21 +164,24 @@ def main() -> int:
     p.add_argument("--python", default=sys.executable, help="the core's interpreter")
     p.add_argument("--cases", default=",".join(CASES))
     p.add_argument("--out-dir", type=Path, default=REPO / "benchmarks" / "results")
+    p.add_argument("--from-blend", type=Path, default=None, metavar="DIR",
+                   help="measure NAME.blend files a run saved in DIR instead of running the batch again")
     args = p.parse_args()
     out_dir = args.out_dir
     out_dir.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix="hgca_render_"))
+    work = args.from_blend or Path(tempfile.mkdtemp(prefix="hgca_render_"))
     results, rows = {}, []
     for name in args.cases.split(","):
         scans, extra = CASES[name]
-        blend, observed, agreement = work / f"{name}.blend", out_dir / f"{name}_observed.png", \
-            out_dir / f"{name}_agreement.png"
-        r = run_batch(name, scans, extra, blend, observed, args)
+        blend, observed, agreement = work / f"{name}.blend", out_dir / f"blender_render_{name}_observed.png", \
+            out_dir / f"blender_render_{name}_agreement.png"
+        r = blend_facts(blend) if args.from_blend else run_batch(name, scans, extra, blend, observed, args)
         r.update(agreement_and_baked(blend, agreement, work / f"{name}_baked.blend"))
         print(f"{name}: {r['triangles']} triangles, {r['blend_mib_per_sample']} MiB a sample "
               f"({r['baked_blend_mib_per_sample']} at 1 M), batch {r['batch_wall_s']} s", flush=True)
         results[name] = {k: v for k, v in r.items() if k != "log"}
         rows.append((name, observed, agreement))
+        (out_dir / "blender_render.json").write_text(json.dumps({"results": results}, indent=2))  # kept if stopped
     contact_sheet(rows, out_dir / "blender_render.png")
     meta = {"machine": platform.machine(), "cores": os.cpu_count(), "size": args.size,
             "render_samples": args.render_samples, "samples": args.samples, "load_avg": os.getloadavg()}
