@@ -280,6 +280,7 @@ def score(args, built: dict) -> int:
     result["seams"]["scored_run"] = f"long drive, {workers} workers"
     result["seams"]["ground_truth_s"] = round(time.perf_counter() - t, 1)
     plot(out, args.results / "drive.png", result["seams"])
+    result.setdefault("load_average", [round(v, 1) for v in os.getloadavg()])
     write(result, args.results)
     print(table(result))
     return 0
@@ -312,7 +313,7 @@ def table(r: dict) -> str:
     lines.append("")
     if r.get("t1"):
         lines.append(f"Stage {r['stage']} with T1 = {r['t1']} GCA steps per tile, fewer than the weights' own: on "
-                     "2 cores shared with other work (load average near 20 while it ran) the full stage or the full "
+                     "2 cores heavily loaded by other work the full stage or the full "
                      "chain on 1 km would not have finished in the time set for the benchmark.")
         lines.append("")
     g = r.get("worker_growth")
@@ -323,6 +324,9 @@ def table(r: dict) -> str:
                      f"{g['mib_per_tile']} MiB a tile (least squares over its tiles {g['n']} to {g['long_tiles']}), to "
                      f"{g['long_last']} GiB after {g['long_tiles']} tiles.")
         lines.append("")
+    lines.append("The runs ran one after another while other jobs on the machine came and went, so their tiles "
+                 "per minute compare only roughly.")
+    lines.append("")
     lines.append("On 1 worker the tiles run in the driver process, so its peak RSS holds every scan of the drive as "
                  "well as one tile; a Ray worker holds one tile at a time.")
     if "ray_equals_in_process" in r:

@@ -86,7 +86,8 @@ QUOTED = [
     ("docs/performance.md", "benchmarks/results/completion_scale_full_cpu.md", ["64.1", "2.90", "214.1", "5.31"]),
     ("docs/performance.md", "benchmarks/results/meshing_time.md", ["4.35", "5.76", "8.07"]),
     ("docs/performance.md", "benchmarks/results/train_scaling.md", ["0.878", "1.138", "0.840"]),
-    ("docs/performance.md", "benchmarks/results/drive.md", ["445.4", "266.8"]),
+    ("docs/performance.md", "benchmarks/results/drive_232m.md", ["445.4", "266.8"]),
+    ("docs/performance.md", "benchmarks/results/drive.md", ["2534", "0.97", "0.6404", "0.6552", "0.59"]),
 ]
 
 
