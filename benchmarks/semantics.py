@@ -376,7 +376,8 @@ def markdown(r: dict) -> str:
               "2-core machine, bf16 on 2 threads): the share, not the seconds, is the figure to read.",
               "", f"The head: {r.get('head_steps')} training steps (`hgca train --recipe semantics`) on "
               f"{r.get('head_train_scenes')} train scenes; classes with too few training cells (shelter, person) are "
-              "not learnt yet.", "", "![Completions coloured by class](semantics.png)", ""]
+              "not learnt yet.", "", *[x for note in r.get("notes", []) for x in (note, "")],
+              "![Completions coloured by class](semantics.png)", ""]
     return "\n".join(lines)
 
 
