@@ -143,3 +143,14 @@ def test_only_the_weights_module_loads_and_saves_with_torch():
     for call in loads:
         kw = {k.arg: k.value for k in call.keywords}
         assert isinstance(kw.get("weights_only"), ast.Constant) and kw["weights_only"].value is True
+
+
+def test_one_nearest_neighbour_backend():
+    """Only geometry/nearest.py builds a k-d tree: a second backend would give other neighbours on ties."""
+    import re
+    pattern = re.compile(r"\b(cKDTree|KDTree|pykdtree|sklearn\.neighbors)\b")
+    root = Path(__file__).resolve().parents[1] / "hgca_core"
+    users = sorted(str(p.relative_to(root)) for p in root.rglob("*.py")
+                   if p.name != "nearest.py" and any(pattern.search(line) and not line.lstrip().startswith("#")
+                                                     for line in p.read_text().splitlines()))
+    assert users == []

@@ -18,9 +18,9 @@ from typing import Callable
 import numpy as np
 import torch
 from scipy import ndimage
-from scipy.spatial import cKDTree
 from torch import nn
 
+from hgca_core.geometry.nearest import PointIndex
 from hgca_core.geometry.voxel import COARSE
 from hgca_core.io.classes import CLASS_COLORS, CLASS_NAMES  # noqa: F401  (re-exported)
 from hgca_core.models.config import Config
@@ -142,7 +142,7 @@ def face_labels(points: np.ndarray, cells: np.ndarray, labels: np.ndarray) -> np
     if len(p) == 0 or len(cells) == 0:
         return np.zeros(len(p), np.uint8)
     centres = (np.asarray(cells, dtype=np.float64) + 0.5) * COARSE
-    _, i = cKDTree(centres).query(p, k=1, workers=1)
+    i = PointIndex(centres).nearest(p)[1]
     return np.asarray(labels, dtype=np.uint8)[i]
 
 

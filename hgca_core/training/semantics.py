@@ -18,9 +18,9 @@ from typing import Sequence
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import nn
 
+from hgca_core.geometry.nearest import PointIndex
 from hgca_core.geometry.voxel import COARSE, voxelize
 from hgca_core.models.semantics import CLASS_NAMES, SemanticHead, SemanticsConfig, cell_features, fitted_ground
 from hgca_core.training.buffer import Chain
@@ -56,7 +56,7 @@ def cell_labels(cells: np.ndarray, surface: np.ndarray, surface_label: np.ndarra
     out = np.zeros(len(c), np.uint8)
     out[hit] = cell_lab[pos[hit]]
     if (~hit).any() and len(surface):
-        _, i = cKDTree(surface).query((c[~hit] + 0.5) * COARSE, k=1, workers=1)
+        i = PointIndex(surface).nearest((c[~hit] + 0.5) * COARSE)[1]
         out[~hit] = lab[i]
     return out
 
@@ -113,7 +113,7 @@ def perturb(cells: np.ndarray, labels: np.ndarray, observed: np.ndarray, rng: np
         _, first = np.unique(_keys(new), return_index=True)
         new = new[first]
         if len(new):
-            _, i = cKDTree(c).query(new, k=1, workers=1)
+            i = PointIndex(c).nearest(new)[1]
             c, lab, obs = np.r_[c, new], np.r_[lab, lab[i]], np.r_[obs, np.zeros(len(new), bool)]
             c = np.c_[c[:, :2] - c[:, :2].min(0), c[:, 2]]
     obs = obs.copy()

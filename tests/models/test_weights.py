@@ -11,6 +11,7 @@ from hgca_core.errors import InputError
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel
 from hgca_core.models.gca import GCAConfig, GCAKernel
+from hgca_core.models.semantics import SemanticHead, SemanticsConfig
 from hgca_core.models.weights import (KINDS, WEIGHTS_DIR, check_config, identify, load_autoencoder, load_coarse,
                                       load_file, load_fine, save_file, save_weights, shipped)
 
@@ -74,8 +75,8 @@ def test_cache_sees_a_file_rewritten_in_place(tmp_path):
 def test_packaged_files_are_plain_and_of_their_kind():
     """Every shipped file loads with weights_only=True, holds fp16 / integer tensors and is the kind its name says."""
     names = sorted(p.name for p in WEIGHTS_DIR.glob("*.pt"))
-    assert names == ["autoencoder.pt", "coarse.pt", "coarse_noplanner.pt", "fine.pt"]
-    for stage in ("coarse", "coarse-noplanner", "autoencoder", "fine"):
+    assert names == ["autoencoder.pt", "coarse.pt", "coarse_noplanner.pt", "fine.pt", "semantics.pt"]
+    for stage in ("coarse", "coarse-noplanner", "autoencoder", "fine", "semantics"):
         blob = load_file(shipped(stage))
         assert identify(blob) == (stage.split("-")[0], False)
         assert all(v.dtype in (torch.float16, torch.int64) for v in blob["state_dict"].values())
@@ -167,7 +168,7 @@ def test_unreadable_files(tmp_path):
 def test_kinds_table_covers_the_models():
     assert {k: (v.config, v.model) for k, v in KINDS.items()} == {
         "coarse": (GCAConfig, GCAKernel), "fine": (CGCAConfig, CGCAKernel),
-        "autoencoder": (AutoencoderConfig, Autoencoder)}
+        "autoencoder": (AutoencoderConfig, Autoencoder), "semantics": (SemanticsConfig, SemanticHead)}
 
 
 def test_blend_interpolates_tensor_by_tensor_and_refuses_what_does_not_fit(files, tmp_path):
