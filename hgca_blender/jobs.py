@@ -45,6 +45,8 @@ class CompletionParams:
     t2: int = 0                  # 0: the core's default, from the weights
     max_faces: int = 0           # 0: no limit
     decimate_to: int = 0         # > 0: every triangle kept, a Decimate modifier shows this many
+    semantics: bool = False      # `--semantics`: a class per face, a material per class
+    class_collections: bool = False   # with semantics: a collection per class as well
     scene_name: str = ""
     run_name: str = ""
     extra_args: list[str] = field(default_factory=list)
@@ -106,6 +108,7 @@ def completion_args(params: CompletionParams, in_path: Path, out_path: Path) -> 
             "--seed", str(int(params.seed)), "--stage", params.stage, "--device", params.device,
             *steps, "--progress", "jsonl",
             "--max-faces", str(int(params.max_faces)),      # 0: every triangle (the core's default is 1 M)
+            *(["--semantics"] if params.semantics else []),
             *params.extra_args, "-o", str(out_path)]
 
 
@@ -161,7 +164,8 @@ class CompletionJob(Job):
         scene = self._scene()
         if scene is None:
             raise CoreError(f"scene {self.scene_name!r} no longer exists")
-        collection = mesh_build.build_results(scene, outputs, self.run_name, int(self.params.decimate_to))
+        collection = mesh_build.build_results(scene, outputs, self.run_name, int(self.params.decimate_to),
+                                              class_collections=bool(self.params.class_collections))
         self.collection_name = collection.name
         undo_push(f"hGCA: {self.run_name}")
 

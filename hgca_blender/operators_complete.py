@@ -49,7 +49,8 @@ def gather_params(context: bpy.types.Context) -> jobs.CompletionParams:
         region=georef.region_to_world(scene, panel_region(context)),
         samples=props.samples, seed=props.seed, stage=props.stage, device=props.device,
         t1=props.t1, t2=props.t2, max_faces=properties.face_limit(props),
-        decimate_to=properties.decimate_limit(props), scene_name=context.scene.name,
+        decimate_to=properties.decimate_limit(props), semantics=props.semantics,
+        class_collections=props.semantics and props.class_collections, scene_name=context.scene.name,
         extra_args=preferences.core_extra_args(context))
 
 

@@ -109,6 +109,10 @@ class HGCA_PT_main(_SidebarTab, bpy.types.Panel):
         row = col.row()
         row.active = not props.keep_all_faces
         row.prop(props, "face_limit_mode", expand=True)
+        col.prop(props, "semantics")
+        row = col.row()
+        row.active = props.semantics
+        row.prop(props, "class_collections")
         col.prop(props, "device")
 
 

@@ -82,6 +82,12 @@ class HGCA_PG_scene(bpy.types.PropertyGroup):
                ("MODIFIER", "Modifier", "Keep every triangle and show Max Faces through a Decimate modifier: "
                                         "tune its ratio live, apply or remove it (larger files)")])
 
+    semantics: BoolProperty(name="Classes", default=False,
+                            description="Label every face with its class (road, sidewalk, building, car, tree, "
+                                        "pole, ...) and give each class a material whose colour you can change")
+    class_collections: BoolProperty(name="Collection per Class", default=False,
+                                    description="Also split each labelled result into one collection per class")
+
     drive_dir: StringProperty(name="Drive Folder", subtype="DIR_PATH", default="",
                               description="Folder the drive's tiles are kept in (running again resumes; empty: "
                                           "hgca_drive beside the saved .blend, else in the temporary folder)")

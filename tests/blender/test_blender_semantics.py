@@ -92,3 +92,15 @@ def test_bad_labels_leave_the_file_as_it_was(addon, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="face_label"):
         mesh_build.build_results(bpy.context.scene, [path], "hGCA test")
     assert (len(bpy.data.objects), len(bpy.data.meshes), len(bpy.data.materials), len(bpy.data.collections)) == before
+
+
+def test_panel_classes_reach_the_core_command_line(addon) -> None:
+    """The panel's Classes box asks the core for `--semantics`; off, the command is the plain completion."""
+    jobs = addon_module("jobs")
+    props = bpy.context.scene.hgca
+    assert props.semantics is False and props.class_collections is False
+    base = dict(python="python", points=np.zeros((1, 3)), region=(0.0, 0.0, 0.0, 9.6, 9.6, 8.0, 0.0))
+    plain = jobs.completion_args(jobs.CompletionParams(**base), Path("in.npz"), Path("out.npz"))
+    labelled = jobs.completion_args(jobs.CompletionParams(**base, semantics=True), Path("in.npz"), Path("out.npz"))
+    assert "--semantics" not in plain
+    assert [a for a in labelled if a not in plain] == ["--semantics"]
