@@ -27,6 +27,8 @@ import time
 from collections import Counter, defaultdict
 from pathlib import Path
 
+from common import write_page
+
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")    # as the CLI sets it (hgca_core/cli.py)
 
 REPO = Path(__file__).resolve().parents[1]
@@ -317,11 +319,7 @@ def main() -> int:
                                                                                       "seconds")}), flush=True)
             if pyspy and t == max(args.threads) and (args.pyspy_stages is None or stage in args.pyspy_stages):
                 result["rows"].append(run_worker(stage, t, "plain", pyspy))
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"{args.out}.json").write_text(json.dumps(result, indent=1))
-    (RESULTS / f"{args.out}.md").write_text(page(result))
-    plot(result, RESULTS / f"{args.out}.png")
-    print(page(result))
+    print(write_page(RESULTS, args.out, result, page, plot))
     return 0
 
 

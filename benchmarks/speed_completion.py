@@ -19,6 +19,8 @@ import subprocess
 import time
 from pathlib import Path
 
+from common import write_page
+
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "hgca_core" / "examples"
 RESULTS = REPO / "benchmarks" / "results"
@@ -125,11 +127,7 @@ def main() -> int:
             configs.append({"stage": stage, "old": args.label_old or str(args.old), "new": args.label_new or
                             str(args.new), "load": load, "report": parse(out), "raw": out})
     result = {"date": time.strftime("%Y-%m-%d %H:%M", time.gmtime()), "configs": configs, "notes": args.note}
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"{args.out}.json").write_text(json.dumps(result, indent=1))
-    (RESULTS / f"{args.out}.md").write_text(page(result))
-    plot(result, RESULTS / f"{args.out}.png")
-    print(page(result))
+    print(write_page(RESULTS, args.out, result, page, plot))
     return 0
 
 
