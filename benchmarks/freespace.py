@@ -37,7 +37,7 @@ def main() -> None:
     from hgca_core.geometry.freespace import observed_empty, ray_origins
     from hgca_core.geometry.region import Region
     from hgca_core.geometry.voxel import COARSE
-    from hgca_core.real_eval import read_input
+    from hgca_core.metrics.real_eval import read_input
 
     root = Path(args.real_dir)
     rows = []

@@ -146,7 +146,7 @@ def real_inputs(root: Path) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarra
     """(points, origins, each point's origin row) of the real fixtures `hgca eval-real` scores by default (both
     Argoverse 2 logs and the nuScenes sweep, those present under `root`), world frame."""
     from hgca_core.commands.eval_real import inputs_of
-    from hgca_core.real_eval import input_rays
+    from hgca_core.metrics.real_eval import input_rays
 
     items = inputs_of(argparse.Namespace(inputs=[], real_dir=str(root)))
     return {item["name"]: input_rays(item) for item in items if Path(item["path"]).exists()}

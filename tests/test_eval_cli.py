@@ -116,21 +116,20 @@ def test_eval_full_stage_table(small_split, small_fine, tmp_path):
 def test_eval_scores_what_complete_ships(small_split):
     """The hgca row is the score of `hgca_core.complete`'s own mesh (world frame, moved back into the sample's
     region frame), and the input row meshes its cells as the coarse stage does (cube faces)."""
-    import argparse
-
     import hgca_core
-    from hgca_core.commands.eval import evaluate_methods, load_method_models
     from hgca_core.geometry.region import Region
     from hgca_core.geometry.voxel import voxelize
     from hgca_core.geometry.voxel_mesh import voxel_mesh
     from hgca_core.metrics.evaluate import evaluate_sample
+    from hgca_core.metrics.settings import EvalSettings
+    from hgca_core.metrics.synthetic import evaluate_methods, load_method_models
     from hgca_core.models.weights import shipped
     from hgca_core.synth.dataset import load_sample
     from hgca_core.synth.rays import input_rays
 
     path = small_split / "val" / "sample_1000123.npz"
-    args = argparse.Namespace(samples=1, seed=3, t1=2, t2=None, precision="fp32")
-    got = evaluate_methods(path, ["input", "hgca"], load_method_models(["hgca"], None), args)
+    settings = EvalSettings(samples=1, seed=3, t1=2, t2=None, precision="fp32", free_space="auto")
+    got = evaluate_methods(path, ["input", "hgca"], load_method_models(["hgca"], None), settings)
     sample = load_sample(path)
     region = Region.from_tuple(sample["region"])
     rays, scan = input_rays(sample)       # every hit, beyond the region too, as a user's scan holds them
@@ -171,7 +170,7 @@ def test_eval_full_stage_without_fine_weights_is_a_clear_error(small_split, tmp_
 def test_eval_weights_flags_choose_the_model_files():
     """--weights / --noplanner-weights put the named files in the hgca / gca rows (a run's checkpoint scored
     against the shipped model); unnamed, the shipped ones."""
-    from hgca_core.commands.eval import load_method_models
+    from hgca_core.metrics.synthetic import load_method_models
     from hgca_core.models.weights import shipped
 
     swapped = load_method_models(["gca", "hgca"], None, weights=str(shipped("coarse-noplanner")),

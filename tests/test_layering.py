@@ -154,3 +154,19 @@ def test_one_nearest_neighbour_backend():
                    if p.name != "nearest.py" and any(pattern.search(line) and not line.lstrip().startswith("#")
                                                      for line in p.read_text().splitlines()))
     assert users == []
+
+
+def test_only_the_front_ends_read_the_command_line():
+    """The library takes plain values (configs, settings dataclasses), never an argparse namespace: no function
+    outside `commands` and `cli` has a parameter named `args`, and none of them imports argparse."""
+    found = []
+    for name, path in MODULES.items():
+        if layer(name) in FRONT_ENDS:
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                params = node.args.posonlyargs + node.args.args + node.args.kwonlyargs
+                found += [f"{name}.{node.name}" for a in params if a.arg == "args"]
+            elif isinstance(node, ast.Import) and any(a.name == "argparse" for a in node.names):
+                found.append(f"{name} imports argparse")
+    assert found == []

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 from pathlib import Path
 
 METHODS = ("input", "poisson", "gca", "hgca", "hgca-full")
@@ -46,6 +45,8 @@ def run(args: argparse.Namespace) -> int:
 
     from hgca_core.errors import InputError
     from hgca_core.metrics.evaluate import aggregate, format_table
+    from hgca_core.metrics.settings import EvalSettings
+    from hgca_core.metrics.synthetic import evaluate_methods, load_method_models
     from hgca_core.models.weights import WEIGHTS_DIR, weights_record
     from hgca_core.nn.conv import precision_name, resolve_precision
     from hgca_core.training.data import split_files
@@ -73,11 +74,13 @@ def run(args: argparse.Namespace) -> int:
         record = merge_weights(record, old_record, path)
         reused = {**old_rows, **reused}      # the later files first in priority, as given
     models = load_method_models(methods, args.fine_weights, args.weights, args.noplanner_weights)
+    settings = EvalSettings(samples=args.samples, seed=args.seed, t1=args.t1, t2=args.t2, precision=args.precision,
+                            free_space=args.free_space)
     results: dict[str, list[dict]] = {r: [] for m in methods for r in rows_of[m]}
     timings: dict[str, list[float]] = {r: [] for m in methods for r in rows_of[m]}
     kept: dict = {}        # the first scene's first completion per row, for --render
     for i, path in enumerate(tqdm(files, desc=f"eval {args.split}", unit="scene")):
-        for row, (res, secs) in evaluate_methods(path, methods, models, args,
+        for row, (res, secs) in evaluate_methods(path, methods, models, settings,
                                                  kept if args.render and i == 0 else None).items():
             results[row].append(res)
             timings[row].append(secs)
@@ -125,101 +128,6 @@ def check_eval_outputs(args: argparse.Namespace) -> None:
     if outputs:
         check_outputs(outputs, [args.data, args.weights, args.fine_weights, args.noplanner_weights,
                                 *(p for p in (args.reuse or []) if not args.out or Path(p) != Path(args.out))])
-
-
-def load_method_models(methods: list[str], fine_weights: str | None, weights: str | None = None,
-                       noplanner_weights: str | None = None) -> dict:
-    """`pipeline.Models` per model-based method: gca = the no-planner weights, hgca / hgca-full = the planner
-    weights (with the fine stage when hgca-full is asked for), shipped unless named, loaded once for the split."""
-    from hgca_core.models.weights import weights_files
-    from hgca_core.pipeline import load_models
-
-    files = weights_files(methods, weights, fine_weights, noplanner_weights)   # the files `weights_record` names
-    models = {}
-    if "noplanner" in files:
-        models["gca"] = load_models("coarse", files["noplanner"])
-    if "coarse" in files:
-        models["hgca"] = load_models("full" if "fine" in files else "coarse", files["coarse"], files.get("fine"))
-    return models
-
-
-def evaluate_methods(path: Path, methods: list[str], models: dict, args: argparse.Namespace,
-                     keep: dict | None = None) -> dict:
-    """{row: (metrics of the k completions of one sample, seconds per completion)} for each method's rows; the
-    seconds are the method's own (making the completion and its mesh), not the scoring's. `keep`, when given,
-    receives each row's first mesh ({row: trimesh}), the one scored first.
-
-    Model rows run the product's region-frame core (`pipeline.complete_local`) on the sample's input, which the
-    dataset stores in its region frame, and score the meshes it returns: the coarse stage's cube-face mesh for
-    gca / hgca, the implicit mesh for hgca-implicit; hgca-10cm scores the fine cells, meshed by the same
-    `voxel_mesh`, as is the input row. hgca borrows the coarse cells of hgca-full's run when both are asked for
-    (the same weights and seeds give the same chains); its time is then that run's coarse share plus meshing.
-    """
-    import numpy as np
-
-    from hgca_core.geometry.region import Region
-    from hgca_core.geometry.voxel import COARSE, FINE, downsample
-    from hgca_core.geometry.voxel_mesh import voxel_mesh
-    from hgca_core.metrics.baselines import input_baseline, poisson_baseline
-    from hgca_core.metrics.evaluate import evaluate_sample
-    from hgca_core.pipeline import complete_local
-    from hgca_core.progress import StageClock
-    from hgca_core.synth.dataset import load_sample
-    from hgca_core.synth.rays import input_rays
-
-    sample = load_sample(path)
-    pts = np.asarray(sample["input_points"], dtype=np.float64)
-    rays, ray_scan = input_rays(sample)   # hgca's free space walks every ray, as on a real scan
-    region = Region.from_tuple(sample["region"])
-    k = args.samples
-    runs: dict[tuple[str, str], tuple[list, StageClock]] = {}
-    coarse_stages = ("voxelise", "planner", "coarse")
-
-    def core(name: str, stage: str) -> tuple[list, StageClock]:
-        if (name, stage) not in runs:
-            clock = StageClock()
-            runs[name, stage] = (complete_local(rays, region, models[name], stage, k, args.seed, args.t1, args.t2,
-                                                clock, args.precision, origins=sample["input_origins"],
-                                                origin_index=ray_scan,
-                                                free_space=getattr(args, "free_space", "auto")), clock)
-        return runs[name, stage]
-
-    out = {}
-    for m in methods:
-        t0 = time.perf_counter()
-        if m == "input":
-            cells, mesh = input_baseline(pts, region.size)
-            secs = time.perf_counter() - t0
-            out[m] = (evaluate_sample(sample, [mesh], [cells]), secs)
-        elif m == "poisson":
-            mesh = poisson_baseline(pts, np.asarray(sample["input_origins"]))
-            secs = time.perf_counter() - t0
-            out[m] = (evaluate_sample(sample, [mesh]), secs)
-        elif m == "hgca-full":  # one fine run per completion, scored as 10 cm voxels and as the implicit mesh
-            done, clock = core("hgca", "full")
-            gen = clock.total(*coarse_stages, "fine")
-            vox = [voxel_mesh(r.fine_cells, FINE) for r in done]
-            out["hgca-10cm"] = (evaluate_sample(sample, vox, [downsample(r.fine_cells) for r in done]), gen / k)
-            out["hgca-implicit"] = (evaluate_sample(sample, [r.mesh for r in done]), (gen + clock.total("mesh")) / k)
-        elif m == "hgca" and "hgca-full" in methods:
-            done, clock = core("hgca", "full")
-            t1 = time.perf_counter()
-            meshes = [voxel_mesh(r.coarse_cells, COARSE) for r in done]   # what complete_local's coarse stage ships
-            secs = clock.total(*coarse_stages) + time.perf_counter() - t1
-            out[m] = (evaluate_sample(sample, meshes, [r.coarse_cells for r in done]), secs / k)
-        else:  # gca, hgca: the coarse stage as `hgca complete --stage coarse` runs it
-            done, clock = core(m, "coarse")
-            out[m] = (evaluate_sample(sample, [r.mesh for r in done], [r.coarse_cells for r in done]),
-                      clock.total() / k)
-        if keep is None:
-            continue
-        if m in ("input", "poisson"):
-            keep[m] = mesh
-        elif m == "hgca-full":
-            keep.update({"hgca-10cm": vox[0], "hgca-implicit": done[0].mesh})
-        else:   # gca, hgca: the mesh scored above (hgca's voxel mesh of hgca-full's cells when both run)
-            keep[m] = meshes[0] if m == "hgca" and "hgca-full" in methods else done[0].mesh
-    return out
 
 
 def render_scene(path: Path, rows: list[tuple[str, "trimesh.Trimesh"]], png: str | Path, seed: int = 0) -> None:

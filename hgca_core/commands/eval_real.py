@@ -16,7 +16,7 @@ from pathlib import Path
 
 from hgca_core.commands.arguments import (add_free_space_argument, add_out_argument, add_precision_argument,
                                           counted, finite_float, samples_arg, seed_arg, steps_arg)
-from hgca_core.real_eval import METHODS
+from hgca_core.metrics.real_eval import METHODS
 
 # The real fixtures shipped with the repository (tests/data/real), wherever the command is run from
 DEFAULT_REAL = str(Path(__file__).resolve().parents[2] / "tests" / "data" / "real")
@@ -86,7 +86,7 @@ def inputs_of(args: argparse.Namespace) -> list[dict]:
 
 
 def default_items(root: str | Path) -> list[dict]:
-    """The fixtures of DEFAULT_INPUTS under the real fixtures folder `root`, as `real_eval` reads an input (name,
+    """The fixtures of DEFAULT_INPUTS under the real fixtures folder `root`, as `metrics.real_eval` reads an input (name,
     path, frames, calibration); the benchmarks on the real logs read them through this too."""
     root = Path(root)
     return [{"name": n, "path": str(root / p), "frames": f, "calibration": None if c is None else str(root / c)}
@@ -118,7 +118,13 @@ def run(args: argparse.Namespace) -> int:
                                                   args.noplanner_weights])
     torch.set_num_threads(max(1, args.threads))
     from hgca_core.models.weights import weights_record
-    from hgca_core.real_eval import WAYMO_NA, evaluate_input, format_tables
+    from hgca_core.metrics.real_eval import WAYMO_NA, evaluate_input, format_tables
+    from hgca_core.metrics.settings import RealEvalSettings
+
+    settings = RealEvalSettings(samples=args.samples, seed=args.seed, t1=args.t1, t2=args.t2,
+                                precision=args.precision, free_space=args.free_space, weights=args.weights,
+                                fine_weights=args.fine_weights, noplanner_weights=args.noplanner_weights,
+                                full_samples=args.full_samples, threads=args.threads, yaw=args.yaw)
 
     items = inputs_of(args)
     config = {"methods": methods, "cuts": cuts, "full_cuts": full_cuts, "samples": args.samples,
@@ -140,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
 
     for item in tqdm(items, desc="eval-real", unit="input"):
         name = item["name"]
-        res = evaluate_input(item, methods, cuts, full_cuts, args, out, render=not args.no_render,
+        res = evaluate_input(item, methods, cuts, full_cuts, settings, out, render=not args.no_render,
                              done=earlier.get("inputs", {}).get(name), saved=lambda r, n=name: save(n, r))
         save(name, res)
     print(format_tables(results))

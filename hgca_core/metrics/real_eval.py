@@ -19,6 +19,7 @@ from hgca_core.geometry.freespace import HALF, confident, observed_empty, ray_or
 from hgca_core.geometry.region import BELOW_GROUND, Region
 from hgca_core.geometry.voxel import COARSE, voxelize
 from hgca_core.metrics.realscan import cut_scores, free_space_scores, generated_cells, summarise
+from hgca_core.metrics.settings import RealEvalSettings
 
 SPACING = 0.05  # surface sampling of meshes before voxelising them (as `hgca eval` does)
 METHODS = ("input", "poisson", "gca", "hgca", "hgca-full")
@@ -76,30 +77,31 @@ def height_cut(local: np.ndarray, inside: np.ndarray, region: Region, h: float |
 class Runner:
     """Runs each method on one input case and keeps sample 0's mesh of the best row for the renderings."""
 
-    def __init__(self, args, region: Region, origins: np.ndarray) -> None:
+    def __init__(self, settings: RealEvalSettings, region: Region, origins: np.ndarray) -> None:
         from hgca_core.models.weights import weights_files
 
-        self.args, self.region, self.origins = args, region, origins
+        self.settings, self.region, self.origins = settings, region, origins
         # the files `weights_record` digests for the results' config: loaded from the same one decision
-        self.files = weights_files(["hgca-full", "gca"], args.weights, args.fine_weights, args.noplanner_weights)
-        self.k = args.samples
-        self.kf = args.full_samples or args.samples
+        self.files = weights_files(["hgca-full", "gca"], settings.weights, settings.fine_weights,
+                                   settings.noplanner_weights)
+        self.k = settings.samples
+        self.kf = settings.full_samples or settings.samples
         self.index: np.ndarray | None = None
 
     def _complete(self, pts: np.ndarray, samples: int, seed: int, stage: str, role: str):
-        """`hgca_core.complete` of `pts`, each point's ray from its own sensor origin (`self.index`, set per case
-        by `cells`), as `hgca complete` does for the same scans."""
-        import hgca_core
+        """`hgca_core.complete` (`pipeline.complete`) of `pts`, each point's ray from its own sensor origin
+        (`self.index`, set per case by `cells`), as `hgca complete` does for the same scans."""
+        from hgca_core.pipeline import complete
 
-        return hgca_core.complete(pts, region=self.region, origins=self.origins, samples=samples, seed=seed,
-                                  stage=stage, t1=self.args.t1, t2=self.args.t2, weights=self.files[role],
-                                  fine_weights=self.files["fine"], precision=self.args.precision,
-                                  origin_index=self.index, free_space=getattr(self.args, "free_space", "auto"))
+        return complete(pts, region=self.region, origins=self.origins, samples=samples, seed=seed, stage=stage,
+                        t1=self.settings.t1, t2=self.settings.t2, weights=self.files[role],
+                        fine_weights=self.files["fine"], precision=self.settings.precision,
+                        origin_index=self.index, free_space=self.settings.free_space)
 
     def cells(self, method: str, pts: np.ndarray, full: bool, index: np.ndarray | None = None) -> dict[str, Any]:
         """{method row: (list of cell sets, seconds per completion, sample-0 mesh or None)}; `index` (N,): each
         point's row in the origins (None: the nearest origin)."""
-        args, region = self.args, self.region
+        settings, region = self.settings, self.region
         self.index = index
         local = region.to_local(pts)
         inside = region.contains_local(local)
@@ -109,27 +111,27 @@ class Runner:
         if method == "poisson":
             from hgca_core.metrics.baselines import poisson_baseline
 
-            mesh = poisson_baseline(local[inside], region.to_local(self.origins), n_threads=args.threads)
+            mesh = poisson_baseline(local[inside], region.to_local(self.origins), n_threads=settings.threads)
             mesh.vertices = region.to_world(mesh.vertices)
-            return {"poisson": ([_mesh_cells(mesh, region, args.seed)], time.time() - t, mesh)}
+            return {"poisson": ([_mesh_cells(mesh, region, settings.seed)], time.time() - t, mesh)}
         if method == "gca":
-            res = self._complete(pts, self.k, args.seed, "coarse", "noplanner")
+            res = self._complete(pts, self.k, settings.seed, "coarse", "noplanner")
             return {"gca": ([r.coarse_cells for r in res], (time.time() - t) / self.k, res[0].mesh)}
         # hgca (+ hgca-full): the full stage's coarse cells are the coarse row's samples (same seeds)
         rows: dict[str, Any] = {}
         coarse, meshes, seconds_full = [], [], 0.0
         if full:
-            res = self._complete(pts, self.kf, args.seed, "full", "coarse")
+            res = self._complete(pts, self.kf, settings.seed, "full", "coarse")
             seconds_full = (time.time() - t) / self.kf
             coarse += [r.coarse_cells for r in res]
-            cells_full = [_mesh_cells(r.mesh, region, args.seed + i) for i, r in enumerate(res)]
+            cells_full = [_mesh_cells(r.mesh, region, settings.seed + i) for i, r in enumerate(res)]
             rows["hgca-full"] = (cells_full, seconds_full, res[0].mesh)
             meshes = [r.mesh for r in res[:1]]
             del res
         t = time.time()
         extra = self.k - len(coarse)
         if extra > 0:
-            res = self._complete(pts, extra, args.seed + len(coarse), "coarse", "coarse")
+            res = self._complete(pts, extra, settings.seed + len(coarse), "coarse", "coarse")
             coarse += [r.coarse_cells for r in res]
             meshes = meshes or [res[0].mesh]
             seconds_coarse = (time.time() - t) / extra
@@ -139,14 +141,15 @@ class Runner:
         return rows
 
 
-def evaluate_input(item: dict, methods: list[str], cuts: list[float], full_cuts: list[float], args,
+def evaluate_input(item: dict, methods: list[str], cuts: list[float], full_cuts: list[float],
+                   settings: RealEvalSettings,
                    out: Path, render: bool = True, done: dict | None = None,
                    saved: Callable[[dict], None] | None = None) -> dict[str, Any]:
     """All cases and methods of one input; writes its renderings beside `out`. Cases in `done` (an earlier
     run's result for this input, same settings) are kept, not recomputed; `saved(result)` is called after each
     case so an interrupted run loses at most one case."""
     pts, origins, index = input_rays(item)
-    region = Region.around(pts, sensor=origins[0], yaw=float(np.radians(args.yaw)))
+    region = Region.around(pts, sensor=origins[0], yaw=float(np.radians(settings.yaw)))
     local = region.to_local(pts)
     inside = region.contains_local(local)
     shape = region.grid_shape(COARSE)
@@ -171,7 +174,7 @@ def evaluate_input(item: dict, methods: list[str], cuts: list[float], full_cuts:
         # another region (newer code places it differently): earlier cases would not be comparable
         tqdm.write(f"{item['name']}: region differs from the earlier run's, recomputing every case", file=sys.stderr)
         done = None
-    runner = Runner(args, region, origins)
+    runner = Runner(settings, region, origins)
     cases = [("full", None)] + [(f"cut_{h:g}", h) for h in sorted(cuts, reverse=True)]
     for case, h in tqdm(cases, desc=item["name"], unit="case", leave=False):
         if done and case in done.get("cases", {}):
