@@ -95,10 +95,7 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     ext = "." + cfg.mesh_format
     _check_outputs(paths, poses, store, weight_files(stage, weights, fine_weights))
     threads = threads or max(1, (os.cpu_count() or 1) // workers)
-    # max_faces 0 (keep every triangle) is None in a tile's key, as it was before the config named it
-    tile = Settings(stage=stage, samples=samples, seed=seed, t1=t1, t2=t2, precision=c.precision,
-                    max_faces=c.max_faces or None, weights=weights, fine_weights=fine_weights, device=device,
-                    threads=threads, free_space=c.free_space)
+    tile = Settings.of(c, threads)
     load_models(stage, weights, fine_weights, device)              # bad weights fail before reading a scan
     digests = tuple(file_digest(p) for p in weight_files(stage, weights, fine_weights))
 

@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
+from hgca_core.config import CompletionConfig
 from hgca_core.errors import InputError
 from hgca_core.geometry.region import Region
 from hgca_core.geometry.voxel import COARSE, cell_centers, voxelize
 from hgca_core.io.digest import file_digest
-from hgca_core.nn.precision import DEFAULT_PRECISION
 
 KEY_VERSION = 3   # bump when the same key would give different content (a change to this algorithm)
 
@@ -35,18 +35,26 @@ class Settings:
     thread-count independent). bf16 GEMMs (oneDNN) differ between thread counts on some CPUs, so at any other
     precision the thread count is part of the key: a resumed drive never mixes tiles made on 1 and 2 threads."""
 
-    stage: str = "full"
-    samples: int = 1
-    seed: int = 0
-    t1: int | None = None
-    t2: int | None = None
-    precision: str = DEFAULT_PRECISION
-    max_faces: int | None = None
-    weights: str | None = None
-    fine_weights: str | None = None
-    device: str = "cpu"
-    threads: int = 1
-    free_space: str = "auto"       # as `hgca complete --free-space`: the scans' rays travel with them
+    # no defaults here: `tiling.run.drive` fills every field from its `DriveConfig`, the one home of the defaults
+    stage: str
+    samples: int
+    seed: int
+    t1: int | None
+    t2: int | None
+    precision: str
+    max_faces: int | None           # 0 (keep every triangle) is None, as in keys written before the config
+    weights: str | None
+    fine_weights: str | None
+    device: str
+    threads: int
+    free_space: str                 # as `hgca complete --free-space`: the scans' rays travel with them
+
+    @classmethod
+    def of(cls, c: CompletionConfig, threads: int) -> "Settings":
+        """A drive's tile settings: its completion config's fields, on `threads` torch threads."""
+        return cls(stage=c.stage, samples=c.samples, seed=c.seed, t1=c.t1, t2=c.t2, precision=c.precision,
+                   max_faces=c.max_faces or None, weights=c.weights, fine_weights=c.fine_weights, device=c.device,
+                   threads=threads, free_space=c.free_space)
 
     def keyed(self) -> dict:
         d = asdict(self)

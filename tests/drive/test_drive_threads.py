@@ -11,13 +11,19 @@ import sys
 import numpy as np
 
 from drive_data import write_drive
+from hgca_core.config import DriveConfig
 from hgca_core.tiling.tile import Settings
 
 
+def _settings(threads: int, precision: str | None = None) -> Settings:
+    c = DriveConfig().completion
+    return Settings.of(c if precision is None else c.with_(precision=precision), threads)
+
+
 def test_thread_count_enters_the_key_only_where_it_can_change_the_result():
-    assert Settings(threads=1).keyed() == Settings(threads=2).keyed()
-    assert Settings(threads=1, precision="bf16").keyed() != Settings(threads=2, precision="bf16").keyed()
-    assert Settings(threads=1, precision="auto").keyed() != Settings(threads=2, precision="auto").keyed()
+    assert _settings(1).keyed() == _settings(2).keyed()
+    assert _settings(1, "bf16").keyed() != _settings(2, "bf16").keyed()
+    assert _settings(1, "auto").keyed() != _settings(2, "auto").keyed()
 
 
 def test_drive_on_1_and_2_threads_gives_the_same_tiles_and_keys(tmp_path, drive_weights):
