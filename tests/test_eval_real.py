@@ -210,7 +210,7 @@ def test_eval_real_free_space_mask_reaches_the_model_rows(tmp_path, small_weight
 def test_eval_real_completes_with_each_points_own_sensor_origin(tmp_path, small_weights, monkeypatch):
     """The completions see each point's ray from its own sensor (the reader's origin_index), as `hgca complete`
     does, not the nearest origin: here every point belongs to the farther of two sensors."""
-    import hgca_core
+    import hgca_core.pipeline
     from hgca_core.cli import main
 
     s = tiny_sample(3)
@@ -219,13 +219,13 @@ def test_eval_real_completes_with_each_points_own_sensor_origin(tmp_path, small_
     np.savez(scan, points=pts, origins=[[3.0, 3.0, 3.0], [3.0, 3.0, 40.0]],
              origin_index=np.ones(len(pts), dtype=np.int64))
     seen = []
-    real = hgca_core.complete
+    real = hgca_core.pipeline.complete         # what `hgca_core.complete` is, and what eval-real calls
 
     def spy(points, **kw):
         seen.append((len(points), kw.get("origin_index")))
         return real(points, **kw)
 
-    monkeypatch.setattr(hgca_core, "complete", spy)
+    monkeypatch.setattr(hgca_core.pipeline, "complete", spy)
     out = tmp_path / "real.json"
     assert main(["eval-real", str(scan), "--out", str(out), "--methods", "hgca", "--samples", "1", "--weights",
                  str(small_weights), "--t1", "2", "--cuts", "1.0", "--threads", "1", "--no-render"]) == 0
@@ -239,7 +239,7 @@ def test_eval_real_runs_the_weights_its_results_name(tmp_path, small_weights, mo
     """Each completion loads the file the results' config names for its row (one decision, `weights_files`): the
     given no-planner weights for GCA, the shipped coarse file for hGCA when none is given (by its path, so the
     record's digest is of the file that ran)."""
-    import hgca_core
+    import hgca_core.pipeline
     from hgca_core.cli import main
     from hgca_core.models.weights import shipped
 
@@ -247,13 +247,13 @@ def test_eval_real_runs_the_weights_its_results_name(tmp_path, small_weights, mo
     scan = tmp_path / "street.npz"
     np.savez(scan, points=s["input_points"].astype(np.float64), origins=[[3.0, 3.0, 3.0]])
     seen = []
-    real = hgca_core.complete
+    real = hgca_core.pipeline.complete         # what `hgca_core.complete` is, and what eval-real calls
 
     def spy(points, **kw):
         seen.append(str(kw["weights"]))
         return real(points, **kw)
 
-    monkeypatch.setattr(hgca_core, "complete", spy)
+    monkeypatch.setattr(hgca_core.pipeline, "complete", spy)
     out = tmp_path / "real.json"
     assert main(["eval-real", str(scan), "--out", str(out), "--methods", "gca,hgca", "--samples", "1",
                  "--noplanner-weights", str(small_weights), "--t1", "1", "--cuts", "1.0", "--threads", "1", "--no-render"]) == 0
