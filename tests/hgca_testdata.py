@@ -101,3 +101,13 @@ def small_tmpfs(root: Path, size: str):
         yield root
     finally:
         subprocess.run(["umount", str(root)], capture_output=True)
+
+
+def tiny_scan_file(folder: Path) -> Path:
+    """tiny_sample(3)'s input as a user's scan file: world points 100 / 200 / -1 m from its region frame, with its
+    sensor origin (the region "103,203,1,6,6,4" holds it)."""
+    s = tiny_sample(3)
+    path = folder / "scan.npz"
+    world = s["input_points"].astype(np.float64) + np.array([100.0, 200.0, -1.0])
+    np.savez(path, points=world, origins=np.array([[103.0, 203.0, 2.0]]))
+    return path

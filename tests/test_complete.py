@@ -8,18 +8,14 @@ import numpy as np
 import pytest
 import torch
 
-from hgca_testdata import tiny_sample
+from hgca_testdata import tiny_scan_file
 from hgca_core.models.weights import save_weights
 from hgca_core.progress import PROTOCOL
 
 
 @pytest.fixture(scope="module")
 def scan(tmp_path_factory):
-    s = tiny_sample(3)
-    path = tmp_path_factory.mktemp("scan") / "scan.npz"
-    world = s["input_points"].astype(np.float64) + np.array([100.0, 200.0, -1.0])
-    np.savez(path, points=world, origins=np.array([[103.0, 203.0, 2.0]]))
-    return path
+    return tiny_scan_file(tmp_path_factory.mktemp("scan"))
 
 
 def _run(*args):

@@ -11,7 +11,7 @@ import torch
 import trimesh
 from plyfile import PlyData
 
-from hgca_testdata import tiny_sample
+from hgca_testdata import tiny_scan_file
 from hgca_core.io.classes import CLASS_NAMES
 from hgca_core.models.semantics import SemanticHead, SemanticsConfig
 from hgca_core.models.weights import save_weights
@@ -21,11 +21,7 @@ REGION = "103,203,1,6,6,4"
 
 @pytest.fixture(scope="module")
 def scan(tmp_path_factory):
-    s = tiny_sample(3)
-    path = tmp_path_factory.mktemp("scan") / "scan.npz"
-    world = s["input_points"].astype(np.float64) + np.array([100.0, 200.0, -1.0])
-    np.savez(path, points=world, origins=np.array([[103.0, 203.0, 2.0]]))
-    return path
+    return tiny_scan_file(tmp_path_factory.mktemp("scan"))
 
 
 @pytest.fixture(scope="module")
