@@ -1,4 +1,4 @@
-"""Hostile-input campaign against the real `hgca` executable: every case of tests/hgca_hostile.py in its own
+"""Hostile-input campaign against the real `hgca` executable: every case of benchmarks/hostile_cases.py in its own
 subprocess (`python -m hgca_core.cli ...`), checked for exit 2, an `error:` line, no traceback, untouched
 inputs and no new files. Writes benchmarks/results/hostile_inputs.{json,md,png}.
 
@@ -16,11 +16,8 @@ import time
 from collections import Counter
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(REPO), str(REPO / "tests")]
-
-from hgca_hostile import CASES  # noqa: E402
-from test_hostile_inputs import folder_state  # noqa: E402
+from common import REPO, folder_state
+from hostile_cases import CASES
 
 
 def run_case(case, timeout: float) -> dict:
@@ -28,7 +25,7 @@ def run_case(case, timeout: float) -> dict:
         folder = Path(tmp)
         argv = case.build(folder)
         before = folder_state(folder)
-        env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
+        env = dict(os.environ, OMP_NUM_THREADS="1")
         t0 = time.perf_counter()
         try:
             res = subprocess.run([sys.executable, "-m", "hgca_core.cli", *argv], capture_output=True, text=True,

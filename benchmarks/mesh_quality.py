@@ -1,6 +1,6 @@
 """Mesh-quality benchmark of the fine stage (run by hand): `python benchmarks/mesh_quality.py [options]`.
 
-Before = the earlier mesher (marching cubes of {d < 3 cm}, a two-sheet shell; tests/meshing_reference.py), after =
+Before = the earlier mesher (marching cubes of {d < 3 cm}, a two-sheet shell; benchmarks/meshing_reference.py), after =
 the single-layer surface of `hgca_core.meshing.udf_mesh`, both from the same fine-stage cells and latents. Per
 synthetic test scene (and the real nuScenes / Argoverse 2 fixtures): layers per vertical ray on flat road and
 sidewalk patches, RMS height residual to a plane per 2 x 2 m patch (mesh, input points, ground truth), triangles,
@@ -22,17 +22,14 @@ import numpy as np
 import torch
 import trimesh
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tests"))
-
-from meshing_reference import shell_mesh  # noqa: E402
-
-from hgca_core.geometry import mesh_clean as mc  # noqa: E402
-from hgca_core.geometry.region import Region  # noqa: E402
-from hgca_core.meshing import DEFAULT_MAX_FACES, decimate, udf_grid, udf_mesh  # noqa: E402
-from hgca_core.metrics import flatness  # noqa: E402
-from hgca_core.metrics.surface import mesh_chamfer  # noqa: E402
-from hgca_core.pipeline import Models, complete_local, load_models  # noqa: E402
+from common import REPO
+from hgca_core.geometry import mesh_clean as mc
+from hgca_core.geometry.region import Region
+from hgca_core.meshing import DEFAULT_MAX_FACES, decimate, udf_grid, udf_mesh
+from hgca_core.metrics import flatness
+from hgca_core.metrics.surface import mesh_chamfer
+from hgca_core.pipeline import Models, complete_local, load_models
+from meshing_reference import shell_mesh
 
 OUT = REPO / "benchmarks" / "results" / "mesh_quality"
 

@@ -19,8 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT / "tests" / "synth"), str(ROOT / "tests")]   # the test builders (real_sweeps)
+from common import REPO
 
 
 def ring_stats(local: np.ndarray, ring: np.ndarray, elev: np.ndarray, n_azimuth: int, ground_z: float) -> dict:
@@ -41,7 +40,7 @@ def ring_stats(local: np.ndarray, ring: np.ndarray, elev: np.ndarray, n_azimuth:
 
 
 def real_stats() -> dict:
-    from real_sweeps import av2_sweeps, elevations, nuscenes_sweep
+    from common import av2_sweeps, elevations, nuscenes_sweep
 
     from hgca_core.geometry.region import estimate_ground
     from hgca_core.synth.lidar import _AV2_DOWN, _AV2_UP, HDL32E
@@ -160,7 +159,7 @@ def plot(real: dict, sim: dict, path: Path) -> None:
 
 def _bev(ax_real, ax_sim, path: Path) -> None:
     """Top views: the real nuScenes sweep and a simulated HDL-32E sweep, 40 m around the sensor."""
-    from real_sweeps import nuscenes_sweep
+    from common import nuscenes_sweep
 
     from hgca_core.geometry.raycast import make_intersector
     from hgca_core.synth.dataset import Drive
@@ -214,7 +213,7 @@ def table(real: dict, sim: dict, meta: dict) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", type=int, default=6)
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results"))
     args = ap.parse_args()
     from hgca_core.synth.lidar import AV2_UP_HEIGHT, VLP32C
 

@@ -1,32 +1,15 @@
-"""The hostile-input campaign of tests/hgca_hostile.py, each case through the CLI entry point in-process:
+"""The hostile-input campaign of benchmarks/hostile_cases.py, each case through the CLI entry point in-process:
 exit 2, one clear `error:` line naming the problem, no traceback, inputs untouched, nothing written."""
 from __future__ import annotations
 
-import os
-import stat
 import sys
 from pathlib import Path
 
 import pytest
 
-from hgca_hostile import CASES, Case
+from hgca_testdata import folder_state
+from hostile_cases import CASES, Case
 from hgca_core.cli import main
-
-
-def folder_state(root: Path) -> dict[str, object]:
-    """Every entry under `root`: file bytes, link targets, the kind of anything else (fifos are not opened)."""
-    state: dict[str, object] = {}
-    for dirpath, dirnames, filenames in os.walk(root):
-        for name in dirnames + filenames:
-            path = Path(dirpath) / name
-            mode = os.lstat(path).st_mode
-            if stat.S_ISLNK(mode):
-                state[str(path)] = ("link", os.readlink(path))
-            elif stat.S_ISREG(mode):
-                state[str(path)] = path.read_bytes()
-            else:
-                state[str(path)] = stat.S_IFMT(mode)
-    return state
 
 
 @pytest.mark.parametrize("c", CASES, ids=[c.name for c in CASES])

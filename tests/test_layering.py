@@ -2,7 +2,8 @@
 functions). The architecture's layers (docs/architecture.md): `commands` -> `pipeline` / `tiling` -> `models` ->
 `nn` -> `geometry`; meshing is called by the pipeline (and training's validation), never by models; `training` and
 `metrics` use `models`, never the reverse; no two modules import each other, even through a function-level import.
-Only hgca_core/models/weights.py calls torch.load / torch.save, and only with weights_only=True."""
+Only hgca_core/models/weights.py calls torch.load / torch.save, and only with weights_only=True.
+Benchmarks never import a module of tests/ nor put tests/ or the repository root on sys.path."""
 import ast
 from pathlib import Path
 
@@ -170,3 +171,45 @@ def test_only_the_front_ends_read_the_command_line():
             elif isinstance(node, ast.Import) and any(a.name == "argparse" for a in node.names):
                 found.append(f"{name} imports argparse")
     assert found == []
+
+
+REPO = CORE.parent
+SELF_FOLDER = "str(Path(__file__).resolve().parent)"   # the one sys.path entry a benchmark may add: its own folder
+
+
+def _sys_path_edits(tree: ast.AST, text: str) -> list[str]:
+    """The source of every value a file puts on sys.path (insert, append, extend, assignment, +=)."""
+    def is_sys_path(n: ast.AST) -> bool:
+        n = n.value if isinstance(n, ast.Subscript) else n
+        return isinstance(n, ast.Attribute) and n.attr == "path" and isinstance(n.value, ast.Name) \
+            and n.value.id == "sys"
+
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and is_sys_path(node.func.value) \
+                and node.func.attr in ("insert", "append", "extend", "__setitem__"):
+            found += [ast.get_source_segment(text, a) for a in node.args[1 if node.func.attr == "insert" else 0:]]
+        elif isinstance(node, (ast.Assign, ast.AugAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            if any(is_sys_path(t) for t in targets):
+                found.append(ast.get_source_segment(text, node.value))
+    return found
+
+
+def test_benchmarks_never_reach_into_tests():
+    """Benchmarks import the installed package and their folder's shared builders (benchmarks/common.py), never a
+    module of tests/, and put nothing on sys.path but their own folder (not tests/, not the repository root)."""
+    bench = REPO / "benchmarks"
+    own = {p.stem for p in bench.glob("*.py")}
+    in_tests = {p.stem for p in (REPO / "tests").rglob("*.py")} - own
+    bad = []
+    for path in sorted(bench.glob("*.py")):
+        text = path.read_text()
+        tree = ast.parse(text, str(path))
+        bad += [f"{path.name} puts {v} on sys.path" for v in _sys_path_edits(tree, text) if v != SELF_FOLDER]
+        for node in ast.walk(tree):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module] if isinstance(node, ast.ImportFrom) and node.module and node.level == 0 else []
+            bad += [f"{path.name} imports {n} from tests/" for n in names
+                    if n.split(".")[0] == "tests" or n.split(".")[0] in in_tests]
+    assert not bad, bad

@@ -3,7 +3,8 @@
 Each case builds its files in an empty folder and returns the command line. The expectation is the same for
 all: exit status 2, an `error:` line and no Python traceback on stderr, every file in the folder unchanged
 and nothing new written. tests/test_hostile_inputs.py runs every case in-process (fast); the benchmark
-script benchmarks/hostile_inputs.py runs them as real subprocesses and writes a table of the results.
+script benchmarks/hostile_inputs.py runs them as real subprocesses and writes a table of the results. The table
+lives here, beside the benchmark, so both use one copy (tests may import benchmarks' builders, not the reverse).
 """
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from hgca_testdata import tiny_sample, write_las
+from common import tiny_sample, write_las
 
 
 @dataclass(frozen=True)
@@ -443,5 +444,5 @@ degenerate("UTM point pair", np.array([[500_000.0, 5_000_000.0, 10.0], [500_000.
 
 
 # --- further classes, each in a module of its own that appends to CASES ---------------------------------------
-import hgca_hostile_reads  # noqa: E402,F401  (silently wrong reads, georeferenced precision)
-import hgca_hostile_cli  # noqa: E402,F401  (flags, outputs, hangs, late checks, disk full, signals)
+import hostile_reads  # noqa: E402,F401  (silently wrong reads, georeferenced precision)
+import hostile_cli  # noqa: E402,F401  (flags, outputs, hangs, late checks, disk full, signals)
