@@ -239,11 +239,24 @@ class SemanticsTask:
 
 
 def export_semantics(ckpt_path: str | Path, dest: str | Path, meta: dict | None = None) -> Path:
-    """Write the head of a training checkpoint (its weight average) as weights of kind 'semantics'."""
+    """Write the head of a training run as weights of kind 'semantics': the weight average kept at the run's best
+    validation mIoU (`best.pt` beside the checkpoint, the recipe's selection on val), else the checkpoint's own
+    average. Why: the val mIoU of perturbed scenes swings by a few points between checks, and the last check is
+    not always the best one. The record names the step and score it was selected at."""
     from hgca_core.models.weights import load_file, save_weights, trained_weights
-    from hgca_core.training.trainer import run_record
+    from hgca_core.training.trainer import BEST, run_record
 
-    ck = load_file(ckpt_path)
+    best = Path(ckpt_path).with_name(BEST)
+    ck = load_file(best if best.is_file() else ckpt_path)
     module = SemanticsLoss(SemanticsConfig.from_dict(ck["config"]))
     module.load_state_dict(trained_weights(ck))
-    return save_weights(dest, module.model, {**run_record(ck), **(meta or {})})
+    record = run_record(ck)
+    chosen = ck["state"].get("best_val") if best.is_file() else None
+    if chosen:
+        record["selected"] = {**chosen, "file": BEST}
+        last = load_file(ckpt_path)["state"] if Path(ckpt_path).is_file() else {}
+        if last.get("step", chosen["step"]) > chosen["step"]:
+            record["notes"] = [*record["notes"], f"the run trained {last['step']:,} steps; these are its weight "
+                               f"average at step {chosen['step']:,}, its best validation {chosen['key']} "
+                               f"({chosen['value'] * 100:.1f} %)"]
+    return save_weights(dest, module.model, {**record, **(meta or {})})
