@@ -90,7 +90,9 @@ class GridIndex:
         zlo = np.full(self.nx * self.ny, np.iinfo(np.int64).max, dtype=np.int64)
         zhi = np.full(self.nx * self.ny, -1, dtype=np.int64)
         step = col[1:] - col[:-1]
-        if len(g) and np.all(step >= 0) and np.all((step > 0) | (d[1:, 2] > d[:-1, 2])):
+        self.sorted = bool(len(g)) and bool(np.all(step >= 0) and np.all((step > 0) | (d[1:, 2] > d[:-1, 2])))
+        if self.sorted:
+            self._col, self._z = col, d[:, 2]
             first = np.flatnonzero(np.r_[True, step > 0])         # sorted (x, y, z), as the decoder returns them
             last = np.r_[first[1:], len(g)] - 1
             zlo[col[first]], zhi[col[first]] = d[first, 2], d[last, 2]
@@ -116,10 +118,15 @@ class GridIndex:
         ok = ok & (z >= 0) & (z < self.span[c])
         return np.where(ok, self.table[np.where(ok, self.base[c] + z, 0)], -1)
 
-    def neighbours(self, g: np.ndarray, signs: tuple[int, ...] = (1, -1)) -> np.ndarray:
+    def neighbours(self, g: np.ndarray, signs: tuple[int, ...] = (1, -1), first: int | None = None) -> np.ndarray:
         """(n, 3, len(signs)) indices of the neighbours g + s e_axis of grid points g (n, 3) for each s in `signs`
-        (default: the +1 and the -1 neighbour), -1 where absent."""
+        (default: the +1 and the -1 neighbour), -1 where absent.
+
+        first: when g is the indexed points' own slice [first, first + n) of sorted points, the z neighbours
+        (+-1 along z) are the next and previous points where those are one step away: no table lookup."""
         d = np.asarray(g, dtype=np.int64) - self.lo
+        if first is not None and self.sorted:
+            return self._own_neighbours(d, signs, first)
         col = d[:, 0] * self.ny + d[:, 1]
         out = np.empty((len(d), 3, len(signs)), dtype=np.int64)
         yes = np.ones(len(d), dtype=bool)
@@ -129,6 +136,26 @@ class GridIndex:
             out[:, 0, k] = self._at(np.where(x_ok, col + s * self.ny, 0), d[:, 2], x_ok)
             out[:, 1, k] = self._at(np.where(y_ok, col + s, 0), d[:, 2], y_ok)
             out[:, 2, k] = self._at(col, d[:, 2] + s, yes)
+        return out
+
+    def _own_neighbours(self, d: np.ndarray, signs: tuple[int, ...], first: int) -> np.ndarray:
+        """`neighbours` of the indexed points first .. first + len(d) - 1 (d: their offsets from lo)."""
+        col = d[:, 0] * self.ny + d[:, 1]
+        n, total = len(d), len(self._col)
+        out = np.empty((n, 3, len(signs)), dtype=np.int64)
+        for k, s in enumerate(signs):
+            x_ok = (d[:, 0] + s >= 0) & (d[:, 0] + s < self.nx)
+            y_ok = (d[:, 1] + s >= 0) & (d[:, 1] + s < self.ny)
+            out[:, 0, k] = self._at(np.where(x_ok, col + s * self.ny, 0), d[:, 2], x_ok)
+            out[:, 1, k] = self._at(np.where(y_ok, col + s, 0), d[:, 2], y_ok)
+            if abs(s) != 1:
+                out[:, 2, k] = self._at(col, d[:, 2] + s, np.ones(n, dtype=bool))
+                continue
+            # the next / previous point in (x, y, z) order, where it is the one just above / below
+            j = np.arange(first + s, first + s + n)
+            jc = np.clip(j, 0, total - 1)
+            hit = (j >= 0) & (j < total) & (self._col[jc] == col) & (self._z[jc] == d[:, 2] + s)
+            out[:, 2, k] = np.where(hit, j, -1)
         return out
 
 
@@ -141,8 +168,8 @@ def upwind_gradients(vals: np.ndarray, idx: np.ndarray, nb: np.ndarray, h: float
 
 
 def crossing_edges(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_sum: float = MAX_SUM,
-                   max_dot: float = MAX_DOT, index: GridIndex | None = None, workers: int = 1
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   max_dot: float = MAX_DOT, index: GridIndex | None = None, workers: int = 1,
+                   minus: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Axis edges of the grid that the zero level crosses.
 
     g (G, 3) int grid indices, vals (G,) distances (same unit as h). Returns (start point index into g (E,),
@@ -151,6 +178,8 @@ def crossing_edges(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_s
     An edge crosses where its ends' gradient directions are opposed (cosine < max_dot) and d_i + d_j <= max_sum h,
     or clearly opposed (cosine < WIDE_DOT) and d_i + d_j <= WIDE_SUM h (the decoder's wide valleys, see WIDE_SUM).
     Both passes (gradients per point, then the test per edge) work on slices of the points, in `workers` threads.
+    index: `GridIndex(g)`, if known; minus: an (G, 3) int64 array to fill with the index of g - e_a (-1 where
+    absent), which the gradients look up anyway (`dual_surface` finds the cubes around an edge with it).
     """
     index = GridIndex(g) if index is None else index
     lim = np.float32(max_sum * h)
@@ -161,8 +190,10 @@ def crossing_edges(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_s
     good = np.empty(n, dtype=bool)                       # ... where there is a gradient
 
     def gradients(lo: int, hi: int) -> None:
-        nb = index.neighbours(g[lo:hi])
+        nb = index.neighbours(g[lo:hi], first=lo)
         plus[lo:hi] = nb[:, :, 0]
+        if minus is not None:
+            minus[lo:hi] = nb[:, :, 1]
         grad = upwind_gradients(vals, np.arange(lo, hi), nb, h, fill)
         norm = np.sqrt(np.einsum("ij,ij->i", grad, grad))
         unit[lo:hi] = grad / np.maximum(norm, 1e-12)[:, None]
@@ -196,26 +227,40 @@ def dual_surface(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_sum
     g = np.asarray(g, dtype=np.int64).reshape(-1, 3)
     vals = np.asarray(vals, dtype=np.float32).reshape(-1)
     index = GridIndex(g)
-    start, axis, t = crossing_edges(g, vals, h, fill, max_sum, max_dot, index, workers)
+    minus = np.empty((len(g), 3), dtype=np.int64)
+    start, axis, t = crossing_edges(g, vals, h, fill, max_sum, max_dot, index, workers, minus)
     if len(start) == 0:
         return DualSurface(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
     p0 = g[start]
     point = p0.astype(np.float64)
     rows = np.arange(len(start))
     point[rows, axis] += t
-    # the four cubes (by min corner) around each edge, counter-clockwise seen from +axis
-    corners = np.empty((len(start) * 4, 3), dtype=np.int64)
+    # the four cubes (by min corner) around each edge, counter-clockwise seen from +axis: the edge's start,
+    # its -1 neighbours along the two other axes, and the diagonal one (the -1 neighbour of a -1 neighbour, else
+    # looked up)
+    a1, a2 = (axis + 1) % 3, (axis + 2) % 3
 
     def cube_ids(lo: int, hi: int) -> np.ndarray:
-        corners[4 * lo:4 * hi] = (p0[lo:hi, None, :] - _CUBES[axis[lo:hi]]).reshape(-1, 3)
-        return index.find(corners[4 * lo:4 * hi])
+        i, b1, b2 = start[lo:hi], a1[lo:hi], a2[lo:hi]
+        out = np.empty((hi - lo, 4), dtype=np.int64)
+        out[:, 0] = i
+        out[:, 1] = minus[i, b1]
+        out[:, 3] = minus[i, b2]
+        has = out[:, 1] >= 0
+        out[:, 2] = np.where(has, minus[np.maximum(out[:, 1], 0), b2], -1)
+        look = np.flatnonzero(~has)
+        if len(look):
+            out[look, 2] = index.find(p0[lo + look] - _CUBES[axis[lo + look], 2])
+        return out.reshape(-1)
 
     # a cube's id: its min corner's index among the grid points, or a new one past them
     cid = np.concatenate(map_slices(cube_ids, len(start), workers))
     missing = cid < 0
     n_ids = len(g)
     if missing.any():
-        uk, extra = np.unique(pack(corners[missing]), return_inverse=True)   # keys sort like the rows
+        rows = np.flatnonzero(missing)
+        corners = p0[rows // 4] - _CUBES[axis[rows // 4], rows % 4]
+        uk, extra = np.unique(pack(corners), return_inverse=True)   # keys sort like the rows
         cid[missing] = len(g) + extra.reshape(-1)
         n_ids += len(uk)
     # the cubes in use, numbered in the order of their ids (np.unique's order, by a mask instead of a sort)
