@@ -66,6 +66,19 @@ def tiny_sample(seed: int, size: float = 6.0) -> dict[str, np.ndarray]:
     }
 
 
+def with_distance_pairs(sample: dict[str, np.ndarray], size: float = 6.0) -> dict[str, np.ndarray]:
+    """`sample` (a tiny_sample) with the distance pairs the autoencoder and the fine stage train on: every fifth
+    surface point moved by 5 cm noise, kept inside the region, and its distance to the surface."""
+    from scipy.spatial import cKDTree
+
+    surface = sample["gt_surface"]
+    rng = np.random.default_rng(0)
+    q = surface[::5] + rng.normal(0, 0.05, (len(surface[::5]), 3)).astype(np.float32)
+    q = q[np.all((q >= 0) & (q < [size, size, 4.0]), axis=1)]
+    return {**sample, "udf_points": q.astype(np.float32),
+            "udf_dist": cKDTree(surface).query(q)[0].astype(np.float32)}
+
+
 def write_las(path, points: np.ndarray, scale: float = 0.001, offset=None) -> np.ndarray:
     """A LAS 1.2 file (point format 3, mm scale) of `points`; returns the float64 coordinates the file holds
     (`X * scale + offset`, as laspy reads them)."""

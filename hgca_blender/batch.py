@@ -40,6 +40,7 @@ if __name__ == "__main__" and not __package__:
 
 import argparse
 import time
+from typing import Callable
 
 import bpy
 
@@ -140,17 +141,9 @@ def run(args: argparse.Namespace) -> int:
                                    decimate_to=args.max_faces if args.simplify == "modifier" else 0,
                                    scene_name=scene.name,
                                    extra_args=["--weights", args.weights] if args.weights else [])
-    try:
-        job = jobs.start_job(params)
-    except core.CoreError as exc:
-        _log(f"error: {exc}")
+    job = _run_job(lambda: jobs.start_job(params), args.timeout, "completion", t0)
+    if job is None:
         return 2
-    state = _wait_logged(job, args.timeout)
-    jobs.poll_all()
-    if state != "done":
-        _log(f"error: completion {state}: {job.error or job.status}")
-        return 2
-    _log(f"{job.status} after {time.perf_counter() - t0:.1f} s")
     results = sorted(bpy.data.collections[job.collection_name].objects, key=lambda o: int(o["hgca_sample"]))
     if args.color == "agreement" and not mesh_build.color_results_by(results, mesh_build.AGREEMENT_COLOR):
         _log("error: --color agreement needs --samples 2 or more")
@@ -162,15 +155,38 @@ def run(args: argparse.Namespace) -> int:
     if args.render:
         preview.add_camera_and_sun(scene, box)
         preview.configure_cycles(scene, samples=args.render_samples, resolution=args.render_size)
-    out = Path(args.out).resolve()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    bpy.ops.wm.save_as_mainfile(filepath=str(out), check_existing=False)
+    out = _save(args.out)
     size = out.stat().st_size
     _log(f"saved {out}: {size / 2**20:.1f} MiB, {size / 2**20 / max(len(results), 1):.1f} MiB a sample")
     if args.render:
         png = preview.render_png(scene, Path(args.render))
         _log(f"rendered {png}")
     return 0
+
+
+def _run_job(start: Callable[[], core.Job], timeout: float | None, what: str, t0: float,
+             hint: str = "") -> core.Job | None:
+    """Start a job and drive it to its end, logging its status; None (the reason logged) unless it ended done."""
+    try:
+        job = start()
+    except core.CoreError as exc:
+        _log(f"error: {exc}")
+        return None
+    state = _wait_logged(job, timeout)
+    jobs.poll_all()
+    if state != "done":
+        _log(f"error: {what} {state}: {job.error or job.status}{hint}")
+        return None
+    _log(f"{job.status} after {time.perf_counter() - t0:.1f} s")
+    return job
+
+
+def _save(path: str) -> Path:
+    """Save the open file as `path` (its folder made when missing); returns the resolved path."""
+    out = Path(path).resolve()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    bpy.ops.wm.save_as_mainfile(filepath=str(out), check_existing=False)
+    return out
 
 
 def _wait_logged(job: core.Job, timeout: float | None) -> str:
@@ -194,19 +210,10 @@ def _drive(args: argparse.Namespace, python: str, scene: bpy.types.Scene, t0: fl
         seed=args.seed, stage=args.stage, device=args.device, t1=args.t1, max_faces=args.max_faces,
         workers=args.workers, tile_size=args.tile_size, overlap=args.overlap, scene_name=scene.name,
         extra_args=["--weights", args.weights] if args.weights else [])
-    try:
-        job = drive_job.start_drive_job(params)
-    except core.CoreError as exc:
-        _log(f"error: {exc}")
+    if _run_job(lambda: drive_job.start_drive_job(params), args.timeout, "drive", t0,
+                f" (finished tiles stay in {args.drive})") is None:
         return 2
-    if _wait_logged(job, args.timeout) != "done":
-        _log(f"error: drive {job.state}: {job.error or job.status} (finished tiles stay in {args.drive})")
-        return 2
-    _log(f"{job.status} after {time.perf_counter() - t0:.1f} s")
-    out = Path(args.out).resolve()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    bpy.ops.wm.save_as_mainfile(filepath=str(out), check_existing=False)
-    _log(f"saved {out}")
+    _log(f"saved {_save(args.out)}")
     return 0
 
 

@@ -16,6 +16,15 @@ def _scene_props(context: bpy.types.Context):
     return context.scene.hgca
 
 
+def refuse_start(op: bpy.types.Operator, context: bpy.types.Context, exc: Exception) -> set[str]:
+    """A job that could not start: the reason on the panel's status line (in red) and in Blender's report."""
+    props = _scene_props(context)
+    props.status = f"Error: {exc}"
+    props.status_is_error = True
+    op.report({"ERROR"}, str(exc))
+    return {"CANCELLED"}
+
+
 def source_objects(context: bpy.types.Context) -> list[bpy.types.Object]:
     """The objects the panel's source settings name (the region box is never a source)."""
     props = _scene_props(context)
@@ -92,15 +101,11 @@ class HGCA_OT_complete(bpy.types.Operator):
         return context.scene is not None and jobs.active_job(context.scene.name) is None
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        props = _scene_props(context)
         try:
             params = gather_params(context)
             job = jobs.start_job(params)
         except (core.CoreError, sources.SourceError, region.RegionError) as exc:
-            props.status = f"Error: {exc}"
-            props.status_is_error = True
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+            return refuse_start(self, context, exc)
         jobs.ensure_timer()
         self.report({"INFO"}, f"hGCA started on {len(params.points):,} points (process {job.pid})")
         return {"FINISHED"}

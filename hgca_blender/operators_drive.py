@@ -70,14 +70,10 @@ class HGCA_OT_drive(bpy.types.Operator):
         return context.scene is not None and jobs.active_job(context.scene.name) is None
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        props = context.scene.hgca
         try:
             job = drive_job.start_drive_job(drive_params(context), drive_sources(context))
         except (core.CoreError, sources.SourceError) as exc:
-            props.status = f"Error: {exc}"
-            props.status_is_error = True
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+            return operators_complete.refuse_start(self, context, exc)
         jobs.ensure_timer()
         self.report({"INFO"}, f"hGCA drive started into {job.params.out_dir} (process {job.pid})")
         return {"FINISHED"}

@@ -14,6 +14,19 @@ class _SidebarTab:
     bl_category = "hGCA"
 
 
+class _Section(_SidebarTab):
+    """A section under the main panel, closed until opened (its settings drawn by `split`)."""
+
+    bl_parent_id = "HGCA_PT_main"
+    bl_options = {"DEFAULT_CLOSED"}
+
+
+def split(layout: bpy.types.UILayout) -> bpy.types.UILayout:
+    """`layout` with its settings as label / value columns."""
+    layout.use_property_split = True
+    return layout
+
+
 def draw_point_size(layout: bpy.types.UILayout, obj: bpy.types.Object | None) -> None:
     """The active scan's point radius: the input of its "hGCA Points" modifier (a display setting only)."""
     if obj is None or obj.get(mesh_build.ROLE_KEY) != "scan":
@@ -116,14 +129,11 @@ class HGCA_PT_main(_SidebarTab, bpy.types.Panel):
         col.prop(props, "device")
 
 
-class HGCA_PT_advanced(_SidebarTab, bpy.types.Panel):
+class HGCA_PT_advanced(_Section, bpy.types.Panel):
     bl_label = "Advanced"
-    bl_parent_id = "HGCA_PT_main"
-    bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context: bpy.types.Context) -> None:
-        layout = self.layout
-        layout.use_property_split = True
+        layout = split(self.layout)
         props = context.scene.hgca
         layout.prop(props, "t1")
         row = layout.row()
@@ -131,16 +141,13 @@ class HGCA_PT_advanced(_SidebarTab, bpy.types.Panel):
         row.prop(props, "t2")
 
 
-class HGCA_PT_drive(_SidebarTab, bpy.types.Panel):
+class HGCA_PT_drive(_Section, bpy.types.Panel):
     """Complete along drive: tiles along the sources' sensor path, kept in a folder, resumable."""
 
     bl_label = "Complete Along Drive"
-    bl_parent_id = "HGCA_PT_main"
-    bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context: bpy.types.Context) -> None:
-        layout = self.layout
-        layout.use_property_split = True
+        layout = split(self.layout)
         layout.use_property_decorate = False
         props = context.scene.hgca
         layout.prop(props, "drive_dir")

@@ -17,10 +17,11 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 if str(BENCHMARKS) not in sys.path:
     sys.path.append(str(BENCHMARKS))
 
-from common import REAL_FIXTURES, UTM_OFFSETS, folder_state, tiny_sample, write_las  # noqa: E402
+from common import (REAL_FIXTURES, UTM_OFFSETS, folder_state, tiny_sample, with_distance_pairs,  # noqa: E402
+                    write_las)
 
 __all__ = ["REAL_FIXTURES", "UTM_OFFSETS", "folder_state", "in_ci", "refusal", "require_real", "small_tmpfs", "tiny_sample",
-           "tiny_scan_file", "write_las"]
+           "tiny_scan_file", "with_distance_pairs", "write_las"]
 
 
 def in_ci() -> bool:

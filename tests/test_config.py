@@ -78,6 +78,13 @@ def test_commands_map_argv_to_the_config_the_library_gets():
     assert drive_config(args).completion.max_faces == 0          # a drive keeps every triangle of its tiles
 
 
+def refused_by_both(change: dict, message: str, config, entry) -> None:
+    """The settings class and the library entry point refuse the same bad setting with the same message."""
+    for call in (config, entry):
+        with pytest.raises(InputError, match=message):
+            call(**change)
+
+
 @pytest.mark.parametrize("change, message", [
     ({"stage": "fine"}, "stage must be one of coarse, full"),
     ({"samples": 0}, "samples must be a whole number between 1"),
@@ -96,11 +103,8 @@ def test_a_bad_completion_setting_is_refused_by_name_before_any_work(change, mes
     from hgca_core import pipeline
     from hgca_core.config import CompletionConfig
 
-    with pytest.raises(InputError, match=message):
-        CompletionConfig().with_(**change)
     monkeypatch.setattr(pipeline, "load_models", lambda *a, **k: pytest.fail("loaded models for a bad setting"))
-    with pytest.raises(InputError, match=message):
-        pipeline.complete(np.zeros((20, 3)), **change)
+    refused_by_both(change, message, CompletionConfig().with_, lambda **c: pipeline.complete(np.zeros((20, 3)), **c))
 
 
 @pytest.mark.parametrize("change, message", [
@@ -120,10 +124,8 @@ def test_a_bad_drive_setting_is_refused_by_name_before_reading_a_scan(change, me
     import hgca_core
     from hgca_core.config import DriveConfig
 
-    with pytest.raises(InputError, match=message):
-        DriveConfig().with_(**change)
-    with pytest.raises(InputError, match=message):
-        hgca_core.drive([str(tmp_path / "missing.ply")], tmp_path / "d", **change)
+    refused_by_both(change, message, DriveConfig().with_,
+                    lambda **c: hgca_core.drive([str(tmp_path / "missing.ply")], tmp_path / "d", **c))
     assert not (tmp_path / "d").exists()
 
 

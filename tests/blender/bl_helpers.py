@@ -34,6 +34,25 @@ CORE_PYTHON = os.environ.get("HGCA_PYTHON") or sys.executable
 SMALL_REGION = (0.0, 0.0, -0.5, 9.6, 9.6, 4.0, 0.0)
 
 
+def workbench_pixels(tmp_path: Path, size: int, distance: float = 4.0) -> np.ndarray:
+    """(size, size, 4) pixels of a Workbench render (the Solid view's renderer: flat light, colour = Attribute) from
+    a camera `distance` m down -y looking along +y at the origin."""
+    scene = bpy.context.scene
+    scene.render.engine = "BLENDER_WORKBENCH"
+    scene.display.shading.light = "FLAT"
+    scene.display.shading.color_type = "VERTEX"  # shown as "Attribute"
+    scene.view_settings.view_transform = "Standard"
+    scene.render.resolution_x = scene.render.resolution_y = size
+    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+    cam.location, cam.rotation_euler = (0, -distance, 0), (np.pi / 2, 0, 0)
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    scene.render.filepath = str(tmp_path / "solid.png")
+    bpy.ops.render.render(write_still=True)
+    image = bpy.data.images.load(scene.render.filepath)
+    return np.array(image.pixels[:]).reshape(size, size, 4)
+
+
 def ply_rgb(rows: list[tuple[float, float, float, int, int, int]]) -> str:
     """An ASCII PLY of points with 8-bit red, green, blue."""
     head = ["ply", "format ascii 1.0", f"element vertex {len(rows)}", *(f"property float {a}" for a in "xyz"),

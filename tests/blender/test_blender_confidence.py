@@ -7,7 +7,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from bl_helpers import addon_module
+from bl_helpers import addon_module, workbench_pixels
 
 
 def write_sample(path: Path, vertices: np.ndarray, observed: np.ndarray) -> Path:
@@ -69,20 +69,7 @@ def test_solid_view_draws_the_generated_colour(addon, tmp_path: Path) -> None:
     verts = np.array([[-1, 0, -1], [1, 0, -1], [0, 0, 1.5]], dtype=np.float32)
     out = write_sample(tmp_path / "out_s0.npz", verts, np.full(3, 5.0))
     mesh_build.build_results(bpy.context.scene, [out], "hGCA test")
-    scene = bpy.context.scene
-    scene.render.engine = "BLENDER_WORKBENCH"
-    scene.display.shading.light = "FLAT"
-    scene.view_settings.view_transform = "Standard"
-    scene.display.shading.color_type = "VERTEX"  # shown as "Attribute"
-    scene.render.resolution_x = scene.render.resolution_y = 16
-    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
-    cam.location, cam.rotation_euler = (0, -6, 0), (np.pi / 2, 0, 0)
-    scene.collection.objects.link(cam)
-    scene.camera = cam
-    scene.render.filepath = str(tmp_path / "solid.png")
-    bpy.ops.render.render(write_still=True)
-    image = bpy.data.images.load(str(tmp_path / "solid.png"))
-    r, g, b, _ = np.array(image.pixels[:]).reshape(16, 16, 4)[8, 8]
+    r, g, b, _ = workbench_pixels(tmp_path, 16, distance=6.0)[8, 8]
     assert r > 0.9 and r - b > 0.5 and r > g > b, (r, g, b)  # orange (sRGB of 0.95, 0.45, 0.1), not grey
 
 

@@ -10,28 +10,10 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from bl_helpers import addon_module, ply_rgb
+from bl_helpers import addon_module, ply_rgb, workbench_pixels
 
 RED_POINT = ply_rgb([(0, 0, 0, 255, 0, 0)])
 SIZE = 32
-
-
-def workbench_pixels(tmp_path: Path) -> np.ndarray:
-    """(SIZE, SIZE, 4) pixels of a Workbench render looking down +y at the origin, colour = Attribute."""
-    scene = bpy.context.scene
-    scene.render.engine = "BLENDER_WORKBENCH"
-    scene.display.shading.light = "FLAT"
-    scene.display.shading.color_type = "VERTEX"  # shown as "Attribute"
-    scene.view_settings.view_transform = "Standard"
-    scene.render.resolution_x = scene.render.resolution_y = SIZE
-    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
-    cam.location, cam.rotation_euler = (0, -4, 0), (np.pi / 2, 0, 0)
-    scene.collection.objects.link(cam)
-    scene.camera = cam
-    scene.render.filepath = str(tmp_path / "solid.png")
-    bpy.ops.render.render(write_still=True)
-    image = bpy.data.images.load(scene.render.filepath)
-    return np.array(image.pixels[:]).reshape(SIZE, SIZE, 4)
 
 
 def covered(pixels: np.ndarray) -> np.ndarray:
@@ -58,7 +40,7 @@ def test_solid_view_paints_a_scan_in_its_colour(addon, tmp_path: Path) -> None:
     """The viewport shapes, rendered by Workbench ("Render as Points" off), are red, not the material's grey."""
     obj = import_red_point(tmp_path)
     assert addon_module("mesh_build").set_render_points(obj, False)
-    rgb = covered(workbench_pixels(tmp_path))
+    rgb = covered(workbench_pixels(tmp_path, SIZE))
     assert len(rgb) >= 4, "the scan's shapes cover no pixel"
     r, g, b = np.median(rgb, axis=0)
     assert r > 0.8 and g < 0.3 and b < 0.3, (r, g, b)
@@ -67,7 +49,7 @@ def test_solid_view_paints_a_scan_in_its_colour(addon, tmp_path: Path) -> None:
 def test_renders_keep_round_points_by_default(addon, tmp_path: Path) -> None:
     """With "Render as Points" on (the default), a render draws the point cloud, which Workbench greys."""
     import_red_point(tmp_path)
-    rgb = covered(workbench_pixels(tmp_path))
+    rgb = covered(workbench_pixels(tmp_path, SIZE))
     assert len(rgb) >= 4
     r, g, b = np.median(rgb, axis=0)
     assert abs(r - g) < 0.05 and abs(g - b) < 0.05, (r, g, b)
