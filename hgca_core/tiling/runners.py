@@ -12,6 +12,7 @@ import logging
 import os
 import signal
 import threading
+from collections import Counter, deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -111,25 +112,50 @@ class RayRunner:
 
     def run(self, pending: list[Pending], scans: list, on_result: Callable[[dict], None],
             on_start: Callable[[int], None] | None = None) -> None:
-        """`scans`: the drive's `inputs.DriveScan`s; `on_start` is not called (Ray decides when a task starts)."""
+        """`scans`: the drive's `inputs.DriveScan`s; `on_start` is not called (Ray decides when a task starts).
+
+        Tasks are submitted along the drive, at most `in_flight` at a time, and the driver lets go of every
+        object as soon as no task still to be submitted needs it: a scan once its last tile is submitted, a
+        phase-one tile's cells once its phase-two neighbours are, a result once `on_result` has it. So the object
+        store holds the few tiles in flight, not the drive: a worker reads its inputs from and writes its results
+        to the same few shared pages, tile after tile. Were every result kept referenced until the drive's end,
+        each tile would land on pages of the store no worker had touched yet, and a worker's resident memory
+        would grow by about a result and its new scans a tile."""
         ray = self.ray
         task = ray.remote(tile_task).options(num_cpus=self.threads, memory=int(self.memory), num_returns=2,
                                              max_retries=MAX_RETRIES, retry_exceptions=False)
+        scan_uses = Counter(i for p in pending for i in p.job.scans)
+        cell_uses = Counter(j for p in pending for j in p.conditioned_on)
         scan_refs: dict[int, object] = {}
         cell_refs: dict[int, object] = {}
-        results = []
-        for p in pending:                      # phase one first: phase-two tasks refer to their outputs
+        # along the drive, each phase-two tile right after the later of its neighbours (phase one and two in
+        # turn), so a scan's last task comes soon after its first: Ray starts a task once its inputs exist
+        queue = deque(sorted(pending, key=lambda p: (max((p.job.index, *p.conditioned_on)),
+                                                     bool(p.conditioned_on))))
+        waiting: list = []
+        limit = self.in_flight()
+
+        def submit(p: Pending) -> None:
             for i in p.job.scans:
                 if i not in scan_refs:
                     scan_refs[i] = ray.put(scans[i])
-            for j, cells in p.ready_cells.items():
-                if j not in cell_refs:
-                    cell_refs[j] = ray.put(cells)
+            for j in p.conditioned_on:
+                if j not in cell_refs:         # finished before this run: its cells came from the cache
+                    cell_refs[j] = ray.put(p.ready_cells[j])
             inputs = [scan_refs[i] for i in p.job.scans] + [cell_refs[j] for j in p.conditioned_on]
-            result_ref, cell_refs[p.job.index] = task.remote(p.job, len(p.job.scans), *inputs)
-            results.append(result_ref)
-        waiting = list(results)
-        while waiting:
+            result_ref, cells_ref = task.remote(p.job, len(p.job.scans), *inputs)
+            if cell_uses[p.job.index]:
+                cell_refs[p.job.index] = cells_ref
+            waiting.append(result_ref)
+            for uses, refs, keys in ((scan_uses, scan_refs, p.job.scans), (cell_uses, cell_refs, p.conditioned_on)):
+                for k in keys:                 # the submitted task holds what it needs until it has run
+                    uses[k] -= 1
+                    if not uses[k]:
+                        refs.pop(k, None)
+
+        while queue or waiting:
+            while queue and len(waiting) < limit:
+                submit(queue.popleft())
             done, waiting = ray.wait(waiting, num_returns=1)
             try:
                 result = ray.get(done[0])
@@ -138,7 +164,15 @@ class RayRunner:
                 if isinstance(cause, HgcaError):
                     raise cause from None
                 raise
+            del done
             on_result(result)
+            del result
+
+    def in_flight(self) -> int:
+        """How many tasks to have submitted at once: two per tile the cluster can run at a time (by CPUs), so a
+        worker that finishes finds its next task's inputs already in the store."""
+        cpus = float(self.ray.cluster_resources().get("CPU", 1.0))
+        return max(2, 2 * int(cpus // max(1, self.threads)))
 
     def _take_signals(self, before: dict) -> None:
         """ray.init replaces the SIGTERM handler with one that aborts the process (exit 134, a crash report):
