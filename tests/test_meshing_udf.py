@@ -366,3 +366,78 @@ def test_speck_hanging_on_a_zero_area_face_is_dropped():
     out_v, out_f = clean_surface(v, f, min_area=0.05, pinhole_edges=0)
     assert len(out_f) == 2
     assert np.allclose(np.sort(out_v[np.unique(out_f)], axis=0), np.sort(v[:4], axis=0))
+
+
+def test_sorted_points_own_neighbours_match_the_table_lookup():
+    """The z neighbours of the indexed points' own slices come from their sorted order (no table lookup): the
+    same indices as a lookup of g +- e_z, for every slice start, runs of one point and gaps in a column."""
+    from hgca_core.geometry.udf_surface import GridIndex
+
+    rng = np.random.default_rng(5)
+    tall = np.unique(rng.integers(-6, 6, size=(900, 3)), axis=0)    # sorted (x, y, z), gappy columns
+    flat = np.unique(rng.integers(-6, 6, size=(300, 3)) * [1, 1, 0] + rng.integers(0, 2, size=(300, 1)) * [0, 0, 1],
+                     axis=0)                                        # one or two points a column: the next
+    for g in (tall, flat):                                          # column often starts one step higher
+        index = GridIndex(g)
+        assert index.sorted
+        table = {tuple(p): i for i, p in enumerate(g)}
+        for lo, hi in ((0, len(g)), (0, 1), (17, 200), (len(g) - 1, len(g))):
+            nb = index.neighbours(g[lo:hi], first=lo)
+            for a in range(3):
+                for k, s in enumerate((1, -1)):
+                    step = np.zeros(3, int)
+                    step[a] = s
+                    want = [table.get(tuple(p + step), -1) for p in g[lo:hi]]
+                    np.testing.assert_array_equal(nb[:, a, k], want)
+        assert not GridIndex(g[::-1]).sorted                           # any other order: the lookup path
+
+
+def test_dual_surface_quads_join_the_four_cubes_around_each_edge():
+    """Each quad's four vertices are the cubes (by min corner) around its crossing edge, in the order of
+    `_CUBES`, found here by a plain lookup of the corners; a ragged field (missing points, odd holes) exercises
+    the cubes whose diagonal corner is only reachable by lookup and the cubes without a grid point."""
+    from hgca_core.geometry.udf_surface import _CUBES, GridIndex, crossing_edges, dual_surface
+
+    rng = np.random.default_rng(11)
+    n = 14
+    ax = np.arange(n)
+    g = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    c = np.array([6.3, 6.8, 6.1])
+    vals = np.abs(np.linalg.norm(g - c, axis=1) - 4.2).astype(np.float32)   # a sphere's unsigned distance
+    keep = rng.random(len(g)) > 0.04
+    g, vals = g[keep], np.minimum(vals[keep], 2.0)
+    surf = dual_surface(g, vals, 1.0, 2.0)
+    start, axis, t = crossing_edges(g, vals, 1.0, 2.0)
+    corners = g[start][:, None, :] - _CUBES[axis]                          # (E, 4, 3)
+    p = g[start].astype(np.float64)
+    p[np.arange(len(start)), axis] += t
+    # the vertex of a cube is the mean of its crossing points: rebuild it from the corners' own keys
+    keys = corners.reshape(-1, 3)
+    _, cube = np.unique(keys, axis=0, return_inverse=True)
+    cube = cube.reshape(-1)
+    mean = np.stack([np.bincount(cube, weights=np.repeat(p[:, a], 4)) for a in range(3)], 1) / \
+        np.bincount(cube)[:, None]
+    quads = mean[cube.reshape(-1, 4)]                                        # (E, 4, 3) wanted positions
+    assert len(surf.faces) == 2 * len(start) and len(surf.vertices) == len(mean)
+    tri = surf.vertices[surf.faces].reshape(len(start), 2, 3, 3)
+    def tris(t: np.ndarray) -> set:
+        return {frozenset(tuple(np.round(x, 9)) for x in corner) for corner in t}
+
+    for e in rng.choice(len(start), size=300, replace=False):
+        q = quads[e]                                  # either diagonal split of the quad in this order
+        assert tris(tri[e]) in (tris([q[[0, 1, 2]], q[[0, 2, 3]]]), tris([q[[0, 1, 3]], q[[1, 2, 3]]]))
+    assert GridIndex(g).find(keys).min() == -1                               # some cubes have no grid point
+
+
+def test_grid_keys_unique_matches_torch():
+    """The grid keys' unique (numpy's stable sort) returns torch.unique's keys and inverse exactly."""
+    from hgca_core.models.autoencoder import _unique_inverse
+
+    rng = np.random.default_rng(2)
+    base = np.sort(rng.integers(0, 5000, size=3000))
+    keys = torch.from_numpy((base[:, None] + np.array([0, 1, 3, 7, 8])[None]).reshape(-1).astype(np.int64))
+    for k in (keys, keys[torch.randperm(len(keys), generator=torch.Generator().manual_seed(0))], keys[:1]):
+        want_k, want_i = torch.unique(k, return_inverse=True)
+        got_k, got_i = _unique_inverse(k)
+        assert torch.equal(got_k, want_k) and torch.equal(got_i, want_i)
+    assert len(_unique_inverse(keys[:0])[0]) == 0

@@ -73,6 +73,12 @@ class ResBlockFC(nn.Module):
         dx = self.fc1(torch.relu(self.fc0(torch.relu(x))))
         return (x if self.short is None else self.short(x)) + dx
 
+    def infer_(self, x: torch.Tensor, nonneg: bool = False) -> torch.Tensor:
+        """`forward(x)` bit for bit, without autograd, on fresh buffers of its own (the ReLUs in place, the sum
+        into the branch's output; `nonneg`: x is known to be >= 0, so its ReLU is x itself). x is not changed."""
+        dx = self.fc1(torch.relu_(self.fc0(x if nonneg else torch.relu(x))))
+        return dx.add_(x if self.short is None else self.short(x))
+
 
 def scatter_max(x: torch.Tensor, index: torch.Tensor, n: int) -> torch.Tensor:
     """Per-group max of rows (groups without rows get 0)."""
@@ -287,9 +293,9 @@ class Autoencoder(nn.Module):
         per = max(1, chunk // len(o))
         for a in range(0, len(c4), per):
             x = torch.relu_(hp[a:a + per, None, :] + lo[None])
-            for blk in self.blocks:
-                x = blk(x)
-            d = torch.sigmoid(self.fc_out(torch.relu_(x))[..., 0])                            # (n, P)
+            for k, blk in enumerate(self.blocks):
+                x = blk.infer_(x, nonneg=k == 0)
+            d = torch.sigmoid_(self.fc_out(torch.relu_(x))[..., 0])                           # (n, P)
             num.index_add_(0, inv[a * len(o):(a + per) * len(o)], (d * w).reshape(-1))
         return cs.unpack(keys)[:, 1:], num / den * v
 
