@@ -441,3 +441,26 @@ def test_grid_keys_unique_matches_torch():
         got_k, got_i = _unique_inverse(k)
         assert torch.equal(got_k, want_k) and torch.equal(got_i, want_i)
     assert len(_unique_inverse(keys[:0])[0]) == 0
+
+
+def test_adjacency_matches_scipy_coo_build():
+    """The edge matrix built from sorted edge keys is scipy's own COO -> CSR result (summed duplicates, sorted
+    indices), entry for entry: shared edges, repeated faces, isolated and unused vertices."""
+    from scipy.sparse import csr_matrix
+
+    from hgca_core.geometry.mesh_clean import adjacency
+
+    rng = np.random.default_rng(9)
+    nv = 400
+    f = rng.integers(0, nv - 20, size=(1500, 3))
+    f = np.concatenate([f, f[:50]])                                  # repeated faces: their edges count once
+    a, b = f.reshape(-1), f[:, [1, 2, 0]].reshape(-1)
+    want = csr_matrix((np.ones(2 * len(a), dtype=np.float32), (np.r_[a, b], np.r_[b, a])), shape=(nv, nv))
+    want.sum_duplicates()
+    want.data[:] = 1.0
+    got = adjacency(f, nv)
+    np.testing.assert_array_equal(got.indptr, want.indptr)
+    np.testing.assert_array_equal(got.indices, want.indices)
+    np.testing.assert_array_equal(got.data, want.data)
+    assert got.has_sorted_indices and got.shape == (nv, nv)
+    assert adjacency(np.zeros((0, 3), dtype=np.int64), 3).nnz == 0

@@ -186,16 +186,35 @@ def face_pieces(graph: csr_matrix) -> tuple[int, np.ndarray]:
 
 
 def adjacency(faces: np.ndarray, n_vertices: int) -> csr_matrix:
-    """(V, V) 0/1 symmetric matrix of the mesh's edges. Built by scipy's COO -> CSR conversion (a counting sort
-    by row, then a sort within each short row) rather than a global sort of edge keys: ~3x faster on a default
-    region's 1.6 M faces."""
+    """(V, V) 0/1 symmetric matrix of the mesh's edges, indices sorted within rows (scipy's canonical form).
+
+    Built from the sorted unique edge keys min * V + max, without scipy's COO -> CSR conversion and duplicate
+    summing of all 6 F directed entries: row i holds its lower neighbours (the edges (j, i), sorted by j, a
+    stable sort of the edges by their larger end) and then its upper ones (the edges (i, j), j >= i, already in
+    order).
+    """
     f = np.asarray(faces, dtype=np.int64)
+    nv = int(n_vertices)
     a, b = f.reshape(-1), f[:, [1, 2, 0]].reshape(-1)
-    adj = csr_matrix((np.ones(2 * len(a), dtype=np.float32), (np.r_[a, b], np.r_[b, a])),
-                     shape=(n_vertices, n_vertices))
-    adj.sum_duplicates()
-    adj.data[:] = 1.0
-    return adj
+    key = np.unique(np.minimum(a, b) * nv + np.maximum(a, b))
+    lo, hi = key // nv, key % nv
+    s_lo, s_hi = (lo, hi) if np.all(lo < hi) else (lo[lo < hi], hi[lo < hi])   # a face (i, i, j) has an (i, i)
+    below, above = np.bincount(s_hi, minlength=nv), np.bincount(lo, minlength=nv)
+    indptr = np.zeros(nv + 1, dtype=np.int64)
+    np.cumsum(below + above, out=indptr[1:])
+    start = indptr[:-1]
+    index_dtype = np.int32 if max(nv, indptr[-1]) < np.iinfo(np.int32).max else np.int64
+    indices = np.empty(int(indptr[-1]), dtype=index_dtype)
+    order = np.argsort(s_hi, kind="stable")                   # by the larger end, then the smaller (stable)
+    r = s_hi[order]
+    rank = np.arange(len(r)) - (np.cumsum(below) - below)[r]
+    indices[start[r] + rank] = s_lo[order]
+    rank = np.arange(len(lo)) - (np.cumsum(above) - above)[lo]
+    indices[start[lo] + below[lo] + rank] = hi
+    out = csr_matrix((np.ones(len(indices), dtype=np.float32), indices, indptr.astype(index_dtype)),
+                     shape=(nv, nv))
+    out.has_sorted_indices = True
+    return out
 
 
 def components(faces: np.ndarray, n_vertices: int) -> tuple[int, np.ndarray]:
