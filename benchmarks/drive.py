@@ -36,6 +36,7 @@ from drive_scores import ENDS, SCENE, SLAB, plot, seam_scores, slab_sources, wor
 
 REPO = Path(__file__).resolve().parents[1]
 SEEDS = (4_000_011, 4_000_010)   # two straight city streets (flat; a 0.9 % grade), both driven towards +x
+TILE_M = 38.4
 WRAP = ("import resource, sys; from hgca_core.cli import main; rc = main(sys.argv[1:]); "
         "print('MAXRSS', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr); sys.exit(rc)")
 
@@ -188,6 +189,8 @@ def main() -> int:
     ap.add_argument("--score-only", action="store_true",
                     help="score the long run in --work and write the page from --results' drive.json (and --add)")
     ap.add_argument("--add", type=Path, nargs="*", default=[], help="results JSONs of other runs to put on the page")
+    ap.add_argument("--page-only", action="store_true",
+                    help="rewrite drive.md from --results' drive.json (with drive_memory.json and drive_slab.json)")
     ap.add_argument("--threads", type=int, default=1,
                     help="torch threads per tile in every run (1: a shared machine's cores are busy; more threads "
                          "than free cores wait for each other)")
@@ -197,6 +200,10 @@ def main() -> int:
         h, m = map(int, args.until.split(":"))
         now = dt.datetime.now(dt.timezone.utc)
         deadline = now.replace(hour=h, minute=m, second=0).timestamp()
+    if args.page_only:
+        (args.results / "drive.md").write_text(table(json.loads((args.results / "drive.json").read_text()),
+                                                     args.results))
+        return 0
     result = {"machine": machine(), "threads_per_tile": args.threads, "stage": args.stage, "t1": args.t1,
               "spacing_m": args.spacing, "drives": {}, "runs": {}, "skipped": []}
     built = {}
@@ -242,7 +249,7 @@ def main() -> int:
     write(result, args.results)
     if any(v["drive"] == "long" for v in result["runs"].values()):
         return score(args, built)
-    print(table(result))
+    print(table(result, args.results))
     return 0
 
 
@@ -282,17 +289,18 @@ def score(args, built: dict) -> int:
     plot(out, args.results / "drive.png", result["seams"])
     result.setdefault("load_average", [round(v, 1) for v in os.getloadavg()])
     write(result, args.results)
-    print(table(result))
+    print(table(result, args.results))
     return 0
 
 
 def write(result: dict, folder: Path) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "drive.json").write_text(json.dumps(result, indent=1))
-    (folder / "drive.md").write_text(table(result))
+    (folder / "drive.md").write_text(table(result, folder))
 
 
-def table(r: dict) -> str:
+def table(r: dict, folder: Path | None = None) -> str:
+    """The page; with `folder`, also what `drive_memory.py` and `drive_slab.py` wrote there."""
     m = r["machine"]
     d = r["drives"]
     lines = [f"# Whole-drive benchmark: `hgca drive` on {d['short']['length_m']:.0f} m and "
@@ -355,7 +363,69 @@ def table(r: dict) -> str:
                   "(`synth.groundtruth.RegionSurface`), no visibility mask. Neighbour agreement: IoU of two "
                   "consecutive tiles' cells in their overlap (the second's mapped by cell centre into the first's "
                   "grid).", "", "![drive](drive.png)"]
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + extra_sections(r, folder)) + "\n"
+
+
+def extra_sections(r: dict, folder: Path | None) -> list[str]:
+    """A Ray worker's memory tile after tile (`drive_memory.py`) and the worst slab without tiles
+    (`drive_slab.py`), where their results are in `folder`."""
+    lines: list[str] = []
+    mem = folder / "drive_memory.json" if folder else None
+    if mem and mem.is_file():
+        d = json.loads(mem.read_text())
+        lines += ["", f"## A worker's memory tile after tile ({d['length_m']:.0f} m, {d['tiles']} tiles on one Ray "
+                  "worker, `drive_memory.py`)", "", "| code | RSS after first / last tile (MiB) | slope (MiB a tile): "
+                  "resident | private | object-store pages |", "|---|---:|---:|---:|---:|"]
+        for label, v in d["runs"].items():
+            s = v["slope_mib_per_tile"]
+            name = f"{label}: {v['code']}" if v["code"] else label
+            lines.append(f"| {name} | {v['rows'][0]['VmRSS'] / 2**20:.0f} / "
+                         f"{v['rows'][-1]['VmRSS'] / 2**20:.0f} | {s['VmRSS']} | {s['RssAnon']} | {s['RssShmem']} |")
+        lines += ["", "The per-tile growth is in the pages of Ray's object store a worker has touched (its scans "
+                  "read, its results written), counted in its resident set: the driver kept every result "
+                  "referenced until the drive's end and put every scan in the store up front, so each tile's "
+                  "objects landed on new pages. The driver now submits tiles along the drive, a few at a time, "
+                  "and drops each object when no task still to be submitted needs it; the store reuses its pages. "
+                  "Details: [drive_memory.md](drive_memory.md)."]
+    slab = folder / "drive_slab.json" if folder else None
+    if slab and slab.is_file():
+        d = json.loads(slab.read_text())
+        a = d["at_slab"]
+        lines += ["", f"## The worst slab without tiles (x = {d['x']:g} m, `drive_slab.py`)", "",
+                  f"One {TILE_M} m region centred on the slab, completed from its 5 nearest scans with no neighbour "
+                  f"and no ownership cut (stage coarse, T1 = {d['t1']}, seeds "
+                  f"{', '.join(str(u['seed']) for u in d['untiled'])}), scored the same way:", "",
+                  "| slab at x (m) | tiled (1 km drive) | one region: median | min | max | drive's median slab |",
+                  "|---:|---:|---:|---:|---:|---:|",
+                  f"| {d['x']:g} | {a['tiled']} | {a['untiled_median']} | {a['untiled_min']} | {a['untiled_max']} | "
+                  f"{d['drive_median']} |", ""]
+        sx, sr = r["seams"]["slab_x"], r["seams"]["slab_recall"]
+        repeats = [(d["x"] + k * 2 * SCENE, sr[sx.index(d["x"] + k * 2 * SCENE)]) for k in range(1, 8)
+                   if d["x"] + k * 2 * SCENE in sx]
+        if repeats:
+            lines += [f"The same place of the street one or more repeats ({2 * SCENE:g} m) on, where the tiles fall "
+                      "differently, recovers " + ", ".join(f"{v} (x = {x:g} m)" for x, v in repeats)
+                      + " on the drive.", ""]
+        med = d["drive_median"]
+        lines.append(f"Completed alone, the slab recovers {a['untiled_median']} "
+                     f"({a['untiled_median_over_drive_median']}x the drive's median slab) with every seed within "
+                     f"{a['untiled_max'] - a['untiled_min']:.3f}"
+                     + (": below 0.8x, so this place of the street is weak for the model itself, tiles or not."
+                        if a["untiled_max"] < 0.8 * med else "."))
+        tile = folder / "drive_slab_tile.json"
+        if tile.is_file():
+            t = json.loads(tile.read_text())
+            at = t["slab_x"].index(d["x"])
+            vals = [u["slab_recall"][at] for u in t["untiled"]]
+            lines.append(f"The drive's own tile there (centre x = {t['x']:g} m, its 5 scans), completed alone "
+                         f"without its neighbours' cells, recovers {min(vals)}-{max(vals)} in the slab "
+                         f"(seeds {', '.join(str(u['seed']) for u in t['untiled'])}), against {a['tiled']} with them "
+                         "in the drive: "
+                         + ("where the tile sits, not the neighbours' cells at its seam, takes the slab below "
+                            "the centred region." if max(vals) < a["untiled_min"] else
+                            "the neighbours' cells, not where the tile sits, take the slab lower."))
+        lines += ["", "![worst slab alone](drive_slab.png)"]
+    return lines
 
 
 if __name__ == "__main__":
