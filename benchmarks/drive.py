@@ -412,6 +412,7 @@ def extra_sections(r: dict, folder: Path | None) -> list[str]:
                      f"{a['untiled_max'] - a['untiled_min']:.3f}"
                      + (": below 0.8x, so this place of the street is weak for the model itself, tiles or not."
                         if a["untiled_max"] < 0.8 * med else "."))
+        lines.append("")
         tile = folder / "drive_slab_tile.json"
         if tile.is_file():
             t = json.loads(tile.read_text())
@@ -421,8 +422,11 @@ def extra_sections(r: dict, folder: Path | None) -> list[str]:
                          f"without its neighbours' cells, recovers {min(vals)}-{max(vals)} in the slab "
                          f"(seeds {', '.join(str(u['seed']) for u in t['untiled'])}), against {a['tiled']} with them "
                          "in the drive: "
-                         + ("where the tile sits, not the neighbours' cells at its seam, takes the slab below "
-                            "the centred region." if max(vals) < a["untiled_min"] else
+                         + ("where the tile sits (the slab "
+                            f"{abs(d['x'] - t['x']):g} m off its centre, near its seam, from the scans around its "
+                            "centre), not the neighbours' cells, takes the slab below the centred region."
+                            if abs(float(np.median(vals)) - a["tiled"]) < abs(float(np.median(vals))
+                                                                             - a["untiled_median"]) else
                             "the neighbours' cells, not where the tile sits, take the slab lower."))
         lines += ["", "![worst slab alone](drive_slab.png)"]
     return lines

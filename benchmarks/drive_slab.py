@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/drive_slab.py [--x 182] [--seeds 7,0,1,2] [--length 400]
 
 Builds the start of `benchmarks/drive.py`'s long drive (the same street, scanner and seed: its first scans are
-the long drive's), completes one 38.4 m region centred on the slab at `--x` from the 5 scans nearest it, no
+the long drive's), completes one 38.4 m region centred on the slab at `--x` from the 5 scans nearest it (`--scans-per-tile`), no
 neighbours, no ownership cut (stage coarse, T1 = the drive page's), once per seed (seed 7 is the one tile 7 of
 the long drive had there), and scores every 4 m slab it covers as `drive_scores.seam_scores` does (recall of the
 20 cm ground-truth cells, the long drive's slab grid). Results: benchmarks/results/drive_slab.{json,png}; the
@@ -73,6 +73,8 @@ def main() -> int:
     ap.add_argument("--x", type=float, default=None, help="slab centre (m; default: the drive page's worst)")
     ap.add_argument("--seeds", default="7,0,1,2")
     ap.add_argument("--length", type=float, default=400.0, help="metres of the long drive to build")
+    ap.add_argument("--scans-per-tile", type=int, default=5, help="scans nearest the region's centre it takes")
+    ap.add_argument("--name", default="drive_slab", help="results file name (.json, .png)")
     ap.add_argument("--work", type=Path, default=Path("/tmp/hgca_drive_memory"))
     ap.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results")
     args = ap.parse_args()
@@ -88,7 +90,7 @@ def main() -> int:
     arc = float(np.interp(x_at, pos[:, 0], path.s))
     centre = path.position(arc)
     near = tuple(int(j) for j in np.sort(np.argsort(np.linalg.norm(pos[:, :2] - centre[:2], axis=1),
-                                                     kind="stable")[:5]))
+                                                     kind="stable")[:args.scans_per_tile]))
     region = tile_region(TilePlan(0, arc, centre[:2], path.heading(arc, TILE * HEADING_SPAN), near),
                          np.concatenate([scans[i].points for i in near]), (TILE, TILE, 8.0))
     gt = ground_truth(region, scenes(int(np.ceil((long_m + 4.0 - 116.0) / SCENE)) + 1))
@@ -99,6 +101,7 @@ def main() -> int:
     cfg = DriveConfig().with_(stage="coarse", t1=page["t1"], threads=1)
     digests = tuple(file_digest(p) for p in weight_files("coarse", None, None))
     out = {"x": x_at, "region": list(region.as_tuple()), "scans": list(near), "t1": page["t1"],
+           "scans_per_tile": args.scans_per_tile,
            "slab_x": x.tolist(), "tiled_recall": np.array(seams["slab_recall"])[keep].tolist(),
            "drive_median": seams["slabs"]["recall"]["median"], "untiled": []}
     for seed in (int(s) for s in args.seeds.split(",")):
@@ -115,8 +118,8 @@ def main() -> int:
     out["at_slab"] = {"tiled": out["tiled_recall"][at], "untiled_median": round(float(np.median(vals)), 4),
                       "untiled_min": min(vals), "untiled_max": max(vals),
                       "untiled_median_over_drive_median": round(float(np.median(vals)) / out["drive_median"], 3)}
-    (args.results / "drive_slab.json").write_text(json.dumps(out, indent=1))
-    plot(out, args.results / "drive_slab.png")
+    (args.results / f"{args.name}.json").write_text(json.dumps(out, indent=1))
+    plot(out, args.results / f"{args.name}.png")
     print(json.dumps(out["at_slab"]))
     return 0
 
