@@ -178,7 +178,7 @@ def crossing_edges(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_s
     An edge crosses where its ends' gradient directions are opposed (cosine < max_dot) and d_i + d_j <= max_sum h,
     or clearly opposed (cosine < WIDE_DOT) and d_i + d_j <= WIDE_SUM h (the decoder's wide valleys, see WIDE_SUM).
     Both passes (gradients per point, then the test per edge) work on slices of the points, in `workers` threads.
-    index: `GridIndex(g)`, if known; minus: an (G, 3) int64 array to fill with the index of g - e_a (-1 where
+    index: `GridIndex(g)`, if known; minus: an (G, 3) integer array to fill with the index of g - e_a (-1 where
     absent), which the gradients look up anyway (`dual_surface` finds the cubes around an edge with it).
     """
     index = GridIndex(g) if index is None else index
@@ -227,7 +227,7 @@ def dual_surface(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_sum
     g = np.asarray(g, dtype=np.int64).reshape(-1, 3)
     vals = np.asarray(vals, dtype=np.float32).reshape(-1)
     index = GridIndex(g)
-    minus = np.empty((len(g), 3), dtype=np.int64)
+    minus = np.empty((len(g), 3), dtype=np.int32 if len(g) < np.iinfo(np.int32).max else np.int64)
     start, axis, t = crossing_edges(g, vals, h, fill, max_sum, max_dot, index, workers, minus)
     if len(start) == 0:
         return DualSurface(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
