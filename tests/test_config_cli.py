@@ -1,8 +1,10 @@
 """The command line's surface: every option has help, `-o/--out` names the kind of thing it is, `complete` and
-`drive` choose the mesh format the same way, and shared options have one definition."""
+`drive` choose the mesh format the same way, and an option shared by commands has one definition (in
+commands/arguments.py) and one type."""
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import pytest
 
@@ -68,3 +70,45 @@ def test_complete_and_drive_choose_the_mesh_format_the_same_way(tmp_path):
         output_paths(str(tmp_path / "m"), 1)
     for name in ("complete", "drive"):
         assert option(subparser(name), "--mesh-format").choices == ("ply", "glb", "obj", "npz")
+
+
+# Options two commands both take with a different meaning: named here, so a new clash is a decision, not drift.
+DISTINCT = {"--size": "drive: the tile side; region: the box's three sides",
+            "--count": "synth: samples to make; eval: samples to score",
+            "--data": "train: several dataset folders; eval: the one scored",
+            "--split": "synth: the split to build; eval: the split to score",
+            "--workers": "drive: tiles at once (Ray); synth: processes making samples",
+            "--resume": "train: continue the checkpoint; eval-real: keep the cases written"}
+ARGUMENTS = Path(cli.__file__).resolve().parent / "commands" / "arguments.py"
+
+
+def _defined_options(path: Path) -> list[tuple[int, str]]:
+    """(line, option) of each option string an `add_argument` call in `path` spells out."""
+    import ast
+
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "add_argument":
+            found += [(node.lineno, a.value) for a in node.args if isinstance(a, ast.Constant)
+                      and isinstance(a.value, str) and a.value.startswith("-")]
+    return found
+
+
+def test_an_option_shared_by_commands_has_one_definition():
+    """Every option two or more commands take is added by one function of commands/arguments.py (one type, one
+    bound, one help to adapt), never spelled out in a command's module; arguments.py spells each out once."""
+    users: dict[str, set[str]] = {}
+    for name in cli.COMMANDS:
+        for a in subparser(name)._actions:
+            if not isinstance(a, argparse._HelpAction):
+                for flag in a.option_strings:
+                    users.setdefault(flag, set()).add(name)
+    shared = {flag for flag, names in users.items() if len(names) > 1}
+    assert set(DISTINCT) <= shared, sorted(set(DISTINCT) - shared)
+    commands = ARGUMENTS.parent
+    bad = [f"{f.name}:{line} defines {flag} (also in {', '.join(sorted(users[flag]))})"
+           for f in sorted(commands.glob("*.py")) if f != ARGUMENTS
+           for line, flag in _defined_options(f) if flag in shared - set(DISTINCT)]
+    assert not bad, bad
+    spelled = [flag for _, flag in _defined_options(ARGUMENTS)]
+    assert len(spelled) == len(set(spelled)), sorted({f for f in spelled if spelled.count(f) > 1})

@@ -172,17 +172,74 @@ def add_device_argument(p: argparse.ArgumentParser, help: str = "cpu, cuda or cu
     p.add_argument("--device", type=device_arg, default=DEFAULTS.device, help=f"{help} (default {DEFAULTS.device})")
 
 
-def add_weights_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--weights", default=None, help="coarse weights file (default: the shipped coarse.pt)")
+def add_weights_arguments(p: argparse.ArgumentParser, noplanner: bool = False) -> None:
+    """`--weights` and `--fine-weights` (and the planner ablation's `--noplanner-weights` for the evaluations)."""
+    p.add_argument("--weights", default=None,
+                   help="coarse weights file or training checkpoint (default: the shipped coarse.pt)")
+    if noplanner:
+        p.add_argument("--noplanner-weights", default=None,
+                       help="GCA (no planner) weights file or training checkpoint (default: the shipped "
+                            "coarse_noplanner.pt)")
     p.add_argument("--fine-weights", default=None, help="fine weights file, stage full (default: the shipped fine.pt)")
+
+
+def add_samples_argument(p: argparse.ArgumentParser, default: int = DEFAULTS.samples,
+                         help: str = "number of completions k, one mesh each") -> None:
+    p.add_argument("--samples", type=samples_arg, default=default, help=f"{help} (default {default})")
+
+
+def add_seed_argument(p: argparse.ArgumentParser | argparse._ActionsContainer, help: str,
+                      default: int | None = DEFAULTS.seed) -> None:
+    """`--seed`: of a completion's samples (the default), of a training run or of a synthetic scene (no default)."""
+    p.add_argument("--seed", type=seed_arg, default=default, metavar="N",
+                   help=help if default is None else f"{help} (default {default})")
+
+
+def add_semantics_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--semantics", action="store_true",
+                   help="label every face with a class (road, sidewalk, building, car, tree, pole, fence, shelter, "
+                        "person): a PLY face property `label`, NPZ `face_label`, one GLB primitive per class; with "
+                        "--samples k also each face's class agreement across the samples. The geometry is unchanged")
+
+
+def add_threads_argument(p: argparse.ArgumentParser, help: str, default: int | None = None) -> None:
+    p.add_argument("--threads", type=counted(1, MAX_THREADS), default=default, metavar="N", help=help)
+
+
+def add_methods_argument(p: argparse.ArgumentParser, methods: tuple[str, ...], default: str | None,
+                         help: str = "") -> None:
+    """`--methods` of the evaluations: the rows of the table."""
+    p.add_argument("--methods", default=default, help=f"comma list of {', '.join(methods)}{help}")
+
+
+# The options of the commands that read scans (read, info, region, complete, drive, eval-real, poses).
+def add_frames_argument(p: argparse.ArgumentParser,
+                        help: str = "frames of a sequence folder, in time order (default: the 5 around the middle)"
+                        ) -> None:
+    p.add_argument("--frames", metavar="START:STOP[:STEP]", help=help)
+
+
+def add_poses_argument(p: argparse.ArgumentParser,
+                       help: str = "JSON with a sensor->world 4x4 pose per scan (see docs/CONTRACTS.md)") -> None:
+    p.add_argument("--poses", metavar="POSES", help=help)
+
+
+def add_format_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--format", dest="fmt", metavar="FORMAT",
+                   help="force the scan format (ply, las, pcd, xyz, npy, npz, kitti, nuscenes) instead of the "
+                        "extension's")
+
+
+def add_json_argument(p: argparse.ArgumentParser, help: str) -> None:
+    """`--json`: one JSON object on stdout instead of the text (what is in it is the command's help)."""
+    p.add_argument("--json", action="store_true", help=help)
 
 
 def add_completion_arguments(p: argparse.ArgumentParser, seed_help: str, max_faces_help: str | None = None,
                              free_space_what: str = "") -> None:
     """The `CompletionConfig` options of `hgca complete` and `hgca drive`."""
-    p.add_argument("--samples", type=samples_arg, default=DEFAULTS.samples,
-                   help=f"number of completions k, one mesh each (default {DEFAULTS.samples})")
-    p.add_argument("--seed", type=seed_arg, default=DEFAULTS.seed, help=f"{seed_help} (default {DEFAULTS.seed})")
+    add_samples_argument(p)
+    add_seed_argument(p, seed_help)
     add_stage_argument(p)
     add_device_argument(p)
     p.add_argument("--max-faces", type=max_faces_arg, default=None,

@@ -4,7 +4,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from hgca_core.commands.arguments import (MESH_FORMATS, add_completion_arguments, add_mesh_format_argument,
+from hgca_core.commands.arguments import (MESH_FORMATS, add_completion_arguments, add_format_argument,
+                                          add_frames_argument, add_mesh_format_argument, add_poses_argument,
+                                          add_semantics_argument,
                                           add_out_argument, add_precision_argument, add_progress_argument,
                                           check_device, completion_config, device_arg, steps_arg)
 from hgca_core.errors import InputError
@@ -16,8 +18,6 @@ MESH_EXTS = tuple("." + f for f in MESH_FORMATS)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from hgca_core.commands.read import add_frames_argument
-
     p.add_argument("scans", nargs="+", help="scan files (ply, las/laz, pcd, xyz/csv, npy/npz, KITTI .bin, nuScenes "
                                             ".pcd.bin, AV2 .feather) or one sequence folder (KITTI, AV2, nuScenes)")
     add_frames_argument(p)
@@ -25,15 +25,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      help="the mesh file's name; sample i goes to MESH_s<i>.<format>, the format from "
                           "--mesh-format or else MESH's extension (.ply, .obj, .glb, .npz)")
     add_mesh_format_argument(p, None, "mesh format (default: MESH's extension)")
-    p.add_argument("--poses", help="JSON with a sensor->world 4x4 pose per scan")
-    p.add_argument("--format", dest="fmt", help="force the scan format instead of guessing from the extension")
+    add_poses_argument(p)
+    add_format_argument(p)
     p.add_argument("--region", help="cx,cy,cz,sx,sy,sz[,yaw_deg] in the world frame (default: 38.4 x 38.4 x 8 m "
                                     "around the first scan's sensor, from 1 m below the ground)")
     add_completion_arguments(p, "sample i uses seed + i: same seed, same mesh")
-    p.add_argument("--semantics", action="store_true",
-                   help="label every face with a class (road, sidewalk, building, car, tree, pole, fence, shelter, "
-                        "person): a PLY face property `label`, NPZ `face_label`, one GLB primitive per class; with "
-                        "--samples k also each face's class agreement across the samples. The geometry is unchanged")
+    add_semantics_argument(p)
     p.add_argument("--semantics-weights", default=None, help="semantic head weights (default: the shipped "
                                                              "semantics.pt); implies --semantics")
     add_progress_argument(p)

@@ -9,18 +9,15 @@ EXAMPLE_DIR = Path(__file__).resolve().parents[1] / "examples"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from hgca_core.commands.arguments import (DEFAULTS, add_out_argument, add_progress_argument,
-                                              add_stage_argument, samples_arg, seed_arg)
+    from hgca_core.commands.arguments import (add_out_argument, add_progress_argument, add_samples_argument,
+                                              add_seed_argument, add_semantics_argument, add_stage_argument)
 
     add_out_argument(p, "DIR", required=True,
                      help="folder for the meshes (completion_s<i>.ply) and their renderings (`make demo`: demo_out)")
-    p.add_argument("--samples", type=samples_arg, default=DEFAULTS.samples,
-                   help=f"number of completions k, one mesh each (default {DEFAULTS.samples})")
-    p.add_argument("--seed", type=seed_arg, default=DEFAULTS.seed,
-                   help=f"sample i uses seed + i (default {DEFAULTS.seed})")
+    add_samples_argument(p)
+    add_seed_argument(p, "sample i uses seed + i")
     add_stage_argument(p)
-    p.add_argument("--semantics", action="store_true",
-                   help="label every face with its class (the PLY face property `label`; see hgca complete)")
+    add_semantics_argument(p)
     add_progress_argument(p)
 
 

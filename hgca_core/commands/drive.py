@@ -12,8 +12,10 @@ import argparse
 import json
 import sys
 
-from hgca_core.commands.arguments import (MAX_THREADS, MAX_WORKERS, add_completion_arguments,
-                                          add_mesh_format_argument, add_out_argument, add_progress_argument,
+from hgca_core.commands.arguments import (MAX_WORKERS, add_completion_arguments, add_format_argument,
+                                          add_frames_argument, add_json_argument, add_mesh_format_argument,
+                                          add_out_argument, add_poses_argument, add_progress_argument,
+                                          add_threads_argument,
                                           check_device, completion_config, counted, positive_float)
 from hgca_core.config import MAX_SCANS_PER_TILE, DriveConfig
 from hgca_core.errors import InputError
@@ -27,10 +29,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "folder (KITTI, Argoverse 2 log, nuScenes sweeps)")
     add_out_argument(p, "DIR", help="the drive folder (created; re-running resumes): tiles/<i>_s<k>.<format>, "
                                     "drive_s<k>.<format> and drive.json")
-    p.add_argument("--poses", help="JSON with a sensor->world 4x4 pose per scan (see docs/CONTRACTS.md)")
-    p.add_argument("--frames", default=None, metavar="START:STOP[:STEP]",
-                   help="frames of a sequence folder (default: all of them)")
-    p.add_argument("--format", dest="fmt", help="force the scan format instead of guessing from the extension")
+    add_poses_argument(p)
+    add_frames_argument(p, "frames of a sequence folder (default: all of them)")
+    add_format_argument(p)
     p.add_argument("--size", type=positive_float, default=DEFAULTS.size,
                    help=f"tile side in metres (default {DEFAULTS.size}, the paper's region)")
     p.add_argument("--overlap", type=positive_float, default=DEFAULTS.overlap,
@@ -39,7 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"each tile is completed from its N nearest scans (default {DEFAULTS.scans_per_tile})")
     p.add_argument("--plan-only", action="store_true",
                    help="print the tiles (regions along the trajectory, their scans) and stop; writes nothing")
-    p.add_argument("--json", action="store_true", help="--plan-only: print the plan as one JSON object")
+    add_json_argument(p, "--plan-only: print the plan as one JSON object")
     add_completion_arguments(p, "sample k of tile i uses seed + i * samples + k",
                              max_faces_help="simplify each tile's mesh to at most N triangles (default 0: every "
                                             "triangle, so the tiles' surfaces meet at the seams as computed)",
@@ -49,8 +50,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=counted(1, MAX_WORKERS), default=DEFAULTS.workers,
                    help="tiles at once; more than 1 starts a local Ray in this process (needs hgca[ray])")
     p.add_argument("--address", default=None, help="run on an existing Ray cluster (ray://host:port)")
-    p.add_argument("--threads", type=counted(1, MAX_THREADS), default=None,
-                   help="torch threads per tile (default: cores / workers)")
+    add_threads_argument(p, "torch threads per tile (default: cores / workers)")
     p.add_argument("--tile-memory", type=positive_float, default=None, metavar="GIB",
                    help="memory each tile declares to Ray (default: estimated from the tile's area)")
     add_mesh_format_argument(p, DEFAULTS.mesh_format, f"tile and drive meshes (default {DEFAULTS.mesh_format})")

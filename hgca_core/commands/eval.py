@@ -10,25 +10,22 @@ DEFAULT_METHODS = ("input", "poisson", "gca", "hgca")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from hgca_core.commands.arguments import (add_free_space_argument, add_out_argument, add_precision_argument,
-                                              add_stage_argument, counted, samples_arg, seed_arg, steps_arg)
+    from hgca_core.commands.arguments import (add_free_space_argument, add_methods_argument, add_out_argument,
+                                              add_precision_argument, add_samples_argument, add_seed_argument,
+                                              add_stage_argument, add_steps_arguments, add_weights_arguments,
+                                              counted)
 
     p.add_argument("--data", default="data/synth", help="dataset folder (hgca synth --split test)")
     p.add_argument("--split", default="test", choices=("val", "test"), help="the split to score (default test)")
     add_stage_argument(p, help="full (default) adds the fine stage's rows (hGCA 10 cm voxels and implicit mesh; "
                                "needs fine weights) to the coarse ones")
-    p.add_argument("--weights", default=None, help="hGCA coarse weights or checkpoint (default: the shipped coarse.pt)")
-    p.add_argument("--noplanner-weights", default=None,
-                   help="GCA (no planner) weights or checkpoint (default: the shipped coarse_noplanner.pt)")
-    p.add_argument("--fine-weights", default=None, help="fine-stage weights (default: the shipped fine.pt)")
-    p.add_argument("--t2", type=steps_arg, default=None, help="fine steps (default from the weights)")
+    add_weights_arguments(p, noplanner=True)
+    add_steps_arguments(p)
     add_precision_argument(p)
     p.add_argument("--count", type=counted(1), default=None, help="evaluate only the first N samples")
-    p.add_argument("--samples", type=samples_arg, default=3, help="completions k per input (min/avg/TMD)")
-    p.add_argument("--methods", default=None,
-                   help=f"comma list of {', '.join(METHODS)} (default: the coarse ones, plus hgca-full with --stage full)")
-    p.add_argument("--t1", type=steps_arg, default=None, help="coarse steps (default from the weights)")
-    p.add_argument("--seed", type=seed_arg, default=0, help="sample i of every input uses seed + i (default 0)")
+    add_samples_argument(p, 3, "completions k per input (min/avg/TMD)")
+    add_methods_argument(p, METHODS, None, " (default: the coarse ones, plus hgca-full with --stage full)")
+    add_seed_argument(p, "sample i of every input uses seed + i")
     add_free_space_argument(p, " for the model rows (compare runs to ablate it)")
     add_out_argument(p, "FILE.json", default=None, help="write the rows as JSON and the table as .md next to it")
     p.add_argument("--render", default=None, metavar="PNG",

@@ -14,8 +14,10 @@ import math
 import time
 from pathlib import Path
 
-from hgca_core.commands.arguments import (add_free_space_argument, add_out_argument, add_precision_argument,
-                                          counted, finite_float, samples_arg, seed_arg, steps_arg)
+from hgca_core.commands.arguments import (add_free_space_argument, add_frames_argument, add_methods_argument,
+                                          add_out_argument, add_precision_argument, add_samples_argument,
+                                          add_seed_argument, add_steps_arguments, add_threads_argument,
+                                          add_weights_arguments, finite_float, samples_arg)
 from hgca_core.metrics.real_eval import METHODS
 
 # The real fixtures shipped with the repository (tests/data/real), wherever the command is run from
@@ -34,27 +36,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("inputs", nargs="*", help="scan files or sequence folders (default: every real fixture in "
                                             "--real-dir: both AV2 logs and the nuScenes sweep)")
     p.add_argument("--real-dir", default=DEFAULT_REAL, help="the real fixtures folder (for the default inputs)")
-    p.add_argument("--frames", metavar="START:STOP[:STEP]", help="frames of the sequence inputs given")
+    add_frames_argument(p, "frames of the sequence inputs given")
     p.add_argument("--calibration", help="AV2 egovehicle_SE3_sensor table for logs given without one")
     add_out_argument(p, "FILE.json", required=True,
                      help="results JSON; the table goes to .md beside it, renderings to <stem>_<input>*.png "
                           "(the repository's page: benchmarks/results/real_scans.json)")
-    p.add_argument("--methods", default=",".join(METHODS), help=f"comma list of {', '.join(METHODS)}")
+    add_methods_argument(p, METHODS, ",".join(METHODS), " (default: all)")
     p.add_argument("--cuts", default="1.5,2.0", help="cut heights above the ground, metres")
     p.add_argument("--full-cuts", default="2.0", help="cut heights where the full stage runs (it is slow)")
-    p.add_argument("--samples", type=samples_arg, default=3, help="k for the sampling rows")
+    add_samples_argument(p, 3, "k for the sampling rows")
     p.add_argument("--full-samples", type=samples_arg, default=None, help="k for the full-stage rows (default --samples)")
-    p.add_argument("--seed", type=seed_arg, default=0, help="sample i uses seed + i (default 0)")
+    add_seed_argument(p, "sample i uses seed + i")
     p.add_argument("--yaw", type=finite_float, default=0.0, metavar="DEG",
                    help="turn each input's region by DEG degrees about the vertical (default 0: the region's axes "
                         "along the scan's frame, as `hgca complete` picks it); a model trained on regions along the "
                         "drive may score otherwise on a turned box")
-    p.add_argument("--threads", type=counted(1, 4096), default=1, help="torch / Open3D threads")
-    p.add_argument("--t1", type=steps_arg, default=None, help="coarse steps (default from the weights)")
-    p.add_argument("--t2", type=steps_arg, default=None, help="fine steps (default from the weights)")
-    p.add_argument("--weights", default=None, help="hGCA coarse weights (default: shipped)")
-    p.add_argument("--noplanner-weights", default=None, help="GCA weights without planner (default: shipped)")
-    p.add_argument("--fine-weights", default=None, help="fine weights (default: shipped)")
+    add_threads_argument(p, "torch / Open3D threads (default 1)", default=1)
+    add_steps_arguments(p)
+    add_weights_arguments(p, noplanner=True)
     add_precision_argument(p)
     add_free_space_argument(p, " for the model rows (compare runs to ablate it)")
     p.add_argument("--no-render", action="store_true", help="skip the PNG renderings")

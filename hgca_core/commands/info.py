@@ -9,15 +9,15 @@ from typing import Any
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from hgca_core.commands.read import add_frames_argument
+    from hgca_core.commands.arguments import (add_format_argument, add_frames_argument, add_json_argument,
+                                              add_poses_argument)
 
     p.add_argument("files", nargs="+", help="scan files (ply, las/laz/copc, pcd, xyz/csv/txt, npy/npz, "
                                             "KITTI .bin, nuScenes .pcd.bin, AV2 .feather), or one sequence folder")
     add_frames_argument(p)
-    p.add_argument("--poses", metavar="P", help="poses JSON replacing a sequence folder's own poses")
-    p.add_argument("--json", action="store_true", help="print one JSON document instead of text")
-    p.add_argument("--format", dest="fmt", metavar="F",
-                   help="force the format (ply, las, pcd, xyz, npy, npz, kitti, nuscenes) instead of the extension's")
+    add_poses_argument(p, "poses JSON replacing a sequence folder's own poses")
+    add_json_argument(p, "print one JSON document instead of text")
+    add_format_argument(p)
 
 
 def _facts(scan) -> dict[str, Any]:  # noqa: ANN001 - a hgca_core.io.Scan (imported lazily)

@@ -7,14 +7,15 @@ import argparse
 import json
 import os
 
+from hgca_core.commands.arguments import add_frames_argument, add_out_argument
 from hgca_core.errors import InputError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("sequence", help="sequence folder (KITTI velodyne/ + poses.txt + calib.txt, Argoverse 2 log, "
                                     "nuScenes *.pcd.bin with poses.json)")
-    p.add_argument("--frames", metavar="START:STOP[:STEP]", help="frames to write (default: all)")
-    p.add_argument("-o", "--out", required=True, metavar="FILE.json", help="output JSON (docs/CONTRACTS.md)")
+    add_frames_argument(p, "frames to write (default: all)")
+    add_out_argument(p, "FILE.json", required=True, help="output JSON (docs/CONTRACTS.md)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -9,6 +9,8 @@ import argparse
 import json
 import os
 
+from hgca_core.commands.arguments import (add_format_argument, add_frames_argument, add_json_argument,
+                                          add_out_argument, add_poses_argument)
 from hgca_core.errors import InputError
 
 
@@ -17,21 +19,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                             "KITTI .bin, nuScenes .pcd.bin, AV2 .feather), or one sequence "
                                             "folder (KITTI, Argoverse 2 log, nuScenes sweeps)")
     add_frames_argument(p)
-    p.add_argument("--poses", metavar="P",
-                   help="JSON with a sensor->world 4x4 pose per scan (see docs/CONTRACTS.md)")
-    p.add_argument("--format", dest="fmt", metavar="F",
-                   help="force the format (ply, las, pcd, xyz, npy, npz, kitti, nuscenes) instead of the extension's")
-    p.add_argument("-o", "--out", required=True, metavar="FILE.npz",
-                   help="output .npz: points (N,3) f32 relative to offset (3,) f64, attributes, origins")
-    p.add_argument("--json", action="store_true",
-                   help="print one JSON object (out, points, scans, attributes, dropped: returns the reader left "
-                        "out, by reason) instead of the sentence")
-
-
-def add_frames_argument(p: argparse.ArgumentParser) -> None:
-    """`--frames`, shared by read, info, complete and poses."""
-    p.add_argument("--frames", metavar="START:STOP[:STEP]",
-                   help="frames of a sequence folder, in time order (default: the 5 around the middle)")
+    add_poses_argument(p)
+    add_format_argument(p)
+    add_out_argument(p, "FILE.npz", required=True,
+                     help="output .npz: points (N,3) f32 relative to offset (3,) f64, attributes, origins")
+    add_json_argument(p, "print one JSON object (out, points, scans, attributes, dropped: returns the reader left "
+                         "out, by reason) instead of the sentence")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -11,16 +11,17 @@ import argparse
 import json
 import math
 
+from hgca_core.commands.arguments import add_format_argument, add_json_argument, add_poses_argument
 from hgca_core.errors import InputError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scans", nargs="+", help="scan files (any format `hgca read` accepts)")
-    p.add_argument("--poses", metavar="P", help="JSON with a sensor->world 4x4 pose per scan")
-    p.add_argument("--format", dest="fmt", metavar="F", help="force the scan format instead of the extension's")
+    add_poses_argument(p)
+    add_format_argument(p)
     p.add_argument("--size", metavar="SX,SY,SZ", default=None,
                    help="box size in metres (default 38.4,38.4,8: the paper's region)")
-    p.add_argument("--json", action="store_true", help="print one JSON object instead of the --region text")
+    add_json_argument(p, "print one JSON object instead of the --region text")
 
 
 def parse_size(text: str | None) -> tuple[float, float, float]:

@@ -12,7 +12,7 @@ import argparse
 import json
 import time
 
-from hgca_core.commands.arguments import MAX_WORKERS, add_out_argument, counted, seed_arg
+from hgca_core.commands.arguments import MAX_WORKERS, add_out_argument, add_seed_argument, counted
 from hgca_core.errors import InputError
 from hgca_core.synth.lidar import PROFILES
 from hgca_core.synth.scene import GENERATOR_VERSION, STYLE_DRAWS, STYLES
@@ -20,7 +20,7 @@ from hgca_core.synth.scene import GENERATOR_VERSION, STYLE_DRAWS, STYLES
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     what = p.add_mutually_exclusive_group(required=True)
-    what.add_argument("--seed", type=seed_arg, help="make the scene named by this seed and write its files")
+    add_seed_argument(what, "make the scene named by this seed and write its files", default=None)
     what.add_argument("--split", choices=("train", "val", "test"),
                       help="build a dataset split (seeds: train i, val 1,000,000 + i, test 2,000,000 + i)")
     what.add_argument("--pack", metavar="DATASET",

@@ -16,7 +16,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from hgca_core.commands.arguments import add_out_argument, counted, device_arg, seed_arg
+from hgca_core.commands.arguments import (add_device_argument, add_out_argument, add_seed_argument,
+                                          add_threads_argument, counted)
 from hgca_core.errors import InputError
 from hgca_core.training.recipes import DEFAULT, RECIPES, Recipe, parse_sets, resolve, resumed
 
@@ -53,13 +54,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="stop after this many steps of this invocation (a resumed run counts from where it resumes)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out (its checkpoint, with the recipe saved in it)")
-    p.add_argument("--device", type=device_arg, default="cpu",
-                   help="cpu, cuda or cuda:N (under torchrun, cuda puts each rank on its own GPU, cuda:LOCAL_RANK)")
-    p.add_argument("--threads", type=counted(1, 1024), default=None, metavar="N",
-                   help="torch CPU threads (1 is fastest on a busy machine)")
-    p.add_argument("--seed", type=seed_arg, default=None, metavar="N",
-                   help="a new run's random streams: initial weights, crops, chains, infusion draws (default 0); "
-                        "a resume continues the run's own streams and refuses another seed")
+    add_device_argument(p, "cpu, cuda or cuda:N (under torchrun, cuda puts each rank on its own GPU, cuda:LOCAL_RANK)")
+    add_threads_argument(p, "torch CPU threads (1 is fastest on a busy machine)")
+    add_seed_argument(p, "a new run's random streams: initial weights, crops, chains, infusion draws (default 0); "
+                         "a resume continues the run's own streams and refuses another seed", default=None)
     p.add_argument("--export", nargs="?", const=True, default=None, metavar="PATH",
                    help="after training, write the trained (averaged) weights with their training record: to PATH, "
                         "or without PATH as the shipped hgca_core/weights/<stage>.pt and re-render the model card")
