@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from semantics_page import CAR_TOP, GROUND_TOL, POLE_WIDTH, VERTICAL_NZ, markdown
+from semantics_page import CAR_TOP, GROUND_TOL, POLE_WIDTH, VERTICAL_NZ, markdown, shares
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = (  # name, path under --real-dir, frames, calibration (as hgca eval-real reads them)
@@ -306,16 +306,7 @@ def main() -> None:
     out = Path(args.out)
     tables = {src: {part: iou_table(m) for part, m in parts.items()} for src, parts in conf.items()}
     tables_all = {src: iou_table(parts["observed"] + parts["generated"]) for src, parts in conf.items()}
-    share = {}
-    for stage in ("coarse", "full"):
-        rows = [t for t in timing if t["stage"] == stage]
-        if rows:
-            share[stage] = round(sum(t["semantics_s"] for t in rows) / max(sum(t["completion_s"] for t in rows),
-                                                                         1e-9) * 100, 1)
-        cpu_rows = [t for t in rows if t["completion_cpu_s"] is not None]
-        if cpu_rows:
-            share[f"{stage}_cpu"] = round(sum(t["semantics_cpu_s"] for t in cpu_rows) /
-                                          max(sum(t["completion_cpu_s"] for t in cpu_rows), 1e-9) * 100, 1)
+    share = shares(timing)
     from hgca_core.models.weights import load_file
 
     wmeta = load_file(args.weights or shipped("semantics"))["meta"]

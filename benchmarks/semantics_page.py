@@ -13,9 +13,23 @@ CAR_TOP = 3.0         # m above the fitted ground
 POLE_WIDTH = 0.8      # m across (x and y) at most
 
 
+def shares(timing: list[dict]) -> dict[str, float]:
+    """The head's seconds as a % of the completion's, per stage: wall ("coarse") and CPU ("coarse_cpu"). Both over
+    the inputs whose completion has CPU seconds (timed the way the head is; wall over every input where none has)."""
+    out = {}
+    for stage in ("coarse", "full"):
+        rows = [t for t in timing if t.get("stage", "coarse") == stage]
+        timed = [t for t in rows if t.get("completion_cpu_s") is not None]
+        for key, sem, comp, sel in (("", "semantics_s", "completion_s", timed or rows),
+                                    ("_cpu", "semantics_cpu_s", "completion_cpu_s", timed)):
+            if sel:
+                out[stage + key] = round(sum(t[sem] for t in sel) / max(sum(t[comp] for t in sel), 1e-9) * 100, 1)
+    return out
+
+
 def share_text(r: dict) -> str:
     """The head's time as a share of the completion's, per stage, wall and CPU."""
-    sh = r.get("semantics_share") or {"coarse": r.get("semantics_share_of_coarse_completion")}
+    sh = shares(r["timing"]) if r.get("semantics_share") else {"coarse": r.get("semantics_share_of_coarse_completion")}
     parts = []
     for stage in ("full", "coarse"):
         if sh.get(stage) is None:
@@ -23,7 +37,7 @@ def share_text(r: dict) -> str:
         cpu = f", {sh[stage + '_cpu']:.1f} % of its CPU time" if sh.get(stage + "_cpu") is not None else ""
         parts.append(f"{sh[stage]:.1f} % of the {stage} stage's completion wall time{cpu}")
     return ("The head and the faces' labels (what `--semantics` adds) took " + "; ".join(parts)
-            + " on the same inputs:")
+            + " on the same inputs (over the completions timed in CPU seconds too):")
 
 
 def head_text(r: dict) -> str:
