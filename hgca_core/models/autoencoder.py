@@ -318,7 +318,8 @@ def _unique_inverse(keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     np.not_equal(s[1:], s[:-1], out=new[1:])
     inv = np.empty(len(s), dtype=np.int64)
     inv[order] = np.cumsum(new) - 1
-    return torch.from_numpy(s[new]), torch.from_numpy(inv)
+    # .to(keys.device) is a no-op here; it keeps the contract that results live on the keys' device
+    return torch.from_numpy(s[new]).to(keys.device), torch.from_numpy(inv).to(keys.device)
 
 
 def _rank_in_sorted(group: torch.Tensor) -> torch.Tensor:
