@@ -61,13 +61,12 @@ def measure(name: str, tree: Path, data: Path, tmp: Path) -> dict:
 
 
 def main(names: list[str]) -> None:
-    from hgca_core.hardware import cpu_name
     from hgca_core.io.digest import file_digest
-    from test_recipes import make_dataset
+    from test_recipes import cpu_kind, make_dataset
 
     path = Path(__file__).with_name("recipe_reference.json")
     old = json.loads(path.read_text()) if path.exists() else {}
-    runs = old.get("runs", {}) if old.get("steps") == STEPS and old.get("cpu") == cpu_name() else {}
+    runs = old.get("runs", {}) if old.get("steps") == STEPS and old.get("cpu") == cpu_kind() else {}
     with tempfile.TemporaryDirectory() as tmp:
         tree = Path(tmp) / "tree"
         shutil.copytree(ROOT / "hgca_core", tree / "hgca_core", ignore=shutil.ignore_patterns("__pycache__"))
@@ -78,7 +77,7 @@ def main(names: list[str]) -> None:
         for name in names or list(FLAGS):
             runs[name] = measure(name, tree, data, Path(tmp))
             print(f"measured {name}", flush=True)
-    record = {"cpu": cpu_name(), "steps": STEPS,
+    record = {"cpu": cpu_kind(), "steps": STEPS,
               "weights_sha256": {s: file_digest(f) for s, f in WEIGHTS.items()}, "runs": runs}
     path.write_text(json.dumps(record, indent=1) + "\n")
     print(f"wrote {path}")
