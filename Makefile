@@ -32,8 +32,9 @@ BLENDER_TESTS = HGCA_PYTHON=$(abspath $(BIN)/python) $(1)/bin/python -m pytest -
 	.venv-bpy$*/bin/python -m pip install -q "bpy==$(BPY$*)" $(BPY_TEST_DEPS)
 	touch $@
 
+# DEMO_ARGS: more `hgca demo` options, e.g. make demo DEMO_ARGS=--semantics (a class on every face)
 demo: $(STAMP)
-	$(BIN)/hgca demo --out demo_out
+	$(BIN)/hgca demo --out demo_out $(DEMO_ARGS)
 
 # The core's tests in a worker per core (at most 4: each completion holds up to ~2.5 GiB); the Blender tests (~80 s)
 # stay in one process.
