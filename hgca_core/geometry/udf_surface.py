@@ -125,8 +125,7 @@ class GridIndex:
         first: when g is the indexed points' own slice [first, first + n) of sorted points, the z neighbours
         (+-1 along z) are the next and previous points where those are one step away: no table lookup."""
         d = np.asarray(g, dtype=np.int64) - self.lo
-        if first is not None and self.sorted:
-            return self._own_neighbours(d, signs, first)
+        own = first is not None and self.sorted
         col = d[:, 0] * self.ny + d[:, 1]
         out = np.empty((len(d), 3, len(signs)), dtype=np.int64)
         yes = np.ones(len(d), dtype=bool)
@@ -135,28 +134,19 @@ class GridIndex:
             y_ok = (d[:, 1] + s >= 0) & (d[:, 1] + s < self.ny)
             out[:, 0, k] = self._at(np.where(x_ok, col + s * self.ny, 0), d[:, 2], x_ok)
             out[:, 1, k] = self._at(np.where(y_ok, col + s, 0), d[:, 2], y_ok)
-            out[:, 2, k] = self._at(col, d[:, 2] + s, yes)
+            if own and abs(s) == 1:
+                out[:, 2, k] = self._in_order(col, d[:, 2] + s, first + s)
+            else:
+                out[:, 2, k] = self._at(col, d[:, 2] + s, yes)
         return out
 
-    def _own_neighbours(self, d: np.ndarray, signs: tuple[int, ...], first: int) -> np.ndarray:
-        """`neighbours` of the indexed points first .. first + len(d) - 1 (d: their offsets from lo)."""
-        col = d[:, 0] * self.ny + d[:, 1]
-        n, total = len(d), len(self._col)
-        out = np.empty((n, 3, len(signs)), dtype=np.int64)
-        for k, s in enumerate(signs):
-            x_ok = (d[:, 0] + s >= 0) & (d[:, 0] + s < self.nx)
-            y_ok = (d[:, 1] + s >= 0) & (d[:, 1] + s < self.ny)
-            out[:, 0, k] = self._at(np.where(x_ok, col + s * self.ny, 0), d[:, 2], x_ok)
-            out[:, 1, k] = self._at(np.where(y_ok, col + s, 0), d[:, 2], y_ok)
-            if abs(s) != 1:
-                out[:, 2, k] = self._at(col, d[:, 2] + s, np.ones(n, dtype=bool))
-                continue
-            # the next / previous point in (x, y, z) order, where it is the one just above / below
-            j = np.arange(first + s, first + s + n)
-            jc = np.clip(j, 0, total - 1)
-            hit = (j >= 0) & (j < total) & (self._col[jc] == col) & (self._z[jc] == d[:, 2] + s)
-            out[:, 2, k] = np.where(hit, j, -1)
-        return out
+    def _in_order(self, col: np.ndarray, z: np.ndarray, start: int) -> np.ndarray:
+        """Index start + i where the indexed point there is (col[i], z[i]), else -1: the next / previous point in
+        (x, y, z) order is the one just above / below, when there is one."""
+        j = np.arange(start, start + len(col))
+        jc = np.clip(j, 0, len(self._col) - 1)
+        hit = (j >= 0) & (j < len(self._col)) & (self._col[jc] == col) & (self._z[jc] == z)
+        return np.where(hit, j, -1)
 
 
 def upwind_gradients(vals: np.ndarray, idx: np.ndarray, nb: np.ndarray, h: float, fill: float) -> np.ndarray:
