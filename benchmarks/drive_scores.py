@@ -23,6 +23,14 @@ def centre_cells(cells: np.ndarray, source: Region, target: Region) -> np.ndarra
     return voxelize(target.to_local(source.to_world(cell_centers(cells, COARSE))), COARSE, target.size)
 
 
+def scored_cells(pred: np.ndarray, gt: np.ndarray, region: Region) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cells a tile's result or its ground truth holds: their world centres and which of them are predicted
+    and true, what the seam table and the slab counts count."""
+    both = np.unique(np.concatenate([pred, gt]), axis=0)
+    keys = pack(both)
+    return region.to_world(cell_centers(both, COARSE)), np.isin(keys, pack(pred)), np.isin(keys, pack(gt))
+
+
 def seam_scores(out: Path, gts: list[np.ndarray], x0: float, x1: float) -> dict:
     """On the merged result (each place scored on the tile that owns it): IoU against ground truth in the overlap
     bands and inside tiles, IoU between neighbours' cells in their overlaps, and recall / IoU per `SLAB` m along x
@@ -35,10 +43,7 @@ def seam_scores(out: Path, gts: list[np.ndarray], x0: float, x1: float) -> dict:
     edges = np.arange(x0, x1 + SLAB, SLAB)
     slab = np.zeros((3, len(edges) - 1))                   # hits, ground truth, predicted
     for i, (pred, gt) in enumerate(zip(cells, gts)):
-        both = np.unique(np.concatenate([pred, gt]), axis=0)
-        keys = pack(both)
-        in_p, in_g = np.isin(keys, pack(pred)), np.isin(keys, pack(gt))
-        w = regions[i].to_world(cell_centers(both, COARSE))
+        w, in_p, in_g = scored_cells(pred, gt, regions[i])
         mine = owned(w[:, :2], i, regions)
         cover = sum(footprint_contains(r, w[:, :2]).astype(int) for r in regions)
         for row, m in enumerate((in_p & in_g, in_g, in_p)):

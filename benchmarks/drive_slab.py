@@ -20,8 +20,6 @@ from pathlib import Path
 import numpy as np
 
 from hgca_core.config import DriveConfig
-from hgca_core.geometry.keys import pack
-from hgca_core.geometry.voxel import COARSE, cell_centers
 from hgca_core.io.digest import file_digest
 from hgca_core.tiling.inputs import read_drive_inputs
 from hgca_core.tiling.plan import HEADING_SPAN, TilePlan, Trajectory, tile_region
@@ -29,7 +27,7 @@ from hgca_core.tiling.tile import Settings, TileJob, complete_tile, weight_files
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from drive import SCENE, build_drive, ground_truth, scenes  # noqa: E402
-from drive_scores import SLAB  # noqa: E402
+from drive_scores import SLAB, scored_cells  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 TILE = 38.4
@@ -37,10 +35,8 @@ TILE = 38.4
 
 def slab_recall(pred: np.ndarray, gt: np.ndarray, region, edges: np.ndarray) -> np.ndarray:
     """Recall of the ground-truth cells per slab of world x (`edges`), as the drive's seam table counts it."""
-    both = np.unique(np.concatenate([pred, gt]), axis=0)
-    keys = pack(both)
-    in_p, in_g = np.isin(keys, pack(pred)), np.isin(keys, pack(gt))
-    x = region.to_world(cell_centers(both, COARSE))[:, 0]
+    w, in_p, in_g = scored_cells(pred, gt, region)
+    x = w[:, 0]
     return np.histogram(x[in_p & in_g], edges)[0] / np.maximum(np.histogram(x[in_g], edges)[0], 1)
 
 
