@@ -41,18 +41,21 @@ def cpu_seconds() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def run_synth(t1: int | None, t2: int | None, seed: int, count: int | None, reverse: bool = False) -> None:
+def run_synth(t1: int | None, t2: int | None, seed: int, count: int | None, reverse: bool = False,
+              scenes: list[str] | None = None, folder: Path | None = None) -> None:
     """Complete (full stage, k = 1) and score each test scene missing from the cache of this configuration
-    (`reverse`: last scene first, so a second process on the same configuration works from the other end)."""
+    (`reverse`: last scene first, so a second process on the same configuration works from the other end;
+    `scenes`: only these, by name, so that processes can share out the missing scenes; `folder`: another cache)."""
     import torch
 
     from hgca_core.metrics.settings import EvalSettings
     from hgca_core.metrics.synthetic import evaluate_methods, load_method_models
 
     torch.set_num_threads(1)
-    folder = CACHE / "synth" / tag(t1, t2, seed)
+    folder = folder or CACHE / "synth" / tag(t1, t2, seed)
     folder.mkdir(parents=True, exist_ok=True)
     files = sorted(DATA.glob("sample_*.npz"))[:count][:: -1 if reverse else 1]
+    files = [f for f in files if scenes is None or f.stem in scenes or f.name in scenes]
     models = None
     settings = EvalSettings(samples=1, seed=seed, t1=t1, t2=t2, precision="fp32", free_space="auto")
     for path in files:
@@ -69,6 +72,30 @@ def run_synth(t1: int | None, t2: int | None, seed: int, count: int | None, reve
                                    "cpu_seconds": cpu, "wall_seconds": wall,
                                    "load": os.getloadavg()[0]}, indent=1))
         print(f"{folder.name} {path.name}: {wall:.0f} s wall, {cpu:.0f} s CPU", flush=True)
+
+
+def recheck(t1: int | None, t2: int | None, seed: int, scenes: list[str]) -> None:
+    """Complete cached scenes again with the code as it is now (into runs/quality/recheck/) and print whether each
+    metric is the same as the cached one: the cache may hold completions of earlier code, which pair with today's
+    only if the two give the same scores."""
+    folder = CACHE / "recheck" / tag(t1, t2, seed)
+    run_synth(t1, t2, seed, None, scenes=scenes, folder=folder)
+    for name, diff in recheck_diffs().get(tag(t1, t2, seed), {}).items():
+        print(f"{tag(t1, t2, seed)} {name}: largest |difference| of a metric {diff:.3g}", flush=True)
+
+
+def recheck_diffs() -> dict[str, dict[str, float]]:
+    """{configuration: {scene: the largest |difference| of a scored metric between the recheck and the cache}}."""
+    out: dict[str, dict[str, float]] = {}
+    for f in sorted((CACHE / "recheck").glob("t1_*/sample_*.json")):
+        cached = CACHE / "synth" / f.parent.name / f.name
+        if not cached.exists():
+            continue
+        a, b = json.loads(f.read_text())["rows"], json.loads(cached.read_text())["rows"]
+        pairs = [(a[row]["metrics"][key], b[row]["metrics"][key], SCALE[key]) for row, key, _, _ in SYNTH_METRICS]
+        diffs = [0.0 if x == y or (math.isnan(x) and math.isnan(y)) else abs(x - y) * k for x, y, k in pairs]
+        out.setdefault(f.parent.name, {})[f.stem] = max(diffs)
+    return out
 
 
 def run_real(t1: int | None, t2: int | None, seed: int, samples: int, stage: str) -> None:
@@ -192,7 +219,8 @@ def collect(default: str, noise_seed: int) -> dict:
     configs.sort(key=lambda c: (-c["t1"], -c["t2"]))
     return {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "default": [t1d, t2d],
             "noise_seed": noise_seed, "configs": configs, "scenes": sorted(common),
-            "data": str(DATA.relative_to(REPO)), "split_scenes": len(list(DATA.glob("sample_*.npz"))), "load_average": os.getloadavg()[0]}
+            "data": str(DATA.relative_to(REPO)), "split_scenes": len(list(DATA.glob("sample_*.npz"))),
+            "load_average": os.getloadavg()[0], "recheck": recheck_diffs()}
 
 
 def _mean(values) -> float:
@@ -252,6 +280,11 @@ def page(result: dict) -> str:
               f"({', '.join(result['scenes'])}; means and seconds on those). The default "
               "changes only when a faster configuration is within the noise on every metric, on the whole split "
               "and all three real inputs; `synth` and `real` resume from the cache.", ""]
+    for config, scenes in result.get("recheck", {}).items():
+        worst = max(scenes.values())
+        lines += [f"Cache against today's code: {', '.join(sorted(scenes))} at {config} completed again "
+                  f"(`quality_check.py recheck`): " + ("every metric the same as the cached row." if worst == 0 else
+                                                      f"the largest metric difference is {worst:.3g}."), ""]
     return "\n".join(lines) + "\n"
 
 
@@ -291,7 +324,7 @@ def plot(result: dict, path: Path) -> None:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
-    for name in ("synth", "real"):
+    for name in ("synth", "real", "recheck"):
         s = sub.add_parser(name)
         s.add_argument("--t1", type=int, default=None)
         s.add_argument("--t2", type=int, default=None)
@@ -300,12 +333,17 @@ def main() -> int:
         s.add_argument("--samples", type=int, default=1)
         s.add_argument("--stage", default="coarse", choices=["coarse", "full"])
         s.add_argument("--reverse", action="store_true", help="synth: the scenes from the last one")
+        s.add_argument("--scenes", nargs="+", default=None, help="synth, recheck: only these scenes (sample_2000003 ...)")
     pg = sub.add_parser("page")
     pg.add_argument("--default", default="30,15", help="the default's t1,t2")
     pg.add_argument("--noise-seed", type=int, default=1, help="the default's second seed (the noise floor)")
     args = p.parse_args()
     if args.cmd == "synth":
-        run_synth(args.t1, args.t2, args.seed, args.count, args.reverse)
+        run_synth(args.t1, args.t2, args.seed, args.count, args.reverse, args.scenes)
+    elif args.cmd == "recheck":
+        if not args.scenes:
+            p.error("recheck: name the cached scenes to complete again (--scenes)")
+        recheck(args.t1, args.t2, args.seed, args.scenes)
     elif args.cmd == "real":
         run_real(args.t1, args.t2, args.seed, args.samples, args.stage)
     else:
