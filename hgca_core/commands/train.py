@@ -3,8 +3,9 @@
 One trainer for every model; what a run trains with is a named recipe (`hgca_core.training.recipes.RECIPES`,
 e.g. `coarse-shipped`, the one behind the shipped coarse weights) with `--set` overrides. The resolved recipe
 is saved in the checkpoint: `--resume` continues it as saved, changed only by the `--set` fields given again
-(each change printed). `--export` writes the trained (averaged) weights with their training record; without a
-path, as the stage's shipped file, and the model card follows.
+(each change printed). `--export` writes the weights the run selected on val (the average at its best validation
+score, `training.selection`) with their training record; without a path, as the stage's shipped file, and the model
+card follows.
 """
 from __future__ import annotations
 
@@ -59,8 +60,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_seed_argument(p, "a new run's random streams: initial weights, crops, chains, infusion draws (default 0); "
                          "a resume continues the run's own streams and refuses another seed", default=None)
     p.add_argument("--export", nargs="?", const=True, default=None, metavar="PATH",
-                   help="after training, write the trained (averaged) weights with their training record: to PATH, "
-                        "or without PATH as the shipped hgca_core/weights/<stage>.pt and re-render the model card")
+                   help="after training, write the run's weights selected on val (the average at its best "
+                        "validation score, best.pt; a run without one: its last checkpoint's) with their training "
+                        "record: to PATH, or without PATH as the shipped hgca_core/weights/<stage>.pt and re-render "
+                        "the model card")
     p.add_argument("--no-progress", action="store_true", help="no progress bar: one JSON log line per 10 steps")
 
 
@@ -76,6 +79,7 @@ def plan(args: argparse.Namespace) -> tuple[str, Recipe, dict | None, Path]:
     """(recipe name, resolved recipe, the run's checkpoint where this command continues it, run folder): every
     argument and path checked before any work."""
     from hgca_core.training.data import split_files
+    from hgca_core.training.trainer import BEST
 
     sets = parse_sets(args.sets)
     if args.minutes == 0 and not args.export:
@@ -109,6 +113,9 @@ def plan(args: argparse.Namespace) -> tuple[str, Recipe, dict | None, Path]:
         if not continuing and ckpt.exists():
             raise InputError("--out already holds a run (ckpt.pt): give --resume to continue it, or another --out",
                              out)
+        if (out / BEST).exists():   # an export of the new run would ship it until the run's first validation
+            raise InputError(f"--out holds the {BEST} of an earlier run without its checkpoint: move it away, or "
+                             "give another --out", out / BEST)
         if args.resume:
             print(f"no checkpoint at {ckpt}: starting a new run of the recipe {args.recipe}", file=sys.stderr)
     split_files(args.data, "train")   # every split the run reads, before any work
@@ -134,9 +141,10 @@ def _check_outputs(args: argparse.Namespace, recipe: Recipe, out: Path) -> None:
         raise InputError("cannot create or write the run folder here", probe)
     if args.export:
         from hgca_core.models.weights import shipped
+        from hgca_core.training.trainer import BEST
 
         target = shipped(recipe.stage) if args.export is True else Path(args.export)
-        inputs = [*args.data, recipe.autoencoder, out / "ckpt.pt", out / "best.pt"]
+        inputs = [*args.data, recipe.autoencoder, out / "ckpt.pt", out / BEST]
         check_outputs([target], inputs)
         args.export_to = target
 
@@ -201,7 +209,8 @@ def build_task(recipe: Recipe, data: list[str], run_file: dict | None = None):
         from hgca_core.models.semantics import SemanticsConfig
         from hgca_core.training.semantics import SemanticsTask
 
-        return SemanticsTask(data, SemanticsConfig.from_dict(saved) if saved else SemanticsConfig(), crop=recipe.crop)
+        cfg = SemanticsConfig.from_dict(saved) if saved else SemanticsConfig(placement=recipe.placement or "geometry")
+        return SemanticsTask(data, cfg, crop=recipe.crop)
     if recipe.stage == "autoencoder":
         from hgca_core.models.autoencoder import AutoencoderConfig
         from hgca_core.training.fine import AutoencoderTask
@@ -243,18 +252,19 @@ def run(args: argparse.Namespace) -> int:
 
 
 def export(recipe: Recipe, data: list[str], task, ckpt: Path, target: Path) -> Path:
-    """Weights from the run's checkpoint, with its training record as metadata (blended back toward `init_from`
-    when the recipe says so); weights written beside the model card re-render it."""
-    from hgca_core.models.weights import WEIGHTS_DIR, load_file, save_weights, shipped, trained_weights
+    """The run's weights as it selected them on val (`training.selection.selected_run`: the average kept at the
+    best validation score, best.pt, else the checkpoint's), with its training record as metadata (blended back
+    toward `init_from` when the recipe says so); weights written beside the model card re-render it."""
+    from hgca_core.models.weights import WEIGHTS_DIR, save_weights, shipped, trained_weights
 
     extra = {"stage": recipe.stage, "data": " + ".join(map(str, data))}
     if recipe.coarse:
-        from hgca_core.training.trainer import run_record
+        from hgca_core.training.selection import selected_run
 
-        ck = load_file(ckpt)
+        ck, record, source = selected_run(ckpt)
         module = task.build()
         module.load_state_dict(trained_weights(ck))
-        meta = {**run_record(ck), **extra, "crop": task.crop}
+        meta = {**record, **extra, "crop": task.crop}
         if recipe.blend is not None:
             from hgca_core.io.digest import file_digest
             from hgca_core.models.weights import blend_files, save_file
@@ -262,7 +272,9 @@ def export(recipe: Recipe, data: list[str], task, ckpt: Path, target: Path) -> P
             with tempfile.TemporaryDirectory() as tmp:
                 run_weights = save_weights(Path(tmp) / f"{ckpt.parent.name}.pt", module.model, meta)
                 blob = blend_files(recipe.init_from, run_weights, recipe.blend)
-            blob["meta"]["blend"]["b"].update(file=str(ckpt), sha256=file_digest(ckpt))   # not the temporary file
+            # the run's own file, not the temporary one, and the val selection the run's part was taken at
+            blob["meta"]["blend"]["b"].update(file=str(source), sha256=file_digest(source),
+                                              **({"selected": record["selected"]} if "selected" in record else {}))
             dest = save_file(blob, target)
         else:
             dest = save_weights(target, module.model, meta)

@@ -38,11 +38,11 @@ from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel, _gather, _table, sample
 from hgca_core.models import free as fs
 from hgca_core.models.infusion import alpha
-from hgca_core.models.weights import load_autoencoder, load_file, save_weights, shipped, trained_weights
+from hgca_core.models.weights import load_autoencoder, save_weights, shipped, trained_weights
 from hgca_core.training.buffer import Chain
 from hgca_core.training.data import draw_crop, free_cells, grids, load_arrays, split_files
 from hgca_core.training.packed import refuse_packed
-from hgca_core.training.trainer import run_record
+from hgca_core.training.selection import selected_run
 
 KEYS = ("input_points", "gt_occ10", "gt_occ20", "gt_surface", "udf_points", "udf_dist")
 CD_PENALTY = 1.0  # metres: Chamfer reported when a decoded crop has no surface at all
@@ -330,19 +330,21 @@ class FineTask:
 
 # -- export -------------------------------------------------------------------------------------------------------
 def export_autoencoder(ckpt_path: str | Path, dest: str | Path | None = None, meta: dict | None = None) -> Path:
-    """Write the autoencoder of a training checkpoint as weights (default: the packaged autoencoder.pt)."""
-    ck = load_file(ckpt_path)
+    """Write the autoencoder of a training run as weights (default: the packaged autoencoder.pt): the average the
+    run selected on val (`selection.selected_run`: best.pt, else the checkpoint)."""
+    ck, record, _ = selected_run(ckpt_path)
     module = AutoencoderLoss(AutoencoderConfig.from_dict(ck["config"]))
     module.load_state_dict(trained_weights(ck))
-    return save_weights(dest or shipped("autoencoder"), module.model, {**run_record(ck), **(meta or {})})
+    return save_weights(dest or shipped("autoencoder"), module.model, {**record, **(meta or {})})
 
 
 def export_fine(ckpt_path: str | Path, autoencoder: str | Path, dest: str | Path | None = None,
                 meta: dict | None = None) -> Path:
-    """Write the cGCA kernel of a training checkpoint together with its autoencoder (one file, kind 'fine')."""
-    ck = load_file(ckpt_path)
+    """Write the cGCA kernel of a training run together with its autoencoder (one file, kind 'fine'): the average
+    the run selected on val (`selection.selected_run`: best.pt, else the checkpoint)."""
+    ck, record, _ = selected_run(ckpt_path)
     module = FineLoss(CGCAConfig.from_dict(ck["config"]))
     module.load_state_dict(trained_weights(ck))
     return save_weights(dest or shipped("fine"), module.model,
-                        {**run_record(ck), "autoencoder": str(autoencoder), **(meta or {})},
+                        {**record, "autoencoder": str(autoencoder), **(meta or {})},
                         autoencoder=load_autoencoder(autoencoder))

@@ -311,9 +311,11 @@ def test_export_blended_toward_the_weights_the_run_started_from(tiny_dataset, tm
     k = next(n for n, v in plain["state_dict"].items() if v.is_floating_point() and v.abs().sum() > 0)
     want = (0.75 * base["state_dict"][k].float() + 0.25 * plain["state_dict"][k].float()).half()
     assert torch.equal(mix["state_dict"][k], want)
-    assert mix["meta"]["blend"]["t"] == 0.25 and mix["meta"]["blend"]["b"]["file"] == str(tmp_path / "r" / "ckpt.pt")
-    assert mix["meta"]["blend"]["b"]["sessions"] == plain["meta"]["sessions"]
-    assert mix["meta"]["blend"]["b"]["sha256"] == hashlib.sha256((tmp_path / "r" / "ckpt.pt").read_bytes()).hexdigest()
+    # the run's part is its val selection (best.pt, here its one step's average), named with its digest and score
+    b = mix["meta"]["blend"]["b"]
+    assert mix["meta"]["blend"]["t"] == 0.25 and b["file"] == str(tmp_path / "r" / "best.pt")
+    assert b["sessions"] == plain["meta"]["sessions"] and b["selected"] == plain["meta"]["selected"]
+    assert b["sha256"] == hashlib.sha256((tmp_path / "r" / "best.pt").read_bytes()).hexdigest()
     for bad in (["--set", "blend=2"], ["--set", "blend=0.5", "--set", "init_from=none"]):
         done = subprocess.run([sys.executable, "-m", "hgca_core.cli", "train", "--recipe", "coarse-noplanner",
                                "--data", str(tiny_dataset), "--out", str(tmp_path / "x"), *bad],
