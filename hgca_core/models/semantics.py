@@ -7,6 +7,15 @@ geometry-only features per cell: whether the input observed it, its height above
 itself, the height of its column's top above that ground, and a sinusoidal encoding of the height. LiDAR
 intensity is left out: sensors scale it differently and the generated cells have none.
 
+Where the head sits (`SemanticsConfig.placement`; the same U-Net in every case, only its input differs):
+- "geometry" (the shipped head): the geometry-only features above (`cell_features`);
+- "coarse-features": the frozen coarse kernel run once on the final 20 cm state with the input's cells as its
+  x^0, its last decoder features (before the occupancy logit) at each cell (`coarse_features`);
+- "fine-latents": per 20 cm cell the mean latent of its occupied 10 cm children and their share of the eight
+  (`fine_features`): the fine chain's latents at inference, the autoencoder's encoding of the ground truth in
+  training.
+Every placement also sees the observed flag. The frozen stages are only read, so geometry is the same with any.
+
 Classes are `hgca_core.io.classes.CLASS_NAMES`, the synthetic streets' `LABEL_NAMES` in their order. Faces take the
 class of the cell nearest to their centroid.
 """
@@ -32,6 +41,9 @@ GROUND_TILE = 10      # cells (2 m) per ground tile: the lowest cell per tile is
 GROUND_WINDOW = 3     # tiles: the ground at a tile is the lowest sample within this window (a car roof is no ground)
 HEIGHT_SCALE = 4.0    # metres: heights enter the network divided by this
 FACE_REACH = 0.6      # metres: a face farther than this from every cell keeps the nearest cell's class anyway
+PLACEMENTS = ("geometry", "coarse-features", "fine-latents")
+COARSE_WIDTH = 16     # the shipped coarse U-Net's finest decoder width (GCAConfig.channels[0])
+LATENT = 32           # the shipped autoencoder's latent size (AutoencoderConfig.latent)
 
 
 @dataclass
@@ -41,6 +53,14 @@ class SemanticsConfig(Config):
     classes: int = len(CLASS_NAMES)
     pe_freq: int = 3
     steps: int = 1        # the shared trainer's chain length: each training example is used once
+    placement: str = "geometry"   # the head's input (PLACEMENTS); files written before the field: geometry
+
+    def in_channels(self) -> int:
+        """Input features per cell of the placement (the observed flag included)."""
+        if self.placement not in PLACEMENTS:
+            raise ValueError(f"placement must be one of {', '.join(PLACEMENTS)}, not {self.placement!r}")
+        return {"geometry": 3 + 2 * self.pe_freq, "coarse-features": 1 + COARSE_WIDTH,
+                "fine-latents": 2 + LATENT}[self.placement]
 
 
 def fitted_ground(cells: np.ndarray) -> np.ndarray:
@@ -89,7 +109,7 @@ class SemanticHead(nn.Module):
     def __init__(self, cfg: SemanticsConfig) -> None:
         super().__init__()
         self.cfg = cfg
-        self.unet = SparseUNet(3 + 2 * cfg.pe_freq, cfg.classes, channels=cfg.channels, blocks=cfg.blocks)
+        self.unet = SparseUNet(cfg.in_channels(), cfg.classes, channels=cfg.channels, blocks=cfg.blocks)
 
     def forward(self, coords: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
         """coords (N, 4) [b, x, y, z] unique and sorted (`coords.pack` order), feats (N, C) -> (N, classes)."""
@@ -107,16 +127,86 @@ def _sorted_batch(cells: np.ndarray) -> tuple[torch.Tensor, np.ndarray]:
 
 
 @torch.no_grad()
-def predict(head: SemanticHead, cells: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def coarse_features(kernel: nn.Module, cells: np.ndarray, s0: np.ndarray, grid: tuple[int, int, int]) -> np.ndarray:
+    """(N, COARSE_WIDTH) float32: the frozen coarse kernel (`models.gca.GCAKernel`, eval mode) run once on the
+    state `cells` (N, 3) with x^0 = `s0` (its input cells) in a `grid` (x, y, z cells), read at its U-Net's last
+    decoder layer (the input of the occupancy logit) at each cell. Free space is left unknown in training and
+    inference alike (a turned crop has no free grid). Read-only: a forward hook copies the layer's input and
+    returns nothing, so the kernel's weights, outputs and random draws are untouched."""
+    from hgca_core.geometry import coords as cs
+
+    c = np.asarray(cells, dtype=np.int64).reshape(-1, 3)
+    if len(c) == 0:
+        return np.zeros((0, kernel.unet.channels[0]), np.float32)
+    kernel.eval()
+    dev = next(kernel.parameters()).device
+    state = cs.with_batch(torch.from_numpy(c)).to(dev)
+    x0 = cs.with_batch(torch.from_numpy(np.asarray(s0, dtype=np.int64).reshape(-1, 3))).to(dev)
+    grid = tuple(int(v) for v in grid)
+    seen: list[torch.Tensor] = []
+    hook = kernel.unet.head.register_forward_hook(lambda _m, inp, _out: seen.append(inp[0].feats.detach().clone()))
+    try:
+        nbhd = kernel.neighbourhood(state, grid)
+        kernel(nbhd, state, x0, grid, kernel.bev(x0, 1, grid, None), None)
+    finally:
+        hook.remove()
+    rows = cs.lookup(state, cs.pack(nbhd))        # nbhd is sorted by key and holds every state cell
+    return seen[0][rows].float().cpu().numpy()
+
+
+def fine_features(cells: np.ndarray, fine_cells: np.ndarray, latents: np.ndarray) -> np.ndarray:
+    """(N, K + 1) float32 per 20 cm cell (N, 3): the mean latent of its occupied 10 cm children among
+    `fine_cells` (M, 3) with `latents` (M, K), and the children's share of the eight (zeros without any)."""
+    c = np.asarray(cells, dtype=np.int64).reshape(-1, 3)
+    f = np.asarray(fine_cells, dtype=np.int64).reshape(-1, 3)
+    z = np.asarray(latents, dtype=np.float32).reshape(len(f), -1)
+    k = z.shape[1] if z.ndim == 2 and z.shape[1] else LATENT
+    out = np.zeros((len(c), k + 1), np.float32)
+    if len(c) == 0 or len(f) == 0:
+        return out
+    big = np.int64(1 << 20)
+    key = lambda a: (a[:, 0] * big + a[:, 1]) * big + a[:, 2]   # noqa: E731
+    ck = key(c)
+    order = np.argsort(ck)
+    pk = key(f // 2)
+    pos = np.clip(np.searchsorted(ck[order], pk), 0, len(c) - 1)
+    hit = ck[order][pos] == pk
+    row = order[pos[hit]]
+    np.add.at(out[:, :k], row, z[hit])
+    count = np.bincount(row, minlength=len(c)).astype(np.float32)
+    out[:, :k] /= np.maximum(count, 1)[:, None]
+    out[:, k] = count / 8.0
+    return out
+
+
+def head_input(cfg: SemanticsConfig, cells: np.ndarray, observed: np.ndarray,
+               extra: np.ndarray | None = None) -> np.ndarray:
+    """The head's (N, cfg.in_channels()) input: `cell_features` for the geometry placement, else the observed
+    flag beside `extra`, the placement's features of the cells (`coarse_features`, `fine_features`)."""
+    if cfg.placement == "geometry":
+        return cell_features(cells, observed, cfg.pe_freq)
+    if extra is None:
+        raise ValueError(f"the {cfg.placement} head needs its features (coarse_features / fine_features)")
+    obs = np.asarray(observed, dtype=np.float32).reshape(-1, 1)
+    out = np.concatenate([obs, np.asarray(extra, dtype=np.float32).reshape(len(obs), -1)], 1)
+    if out.shape[1] != cfg.in_channels():
+        raise ValueError(f"the {cfg.placement} head reads {cfg.in_channels()} features a cell, got {out.shape[1]}")
+    return out
+
+
+@torch.no_grad()
+def predict(head: SemanticHead, cells: np.ndarray, observed: np.ndarray,
+            extra: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(labels (N,) uint8, probabilities (N, classes) float32) of the cells (N, 3) of a 20 cm state; `observed`
-    (N,) bool marks the cells the input holds. Deterministic: float32, no sampling, one pass."""
+    (N,) bool marks the cells the input holds; `extra`: the placement's features (see `head_input`).
+    Deterministic: float32, no sampling, one pass."""
     c = np.asarray(cells, dtype=np.int64).reshape(-1, 3)
     if len(c) == 0:
         return np.zeros(0, np.uint8), np.zeros((0, head.cfg.classes), np.float32)
     head.eval()
     dev = next(head.parameters()).device
     coords, order = _sorted_batch(c)
-    feats = torch.from_numpy(cell_features(c, observed, head.cfg.pe_freq)[order])
+    feats = torch.from_numpy(head_input(head.cfg, c, observed, extra)[order])
     logits = head(coords.to(dev), feats.to(dev)).float().cpu()
     prob = torch.softmax(logits, 1).numpy()
     out = np.empty_like(prob)

@@ -55,6 +55,7 @@ class Recipe:
     channels: tuple[int, ...] | None = None   # coarse U-Net widths of a run started without init_from
     autoencoder: str | None = None  # fine: the frozen autoencoder (None: the shipped one)
     val_every: float = 10.0        # minutes between validation runs
+    placement: str | None = None   # semantics: the head's input (geometry, coarse-features, fine-latents)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -77,6 +78,11 @@ RECIPES: dict[str, Recipe] = {
     "fine-shipped": Recipe(stage="fine", precision="bf16", free_space=True, init_from=shipped_file("fine")),
     # the semantic head (hgca_core.models.semantics): a one-step task on perturbed ground-truth cells, 80-cell crops
     "semantics": Recipe(stage="semantics", batch=2, buffer=2, lr=1e-3, crop=80, val_every=8.0),
+    # the same head on the frozen coarse kernel's last decoder features, and on the fine stage's pooled latents
+    "semantics-coarse-features": Recipe(stage="semantics", batch=2, buffer=2, lr=1e-3, crop=80, val_every=8.0,
+                                        placement="coarse-features"),
+    "semantics-fine-latents": Recipe(stage="semantics", batch=2, buffer=2, lr=1e-3, crop=80, val_every=8.0,
+                                     placement="fine-latents"),
 }
 DEFAULT = "coarse"
 
@@ -85,6 +91,7 @@ RESUMABLE = frozenset({"batch", "buffer", "lr", "precision", "crop", "focus", "f
                        "turn", "distill", "blend", "val_every"})
 COARSE_ONLY = ("focus", "free_weight", "cut", "cut_free_loss", "turn", "distill", "blend", "channels")
 MAX_COUNT = 1 << 16
+SEMANTIC_PLACEMENTS = ("geometry", "coarse-features", "fine-latents")   # models.semantics.PLACEMENTS
 
 
 def _field_types() -> dict[str, Any]:
@@ -183,6 +190,10 @@ def check(r: Recipe) -> Recipe:
                          "stages (the autoencoder has neither)")
     if r.stage == "semantics" and (r.free_space or r.init_from):
         raise InputError(f"recipe field {'free_space' if r.free_space else 'init_from'} is not for the semantic head")
+    if r.placement is not None and (r.stage != "semantics" or r.placement not in SEMANTIC_PLACEMENTS):
+        raise InputError(f"recipe field placement is the semantic head's input, one of "
+                         f"{', '.join(SEMANTIC_PLACEMENTS)}" + ("" if r.stage == "semantics" else f", not for {r.stage}")
+                         + f"; got {r.placement!r}")
     if r.autoencoder and r.stage != "fine":
         raise InputError("recipe field autoencoder is for the fine stage")
     if r.free_weight and not r.free_space:

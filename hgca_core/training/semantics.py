@@ -7,8 +7,15 @@ ground truth: cells dropped and added next to others (a sampled state's fuzz), t
 or any yaw resampled to the grid), and cuts of the observed flag above a height and beyond a half-plane (what a
 sensor misses and the chain generates). The model and its features are `hgca_core.models.semantics`.
 
+The head's input follows `SemanticsConfig.placement`. "coarse-features": the frozen shipped coarse kernel runs on
+each perturbed example (its observed cells as x^0). "fine-latents": the frozen shipped fine stage's autoencoder
+encodes each scene's ground-truth 10 cm cells once (all its distance pairs and surface points, as the fine
+stage's own targets), pooled per 20 cm cell; the pooled codes travel with their cells through the perturbation
+(a turn moves cells, not the codes' frame) and an added cell has none, as a coarse cell the fine stage leaves empty.
+
 The task plugs into the shared trainer (`hgca_core.training.trainer`) as a chain of one step: every example is
-used once. Validation scores fixed, perturbed full val scenes; `val_iou` is their mIoU over the classes present.
+used once. Validation scores fixed, perturbed full val scenes (the same cells for every placement); `val_iou` is
+their mIoU over the classes present.
 """
 from __future__ import annotations
 
@@ -22,7 +29,8 @@ from torch import nn
 
 from hgca_core.geometry.nearest import PointIndex
 from hgca_core.geometry.voxel import COARSE, voxelize
-from hgca_core.models.semantics import CLASS_NAMES, SemanticHead, SemanticsConfig, cell_features, fitted_ground
+from hgca_core.models.semantics import (CLASS_NAMES, SemanticHead, SemanticsConfig, coarse_features, fine_features,
+                                        fitted_ground, head_input)
 from hgca_core.training.buffer import Chain
 from hgca_core.training.data import load_arrays, split_files
 
@@ -73,17 +81,20 @@ def scene(path: str | Path) -> dict[str, np.ndarray]:
 
 
 def perturb(cells: np.ndarray, labels: np.ndarray, observed: np.ndarray, rng: np.random.Generator,
-            crop: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            crop: int | None = None, source: bool = False) -> tuple[np.ndarray, ...]:
     """(cells, labels, observed) of one training example: a crop of `crop` x `crop` cells (None: all), turned,
-    with cells dropped and added and the observed flag cut (see the module docstring)."""
+    with cells dropped and added and the observed flag cut (see the module docstring). With `source`, also (N,)
+    the index of each cell's cell in `cells` (-1 for an added one), which carries per-cell features along; the
+    random draws are the same either way."""
     c, lab, obs = np.asarray(cells, np.int64), np.asarray(labels), np.asarray(observed, bool)
+    origin = np.arange(len(c))
     if crop is not None and len(c):
         lo, hi = c[:, :2].min(0), c[:, :2].max(0)
         start = np.array([rng.integers(lo[i], max(lo[i] + 1, hi[i] - crop + 2)) for i in range(2)])
         keep = np.all((c[:, :2] >= start) & (c[:, :2] < start + crop), 1)
-        c, lab, obs = c[keep] - np.r_[start, 0], lab[keep], obs[keep]
+        c, lab, obs, origin = c[keep] - np.r_[start, 0], lab[keep], obs[keep], origin[keep]
     if len(c) == 0:
-        return c, lab, obs
+        return (c, lab, obs, origin) if source else (c, lab, obs)
     centre = (c[:, :2].max(0) + c[:, :2].min(0)) / 2.0
     xy = c[:, :2] + 0.5 - centre
     if rng.random() < 0.5:                                      # any yaw, resampled to the grid
@@ -97,11 +108,11 @@ def perturb(cells: np.ndarray, labels: np.ndarray, observed: np.ndarray, rng: np
             xy[:, 0] = -xy[:, 0]
     c = np.c_[np.floor(xy - xy.min(0)).astype(np.int64), c[:, 2]]
     _, first = np.unique(_keys(c), return_index=True)
-    c, lab, obs = c[first], lab[first], obs[first]
+    c, lab, obs, origin = c[first], lab[first], obs[first], origin[first]
     drop = rng.random(len(c)) < rng.uniform(*DROP) * np.where(obs, 0.3, 1.0)   # generated cells are the fuzzy ones
     if drop.all():
         drop[:] = False
-    c, lab, obs = c[~drop], lab[~drop], obs[~drop]
+    c, lab, obs, origin = c[~drop], lab[~drop], obs[~drop], origin[~drop]
     n_add = int(len(c) * rng.uniform(*ADD))
     if n_add:
         src = rng.integers(len(c), size=n_add)
@@ -115,6 +126,7 @@ def perturb(cells: np.ndarray, labels: np.ndarray, observed: np.ndarray, rng: np
         if len(new):
             i = PointIndex(c).nearest(new)[1]
             c, lab, obs = np.r_[c, new], np.r_[lab, lab[i]], np.r_[obs, np.zeros(len(new), bool)]
+            origin = np.r_[origin, np.full(len(new), -1)]
             c = np.c_[c[:, :2] - c[:, :2].min(0), c[:, 2]]
     obs = obs.copy()
     if rng.random() < 0.5:
@@ -124,7 +136,7 @@ def perturb(cells: np.ndarray, labels: np.ndarray, observed: np.ndarray, rng: np
         a = rng.uniform(0, 2 * np.pi)
         d = (c[:, :2] - c[:, :2].mean(0)) @ np.array([np.cos(a), np.sin(a)])
         obs &= d < rng.uniform(-0.2, 0.5) * np.ptp(d)
-    return c, lab, obs
+    return (c, lab, obs, origin) if source else (c, lab, obs)
 
 
 def batch_coords(sets: Sequence[np.ndarray]) -> tuple[torch.Tensor, np.ndarray]:
@@ -187,12 +199,38 @@ class SemanticsTask:
         self.train_files = split_files(self.data_dir, "train")
         self._scenes: dict[str, dict] = {}
         self._drawn = 0
+        self.cfg.in_channels()                 # an unknown placement fails before any data is read
+        self._frozen: torch.nn.Module | None = None
+
+    def frozen(self) -> torch.nn.Module | None:
+        """The frozen stage the placement reads (the shipped coarse kernel or the fine stage's autoencoder)."""
+        if self._frozen is None and self.cfg.placement != "geometry":
+            from hgca_core.models.weights import load_coarse, load_fine
+
+            self._frozen = load_coarse()[0] if self.cfg.placement == "coarse-features" else load_fine()[1]
+            self._frozen.requires_grad_(False)
+        return self._frozen
 
     def _scene(self, path: Path) -> dict:
         key = str(path)
         if key not in self._scenes:
-            self._scenes[key] = scene(path)
+            s = scene(path)
+            if self.cfg.placement == "fine-latents":
+                s["pooled"] = cached_latents(self.frozen(), path, s["cells"])
+            self._scenes[key] = s
         return self._scenes[key]
+
+    def features(self, s: dict, c: np.ndarray, obs: np.ndarray, src: np.ndarray) -> np.ndarray:
+        """The head's input for perturbed cells `c` of scene `s` (`src`: their source cells, -1 for added ones)."""
+        extra = None
+        if self.cfg.placement == "coarse-features":
+            z = max(int(s["grid"][2]), int(c[:, 2].max()) + 1 if len(c) else 1)
+            grid = (*(int(v) for v in np.maximum(c[:, :2].max(0) + 1, 1)), z) if len(c) else (1, 1, z)
+            extra = coarse_features(self.frozen(), c, c[obs], grid)
+        elif self.cfg.placement == "fine-latents":
+            extra = np.zeros((len(c), s["pooled"].shape[1]), np.float32)
+            extra[src >= 0] = s["pooled"][src[src >= 0]]
+        return head_input(self.cfg, c, obs, extra)
 
     def class_weight(self, n: int = 8) -> torch.Tensor:
         """1 / sqrt(frequency) of the classes over the first `n` train scenes, mean 1 over the classes seen."""
@@ -207,7 +245,7 @@ class SemanticsTask:
         return SemanticsLoss(self.cfg, self.class_weight())
 
     def recipe(self) -> dict:
-        return {"crop": self.crop, "drop": DROP, "add": ADD, "cut_height": CUT_HEIGHT}
+        return {"crop": self.crop, "drop": DROP, "add": ADD, "cut_height": CUT_HEIGHT, "placement": self.cfg.placement}
 
     def new_example(self, rng: np.random.Generator) -> Chain:
         self._drawn += 1
@@ -215,8 +253,8 @@ class SemanticsTask:
             self.train_files = split_files(self.data_dir, "train")
         path = self.train_files[int(rng.integers(len(self.train_files)))]
         s = self._scene(path)
-        c, lab, obs = perturb(s["cells"], s["labels"], s["observed"], rng, self.crop)
-        feats = torch.from_numpy(cell_features(c, obs, self.cfg.pe_freq))
+        c, lab, obs, src = perturb(s["cells"], s["labels"], s["observed"], rng, self.crop, source=True)
+        feats = torch.from_numpy(self.features(s, c, obs, src))
         t = torch.from_numpy(c)
         grid = tuple(int(v) for v in np.maximum(c.max(0) + 1, 1)) if len(c) else (1, 1, 1)
         return Chain(s0=t, gt=t, state=t, t=0, grid=grid,
@@ -230,12 +268,60 @@ class SemanticsTask:
         conf = np.zeros((self.cfg.classes, self.cfg.classes), np.int64)
         for k, path in enumerate(split_files(self.data_dir, "val")[: self.val_count]):
             s = self._scene(path)
-            c, lab, obs = perturb(s["cells"], s["labels"], s["observed"], np.random.default_rng(1000 + k))
-            conf += confusion(predict(loss_module.model, c, obs)[0], lab, self.cfg.classes)
+            c, lab, obs, src = perturb(s["cells"], s["labels"], s["observed"], np.random.default_rng(1000 + k),
+                                       source=True)
+            extra = None if self.cfg.placement == "geometry" else self.features(s, c, obs, src)[:, 1:]
+            conf += confusion(predict(loss_module.model, c, obs, extra)[0], lab, self.cfg.classes)
         loss_module.train()
         iou = class_iou(conf)
         return {"val_iou": float(np.nanmean(iou)), "val_acc": float(np.trace(conf) / max(conf.sum(), 1)),
                 **{f"val_iou_{n}": float(v) for n, v in zip(CLASS_NAMES, iou) if np.isfinite(v)}}
+
+
+@torch.no_grad()
+def scene_latents(autoencoder: nn.Module, path: str | Path, cells: np.ndarray) -> np.ndarray:
+    """(M, K + 1) `fine_features` of a sample's ground-truth 20 cm `cells`: the frozen autoencoder's latents of
+    its ground-truth 10 cm cells from all their distance pairs and surface points (the fine stage's targets)."""
+    from hgca_core.training.fine import gt_latents
+
+    a = load_arrays(str(path), ("gt_occ10", "udf_points", "udf_dist", "gt_surface"))
+    c10 = torch.from_numpy(a["gt_occ10"].astype(np.int64))
+    z = gt_latents(autoencoder, c10, torch.from_numpy(a["udf_points"]), torch.from_numpy(a["udf_dist"]),
+                   torch.from_numpy(a["gt_surface"]))
+    return fine_features(cells, c10.numpy(), z.cpu().numpy())
+
+
+def latents_path(path: str | Path) -> Path:
+    """The pooled-latent sidecar of a sample, named for the fine weights that encoded it:
+    sample_X.npz -> sample_X.latents20-<sha256 of fine.pt, 12 digits>.npy."""
+    from hgca_core.io.digest import file_digest
+    from hgca_core.models.weights import shipped
+
+    p = Path(path)
+    return p.with_name(f"{p.name.removesuffix('.npz')}.latents20-{file_digest(shipped('fine'))[:12]}.npy")
+
+
+def cached_latents(autoencoder: nn.Module, path: str | Path, cells: np.ndarray) -> np.ndarray:
+    """`scene_latents` as float16, kept in a sidecar beside the sample (8-10 s of CPU a scene to encode, read back
+    in milliseconds; a run resumed in sessions would pay it again per session). A sidecar older than its sample,
+    of the wrong shape or unreadable is recomputed; a folder that cannot be written to only costs the time."""
+    from hgca_core.errors import InputError
+    from hgca_core.io.atomic import atomic_write
+
+    side = latents_path(path)
+    try:
+        if side.stat().st_mtime_ns >= Path(path).stat().st_mtime_ns:
+            z = np.load(side, allow_pickle=False)
+            if z.dtype == np.float16 and z.shape[0] == len(cells):
+                return z
+    except (OSError, ValueError):
+        pass
+    z = scene_latents(autoencoder, path, cells).astype(np.float16)
+    try:
+        atomic_write(side, lambda f: np.save(f, z))
+    except InputError:
+        pass
+    return z
 
 
 def export_semantics(ckpt_path: str | Path, dest: str | Path, meta: dict | None = None) -> Path:
@@ -243,20 +329,10 @@ def export_semantics(ckpt_path: str | Path, dest: str | Path, meta: dict | None 
     validation mIoU (`best.pt` beside the checkpoint, the recipe's selection on val), else the checkpoint's own
     average. Why: the val mIoU of perturbed scenes swings by a few points between checks, and the last check is
     not always the best one. The record names the step and score it was selected at."""
-    from hgca_core.models.weights import load_file, save_weights, trained_weights
-    from hgca_core.training.trainer import BEST, run_record
+    from hgca_core.models.weights import save_weights, trained_weights
+    from hgca_core.training.selection import selected_run   # every stage's exporter picks its weights there
 
-    best = Path(ckpt_path).with_name(BEST)
-    ck = load_file(best if best.is_file() else ckpt_path)
+    ck, record, _ = selected_run(ckpt_path)
     module = SemanticsLoss(SemanticsConfig.from_dict(ck["config"]))
     module.load_state_dict(trained_weights(ck))
-    record = run_record(ck)
-    chosen = ck["state"].get("best_val") if best.is_file() else None
-    if chosen:
-        record["selected"] = {**chosen, "file": BEST}
-        last = load_file(ckpt_path)["state"] if Path(ckpt_path).is_file() else {}
-        if last.get("step", chosen["step"]) > chosen["step"]:
-            record["notes"] = [*record["notes"], f"the run trained {last['step']:,} steps; these are its weight "
-                               f"average at step {chosen['step']:,}, its best validation {chosen['key']} "
-                               f"({chosen['value'] * 100:.1f} %)"]
     return save_weights(dest, module.model, {**record, **(meta or {})})
