@@ -114,4 +114,18 @@ def markdown(r: dict) -> str:
               head_text(r) + (f" Classes under 50 % IoU on the true cells: {', '.join(weak)}." if weak else ""), "",
               *[x for note in r.get("notes", []) for x in (note, "")],
               "![Completions coloured by class](semantics.png)", ""]
-    return "\n".join(lines)
+    return "\n".join(lines + placement_lines())
+
+
+PLACEMENT = Path(__file__).resolve().parent / "results" / "semantics_placement.json"
+
+
+def placement_lines() -> list[str]:
+    """The placement comparison's section (`benchmarks/semantics_placement.py`), where its record exists."""
+    import json
+
+    if not PLACEMENT.exists():
+        return []
+    from semantics_placement_page import section
+
+    return [*section(json.loads(PLACEMENT.read_text())), ""]

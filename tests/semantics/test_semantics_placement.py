@@ -104,3 +104,15 @@ def test_each_placement_recipe_trains_two_steps_into_a_loadable_head(labelled_da
     head = load_semantics(tmp_path / "head.pt")
     assert head.cfg.placement == placement and head.unet.in_channels == head.cfg.in_channels()
     assert any(h["kind"] == "val" and np.isfinite(h["val_iou"]) for h in ck["state"]["history"])
+
+
+def test_placement_is_a_semantics_recipe_field_checked_before_any_work():
+    from hgca_core.errors import InputError
+    from hgca_core.training.recipes import RECIPES, parse_sets, resolve
+
+    assert RECIPES["semantics"].placement is None   # the shipped head's recipe reads the geometry features
+    assert resolve("semantics", parse_sets(["placement=fine-latents"])).placement == "fine-latents"
+    with pytest.raises(InputError, match="placement is the semantic head's input.*decoder"):
+        resolve("semantics", parse_sets(["placement=decoder"]))
+    with pytest.raises(InputError, match="not for coarse"):
+        resolve("coarse", parse_sets(["placement=geometry"]))
