@@ -19,6 +19,41 @@ if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+# The files that hold the suite's longest tests (each 20-190 s on 2 busy cores, `--durations=40`), longest first.
+# Under xdist they start first, and the schedule steals work (below), so that no worker begins a long test while the
+# others run out of work: the suite's wall time on 2 workers is bounded by its tail. Collected alphabetically,
+# tests/training (the four 50-step recipe runs, the trainer's runs) would come last.
+LONGEST_FILES = (
+    "tests/training/test_recipes.py", "tests/test_eval_cli.py", "tests/drive/test_gpu_check.py",
+    "tests/test_demo_cli.py", "tests/training/test_trainer.py", "tests/drive/test_drive_run.py",
+    "tests/test_complete_safety.py", "tests/drive/test_drive_ray_memory.py", "tests/drive/test_drive_threads.py",
+    "tests/models/test_autoencoder.py", "tests/test_eval_real.py", "tests/test_determinism.py",
+)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Under xdist, the files of LONGEST_FILES first (in that order, each file's tests kept together so that its
+    module fixtures are made once), the others after them in their own order."""
+    if not hasattr(config, "workerinput"):   # collected by each xdist worker, never by a serial run
+        return
+    rank = {name: i for i, name in enumerate(LONGEST_FILES)}
+    items.sort(key=lambda item: rank.get(item.nodeid.split("::", 1)[0], len(rank)))
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log):
+    """`-n N` schedules by work stealing unless another `--dist` is asked for. Why: xdist's default (`load`) hands
+    each worker 200 consecutive tests at first, so the long tests at the front would all go to one worker; work
+    stealing splits the list in halves and an idle worker takes the back half of another's queue, down to single
+    tests, so the workers finish together."""
+    asked = any(a in ("-d", "--dist") or a.startswith("--dist=") for a in config.invocation_params.args)
+    if asked or config.getoption("distload", False) or config.getoption("dist") != "load":
+        return None
+    from xdist.scheduler import WorkStealingScheduling
+
+    return WorkStealingScheduling(config, log)
+
+
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("tiny_data")

@@ -112,7 +112,7 @@ def test_bench_and_eval_share_the_step_and_device_checks(tmp_path):
     clear_error(hgca("eval", "--t2", "-2", "--data", tmp_path), "argument --t2")
 
 
-def test_bench_times_the_weights_it_is_given(small_weights, tmp_path):
+def test_bench_times_the_weights_it_is_given(small_weights, tmp_path, capsys):
     """`hgca bench --weights` runs the given file (its own 3 steps, not the shipped file's 30) and names it by
     sha256 in the result; a file that is not weights is a clear error before any run writes anything."""
     res = hgca("bench", "--widths", "", "--stage", "coarse", "--weights", small_weights, "--out", tmp_path / "r",
@@ -124,20 +124,29 @@ def test_bench_times_the_weights_it_is_given(small_weights, tmp_path):
     (row,) = result["rows"]
     assert "error" not in row and row["steps"] == {"coarse": 3} and row["coarse_cells"] > 0
     assert f"coarse {small_weights.name} (sha256 {result['weights_sha256']['coarse'][:8]})" in res.stdout
+    from hgca_core.cli import main
+
+    def refused(*args) -> subprocess.CompletedProcess:
+        """The refusals run the CLI in this process (exit status and stderr as `hgca` gives them): each is
+        decided before any work, and four fresh processes cost ~20 s."""
+        capsys.readouterr()
+        code = main(["bench", *map(str, args)])
+        return subprocess.CompletedProcess(args, code, *capsys.readouterr())
+
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not weights")
-    clear_error(hgca("bench", "--widths", "", "--weights", bad, "--out", tmp_path / "r2"), "bad.pt")
+    clear_error(refused("--widths", "", "--weights", bad, "--out", tmp_path / "r2"), "bad.pt")
     assert not (tmp_path / "r2").exists()
     named_like_a_result = tmp_path / "r" / "c.json"
     named_like_a_result.write_bytes(small_weights.read_bytes())
-    clear_error(hgca("bench", "--widths", "", "--weights", named_like_a_result, "--out", tmp_path / "r",
-                     "--name", "c"), "would overwrite an input")
+    clear_error(refused("--widths", "", "--weights", named_like_a_result, "--out", tmp_path / "r", "--name", "c"),
+                "would overwrite an input")
     assert named_like_a_result.read_bytes() == small_weights.read_bytes()
     a_file = tmp_path / "r" / "b.md"                  # --out naming a file: refused, the file kept
     kept = a_file.read_bytes()
-    clear_error(hgca("bench", "--widths", "", "--weights", small_weights, "--out", a_file), "is not a folder")
+    clear_error(refused("--widths", "", "--weights", small_weights, "--out", a_file), "is not a folder")
     assert a_file.read_bytes() == kept
-    clear_error(hgca("bench", "--widths", "", "--weights", small_weights, "--out", a_file / "sub"),
+    clear_error(refused("--widths", "", "--weights", small_weights, "--out", a_file / "sub"),
                 "cannot make the output folder")
 
 

@@ -7,6 +7,7 @@ import sys
 import pytest
 import torch
 
+from hgca_core.cli import main
 from hgca_core.models.gca import GCAConfig
 from hgca_core.models.weights import load_coarse, load_file, trained_weights
 from hgca_core.training.coarse import CoarseTask
@@ -240,7 +241,8 @@ def test_signal_handlers_come_back_when_a_step_raises(tiny_dataset, tmp_path, mo
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
 
 
-def test_several_data_folders_train_on_the_union_and_validate_on_the_first(tiny_dataset, tmp_path):
+def test_several_data_folders_train_on_the_union_and_validate_on_the_first(tiny_dataset, tmp_path, capsys,
+                                                                           one_thread):
     """`--data A B`: B's train samples (built with `hgca synth --first`) join A's; val stays A's, so runs that add
     data are selected on the same scenes; a folder without a train split is an error, not silently skipped, except
     a first folder that holds the val split alone."""
@@ -270,22 +272,22 @@ def test_several_data_folders_train_on_the_union_and_validate_on_the_first(tiny_
         split_files([str(more), str(val_only)], "train")
     with pytest.raises(InputError, match="no samples in"):
         split_files(str(val_only), "train")
-    def run(out, data):
-        cmd = [sys.executable, "-m", "hgca_core.cli", "train", "--recipe", "coarse-noplanner", "--data", *data,
-               "--out", str(out), "--max-steps", "1", "--set", "batch=1", "--set", "buffer=1", "--set", "crop=24",
-               "--set", "channels=8,8,16,16,16", "--threads", "1", "--minutes", "5", "--no-progress"]
-        return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    def run(out, data):   # the CLI in this process (its exit status and stderr)
+        return main(["train", "--recipe", "coarse-noplanner", "--data", *data, "--out", str(out), "--max-steps", "1",
+                     "--set", "batch=1", "--set", "buffer=1", "--set", "crop=24", "--set", "channels=8,8,16,16,16",
+                     "--minutes", "5", "--no-progress"])
 
-    assert run(tmp_path / "run", both).returncode == 0
+    assert run(tmp_path / "run", both) == 0
     ses = load_file(tmp_path / "run" / "ckpt.pt")["state"]["sessions"][-1]
     assert ses["train_folders"] == sorted(both) and "sample_0001000.npz" in ses["train_samples"]
     shutil.rmtree(more / "train")
     (more / "train").mkdir()
-    bad = run(tmp_path / "bad", both)
-    assert bad.returncode == 2 and str(more / "train") in bad.stderr
+    capsys.readouterr()
+    assert run(tmp_path / "bad", both) == 2
+    assert str(more / "train") in capsys.readouterr().err
 
 
-def test_export_blended_toward_the_weights_the_run_started_from(tiny_dataset, tmp_path):
+def test_export_blended_toward_the_weights_the_run_started_from(tiny_dataset, tmp_path, capsys, one_thread):
     """Recipe field `blend` T: the export writes (1 - T) * init_from + T * the run's EMA weights and says so in the
     meta (which the card renders); it needs init_from, and T lies strictly between 0 and 1 (exit 2, nothing
     written)."""
@@ -295,18 +297,14 @@ def test_export_blended_toward_the_weights_the_run_started_from(tiny_dataset, tm
     torch.manual_seed(3)
     a = save_weights(tmp_path / "a.pt", GCAKernel(GCAConfig(use_planner=False, **SMALL)), {"steps": 5})
 
-    def run(*extra):
-        cmd = [sys.executable, "-m", "hgca_core.cli", "train", "--recipe", "coarse-noplanner", "--data",
-               str(tiny_dataset), "--out", str(tmp_path / "r"), "--set", "batch=1", "--set", "buffer=1", "--set",
-               "crop=24", "--threads", "1", "--no-progress", *extra]
-        return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    def run(*extra):   # in this process (the CLI's exit status and stderr): 5 fresh processes cost ~20 s
+        return main(["train", "--recipe", "coarse-noplanner", "--data", str(tiny_dataset), "--out",
+                     str(tmp_path / "r"), "--set", "batch=1", "--set", "buffer=1", "--set", "crop=24", "--no-progress",
+                     *extra])
 
-    done = run("--max-steps", "1", "--minutes", "5", "--set", f"init_from={a}", "--set", "blend=0.25")
-    assert done.returncode == 0, done.stderr
-    done = run("--minutes", "0", "--export", str(tmp_path / "plain.pt"), "--set", "blend=none")
-    assert done.returncode == 0, done.stderr
-    done = run("--minutes", "0", "--export", str(tmp_path / "mix.pt"))
-    assert done.returncode == 0, done.stderr
+    assert run("--max-steps", "1", "--minutes", "5", "--set", f"init_from={a}", "--set", "blend=0.25") == 0
+    assert run("--minutes", "0", "--export", str(tmp_path / "plain.pt"), "--set", "blend=none") == 0
+    assert run("--minutes", "0", "--export", str(tmp_path / "mix.pt")) == 0
     mix, plain, base = (load_file(tmp_path / f) for f in ("mix.pt", "plain.pt", "a.pt"))
     k = next(n for n, v in plain["state_dict"].items() if v.is_floating_point() and v.abs().sum() > 0)
     want = (0.75 * base["state_dict"][k].float() + 0.25 * plain["state_dict"][k].float()).half()
@@ -316,11 +314,12 @@ def test_export_blended_toward_the_weights_the_run_started_from(tiny_dataset, tm
     assert mix["meta"]["blend"]["t"] == 0.25 and b["file"] == str(tmp_path / "r" / "best.pt")
     assert b["sessions"] == plain["meta"]["sessions"] and b["selected"] == plain["meta"]["selected"]
     assert b["sha256"] == hashlib.sha256((tmp_path / "r" / "best.pt").read_bytes()).hexdigest()
+    capsys.readouterr()
     for bad in (["--set", "blend=2"], ["--set", "blend=0.5", "--set", "init_from=none"]):
-        done = subprocess.run([sys.executable, "-m", "hgca_core.cli", "train", "--recipe", "coarse-noplanner",
-                               "--data", str(tiny_dataset), "--out", str(tmp_path / "x"), *bad],
-                              capture_output=True, text=True, timeout=300)
-        assert done.returncode == 2 and "blend" in done.stderr and not (tmp_path / "x").exists(), done.stderr
+        code = main(["train", "--recipe", "coarse-noplanner", "--data", str(tiny_dataset), "--out",
+                     str(tmp_path / "x"), *bad])
+        err = capsys.readouterr().err
+        assert code == 2 and "blend" in err and not (tmp_path / "x").exists(), err
 
 def test_the_best_validation_weights_are_kept_beside_the_last(tiny_dataset, tmp_path, monkeypatch):
     """best.pt holds the average of the step whose validation scored best (here the second of three), with the
@@ -346,7 +345,7 @@ def test_the_best_validation_weights_are_kept_beside_the_last(tiny_dataset, tmp_
     assert load_file(out / "best.pt")["state"]["step"] == 2
 
 
-def test_the_seed_starts_a_new_runs_streams_and_a_resume_keeps_them(tiny_dataset, tmp_path, one_thread):
+def test_the_seed_starts_a_new_runs_streams_and_a_resume_keeps_them(tiny_dataset, tmp_path, one_thread, capsys):
     """Runs of one recipe measure its spread only if they can differ: --seed starts a new run's streams (initial
     weights, crops, chains), the same seed gives the same run, the record and card keep it, and a resume that
     names another seed is refused (exit 2) instead of being ignored while the checkpoint's streams go on."""
@@ -371,15 +370,14 @@ def test_the_seed_starts_a_new_runs_streams_and_a_resume_keeps_them(tiny_dataset
     assert not (tmp_path / "neg").exists()                                     # refused before the run folder
     assert lineage(tmp_path / "b" / "ckpt.pt", run_record(b))["seed"] == 1     # a blend or start keeps it
 
-    cmd = [sys.executable, "-m", "hgca_core.cli", "train", "--data", str(tiny_dataset), "--out",
-           str(tmp_path / "cli"), "--max-steps", "1", "--set", "buffer=3", "--set", "crop=24",
-           "--set", "channels=8,8,16,16,16", "--threads", "1", "--minutes", "5", "--no-progress"]
-    done = subprocess.run([*cmd, "--seed", "1"], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr
-    done = subprocess.run([*cmd, "--resume", "--seed", "2"], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 2 and "started with seed 1" in done.stderr and "ckpt.pt" in done.stderr
+    cmd = ["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "cli"), "--max-steps", "1", "--set",
+           "buffer=3", "--set", "crop=24", "--set", "channels=8,8,16,16,16", "--minutes", "5", "--no-progress"]
+    assert main([*cmd, "--seed", "1"]) == 0     # the CLI in this process: three fresh ones cost ~15 s
+    capsys.readouterr()
+    assert main([*cmd, "--resume", "--seed", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "started with seed 1" in err and "ckpt.pt" in err, err
     assert load_file(tmp_path / "cli" / "ckpt.pt")["state"]["step"] == 1          # nothing trained, nothing written
-    done = subprocess.run([*cmd, "--resume"], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr
+    assert main([*cmd, "--resume"]) == 0
     st = load_file(tmp_path / "cli" / "ckpt.pt")["state"]
     assert (st["step"], st["seed"]) == (2, 1)
