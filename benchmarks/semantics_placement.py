@@ -100,6 +100,32 @@ def label_completion(head, done: dict) -> tuple[np.ndarray, np.ndarray, float]:
     return labels, obs, time.process_time() - c0
 
 
+def added_cpu(args: argparse.Namespace, heads: dict) -> dict:
+    """CPU seconds each head adds to one default-region completion (the test scene cached by
+    `benchmarks/semantics.py`, full stage, its CPU seconds recorded when it was made): its features and forward
+    pass, median of 3 runs. The fine placement pools latents of the scene's ground-truth 10 cm cells (random
+    codes: the cost does not depend on their values; the completion's own latents are not in that cache)."""
+    from hgca_core.training.data import load_arrays
+
+    f = Path(args.timing_scene)
+    if not f.exists():
+        return {}
+    with np.load(f) as z:
+        done = {k: z[k] for k in z.files}
+    stem = f.stem.removesuffix("_full")
+    a = load_arrays(str(Path(args.timing_data) / "test" / f"{stem}.npz"), ("gt_occ10", "region"))
+    done["fine_cells"] = a["gt_occ10"].astype(np.int64)
+    done["fine_latents"] = np.random.default_rng(0).standard_normal((len(done["fine_cells"]), 32)).astype(np.float32)
+    done["grid"] = np.array([int(round(v / 0.2)) for v in a["region"][3:6]])
+    out = {"scene": f.stem, "cells": int(len(done["cells"])), "fine_cells": int(len(done["fine_cells"])),
+           "completion_cpu_s": round(float(done["completion_cpu_s"]), 1), "heads": {}}
+    for placement, head in heads.items():
+        secs = sorted(label_completion(head, done)[2] for _ in range(3))
+        out["heads"][placement] = {"cpu_s": round(secs[1], 2),
+                                   "share": round(secs[1] / float(done["completion_cpu_s"]) * 100, 2)}
+    return out
+
+
 def measure(args: argparse.Namespace) -> dict:
     import torch
 
@@ -144,6 +170,11 @@ def measure(args: argparse.Namespace) -> dict:
             row["added_cpu"] = {"scenes": added, "share": round(sum(a["head_cpu_s"] for a in added)
                                                                / sum(a["completion_cpu_s"] for a in added) * 100, 2)}
         rows.append(row)
+    heads = {}
+    for placement, rel, _ in RUNS:
+        best = ROOT / rel / "best.pt"
+        heads[placement] = load_semantics(best) if best.exists() else SemanticHead(SemanticsConfig(placement=placement))
+    timing = added_cpu(args, heads)
     second = val_history(ROOT / SECOND_SEED)
     noise = None
     if second and curves["geometry"]:
@@ -152,6 +183,7 @@ def measure(args: argparse.Namespace) -> dict:
         noise = {"run": SECOND_SEED, "pairs": [{"step": s, "seed0": x, "seed1": y} for s, x, y in pairs],
                  "rms_diff": round(float(np.sqrt(np.mean([(x - y) ** 2 for _, x, y in pairs]))), 2) if pairs else None}
     return {"rows": rows, "curves": curves, "noise": noise, "completed_scenes": [f.stem for f in files],
+            "timing": timing,
             "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
                         "threads": args.threads},
             "command": "python benchmarks/semantics_placement.py" + (f" --complete {args.complete}"
@@ -165,6 +197,9 @@ def main() -> None:
                    help="folder of the cached val completions")
     p.add_argument("--complete", type=int, default=0, help="complete (or reuse) the first N val scenes and score them")
     p.add_argument("--complete-only", action="store_true", help="make the cached completions and stop")
+    p.add_argument("--timing-scene", default=str(ROOT / "runs" / "semantics_bench" / "sample_2000000_full.npz"),
+                   help="a cached full-stage completion of the default region (benchmarks/semantics.py --full 1)")
+    p.add_argument("--timing-data", default=str(ROOT / "data" / "synth2f"), help="the dataset of that scene")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
     args = p.parse_args()

@@ -33,6 +33,10 @@ def verdict(r: dict) -> dict:
             "how": how, "wins": bool(best != "geometry" and margin > band)}
 
 
+def names_of(rows: list[dict]) -> dict[str, str]:
+    return {row["placement"]: row["label"] for row in rows}
+
+
 def section(r: dict, level: str = "##") -> list[str]:
     """The comparison as Markdown lines (a section of semantics.md, or the whole placement page)."""
     rows, v = r["rows"], verdict(r)
@@ -69,6 +73,13 @@ def section(r: dict, level: str = "##") -> list[str]:
         lines += ["", f"Seed-to-seed spread: the geometry head again with seed 1 (`{noise['run']}`): "
                   + ", ".join(f"step {p['step']:,} {p['seed0']:.1f} vs {p['seed1']:.1f}" for p in noise["pairs"])
                   + f"; RMS difference {noise['rms_diff']:.2f} points."]
+    t = r.get("timing") or {}
+    if t.get("heads"):
+        lines += ["", f"CPU each head adds to a completion of the default region ({t['scene']}: {t['cells']:,} cells "
+                  f"at 20 cm, the full stage took {t['completion_cpu_s']:.1f} s of CPU; 1 thread, median of 3; the "
+                  f"fine placement pools {t['fine_cells']:,} 10 cm cells): "
+                  + ", ".join(f"{names_of(rows)[k]} {h['cpu_s']:.2f} s ({h['share']:.1f} %)"
+                              for k, h in t["heads"].items()) + ". The issue's limit is +10 %."]
     done = [row for row in rows if row.get("completed")]
     if done:
         n = len(r["completed_scenes"])
