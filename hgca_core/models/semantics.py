@@ -126,6 +126,12 @@ def _sorted_batch(cells: np.ndarray) -> tuple[torch.Tensor, np.ndarray]:
     return coords[order], order.numpy()
 
 
+def _cell_keys(cells: np.ndarray) -> np.ndarray:
+    """(N,) int64 key of each cell (N, 3): equal keys, equal cells, for the cells of any one region."""
+    big = np.int64(1 << 20)
+    return (cells[:, 0] * big + cells[:, 1]) * big + cells[:, 2]
+
+
 @torch.no_grad()
 def coarse_features(kernel: nn.Module, cells: np.ndarray, s0: np.ndarray, grid: tuple[int, int, int]) -> np.ndarray:
     """(N, COARSE_WIDTH) float32: the frozen coarse kernel (`models.gca.GCAKernel`, eval mode) run once on the
@@ -164,11 +170,9 @@ def fine_features(cells: np.ndarray, fine_cells: np.ndarray, latents: np.ndarray
     out = np.zeros((len(c), k + 1), np.float32)
     if len(c) == 0 or len(f) == 0:
         return out
-    big = np.int64(1 << 20)
-    key = lambda a: (a[:, 0] * big + a[:, 1]) * big + a[:, 2]   # noqa: E731
-    ck = key(c)
+    ck = _cell_keys(c)
     order = np.argsort(ck)
-    pk = key(f // 2)
+    pk = _cell_keys(f // 2)
     pos = np.clip(np.searchsorted(ck[order], pk), 0, len(c) - 1)
     hit = ck[order][pos] == pk
     row = order[pos[hit]]
@@ -220,9 +224,7 @@ def observed_mask(cells: np.ndarray, input_cells: np.ndarray) -> np.ndarray:
     s = np.asarray(input_cells, dtype=np.int64).reshape(-1, 3)
     if len(c) == 0 or len(s) == 0:
         return np.zeros(len(c), bool)
-    big = np.int64(1 << 20)
-    key = lambda a: (a[:, 0] * big + a[:, 1]) * big + a[:, 2]   # noqa: E731
-    return np.isin(key(c), key(s))
+    return np.isin(_cell_keys(c), _cell_keys(s))
 
 
 def face_labels(points: np.ndarray, cells: np.ndarray, labels: np.ndarray) -> np.ndarray:
