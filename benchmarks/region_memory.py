@@ -9,8 +9,11 @@ cannot), so a speed change must not buy its seconds with memory. Each run is a f
 PYTHONPATH doing `hgca_core.bench.run_one` (the benchmark's synthetic drive, its region, full stage, seed 0, fp32,
 the tree's shipped weights) after `tune_allocator`, as `hgca bench` does. For each region new and old run in turn
 (new, old, new, old ...), so a drift of the machine touches both alike and the ratio is taken pair by pair. The
-parent reaps each child with `os.wait4`: peak RSS (ru_maxrss), user + system CPU seconds and wall are the
-operating system's accounting of that one process. The child also hashes the mesh file it writes, so the page can
+parent reaps each child with `os.wait4`: user + system CPU seconds and wall are the operating system's accounting
+of that one process. Peak RSS is the child's own high-water mark (VmHWM of /proc/self/status, read as it exits):
+not wait4's ru_maxrss, which on Linux also counts the parent's resident set at the moment it spawned the child
+(subprocess spawns with vfork, and exec records the shared address space's peak), so a child started from a
+large process such as a test worker would report that process's memory. The child also hashes the mesh file it writes, so the page can
 say whether old and new made the same mesh (cells, triangles, sha256 of the PLY bytes).
 
 Runs are appended to runs/memory/runs.jsonl as they finish (a stopped call keeps what it measured; `run` adds
@@ -59,6 +62,25 @@ row = run_one(job["width"], job["depth"], "full", "cpu", None, 0)
 print(json.dumps({**row, "mesh_sha256": digest.get("sha256"), "package": hgca_core.__file__}))
 """
 
+# Runs CHILD (argv[1]) as __main__ and, however it ends, writes the process's own peak RSS to stderr.
+PEAK = """
+import sys
+source = sys.argv.pop(1)
+try:
+    exec(compile(source, "<child>", "exec"), {"__name__": "__main__"})
+finally:
+    with open("/proc/self/status") as status:
+        for line in status:
+            if line.startswith("VmHWM:"):
+                sys.stderr.write("hgca-peak-rss-kib " + line.split()[1] + "\\n")
+"""
+
+
+def _peak_kib(err: str) -> int | None:
+    """The child's VmHWM line from its stderr (None on a system without /proc or a child that was killed)."""
+    found = [line.split()[1] for line in err.splitlines() if line.startswith("hgca-peak-rss-kib ")]
+    return int(found[-1]) if found else None
+
 
 def measure(root: Path, region: str, threads: int, python: str, timeout: int) -> dict:
     """One completion of `region` with the tree `root` in a fresh process; its row with the OS's accounting."""
@@ -67,7 +89,7 @@ def measure(root: Path, region: str, threads: int, python: str, timeout: int) ->
     load = os.getloadavg()[0]
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
         t0 = time.perf_counter()
-        proc = subprocess.Popen([python, "-c", CHILD, json.dumps({"width": width, "depth": depth})], cwd="/tmp",
+        proc = subprocess.Popen([python, "-c", PEAK, CHILD, json.dumps({"width": width, "depth": depth})], cwd="/tmp",
                                 env=env, stdout=out, stderr=err, text=True)
         while True:                     # reaped here, not by Popen, so that wait4 hands over its rusage
             pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
@@ -83,13 +105,17 @@ def measure(root: Path, region: str, threads: int, python: str, timeout: int) ->
         out.seek(0)
         err.seek(0)
         out, err = out.read(), err.read()
+    peak = _peak_kib(err)
+    err = "\n".join(line for line in err.splitlines() if not line.startswith("hgca-peak-rss-kib "))
     row = {"region": region, "root": str(root), "threads": threads, "load_at_start": round(load, 1),
-           "exit": proc.returncode, "peak_rss_mib": round(usage.ru_maxrss / 1024, 1),
+           "exit": proc.returncode, "peak_rss_mib": round(peak / 1024, 1) if peak else None,
            "cpu_s": round(usage.ru_utime + usage.ru_stime, 1), "user_s": round(usage.ru_utime, 1),
            "sys_s": round(usage.ru_stime, 1), "wall_s": round(wall, 1),
            "date": time.strftime("%Y-%m-%d %H:%M", time.gmtime())}
     if proc.returncode != 0 or not out.strip():
         return {**row, "error": (err.strip().splitlines() or ["no output"])[-1]}
+    if peak is None:
+        return {**row, "error": "the child reported no peak RSS (no /proc/self/status?)"}
     child = json.loads(out.strip().splitlines()[-1])
     if not child["package"].startswith(str(root)):
         raise SystemExit(f"region_memory: error: the child imported {child['package']}, not the tree {root}")
