@@ -37,8 +37,8 @@ from drive_scores import ENDS, SCENE, SLAB, plot, seam_scores, slab_sources, wor
 REPO = Path(__file__).resolve().parents[1]
 SEEDS = (4_000_011, 4_000_010)   # two straight city streets (flat; a 0.9 % grade), both driven towards +x
 TILE_M = 38.4
-WRAP = ("import resource, sys; from hgca_core.cli import main; rc = main(sys.argv[1:]); "
-        "print('MAXRSS', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr); sys.exit(rc)")
+WRAP = ("import sys; from hgca_core.cli import main; from hgca_core.hardware import peak_rss_bytes; "
+        "rc = main(sys.argv[1:]); print('MAXRSS', peak_rss_bytes(), file=sys.stderr); sys.exit(rc)")
 
 
 def scenes(count: int) -> list[tuple]:
@@ -155,7 +155,7 @@ def run_cli(args: list, log: Path) -> dict:
     log.write_text(proc.stderr)
     if proc.returncode != 0:
         raise SystemExit(f"hgca drive failed ({proc.returncode}): {proc.stderr[-3000:]}")
-    rss = [int(line.split()[1]) * 1024 for line in proc.stderr.splitlines() if line.startswith("MAXRSS")]
+    rss = [int(line.split()[1]) for line in proc.stderr.splitlines() if line.startswith("MAXRSS")]
     return {"wall_s": round(wall, 1), "driver_peak_rss_gib": round(rss[-1] / 2**30, 2)}
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hgca_core.hardware import machine
+from hgca_core.hardware import machine, peak_rss_bytes
 from hgca_core.nn.precision import DEFAULT_PRECISION
 
 WIDTHS = (40, 60, 80, 100, 120)
@@ -78,7 +78,7 @@ def run_one(width: float, depth: float, stage: str, device: str, t1: int | None,
     total = time.perf_counter() - t_start
     stages = dict(clock.seconds)
     stages["write"] = time.perf_counter() - t_mesh
-    usage = resource.getrusage(resource.RUSAGE_SELF)   # peak RSS and page faults, one reading
+    usage = resource.getrusage(resource.RUSAGE_SELF)   # page faults
     gpu = torch.cuda.max_memory_allocated() if device.startswith("cuda") else None
     from hgca_core.nn.conv import precision_name, resolve_precision
 
@@ -87,7 +87,7 @@ def run_one(width: float, depth: float, stage: str, device: str, t1: int | None,
             "coarse_cells": int(len(res.coarse_cells)), "triangles": int(len(res.mesh.faces)),
             "seconds": round(total, 2), "stages_s": {k: round(v, 3) for k, v in stages.items()},
             "steps": {k: clock.totals[k] for k in ("coarse", "fine") if k in clock.totals},
-            "peak_rss_gib": round(usage.ru_maxrss * 1024 / 2**30, 3), "minor_faults": usage.ru_minflt,
+            "peak_rss_gib": round(peak_rss_bytes() / 2**30, 3), "minor_faults": usage.ru_minflt,
             "gpu_peak_gib": None if gpu is None else round(gpu / 2**30, 3)}
 
 

@@ -89,6 +89,23 @@ def release_free_memory() -> bool:
     return True
 
 
+def peak_rss_bytes() -> int:
+    """This process's own peak resident set (VmHWM). Not getrusage's ru_maxrss: on Linux that also holds the
+    resident set of the process that spawned this one at the moment of the spawn (vfork + exec), so a worker
+    started by a large parent would report the parent's memory."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    import resource
+
+    scale = 1 if sys.platform == "darwin" else 1024        # bytes on macOS, KiB elsewhere
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * scale
+
+
 def cpu_name() -> str:
     """The CPU model ('AMD EPYC 9454 48-Core Processor'), or what `platform` knows where /proc is absent."""
     info = Path("/proc/cpuinfo")

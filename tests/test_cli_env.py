@@ -154,3 +154,24 @@ def test_memory_errors_and_full_disks_name_themselves():
     assert unexpected(MemoryError()).startswith("out of memory")
     full = OSError(errno.ENOSPC, "No space left on device", "/mnt/x.npz")
     assert unexpected(full) == "no space left on the device (/mnt/x.npz); nothing was written"
+
+
+PEAK_PROBE = """
+from hgca_core.hardware import peak_rss_bytes
+block = bytearray(200 * 2**20)
+for i in range(0, len(block), 4096):
+    block[i] = 1
+print(peak_rss_bytes() / 2**20)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the spawn's inherited peak is Linux's accounting")
+def test_peak_rss_is_the_processs_own_not_its_spawning_parents() -> None:
+    """A worker's reported peak (tiles, `hgca bench`) is its own 200 MiB, not the 1 GiB its parent held when it
+    spawned the worker, which getrusage's ru_maxrss would report."""
+    ballast = bytearray(2**30)
+    for i in range(0, len(ballast), 4096):
+        ballast[i] = 1
+    out = subprocess.run([sys.executable, "-c", PEAK_PROBE], capture_output=True, text=True, timeout=60)
+    del ballast
+    assert 200 <= float(out.stdout.strip()) < 600, out.stderr

@@ -11,7 +11,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import resource
 import socket
 import time
 from dataclasses import asdict, dataclass
@@ -23,6 +22,7 @@ from hgca_core.config import CompletionConfig
 from hgca_core.errors import InputError
 from hgca_core.geometry.region import Region
 from hgca_core.geometry.voxel import COARSE, cell_centers, voxelize
+from hgca_core.hardware import peak_rss_bytes
 from hgca_core.io.digest import file_digest
 
 KEY_VERSION = 3   # bump when the same key would give different content (a change to this algorithm)
@@ -150,7 +150,7 @@ def complete_tile(job: TileJob, scans: list, neighbour_cells: list[tuple[tuple, 
                         "faces": np.asarray(r.mesh.faces, dtype=np.int32), "observed_distance": r.observed_distance,
                         "cells": r.coarse_cells.astype(np.int16), "seed": r.seed,
                         "fixed_cells": int(len(np.unique(fixed, axis=0))), "free_cells": r.free_cells})
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    rss = peak_rss_bytes()
     return {"index": job.index, "key": job.key, "samples": samples, "points": int(len(local)),
             "seconds": round(time.perf_counter() - start, 3), "started": started, "finished": time.time(),
             "worker": f"{socket.gethostname()}:{os.getpid()}", "peak_rss": int(rss)}
