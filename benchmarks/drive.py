@@ -180,6 +180,8 @@ def main() -> int:
     ap.add_argument("--short", type=float, default=250.0)
     ap.add_argument("--work", type=Path, default=Path("/tmp/hgca_drive_bench"))
     ap.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results")
+    ap.add_argument("--scans-per-tile", type=int, default=5, help="as `hgca drive --scans-per-tile`")
+    ap.add_argument("--name", default="drive", help="the page's name: RESULTS/NAME.{md,json,png}")
     ap.add_argument("--t1", type=int, default=None, help="coarse GCA steps per tile (default: the weights')")
     ap.add_argument("--weights", default=None, help="coarse weights (default: the shipped ones)")
     ap.add_argument("--until", default=None, help="UTC HH:MM: skip a run expected to end after it")
@@ -201,11 +203,12 @@ def main() -> int:
         now = dt.datetime.now(dt.timezone.utc)
         deadline = now.replace(hour=h, minute=m, second=0).timestamp()
     if args.page_only:
-        (args.results / "drive.md").write_text(table(json.loads((args.results / "drive.json").read_text()),
-                                                     args.results))
+        (args.results / f"{args.name}.md").write_text(
+            table(json.loads((args.results / f"{args.name}.json").read_text()), args.results))
         return 0
-    result = {"machine": machine(), "threads_per_tile": args.threads, "stage": args.stage, "t1": args.t1,
-              "spacing_m": args.spacing, "drives": {}, "runs": {}, "skipped": []}
+    result = {"name": args.name, "machine": machine(), "threads_per_tile": args.threads,
+              "scans_per_tile": args.scans_per_tile, "stage": args.stage, "t1": args.t1, "spacing_m": args.spacing,
+              "drives": {}, "runs": {}, "skipped": []}
     built = {}
     for name, length in (("short", args.short), ("long", args.length)):
         t = time.perf_counter()
@@ -238,7 +241,7 @@ def main() -> int:
         out = args.work / f"{name}_w{workers}"
         shutil.rmtree(out, ignore_errors=True)
         run = run_cli([*scans, "--poses", poses, "--stage", args.stage, "--threads", args.threads, "--out", out,
-                       *(["--t1", args.t1] if args.t1 else []),
+                       *(["--t1", args.t1] if args.t1 else []), "--scans-per-tile", args.scans_per_tile,
                        "--workers", workers, *(["--weights", args.weights] if args.weights else [])],
                       args.work / f"{name}_w{workers}.log")
         result["runs"][label] = {"drive": name, "workers": workers, **summarise(out, run)}
@@ -261,7 +264,7 @@ def score(args, built: dict) -> int:
         for t in doc["tiles"]:
             ground_truth(Region.from_tuple(t["region"]), built["long"][2], cache=args.gt_cache)
         return 0
-    result = json.loads((args.results / "drive.json").read_text())
+    result = json.loads((args.results / f"{args.name}.json").read_text())
     for extra in args.add:
         other = json.loads(extra.read_text())
         result["runs"].update(other["runs"])
@@ -286,7 +289,7 @@ def score(args, built: dict) -> int:
     result["seams"].update(slab_sources(result["seams"], doc))
     result["seams"]["scored_run"] = f"long drive, {workers} workers"
     result["seams"]["ground_truth_s"] = round(time.perf_counter() - t, 1)
-    plot(out, args.results / "drive.png", result["seams"])
+    plot(out, args.results / f"{args.name}.png", result["seams"])
     result.setdefault("load_average", [round(v, 1) for v in os.getloadavg()])
     write(result, args.results)
     print(table(result, args.results))
@@ -295,8 +298,9 @@ def score(args, built: dict) -> int:
 
 def write(result: dict, folder: Path) -> None:
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / "drive.json").write_text(json.dumps(result, indent=1))
-    (folder / "drive.md").write_text(table(result, folder))
+    name = result.get("name", "drive")
+    (folder / f"{name}.json").write_text(json.dumps(result, indent=1))
+    (folder / f"{name}.md").write_text(table(result, folder))
 
 
 def table(r: dict, folder: Path | None = None) -> str:
@@ -309,7 +313,7 @@ def table(r: dict, folder: Path | None = None) -> str:
              f"{r.get('load_average', 'n/a')} at the end), torch {m['torch']}, {r['threads_per_tile']} torch "
              f"thread(s) per tile, {m['date']}. Synthetic drives along seeded city scenes ({d['short']['scans']} and "
              f"{d['long']['scans']} Waymo-profile scans every {r['spacing_m']} m), 38.4 m tiles overlapping 6.4 m, "
-             "5 scans per tile.", "",
+             f"{r.get('scans_per_tile', 5)} scans per tile.", "",
              "| run | tiles | wall (s) | Ray start (s) | tiles (s) | merge (s) | tiles/min | mean tile (s) | "
              "driver peak RSS (GiB) | worker peak RSS (GiB) |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for name, v in r["runs"].items():
@@ -320,9 +324,9 @@ def table(r: dict, folder: Path | None = None) -> str:
         lines.append(f"| {name} | not run: it would have ended after the time set for the benchmark | | | | | | | | |")
     lines.append("")
     if r.get("t1"):
-        lines.append(f"Stage {r['stage']} with T1 = {r['t1']} GCA steps per tile, fewer than the weights' own: on "
-                     "2 cores heavily loaded by other work the full stage or the full "
-                     "chain on 1 km would not have finished in the time set for the benchmark.")
+        lines.append(f"Stage {r['stage']} with T1 = {r['t1']} GCA steps per tile, fewer than the weights' own: a "
+                     "light configuration for the seams and the workers' memory; "
+                     "[drive_full.md](drive_full.md) runs `hgca drive` as it ships (stage full, the weights' steps).")
         lines.append("")
     g = r.get("worker_growth")
     if g:
@@ -362,7 +366,7 @@ def table(r: dict, folder: Path | None = None) -> str:
                   "inside: places one tile covers. Ground truth: the scenes' surface a complete scan could see "
                   "(`synth.groundtruth.RegionSurface`), no visibility mask. Neighbour agreement: IoU of two "
                   "consecutive tiles' cells in their overlap (the second's mapped by cell centre into the first's "
-                  "grid).", "", "![drive](drive.png)"]
+                  "grid).", "", f"![drive]({r.get('name', 'drive')}.png)"]
     return "\n".join(lines + extra_sections(r, folder)) + "\n"
 
 
@@ -371,7 +375,7 @@ def extra_sections(r: dict, folder: Path | None) -> list[str]:
     (`drive_slab.py`), where their results are in `folder`."""
     lines: list[str] = []
     mem = folder / "drive_memory.json" if folder else None
-    if mem and mem.is_file():
+    if mem and mem.is_file() and r.get("name", "drive") == "drive":
         d = json.loads(mem.read_text())
         lines += ["", f"## A worker's memory tile after tile ({d['length_m']:.0f} m, {d['tiles']} tiles on one Ray "
                   "worker, `drive_memory.py`)", "", "| code | RSS after first / last tile (MiB) | slope (MiB a tile): "
@@ -388,7 +392,7 @@ def extra_sections(r: dict, folder: Path | None) -> list[str]:
                   "and drops each object when no task still to be submitted needs it; the store reuses its pages. "
                   "Details: [drive_memory.md](drive_memory.md)."]
     slab = folder / "drive_slab.json" if folder else None
-    if slab and slab.is_file():
+    if slab and slab.is_file() and r.get("seams") and r.get("name", "drive") == "drive":
         d = json.loads(slab.read_text())
         a = d["at_slab"]
         lines += ["", f"## The worst slab without tiles (x = {d['x']:g} m, `drive_slab.py`)", "",
