@@ -270,7 +270,7 @@ def score(args, built: dict) -> int:
         result["runs"].update(other["runs"])
         result["drives"].update({k: v for k, v in other["drives"].items() if k not in result["drives"]})
         result["skipped"] = [s for s in result["skipped"] if s not in other["runs"]]
-    for name, w in (("long", 2), ("short", 2), ("short", 1), ("long", 1)):    # the runs the time left out
+    for name, w in [(r.split(":")[0], int(r.split(":")[1])) for r in args.runs.split(",")]:  # asked, not run
         label = f"{result['drives'][name]['length_m']:.0f} m, {w} worker{'s' * (w > 1)}"
         if label not in result["runs"] and label not in result["skipped"]:
             result["skipped"].append(label)
@@ -449,6 +449,31 @@ def extra_sections(r: dict, folder: Path | None) -> list[str]:
                          + (f" against {others(base):.3f} from 5" if base else "") + ". The drive's figures above "
                          "are with 5 scans a tile.")
         lines += ["", "![worst slab alone](drive_slab.png)"]
+    lines += more_scans(r, folder)
+    return lines
+
+
+def more_scans(r: dict, folder: Path | None) -> list[str]:
+    """This drive against the same drive with more scans a tile (`--name drive_spt<N>` runs in `folder`)."""
+    lines: list[str] = []
+    for path in sorted(folder.glob("drive_spt*.json")) if folder and r.get("seams") else []:
+        o = json.loads(path.read_text())
+        if not o.get("seams"):
+            continue
+        rows = [(o, o["seams"])]
+        if not lines:
+            lines += ["", "## Scans a tile (the long drive, 2 workers)", "",
+                      "| scans a tile | IoU inside tiles | bands / inside | median slab recall | worst / median | "
+                      "mean tile (s) | worker peak RSS (GiB) |", "|---:|---:|---:|---:|---:|---:|---|"]
+            rows.insert(0, (r, r["seams"]))
+        for doc, s in rows:
+            run = next(v for v in doc["runs"].values() if v["drive"] == "long" and v["workers"] == 2)
+            lines.append(f"| {doc.get('scans_per_tile', 5)} | {s['iou_interior']} | {s['ratio']} | "
+                         f"{s['slabs']['recall']['median']} | {s['slabs']['recall']['ratio']} | {run['tile_s_mean']} | "
+                         f"{', '.join(map(str, run['worker_peak_rss_gib']))} |")
+    if lines:
+        lines += ["", "The same drive, tiles and seeds; only `--scans-per-tile` differs (page: "
+                  + ", ".join(f"[{p.stem}.md]({p.stem}.md)" for p in sorted(folder.glob("drive_spt*.json"))) + ")."]
     return lines
 
 
