@@ -173,13 +173,11 @@ def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.T
     v, f = mc.clean_surface(v, f, min_area, observed, sensors, pinhole_edges, workers)
     t3, c3 = time.perf_counter(), time.process_time()
     if fair and points is not None and len(points) and len(f):
-        from hgca_core.geometry.fairing import ANCHOR_SCALE, fair_ground
+        from hgca_core.geometry.fairing import fair_ground
         from hgca_core.geometry.nearest import PointIndex
 
         tree = PointIndex(points) if tree is None else tree
-        near, which = tree.nearest(v, upper=3 * ANCHOR_SCALE)
-        v = fair_ground(v, f, near, point_heights=np.where(which >= 0, tree.points[which, 2], np.nan),
-                        workers=workers)[0]
+        v = fair_ground(v, f, workers=workers, points=tree)[0]   # anchors: the ground vertices' nearest points
     if timings is not None:   # wall seconds, and CPU seconds of this process (all its threads)
         t4, c4 = time.perf_counter(), time.process_time()
         timings.update(decode=t1 - t0, extract=t2 - t1, clean=t3 - t2, fair=t4 - t3,

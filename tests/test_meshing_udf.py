@@ -464,3 +464,35 @@ def test_adjacency_matches_scipy_coo_build():
     np.testing.assert_array_equal(got.data, want.data)
     assert got.has_sorted_indices and got.shape == (nv, nv)
     assert adjacency(np.zeros((0, 3), dtype=np.int64), 3).nnz == 0
+
+
+def test_run_lengths_match_a_naive_count():
+    from hgca_core.geometry.mesh_clean import run_lengths
+
+    rng = np.random.default_rng(8)
+    for n in (1, 2, 50, 3000):
+        k = np.sort(rng.integers(0, max(2, n // 3), size=n))
+        want = np.array([np.count_nonzero(k == x) for x in k])
+        got = run_lengths(k)
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, want)
+    assert len(run_lengths(np.zeros(0, dtype=np.int64))) == 0
+
+
+def test_grid_index_at_the_borders_and_in_any_order():
+    """Points on the grid's outer columns and rows (the padded column grid's neighbours of them are empty), and
+    the lookup path of unsorted points, give the neighbours a dict of the points gives."""
+    from hgca_core.geometry.udf_surface import GridIndex
+
+    rng = np.random.default_rng(9)
+    g = np.unique(np.r_[rng.integers(0, 4, size=(60, 3)), [[0, 0, 0], [3, 3, 3], [0, 3, 1], [3, 0, 2]]], axis=0)
+    table = {tuple(p): i for i, p in enumerate(g)}
+    for pts, index, first in ((g, GridIndex(g), 0), (g[::-1], GridIndex(g[::-1]), None)):
+        nb = index.neighbours(pts, first=first)
+        look = {tuple(p): i for i, p in enumerate(pts)}
+        for a in range(3):
+            for k, s in enumerate((1, -1)):
+                step = np.zeros(3, int)
+                step[a] = s
+                np.testing.assert_array_equal(nb[:, a, k], [look.get(tuple(p + step), -1) for p in pts])
+    assert GridIndex(g).find(g[:1] + [-5, 0, 0])[0] == -1 and table[tuple(g[0])] == 0

@@ -43,10 +43,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse import csr_matrix, diags
 from scipy.sparse.csgraph import connected_components
-from scipy.sparse.linalg import cg
 
 from hgca_core.geometry.keys import pack
 from hgca_core.geometry.mesh_clean import adjacency, face_normals, vertex_sums
+from hgca_core.geometry.nearest import PointIndex
 from hgca_core.geometry.parallel import map_slices, run_all
 from hgca_core.geometry.planes import fit_planes
 
@@ -84,7 +84,7 @@ def ground_like(normals: np.ndarray, adj: csr_matrix, tilt: float = TILT, rings:
 
 def _components(adj: csr_matrix, idx: np.ndarray) -> tuple[int, np.ndarray, csr_matrix]:
     """(count, label of each vertex in `idx`, the edges among them) of the connected parts of a vertex subset."""
-    sub = adj[idx][:, idx]
+    sub = _subgraph(adj, idx)
     n, label = connected_components(sub, directed=False)
     return n, label, sub
 
@@ -187,13 +187,17 @@ def fair_ground(vertices: np.ndarray, faces: np.ndarray, distances: np.ndarray |
                 anchor_weight: float = ANCHOR_WEIGHT, free_weight: float = FREE_WEIGHT,
                 min_region: float = MIN_REGION, step: float = STEP, tile: float = TILE, max_move: float = MAX_MOVE,
                 tol: float = 1e-3, max_iter: int = 500, point_heights: np.ndarray | None = None,
-                offset_tile: float = OFFSET_TILE, workers: int = 1) -> tuple[np.ndarray, FairingReport]:
+                offset_tile: float = OFFSET_TILE, workers: int = 1, points: PointIndex | None = None
+                ) -> tuple[np.ndarray, FairingReport]:
     """(vertices with the heights of ground-like vertices faired, report); see the module docstring.
 
     distances: (V,) each vertex's distance to the nearest input point (m), or None for no evidence.
     point_heights: (V,) the height of that nearest point (NaN where none is near): the anchors pull by the local
       mean offset to them over `offset_tile` squares (0: to each vertex's own point); None: the anchors hold.
     workers: threads (the adjacency is built while the normals are summed).
+    points: instead of `distances` and `point_heights`, the input points' index: only the ground-like vertices
+      (those the two are read for, about half) are looked up, within 3 `anchor_scale` (beyond, the anchor's
+      weight is below a tenth of `free_weight`): the same values as a lookup of every vertex.
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
@@ -221,29 +225,74 @@ def fair_ground(vertices: np.ndarray, faces: np.ndarray, distances: np.ndarray |
     # imbalance left", whatever the heights' magnitude.
     deg = np.diff(adj.indptr).astype(np.float64)[g]
     pull = (adj @ v)[g] - deg[:, None] * v[g]                          # sum_j (p_j - p_i), x y z
-    anchor = (anchor_weight * np.exp(-np.square(np.asarray(distances, dtype=np.float64)[g] / anchor_scale))
-              if distances is not None else np.zeros(n))
+    if points is not None and distances is None:
+        dist, which = points.nearest(v[g], upper=3 * anchor_scale)
+        heights = np.where(which >= 0, points.points[which, 2], np.nan)
+    else:
+        dist = None if distances is None else np.asarray(distances, dtype=np.float64)[g]
+        heights = None if point_heights is None else np.asarray(point_heights, dtype=np.float64)[g]
+    anchor = anchor_weight * np.exp(-np.square(dist / anchor_scale)) if dist is not None else np.zeros(n)
     w = free_weight + anchor
     r = pull[:, 2] - np.einsum("ij,ij->i", slopes(v[g], label[big], w, tile, workers), pull[:, :2])
-    if point_heights is not None:          # the anchors pull by t_i - z_i instead of holding (module docstring)
-        offset = np.asarray(point_heights, dtype=np.float64)[g] - v[g, 2]
+    if heights is not None:                # the anchors pull by t_i - z_i instead of holding (module docstring)
+        offset = heights - v[g, 2]
         if offset_tile > 0:
             offset = local_offsets(v[g], offset, anchor, offset_tile)
         r += np.where(np.isfinite(offset), anchor * offset, 0.0)
     diag = (deg + w).astype(np.float32)
-    system = (diags(diag) - sub[big][:, big]).tocsr()                   # float32: half the memory traffic
+    system = (diags(diag) - _subgraph(sub, np.flatnonzero(big))).tocsr()                   # float32: half the memory traffic
     dz, iterations = _cg(system, r.astype(np.float32), 1.0 / diag, tol, max_iter)
     dz = np.clip(dz, -max_move, max_move)
     out[g, 2] += dz
     return out, FairingReport(n, float(np.abs(dz).max()), float(np.sqrt(np.mean(dz ** 2))), iterations)
 
 
-def _cg(a, b: np.ndarray, inv_diag: np.ndarray, tol: float, max_iter: int) -> tuple[np.ndarray, int]:
-    """Jacobi-preconditioned CG; returns (solution, iterations)."""
-    count = [0]
+def _cg(a: csr_matrix, b: np.ndarray, inv_diag: np.ndarray, tol: float, max_iter: int) -> tuple[np.ndarray, int]:
+    """Jacobi-preconditioned CG; returns (solution, iterations).
 
-    def step(_: np.ndarray) -> None:
-        count[0] += 1
+    The steps of scipy's `cg` (1.17) in its order and float types, so the same solution bit for bit
+    (tests/geometry/test_fairing.py checks), without its operator wrappers and per-step temporaries; the
+    preconditioner is an elementwise product where scipy multiplies by a diagonal matrix (0 + d r: the same)."""
+    b = np.asarray(b)
+    bnrm2 = np.linalg.norm(b)
+    if bnrm2 == 0:
+        return b, 0
+    atol = max(0.0, float(tol) * float(bnrm2))
+    x = np.zeros(len(b), dtype=np.result_type(a.dtype, b.dtype))
+    r = b.astype(x.dtype)
+    z, tmp = np.empty_like(r), np.empty_like(r)
+    p, rho_prev = z, None
+    for iteration in range(max_iter):
+        if np.linalg.norm(r) < atol:
+            return x, iteration
+        np.multiply(inv_diag, r, out=z)
+        z += 0                                          # as scipy's diagonal product: -0 becomes +0
+        rho = np.dot(r, z)
+        if iteration > 0:
+            p *= rho / rho_prev
+            p += z
+        else:
+            p = z.copy()
+        q = a @ p
+        alpha = rho / np.dot(p, q)
+        np.multiply(p, alpha, out=tmp)
+        x += tmp
+        np.multiply(q, alpha, out=tmp)
+        r -= tmp
+        rho_prev = rho
+    return x, max_iter
 
-    x, _ = cg(a, b, rtol=tol, maxiter=max_iter, M=diags(inv_diag), callback=step)
-    return x, count[0]
+
+def _subgraph(adj: csr_matrix, idx: np.ndarray) -> csr_matrix:
+    """`adj[idx][:, idx]` for sorted unique `idx`, the same matrix (sorted rows), by one relabelling of the
+    selected rows' columns: scipy's column selection costs several times more."""
+    rows = adj[idx]
+    new = np.full(adj.shape[1], -1, dtype=rows.indices.dtype)
+    new[idx] = np.arange(len(idx), dtype=new.dtype)
+    col = new[rows.indices]
+    keep = col >= 0
+    seen = np.zeros(len(keep) + 1, dtype=rows.indptr.dtype)
+    np.cumsum(keep, out=seen[1:])
+    out = csr_matrix((rows.data[keep], col[keep], seen[rows.indptr]), shape=(len(idx), len(idx)))
+    out.has_sorted_indices = rows.has_sorted_indices
+    return out

@@ -39,8 +39,12 @@ def face_normals(vertices: np.ndarray, faces: np.ndarray, workers: int = 1) -> t
 
 def vertex_sums(faces: np.ndarray, n_vertices: int, values: np.ndarray) -> np.ndarray:
     """Per-vertex sums (V, C) of per-face values (F, C) over each vertex's faces."""
-    return np.stack([sum(np.bincount(faces[:, k], weights=values[:, c], minlength=n_vertices) for k in range(3))
-                     for c in range(values.shape[1])], 1)
+    corner = [np.ascontiguousarray(faces[:, k]) for k in range(3)]        # one copy per corner, not per channel
+    out = np.empty((n_vertices, values.shape[1]))
+    for c in range(values.shape[1]):
+        w = np.ascontiguousarray(values[:, c])
+        out[:, c] = sum(np.bincount(corner[k], weights=w, minlength=n_vertices) for k in range(3))
+    return out
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -68,8 +72,11 @@ def run_lengths(sorted_keys: np.ndarray) -> np.ndarray:
     k = np.asarray(sorted_keys)
     if len(k) == 0:
         return np.zeros(0, dtype=np.int64)
-    group = np.cumsum(np.r_[True, k[1:] != k[:-1]]) - 1
-    return np.bincount(group)[group]
+    new = np.empty(len(k), dtype=bool)
+    new[0] = True
+    np.not_equal(k[1:], k[:-1], out=new[1:])
+    length = np.diff(np.append(np.flatnonzero(new), len(k)))    # runs, then each element its run's length
+    return np.repeat(length, length)
 
 
 def edge_stats(faces: np.ndarray, n_vertices: int) -> dict[str, int]:
@@ -233,7 +240,8 @@ def compact(vertices: np.ndarray, faces: np.ndarray, keep_faces: np.ndarray | No
     mask = np.zeros(len(vertices), dtype=bool)
     mask[f] = True
     used = np.flatnonzero(mask)
-    remap = np.cumsum(mask) - 1
+    remap = np.empty(len(vertices), dtype=np.int64)          # new index of each used vertex (others unread)
+    remap[used] = np.arange(len(used))
     return vertices[used], remap[f], used
 
 

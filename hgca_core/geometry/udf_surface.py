@@ -79,20 +79,21 @@ class GridIndex:
 
     Street scenes are thin shells, so the runs are short (a few cells on the ground, a few metres on facades);
     the table is a few times the number of points, and a lookup is three gathers instead of a binary search.
+    The column grid has one empty column on every side of the points, so the x and y neighbours of an indexed
+    point need no bounds test; indices are int32 where they fit (half the memory traffic of int64).
     """
 
     def __init__(self, g: np.ndarray) -> None:
         g = np.asarray(g, dtype=np.int64).reshape(-1, 3)
-        self.lo = g.min(0) if len(g) else np.zeros(3, dtype=np.int64)
+        self.lo = g.min(0) - [1, 1, 0] if len(g) else np.zeros(3, dtype=np.int64)
         d = g - self.lo
-        self.nx, self.ny = (int(d[:, 0].max()) + 1, int(d[:, 1].max()) + 1) if len(g) else (1, 1)
+        self.nx, self.ny = (int(d[:, 0].max()) + 2, int(d[:, 1].max()) + 2) if len(g) else (1, 1)
         col = d[:, 0] * self.ny + d[:, 1]
         zlo = np.full(self.nx * self.ny, np.iinfo(np.int64).max, dtype=np.int64)
         zhi = np.full(self.nx * self.ny, -1, dtype=np.int64)
         step = col[1:] - col[:-1]
         self.sorted = bool(len(g)) and bool(np.all(step >= 0) and np.all((step > 0) | (d[1:, 2] > d[:-1, 2])))
         if self.sorted:
-            self._col, self._z = col, d[:, 2]
             first = np.flatnonzero(np.r_[True, step > 0])         # sorted (x, y, z), as the decoder returns them
             last = np.r_[first[1:], len(g)] - 1
             zlo[col[first]], zhi[col[first]] = d[first, 2], d[last, 2]
@@ -102,30 +103,46 @@ class GridIndex:
             first = np.flatnonzero(np.r_[True, cs[1:] != cs[:-1]])
             zlo[cs[first]], zhi[cs[first]] = np.minimum.reduceat(zs, first), np.maximum.reduceat(zs, first)
         span = np.where(zhi >= 0, zhi - np.minimum(zlo, zhi) + 1, 0)
-        self.base = np.cumsum(span) - span
-        self.zlo, self.span = np.where(zhi >= 0, zlo, 0), span
-        self.table = np.full(int(span.sum()), -1, dtype=np.int64)
-        self.table[self.base[col] + d[:, 2] - self.zlo[col]] = np.arange(len(g))
+        total = int(span.sum())
+        z_top = int(d[:, 2].max()) + 2 if len(g) else 0
+        small = max(total + 1 + z_top, len(g) + 1, self.nx * self.ny + self.ny) < (1 << 31) - 1
+        self.itype = np.int32 if small else np.int64
+        self.base = (np.cumsum(span) - span).astype(self.itype)
+        self.zlo, self.span = np.where(zhi >= 0, zlo, 0).astype(self.itype), span.astype(self.itype)
+        self.table = np.full(total + 1, -1, dtype=self.itype)     # the last entry: "absent"
+        self.table[self.base[col] + d[:, 2] - self.zlo[col]] = np.arange(len(g), dtype=self.itype)
+        if self.sorted:
+            self._col, self._z = col.astype(self.itype), d[:, 2].astype(self.itype)
 
     def find(self, q: np.ndarray) -> np.ndarray:
         """Index of each query point (n, 3) among the indexed points, -1 where absent."""
         d = np.asarray(q, dtype=np.int64) - self.lo
         ok = (d[:, 0] >= 0) & (d[:, 0] < self.nx) & (d[:, 1] >= 0) & (d[:, 1] < self.ny)
-        return self._at(np.where(ok, d[:, 0] * self.ny + d[:, 1], 0), d[:, 2], ok)
+        return self._at(np.where(ok, d[:, 0] * self.ny + d[:, 1], 0), d[:, 2], ok).astype(np.int64)
 
     def _at(self, c: np.ndarray, dz: np.ndarray, ok: np.ndarray) -> np.ndarray:
         z = dz - self.zlo[c]
         ok = ok & (z >= 0) & (z < self.span[c])
         return np.where(ok, self.table[np.where(ok, self.base[c] + z, 0)], -1)
 
+    def _in_column(self, c: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """`_at` for columns c that exist in the column grid (no bounds test on c), int32 / int64 as the table."""
+        rel = z - self.zlo[c]
+        ok = rel.view(np.uint32 if self.itype is np.int32 else np.uint64) < self.span[c]   # 0 <= rel < span
+        pos = self.base[c] + rel
+        pos[~ok] = len(self.table) - 1
+        return self.table[pos]
+
     def neighbours(self, g: np.ndarray, signs: tuple[int, ...] = (1, -1), first: int | None = None) -> np.ndarray:
         """(n, 3, len(signs)) indices of the neighbours g + s e_axis of grid points g (n, 3) for each s in `signs`
         (default: the +1 and the -1 neighbour), -1 where absent.
 
         first: when g is the indexed points' own slice [first, first + n) of sorted points, the z neighbours
-        (+-1 along z) are the next and previous points where those are one step away: no table lookup."""
+        (+-1 along z) are the next and previous points where those are one step away: no table lookup; the
+        result is then int32 where the indices fit."""
+        if first is not None and self.sorted and len(g) and all(abs(s) == 1 for s in signs):
+            return self._own_neighbours(first, first + len(g), signs).transpose(1, 2, 0)
         d = np.asarray(g, dtype=np.int64) - self.lo
-        own = first is not None and self.sorted
         col = d[:, 0] * self.ny + d[:, 1]
         out = np.empty((len(d), 3, len(signs)), dtype=np.int64)
         yes = np.ones(len(d), dtype=bool)
@@ -134,19 +151,32 @@ class GridIndex:
             y_ok = (d[:, 1] + s >= 0) & (d[:, 1] + s < self.ny)
             out[:, 0, k] = self._at(np.where(x_ok, col + s * self.ny, 0), d[:, 2], x_ok)
             out[:, 1, k] = self._at(np.where(y_ok, col + s, 0), d[:, 2], y_ok)
-            if own and abs(s) == 1:
-                out[:, 2, k] = self._in_order(col, d[:, 2] + s, first + s)
-            else:
-                out[:, 2, k] = self._at(col, d[:, 2] + s, yes)
+            out[:, 2, k] = self._at(col, d[:, 2] + s, yes)
+        return out
+
+    def _own_neighbours(self, lo: int, hi: int, signs: tuple[int, ...]) -> np.ndarray:
+        """(len(signs), n, 3) neighbours of the indexed points lo..hi-1 (sorted), -1 where absent: x and y by the
+        padded column grid, z by their order."""
+        col, z = self._col[lo:hi], self._z[lo:hi]
+        out = np.empty((len(signs), hi - lo, 3), dtype=self.itype)
+        for k, s in enumerate(signs):
+            out[k, :, 0] = self._in_column(col + self.itype(s * self.ny), z)
+            out[k, :, 1] = self._in_column(col + self.itype(s), z)
+            out[k, :, 2] = self._in_order(col, z + self.itype(s), lo + s)
         return out
 
     def _in_order(self, col: np.ndarray, z: np.ndarray, start: int) -> np.ndarray:
         """Index start + i where the indexed point there is (col[i], z[i]), else -1: the next / previous point in
         (x, y, z) order is the one just above / below, when there is one."""
-        j = np.arange(start, start + len(col))
-        jc = np.clip(j, 0, len(self._col) - 1)
-        hit = (j >= 0) & (j < len(self._col)) & (self._col[jc] == col) & (self._z[jc] == z)
-        return np.where(hit, j, -1)
+        n = len(self._col)
+        j = np.arange(start, start + len(col), dtype=self.itype)
+        a, b = max(start, 0), min(start + len(col), n)              # the part of j inside [0, n)
+        hit = np.zeros(len(col), dtype=bool)
+        if b > a:
+            hit[a - start:b - start] = (self._col[a:b] == col[a - start:b - start]) & \
+                (self._z[a:b] == z[a - start:b - start])
+        j[~hit] = -1
+        return j
 
 
 def upwind_gradients(vals: np.ndarray, idx: np.ndarray, nb: np.ndarray, h: float, fill: float) -> np.ndarray:
@@ -175,16 +205,21 @@ def crossing_edges(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_s
     lim = np.float32(max_sum * h)
     wide = np.float32(max(max_sum, WIDE_SUM) * h)
     n = len(g)
-    plus = np.empty((n, 3), dtype=np.int64)              # index of g + e_a, -1 where absent
+    plus = np.empty((n, 3), dtype=index.itype)           # index of g + e_a, -1 where absent
     unit = np.empty((n, 3), dtype=np.float32)            # gradient directions
     good = np.empty(n, dtype=bool)                       # ... where there is a gradient
+    padded = np.r_[vals, np.float32(fill)]               # index -1 (absent) reads the fill value
 
     def gradients(lo: int, hi: int) -> None:
-        nb = index.neighbours(g[lo:hi], first=lo)
-        plus[lo:hi] = nb[:, :, 0]
+        if index.sorted and hi > lo:                        # (2, n, 3): the +1 and -1 neighbours
+            nb = index._own_neighbours(lo, hi, (1, -1))
+        else:
+            nb = index.neighbours(g[lo:hi]).transpose(2, 0, 1)
+        plus[lo:hi] = nb[0]
         if minus is not None:
-            minus[lo:hi] = nb[:, :, 1]
-        grad = upwind_gradients(vals, np.arange(lo, hi), nb, h, fill)
+            minus[lo:hi] = nb[1]
+        vp, vm = padded[nb[0]], padded[nb[1]]              # `upwind_gradients`, the same float32 operations
+        grad = np.sign(vp - vm) * (np.maximum(vp, vm) - vals[lo:hi, None]) / np.float32(h)
         norm = np.sqrt(np.einsum("ij,ij->i", grad, grad))
         unit[lo:hi] = grad / np.maximum(norm, 1e-12)[:, None]
         good[lo:hi] = norm > 0
@@ -192,11 +227,11 @@ def crossing_edges(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_s
     def crossings(lo: int, hi: int) -> list[tuple[np.ndarray, np.ndarray]]:
         out = []
         for a in range(3):
-            i = lo + np.flatnonzero(plus[lo:hi, a] >= 0)
+            j = plus[lo:hi, a]
+            # the distance test first: it is the cheap one
+            i = lo + np.flatnonzero((j >= 0) & (vals[lo:hi] + padded[j] <= wide))
             j = plus[i, a]
             di, dj = vals[i], vals[j]
-            ok = di + dj <= wide                            # the distance test first: it is the cheap one
-            i, j, di, dj = i[ok], j[ok], di[ok], dj[ok]
             cos = np.einsum("ij,ij->i", unit[i], unit[j])
             cross = ((cos < max_dot) & (di + dj <= lim) | (cos < WIDE_DOT)) & good[i] & good[j]
             out.append((i[cross], di[cross] / np.maximum(di[cross] + dj[cross], 1e-12)))
@@ -217,7 +252,7 @@ def dual_surface(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_sum
     g = np.asarray(g, dtype=np.int64).reshape(-1, 3)
     vals = np.asarray(vals, dtype=np.float32).reshape(-1)
     index = GridIndex(g)
-    minus = np.empty((len(g), 3), dtype=np.int32 if len(g) < np.iinfo(np.int32).max else np.int64)
+    minus = np.empty((len(g), 3), dtype=index.itype)
     start, axis, t = crossing_edges(g, vals, h, fill, max_sum, max_dot, index, workers, minus)
     if len(start) == 0:
         return DualSurface(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
@@ -256,8 +291,10 @@ def dual_surface(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_sum
     # the cubes in use, numbered in the order of their ids (np.unique's order, by a mask instead of a sort)
     mask = np.zeros(n_ids, dtype=bool)
     mask[cid] = True
-    inv = (np.cumsum(mask) - 1)[cid]
     used = np.flatnonzero(mask)
+    rank = np.empty(n_ids, dtype=np.int64)              # the rank of each used id (a cumsum of the mask, cheaper)
+    rank[used] = np.arange(len(used))
+    inv = rank[cid]
     counts = np.bincount(inv, minlength=len(used)).astype(np.float64)
     verts = np.stack([np.bincount(inv, weights=np.repeat(point[:, a], 4), minlength=len(used))
                       for a in range(3)], 1) / counts[:, None]
@@ -267,7 +304,12 @@ def dual_surface(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_sum
         q = quads[lo:hi]
         d02 = ((verts[q[:, 0]] - verts[q[:, 2]]) ** 2).sum(1)
         d13 = ((verts[q[:, 1]] - verts[q[:, 3]]) ** 2).sum(1)
-        return np.take_along_axis(q, _SPLITS[(d02 > d13).astype(np.int64)], axis=1)
+        other = d02 > d13                                 # the rows of _SPLITS, column by column
+        out = np.empty((hi - lo, 6), dtype=q.dtype)
+        out[:, 0], out[:, 1], out[:, 4], out[:, 5] = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+        out[:, 2] = np.where(other, q[:, 3], q[:, 2])
+        out[:, 3] = np.where(other, q[:, 1], q[:, 0])
+        return out
 
     tri = np.concatenate(map_slices(split, len(quads), workers)).reshape(-1, 3)
     return DualSurface(verts, tri)

@@ -152,3 +152,69 @@ def test_moves_are_bounded_and_empty_meshes_pass():
     assert out.shape == (0, 3) and rep.ground == 0
     with pytest.raises(ValueError, match="free_weight"):
         fair_ground(v, f, None, free_weight=0.0)
+
+
+def _membrane(n: int, seed: int):
+    """A fairing-like system (diag(deg + w) - L of a random grid mesh's subgraph, float32) and a right side."""
+    from scipy.sparse import diags
+
+    rng = np.random.default_rng(seed)
+    v, f = grid_mesh(n, lambda x, y: 0 * x)
+    adj = adjacency(f, len(v))
+    w = rng.uniform(3e-4, 10.0, len(v)) * (rng.random(len(v)) < 0.3) + 3e-4
+    diag = (np.diff(adj.indptr) + w).astype(np.float32)
+    return (diags(diag) - adj).tocsr(), rng.normal(size=len(v)).astype(np.float32), diag
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_own_cg_is_scipys_cg_bit_for_bit(seed):
+    """The fairing's CG replays scipy's Jacobi-preconditioned `cg` step for step: the same solution to the last
+    bit and the same iteration count, converged or stopped by max_iter."""
+    from scipy.sparse import diags
+    from scipy.sparse.linalg import cg
+
+    from hgca_core.geometry.fairing import _cg
+
+    a, b, diag = _membrane(30, seed)
+    for tol, max_iter in ((1e-3, 500), (1e-6, 7)):
+        steps = []
+        want, _ = cg(a, b, rtol=tol, maxiter=max_iter, M=diags(1.0 / diag), callback=lambda x: steps.append(1))
+        got, iterations = _cg(a, b, 1.0 / diag, tol, max_iter)
+        assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+        assert iterations == len(steps) > 0
+    zero, iterations = _cg(a, np.zeros_like(b), 1.0 / diag, 1e-3, 500)
+    assert iterations == 0 and not zero.any()
+
+
+def test_subgraph_is_scipys_fancy_index():
+    """`_subgraph(adj, idx)` is `adj[idx][:, idx]`: the same rows, columns (sorted) and values."""
+    from hgca_core.geometry.fairing import _subgraph
+
+    rng = np.random.default_rng(4)
+    v, f = grid_mesh(25, lambda x, y: 0 * x)
+    adj = adjacency(f, len(v))
+    for keep in (0.5, 0.95, 0.0, 1.0):
+        idx = np.flatnonzero(rng.random(len(v)) < keep)
+        want, got = adj[idx][:, idx], _subgraph(adj, idx)
+        assert got.shape == want.shape and (got != want).nnz == 0
+        want.sort_indices()
+        np.testing.assert_array_equal(got.indptr, want.indptr)
+        np.testing.assert_array_equal(got.indices, want.indices)
+        assert got.data.dtype == want.data.dtype
+
+
+def test_anchors_from_the_point_index_equal_given_distances():
+    """fair_ground(points=index) looks up only the ground-like vertices: the same heights, bit for bit, as
+    passing every vertex's nearest distance and height."""
+    from hgca_core.geometry.fairing import ANCHOR_SCALE
+    from hgca_core.geometry.nearest import PointIndex
+
+    rng = np.random.default_rng(6)
+    v, f = grid_mesh(60, lambda x, y: 0.02 * np.sin(3 * x) + np.where(y > 1.5, 0.3, 0.0))   # ground and a step
+    pts = np.c_[rng.uniform(0, 3, (4000, 2)), rng.normal(0, 0.005, 4000)]
+    index = PointIndex(pts)
+    near, which = index.nearest(v, upper=3 * ANCHOR_SCALE)
+    heights = np.where(which >= 0, index.points[which, 2], np.nan)
+    want = fair_ground(v, f, near, point_heights=heights, min_region=1.0)
+    got = fair_ground(v, f, points=index, min_region=1.0)
+    assert got[0].tobytes() == want[0].tobytes() and got[1] == want[1] and got[1].ground > 0
