@@ -9,6 +9,7 @@ keeps the smaller of its copies'). All positions are float64 world metres until 
 """
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,17 +56,34 @@ def cut(piece: Piece, index: int, regions: list[Region]) -> Piece:
                  (piece.seam | used_dropped)[used_kept])
 
 
+def _remap(index: np.ndarray, faces: np.ndarray) -> None:
+    """faces[:] = index[faces], a block at a time: a 1 km drive's faces are ~1.4 GB, and a whole-array gather
+    would hold a second copy."""
+    for start in range(0, len(faces), 1 << 20):
+        block = faces[start:start + (1 << 20)]
+        block[:] = index[block]
+
+
 def weld(pieces: list[Piece]) -> Piece:
     """Concatenate pieces, merging seam vertices at the same position (to WELD metres) and dropping faces that
-    the merge made degenerate."""
-    pieces = [p for p in pieces if len(p.faces)]
-    if not pieces:
+    the merge made degenerate. Empties `pieces` once they are concatenated, so that their memory is freed before
+    the weld's own arrays grow (a drive's merge is its peak)."""
+    kept = [p for p in pieces if len(p.faces)]
+    pieces.clear()
+    if not kept:
         return Piece.empty()
-    offsets = np.cumsum([0] + [len(p.vertices) for p in pieces])
-    v = np.concatenate([p.vertices for p in pieces])
-    f = np.concatenate([p.faces + o for p, o in zip(pieces, offsets[:-1])])
-    d = np.concatenate([p.observed_distance for p in pieces])
-    seam = np.concatenate([p.seam for p in pieces])
+    nv, nf = sum(len(p.vertices) for p in kept), sum(len(p.faces) for p in kept)
+    v, f = np.empty((nv, 3), kept[0].vertices.dtype), np.empty((nf, 3), np.int64)
+    d, seam = np.empty(nv, kept[0].observed_distance.dtype), np.empty(nv, bool)
+    at_v = at_f = 0
+    while kept:                           # copied in, then let go of, one piece at a time
+        p = kept.pop(0)
+        v[at_v:at_v + len(p.vertices)] = p.vertices
+        d[at_v:at_v + len(p.vertices)] = p.observed_distance
+        seam[at_v:at_v + len(p.vertices)] = p.seam
+        np.add(p.faces, at_v, out=f[at_f:at_f + len(p.faces)], casting="unsafe")
+        at_v, at_f = at_v + len(p.vertices), at_f + len(p.faces)
+        del p
     target = np.arange(len(v))
     idx = np.flatnonzero(seam)
     if len(idx):
@@ -75,16 +93,20 @@ def weld(pieces: list[Piece]) -> Piece:
         rep = idx[first][inverse]                     # each seam vertex -> the first vertex at its position
         target[idx] = rep
         np.minimum.at(d, rep, d[idx])
-    f = target[f]
+    _remap(target, f)
+    del target
     f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
     used = np.zeros(len(v), bool)
     used[f.ravel()] = True
     renumber = np.cumsum(used) - 1
-    return Piece(v[used], renumber[f], d[used], seam[used])
+    _remap(renumber, f)
+    return Piece(v[used], f, d[used], seam[used])
 
 
-def merge_sample(tile_samples: list[dict | None], regions: list[Region]) -> Piece:
-    """The drive mesh of one sample: every tile's sample (None for a tile without one) cut and welded."""
+def merge_sample(tile_samples: Iterable[dict | None], regions: list[Region]) -> Piece:
+    """The drive mesh of one sample: every tile's sample (None for a tile without one) cut and welded. Each
+    sample is cut as it arrives, so a generator of samples (loaded one at a time from the store) never has more
+    than one uncut tile in memory."""
     pieces = [cut(tile_piece(s, regions[i]), i, regions) for i, s in enumerate(tile_samples) if s is not None]
     return weld(pieces)
 

@@ -269,7 +269,7 @@ def _merge(store: DriveStore, jobs: list[TileJob], regions: list[Region], sample
     outputs = []
     for k in range(samples):
         say("merge", k, samples, f"sample {k + 1}/{samples}", k)
-        tile_samples = [store.load(j.key, only=k)["samples"][k] for j in jobs]
+        tile_samples = (store.load(j.key, only=k)["samples"][k] for j in jobs)     # loaded one at a time
         path = store.drive_mesh(k, ext)
         write_piece(path, merge_sample(tile_samples, regions))
         outputs.append(str(path))
