@@ -87,7 +87,8 @@ QUOTED = [
     ("docs/performance.md", "benchmarks/results/meshing_time.md", ["11.78", "12.25", "1352"]),
     ("docs/performance.md", "benchmarks/results/train_scaling.md", ["0.878", "1.138", "0.840"]),
     ("docs/performance.md", "benchmarks/results/drive_232m.md", ["445.4", "266.8"]),
-    ("docs/performance.md", "benchmarks/results/drive.md", ["2534", "0.97", "0.6404", "0.6552", "0.59"]),
+    ("docs/performance.md", "benchmarks/results/drive.md", ["441.6", "317.8", "0.6552", "0.59"]),
+    ("docs/performance.md", "benchmarks/results/drive_full.md", ["2403.3", "2.13", "2.26"]),
 ]
 
 
