@@ -169,8 +169,9 @@ def page(result: dict) -> str:
     lines = ["# Peak memory of one completion, new code against old", "",
              "`python benchmarks/region_memory.py run --old TREE`: fresh processes, each one full completion "
              "(`hgca_core.bench.run_one`: the benchmark's synthetic drive, full stage, seed 0, fp32, the tree's "
-             "shipped weights, `tune_allocator` as in the CLI), new and old in turn; peak RSS, CPU (user + sys) and "
-             "wall are the operating system's accounting of each process (`wait4`). Median [min - max] of the runs; "
+             "shipped weights, `tune_allocator` as in the CLI), new and old in turn; CPU (user + sys) and wall are "
+             "the operating system's accounting of each process (`wait4`), peak RSS its own high-water mark (VmHWM "
+             "of /proc/self/status as it exits). Median [min - max] of the runs; "
              f"new / old is taken pair by pair. New: {lab['new']}; old: {lab['old']}.", "",
              "| region | measure | new | old | new / old |", "|---|---|---:|---:|---:|"]
     for region, e in result["regions"].items():
