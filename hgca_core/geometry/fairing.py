@@ -240,7 +240,7 @@ def fair_ground(vertices: np.ndarray, faces: np.ndarray, distances: np.ndarray |
             offset = local_offsets(v[g], offset, anchor, offset_tile)
         r += np.where(np.isfinite(offset), anchor * offset, 0.0)
     diag = (deg + w).astype(np.float32)
-    system = (diags(diag) - _subgraph(sub, np.flatnonzero(big))).tocsr()                   # float32: half the memory traffic
+    system = (diags(diag) - _subgraph(sub, np.flatnonzero(big))).tocsr()   # float32: half the memory traffic
     dz, iterations = _cg(system, r.astype(np.float32), 1.0 / diag, tol, max_iter)
     dz = np.clip(dz, -max_move, max_move)
     out[g, 2] += dz

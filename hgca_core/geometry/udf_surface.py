@@ -179,12 +179,12 @@ class GridIndex:
         return j
 
 
-def upwind_gradients(vals: np.ndarray, idx: np.ndarray, nb: np.ndarray, h: float, fill: float) -> np.ndarray:
-    """(n, 3) gradient estimates of the distance at grid points `idx` with neighbours `nb` (n, 3, 2) from
-    `GridIndex.neighbours` (module docstring, step 1); `fill` is the value of grid points without a sample."""
-    v = np.where(nb >= 0, vals[np.maximum(nb, 0)], np.float32(fill))
-    vp, vm = v[:, :, 0], v[:, :, 1]
-    return np.sign(vp - vm) * (np.maximum(vp, vm) - vals[idx][:, None]) / np.float32(h)
+def upwind_gradients(padded: np.ndarray, at: np.ndarray, nb: np.ndarray, h: float) -> np.ndarray:
+    """(n, 3) gradient estimates of the distance at n grid points whose own values are `at`, from the +1 and -1
+    neighbours `nb` (2, n, 3) (`GridIndex.neighbours` transposed; module docstring, step 1). `padded`: the
+    distances with the fill value appended, so that an absent neighbour (-1) reads the fill."""
+    vp, vm = padded[nb[0]], padded[nb[1]]
+    return np.sign(vp - vm) * (np.maximum(vp, vm) - at[:, None]) / np.float32(h)
 
 
 def crossing_edges(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_sum: float = MAX_SUM,
@@ -211,15 +211,11 @@ def crossing_edges(g: np.ndarray, vals: np.ndarray, h: float, fill: float, max_s
     padded = np.r_[vals, np.float32(fill)]               # index -1 (absent) reads the fill value
 
     def gradients(lo: int, hi: int) -> None:
-        if index.sorted and hi > lo:                        # (2, n, 3): the +1 and -1 neighbours
-            nb = index._own_neighbours(lo, hi, (1, -1))
-        else:
-            nb = index.neighbours(g[lo:hi]).transpose(2, 0, 1)
+        nb = index.neighbours(g[lo:hi], first=lo).transpose(2, 0, 1)      # (2, n, 3): the +1 and -1 neighbours
         plus[lo:hi] = nb[0]
         if minus is not None:
             minus[lo:hi] = nb[1]
-        vp, vm = padded[nb[0]], padded[nb[1]]              # `upwind_gradients`, the same float32 operations
-        grad = np.sign(vp - vm) * (np.maximum(vp, vm) - vals[lo:hi, None]) / np.float32(h)
+        grad = upwind_gradients(padded, vals[lo:hi], nb, h)
         norm = np.sqrt(np.einsum("ij,ij->i", grad, grad))
         unit[lo:hi] = grad / np.maximum(norm, 1e-12)[:, None]
         good[lo:hi] = norm > 0
