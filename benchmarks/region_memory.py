@@ -62,7 +62,8 @@ row = run_one(job["width"], job["depth"], "full", "cpu", None, 0)
 print(json.dumps({**row, "mesh_sha256": digest.get("sha256"), "package": hgca_core.__file__}))
 """
 
-# Runs CHILD (argv[1]) as __main__ and, however it ends, writes the process's own peak RSS to stderr.
+# Runs CHILD (argv[1]) as __main__ and, however it ends, writes the process's own peak RSS to stderr. It reads
+# VmHWM itself rather than calling hgca_core.hardware.peak_rss_bytes: the old tree compared against predates it.
 PEAK = """
 import sys
 source = sys.argv.pop(1)

@@ -445,24 +445,30 @@ def test_grid_keys_unique_matches_torch():
 
 def test_adjacency_matches_scipy_coo_build():
     """The edge matrix built from sorted edge keys is scipy's own COO -> CSR result (summed duplicates, sorted
-    indices), entry for entry: shared edges, repeated faces, isolated and unused vertices."""
+    indices, entries set to 1), entry for entry: shared edges, repeated faces, isolated and unused vertices, and
+    degenerate faces (i, i, j), which give an entry (i, i)."""
     from scipy.sparse import csr_matrix
 
     from hgca_core.geometry.mesh_clean import adjacency
 
+    def scipys(faces: np.ndarray, nv: int) -> csr_matrix:
+        a, b = faces.reshape(-1), faces[:, [1, 2, 0]].reshape(-1)
+        want = csr_matrix((np.ones(2 * len(a), dtype=np.float32), (np.r_[a, b], np.r_[b, a])), shape=(nv, nv))
+        want.sum_duplicates()
+        want.data[:] = 1.0
+        return want
+
     rng = np.random.default_rng(9)
-    nv = 400
-    f = rng.integers(0, nv - 20, size=(1500, 3))
-    f = np.concatenate([f, f[:50]])                                  # repeated faces: their edges count once
-    a, b = f.reshape(-1), f[:, [1, 2, 0]].reshape(-1)
-    want = csr_matrix((np.ones(2 * len(a), dtype=np.float32), (np.r_[a, b], np.r_[b, a])), shape=(nv, nv))
-    want.sum_duplicates()
-    want.data[:] = 1.0
-    got = adjacency(f, nv)
-    np.testing.assert_array_equal(got.indptr, want.indptr)
-    np.testing.assert_array_equal(got.indices, want.indices)
-    np.testing.assert_array_equal(got.data, want.data)
-    assert got.has_sorted_indices and got.shape == (nv, nv)
+    f = rng.integers(0, 400 - 20, size=(1500, 3))
+    repeated = np.concatenate([f, f[:50]])                          # repeated faces: their edges count once
+    f = np.random.default_rng(12).integers(0, 300, size=(900, 3))
+    f[:20, 1] = f[:20, 0]                                           # faces (i, i, j): an entry (i, i)
+    for faces, nv in ((repeated, 400), (f, 300), (f[20:], 300)):
+        want, got = scipys(faces, nv), adjacency(faces, nv)
+        np.testing.assert_array_equal(got.indptr, want.indptr)
+        np.testing.assert_array_equal(got.indices, want.indices)
+        np.testing.assert_array_equal(got.data, want.data)
+        assert got.data.dtype == np.float32 and got.has_sorted_indices and got.shape == (nv, nv)
     assert adjacency(np.zeros((0, 3), dtype=np.int64), 3).nnz == 0
 
 

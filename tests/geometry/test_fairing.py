@@ -218,24 +218,3 @@ def test_anchors_from_the_point_index_equal_given_distances():
     want = fair_ground(v, f, near, point_heights=heights, min_region=1.0)
     got = fair_ground(v, f, points=index, min_region=1.0)
     assert got[0].tobytes() == want[0].tobytes() and got[1] == want[1] and got[1].ground > 0
-
-
-def test_adjacency_is_scipys_canonical_edge_matrix():
-    """The adjacency (upper triangle from sorted keys + its transpose) is the matrix scipy's COO -> CSR makes of
-    all directed edges, entries set to 1: the same indptr, indices and values, degenerate faces included."""
-    from scipy.sparse import coo_matrix
-
-    rng = np.random.default_rng(12)
-    nv = 300
-    f = rng.integers(0, nv, size=(900, 3))
-    f[:20, 1] = f[:20, 0]                                  # faces (i, i, j): an entry (i, i)
-    for faces in (f, f[20:]):
-        a, b = faces.reshape(-1), faces[:, [1, 2, 0]].reshape(-1)
-        want = coo_matrix((np.ones(2 * len(a), dtype=np.float32), (np.r_[a, b], np.r_[b, a])), shape=(nv, nv)).tocsr()
-        want.sum_duplicates()
-        want.data[:] = 1
-        got = adjacency(faces, nv)
-        np.testing.assert_array_equal(got.indptr, want.indptr)
-        np.testing.assert_array_equal(got.indices, want.indices)
-        np.testing.assert_array_equal(got.data, want.data)
-        assert got.data.dtype == np.float32 and got.has_sorted_indices
