@@ -74,7 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
                                                   "38.4 x 38.4 x 8 m around the sensor, 1 m below the ground)")
     p.add_argument("--samples", type=int, default=1)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--stage", choices=("coarse", "full"), default="full")
+    p.add_argument("--stage", choices=("preview", "coarse", "full"), default="full")
+    p.add_argument("--quality", choices=("fast", "best"), default="best",
+                   help="fast: the few-step students; best: the paper's chains (as `hgca complete --quality`)")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     p.add_argument("--t1", type=int, default=0, help="coarse steps T1 (0: from the weights)")
     p.add_argument("--t2", type=int, default=0, help="fine steps T2 (0: from the weights)")
@@ -103,10 +105,17 @@ def _log(message: str) -> None:
     print(f"hgca batch: {message}", flush=True)
 
 
+def core_python(args: argparse.Namespace) -> str:
+    """--python, else the add-on's preference (what *Install Core* set), else the core it installed, else one
+    found on this machine ("" when none)."""
+    return args.python or preferences.core_python()
+
+
 def run(args: argparse.Namespace) -> int:
-    python = args.python or preferences.detect_python()
+    python = core_python(args)
     if not python:
-        _log(f"error: no interpreter with hgca_core found: pass --python or set {preferences.ENV_VAR}")
+        _log(f"error: no interpreter with hgca_core found: run Install Core in the add-on's preferences, pass "
+             f"--python or set {preferences.ENV_VAR}")
         return 2
     bpy.ops.wm.read_homefile(use_empty=True)
     scene = bpy.context.scene
@@ -124,19 +133,17 @@ def run(args: argparse.Namespace) -> int:
          + (f"; {operators_import.dropped_text(dropped)}" if dropped else ""))
     if args.drive:
         return _drive(args, python, scene, t0)
-    points = sources.world_points([obj])  # Blender coordinates: world minus the scene's georeference origin
     try:
-        box = (georef.region_to_scene(scene, region.parse_region(args.region)) if args.region
-               else region.default_region(python, points, sources.world_origins([obj])))
+        # a --region goes to the core as typed (world), as `hgca complete --region` takes it
+        world_box = (region.parse_region(args.region) if args.region
+                     else region.default_world_region(python, scene, [obj]))
     except (region.RegionError, core.CoreError) as exc:
         _log(f"error: {exc}")
         return 2
-    region.create_region_box(scene.collection, box)
-    # a --region goes to the core as typed (world), as `hgca complete --region` takes it
-    world_box = region.parse_region(args.region) if args.region else georef.region_to_world(scene, box)
+    region.create_region_box(scene.collection, georef.region_to_scene(scene, world_box), world=world_box)
     params = jobs.CompletionParams(python=python, **job_inputs.source_inputs(scene, [obj]),
                                    region=world_box, samples=args.samples, seed=args.seed,
-                                   stage=args.stage, device=args.device, t1=args.t1, t2=args.t2,
+                                   stage=args.stage, quality=args.quality, device=args.device, t1=args.t1, t2=args.t2,
                                    max_faces=0 if args.simplify == "modifier" else args.max_faces,
                                    decimate_to=args.max_faces if args.simplify == "modifier" else 0,
                                    scene_name=scene.name,
@@ -207,7 +214,8 @@ def _drive(args: argparse.Namespace, python: str, scene: bpy.types.Scene, t0: fl
 
     params = drive_job.DriveParams(
         python=python, scans=list(args.scans), out_dir=args.drive, poses=args.poses, samples=args.samples,
-        seed=args.seed, stage=args.stage, device=args.device, t1=args.t1, max_faces=args.max_faces,
+        seed=args.seed, stage=args.stage, quality=args.quality, device=args.device, t1=args.t1, t2=args.t2,
+        max_faces=args.max_faces,
         workers=args.workers, tile_size=args.tile_size, overlap=args.overlap, scene_name=scene.name,
         extra_args=["--weights", args.weights] if args.weights else [])
     if _run_job(lambda: drive_job.start_drive_job(params), args.timeout, "drive", t0,

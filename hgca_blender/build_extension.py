@@ -4,13 +4,16 @@ The manifest lives at the repository's top level and the code in `hgca_blender/`
 root never needs an `__init__.py`. This module stages both into one folder (the layout Blender expects:
 `blender_manifest.toml` next to `__init__.py`) and hands that folder to Blender's own builder,
 `bl_pkg/cli/blender_ext.py build`, which validates the manifest exactly as Blender will when installing.
-It runs with any Python 3.11 that has the `bpy` wheel installed (or with `--blender-ext PATH`) and never
-imports bpy itself.
+Where Blender's builder is not at hand (a plain Python 3.11 with no `bpy` wheel: `make extension` on a fresh
+machine, the release workflow), the same zip is written here, files at its root as Blender's builder lays them
+out, after the manifest checks Blender applies on install (`check_manifest`); `--validate` then runs Blender's own
+`validate` on the zip when bpy is installed. It never imports bpy.
 """
 from __future__ import annotations
 
 import argparse
 import importlib.util
+import re
 import shutil
 import subprocess
 import sys
@@ -83,6 +86,58 @@ def stage(dest: Path, manifest: Path = MANIFEST, package_dir: Path = PACKAGE_DIR
     return dest
 
 
+MANIFEST_KEYS = ("schema_version", "id", "version", "name", "tagline", "maintainer", "type", "blender_version_min",
+                 "license")
+
+
+def check_manifest(manifest: dict) -> None:
+    """The checks Blender's installer makes of a manifest's fields (required keys, an identifier for `id`, a
+    semantic version, a tagline of at most 64 characters without final punctuation), as a BuildError naming the
+    field; Blender's `validate` stays the reference where bpy is installed."""
+    missing = [k for k in MANIFEST_KEYS if not manifest.get(k)]
+    if missing:
+        raise BuildError(f"manifest lacks {', '.join(missing)}")
+    if not str(manifest["id"]).isidentifier():
+        raise BuildError(f"manifest id must be an identifier, not {manifest['id']!r}")
+    for key in ("version", "blender_version_min", "schema_version"):
+        if not re.fullmatch(r"\d+\.\d+\.\d+", str(manifest[key])):
+            raise BuildError(f"manifest {key} must be MAJOR.MINOR.PATCH, not {manifest[key]!r}")
+    tagline = str(manifest["tagline"])
+    if len(tagline) > 64 or tagline[-1] in ".!?,;:":
+        raise BuildError(f"manifest tagline must be at most 64 characters without final punctuation: {tagline!r}")
+    if manifest["type"] not in ("add-on", "theme"):
+        raise BuildError(f"manifest type must be add-on or theme, not {manifest['type']!r}")
+    if not isinstance(manifest["license"], list) or not all(str(v).startswith("SPDX:") for v in manifest["license"]):
+        raise BuildError("manifest license must be a list of SPDX:... identifiers")
+
+
+def zip_folder(staged: Path, zip_path: Path) -> Path:
+    """`staged` as an extension zip: every file at the zip's root, in sorted order (the same bytes for the same
+    files, whatever the machine)."""
+    import zipfile
+
+    with zipfile.ZipFile(zip_path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for path in sorted(p for p in staged.rglob("*") if p.is_file()):
+            info = zipfile.ZipInfo(path.relative_to(staged).as_posix(), date_time=(2024, 1, 1, 0, 0, 0))
+            info.compress_type, info.external_attr = zipfile.ZIP_DEFLATED, 0o644 << 16
+            zf.writestr(info, path.read_bytes())
+    return zip_path
+
+
+def validate(zip_path: Path, blender_ext: Path | None = None, python: str = sys.executable) -> str:
+    """Blender's own `blender_ext.py validate` of a built zip (what the extensions platform runs); its report."""
+    tool = Path(blender_ext) if blender_ext else find_blender_ext()
+    cmd = [python, str(tool), "validate", str(zip_path)]
+    tags = _valid_tags_file(tool)
+    if tags is not None:
+        cmd.append(f"--valid-tags={tags}")
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    report = (proc.stdout + proc.stderr).strip()
+    if proc.returncode != 0 or "error" in report.lower():
+        raise BuildError(f"Blender's validate refused {zip_path.name} (exit {proc.returncode}): {report}")
+    return report
+
+
 def find_blender_ext() -> Path:
     """Locate Blender's extension builder shipped inside the bpy wheel, without importing bpy."""
     spec = importlib.util.find_spec("bpy")
@@ -107,18 +162,29 @@ def _valid_tags_file(blender_ext: Path) -> Path | None:
     return tags if tags.is_file() else None
 
 
-def build(out_dir: Path, blender_ext: Path | None = None, python: str = sys.executable) -> Path:
-    """Stage and build; returns the path of `<out_dir>/<id>-<version>.zip`."""
+def build(out_dir: Path, blender_ext: Path | None = None, python: str = sys.executable,
+          use_blender: bool | None = None) -> Path:
+    """Stage and build; returns the path of `<out_dir>/<id>-<version>.zip`. `use_blender`: True builds with
+    Blender's builder (an error without it), False writes the zip here, None uses Blender's when found."""
     out_dir = Path(out_dir).resolve()
     manifest = read_manifest()
+    check_manifest(manifest)
     zip_path = out_dir / f"{manifest['id']}-{manifest['version']}.zip"
-    tool = Path(blender_ext) if blender_ext else find_blender_ext()
+    tool = Path(blender_ext) if blender_ext else None
+    if tool is None and use_blender is not False:
+        try:
+            tool = find_blender_ext()
+        except BuildError:
+            if use_blender:
+                raise
     out_dir.mkdir(parents=True, exist_ok=True)
     if zip_path.exists():
         zip_path.unlink()
     with tempfile.TemporaryDirectory(prefix="hgca_ext_") as tmp:
         wheel = build_wheel(Path(tmp) / "wheel", python=python)
         staged = stage(Path(tmp) / manifest["id"], core_wheel=wheel)
+        if tool is None:
+            return zip_folder(staged, zip_path)
         cmd = [python, str(tool), "build", "--source-dir", str(staged), "--output-filepath", str(zip_path)]
         tags = _valid_tags_file(tool)
         if tags is not None:
@@ -133,10 +199,16 @@ def build(out_dir: Path, blender_ext: Path | None = None, python: str = sys.exec
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m hgca_blender.build_extension", description=__doc__.split("\n")[0])
     parser.add_argument("--out", default="build/extension", help="output folder (default build/extension)")
-    parser.add_argument("--blender-ext", default=None, help="path to bl_pkg/cli/blender_ext.py (default: from bpy)")
+    parser.add_argument("--blender-ext", default=None, help="path to bl_pkg/cli/blender_ext.py (default: from bpy, "
+                                                            "else the zip is written without Blender)")
+    parser.add_argument("--validate", action="store_true",
+                        help="then run Blender's own `validate` on the zip (needs bpy or --blender-ext)")
     args = parser.parse_args(argv)
     try:
-        zip_path = build(Path(args.out), Path(args.blender_ext) if args.blender_ext else None)
+        tool = Path(args.blender_ext) if args.blender_ext else None
+        zip_path = build(Path(args.out), tool)
+        if args.validate:
+            print(validate(zip_path, tool), file=sys.stderr)
     except BuildError as exc:
         print(f"build_extension: error: {exc}", file=sys.stderr)
         return 2

@@ -84,6 +84,21 @@ def error_message(stderr: str, returncode: int | None, python: str = "") -> str:
     return f"hgca_core exited with status {returncode}"
 
 
+def killed_message(signum: int) -> str:
+    """What to tell a user whose core was ended from outside by a signal (the system's out-of-memory killer sends
+    SIGKILL): which signal, and what to try; the core's own last line would only say what it was doing."""
+    import signal
+
+    try:
+        name = signal.Signals(signum).name
+    except ValueError:
+        name = f"signal {signum}"
+    if signum == getattr(signal, "SIGKILL", 9):
+        return (f"the hgca core was killed ({name}), most likely by the system for lack of memory: try a smaller "
+                "region, fewer samples or the coarse stage, or close other programs")
+    return f"the hgca core was stopped from outside ({name}) before it finished: start the job again"
+
+
 def run_core(python: str, args: list[str], timeout: float | None = None,
              cwd: str | Path | None = None) -> subprocess.CompletedProcess:
     """Run one core command to completion (`read`, `region`, `--version`); CoreError on failure.
@@ -329,6 +344,8 @@ class Job:
             else:
                 if returncode == 0:
                     message = "hgca_core finished without reporting its outputs"
+                elif returncode < 0 and not self._reported_error:
+                    message = killed_message(-returncode)
                 else:
                     message = self._reported_error or error_message(self.stderr_text(), returncode, self.cmd[0])
                 self._fail(message)

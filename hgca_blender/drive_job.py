@@ -47,8 +47,10 @@ class DriveParams:
     samples: int = 1
     seed: int = 0
     stage: str = "full"
+    quality: str = "best"        # `hgca drive --quality`: fast (the few-step students) or best
     device: str = "cpu"
     t1: int = 0                  # 0: from the weights
+    t2: int = 0                  # 0: from the weights
     max_faces: int = 0           # per tile; 0: no limit
     workers: int = 1
     tile_size: float = 38.4
@@ -61,10 +63,12 @@ class DriveParams:
 def drive_args(params: DriveParams) -> list[str]:
     """The `hgca drive` command line (docs/CONTRACTS.md, "Drive CLI"), meshes as .npz for the add-on."""
     args = ["drive", *params.scans, "--out", params.out_dir, "--samples", str(int(params.samples)),
-            "--seed", str(int(params.seed)), "--stage", params.stage, "--device", params.device,
+            "--seed", str(int(params.seed)), "--stage", params.stage, "--quality", params.quality,
+            "--device", params.device,
             "--workers", str(int(params.workers)), *_plan_args(params), "--mesh-format", "npz", "--progress", "jsonl"]
-    if int(params.t1):
-        args += ["--t1", str(int(params.t1))]
+    for flag, steps in (("--t1", params.t1), ("--t2", params.t2)):
+        if int(steps):
+            args += [flag, str(int(steps))]
     if int(params.max_faces):
         args += ["--max-faces", str(int(params.max_faces))]
     return args + list(params.extra_args)

@@ -18,6 +18,8 @@ import os
 import shutil
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 PROTOCOL = 1
@@ -28,9 +30,36 @@ EXTRAS = "real"  # pyarrow: Argoverse 2 logs
 EXPECTED_PACKAGES = 40
 
 
+# pip is silent while it unpacks (torch alone: about a minute): a heartbeat record every HEARTBEAT_S seconds keeps
+# the bar moving, along an expected INSTALL_S seconds (never past its end)
+HEARTBEAT_S = 2.0
+INSTALL_S = 120.0
+_PRINT = threading.Lock()
+
+
 def record(stage: str, step: int = 0, total: int = 1, message: str = "", **extra) -> None:
-    print(json.dumps({"protocol": PROTOCOL, "stage": stage, "step": step, "total": total, "message": message,
-                      "sample": 0, "samples": 1, **extra}), flush=True)
+    line = json.dumps({"protocol": PROTOCOL, "stage": stage, "step": step, "total": total, "message": message,
+                       "sample": 0, "samples": 1, **extra})
+    with _PRINT:
+        print(line, flush=True)
+
+
+def plain(text: str, count: int) -> str:
+    """What a line of pip's output means to a Blender user (the raw line stays in the log): retries become a word
+    about the network, package lines say how far the list is."""
+    low = text.lower()
+    if "retrying" in low and ("connection" in low or "retry(" in low or "timed out" in low):
+        return "the network is slow or interrupted: pip is retrying (details in the install log)"
+    if text.startswith(("Collecting ", "Processing ", "Requirement already")):
+        name = text.split()[1] if len(text.split()) > 1 else ""
+        return f"collecting packages ({count} of about {EXPECTED_PACKAGES}): {Path(name).name[:60]}"
+    if text.startswith("Downloading "):
+        parts = text.split()
+        size = " ".join(parts[2:])[:40] if len(parts) > 2 else ""
+        return f"downloading {Path(parts[1]).name[:60] if len(parts) > 1 else ''} {size}".strip()
+    if text.startswith("Installing collected packages"):
+        return "installing the packages (torch takes about a minute)"
+    return text[:200]
 
 
 def venv_python(env: Path) -> Path:
@@ -57,20 +86,40 @@ def run_logged(cmd: list[str], log, stage: str, counter: list[int] | None = None
                             text=True, errors="replace", bufsize=1)
     tail: list[str] = []
     assert proc.stdout is not None
-    for line in proc.stdout:
-        text = line.rstrip()
-        log.write(text + "\n")
-        log.flush()
-        if not text:
-            continue
-        tail = (tail + [text])[-20:]
-        if counter is not None and text.startswith("Installing collected packages"):
-            stage = "install"  # unpacking: no count, but the longest part (torch)
-        if stage == "pip" and counter is not None and text.startswith(("Collecting ", "Processing ",
-                                                                        "Requirement already")):
-            counter[0] += 1
-        step = min(counter[0], EXPECTED_PACKAGES) if counter is not None and stage == "pip" else 0
-        record(stage, step, EXPECTED_PACKAGES if stage == "pip" else 1, text[:200])
+    unpacking = threading.Event()
+    done = threading.Event()
+
+    def heartbeat() -> None:
+        unpacking.wait()
+        start = time.monotonic()
+        while not done.wait(HEARTBEAT_S):
+            elapsed = time.monotonic() - start
+            step = min(int(elapsed), int(INSTALL_S) - 1)
+            record("install", step, int(INSTALL_S), f"installing the packages: {elapsed:.0f} s "
+                                                    "(torch takes about a minute)")
+
+    beat = threading.Thread(target=heartbeat, daemon=True)
+    beat.start()
+    try:
+        for line in proc.stdout:
+            text = line.rstrip()
+            log.write(text + "\n")
+            log.flush()
+            if not text:
+                continue
+            tail = (tail + [text])[-20:]
+            if counter is not None and text.startswith("Installing collected packages"):
+                stage = "install"  # unpacking: no count, but the longest part (torch)
+                unpacking.set()
+            if stage == "pip" and counter is not None and text.startswith(("Collecting ", "Processing ",
+                                                                            "Requirement already")):
+                counter[0] += 1
+            step = min(counter[0], EXPECTED_PACKAGES) if counter is not None and stage == "pip" else 0
+            record(stage, step, EXPECTED_PACKAGES if stage == "pip" else 1,
+                   plain(text, counter[0] if counter is not None else 0))
+    finally:
+        done.set()
+        unpacking.set()
     if proc.wait() != 0:
         errors = [t for t in tail if "error" in t.lower()] or tail[-1:]
         raise RuntimeError(f"{Path(cmd[0]).name} {cmd[1] if len(cmd) > 1 else ''} failed (exit {proc.returncode}): "

@@ -37,23 +37,23 @@ CHECK_TIMEOUT_S = 300
 TORCH_CPU_INDEX = "https://download.pytorch.org/whl/cpu"  # torch without CUDA (the PyPI build on Linux has it)
 
 
-def user_folder() -> Path:
+def user_folder(create: bool = True) -> Path:
     """The extension's own user folder (kept across updates of the extension); a folder under Blender's user
     scripts when the add-on runs as a legacy add-on."""
     try:
-        return Path(bpy.utils.extension_path_user(PACKAGE, create=True))
+        return Path(bpy.utils.extension_path_user(PACKAGE, create=create))
     except (ValueError, TypeError):
-        return Path(bpy.utils.user_resource("SCRIPTS", path="hgca", create=True))
+        return Path(bpy.utils.user_resource("SCRIPTS", path="hgca", create=create))
 
 
-def env_dir() -> Path:
-    return user_folder() / ENV_NAME
+def env_dir(create: bool = True) -> Path:
+    return user_folder(create) / ENV_NAME
 
 
 def installed_python() -> str:
-    """The interpreter of a finished install, or "" when there is none."""
+    """The interpreter of a finished install, or "" when there is none (looking creates no folder)."""
     name = "Scripts/python.exe" if sys.platform == "win32" else "bin/python"
-    python = env_dir() / name
+    python = env_dir(create=False) / name
     return str(python) if python.exists() else ""
 
 
@@ -135,9 +135,7 @@ class InstallJob(core.Job):
         _redraw_preferences()
 
     def on_end(self) -> None:
-        messages.report_job(self)
-        if self.state == "done":
-            messages.report("INFO", f"hGCA core installed: {self.python}")
+        messages.report_job(self)   # done: "Installed: <python>" in the Info log
 
 
 INSTALL: dict[str, InstallJob] = {}

@@ -39,7 +39,8 @@ class CompletionParams:
     region: tuple[float, ...]  # cx, cy, cz, sx, sy, sz, yaw_deg (world)
     samples: int = 1
     seed: int = 0
-    stage: str = "full"           # as `hgca complete` and the panel
+    stage: str = "full"           # as `hgca complete` and the panel: preview, coarse or full
+    quality: str = "best"         # `hgca complete --quality`: fast (the few-step students) or best
     device: str = "cpu"
     t1: int = 0                  # 0: the core's default, from the weights
     t2: int = 0                  # 0: the core's default, from the weights
@@ -69,8 +70,10 @@ def validate_params(params: CompletionParams) -> np.ndarray:
         raise CoreError(f"region must be 7 finite numbers with positive size, got {region}")
     if not 1 <= int(params.samples) <= 8:
         raise CoreError(f"sample count must be 1..8, got {params.samples}")
-    if params.stage not in ("coarse", "full"):
-        raise CoreError(f"stage must be 'coarse' or 'full', got {params.stage!r}")
+    if params.stage not in ("preview", "coarse", "full"):
+        raise CoreError(f"stage must be 'preview', 'coarse' or 'full', got {params.stage!r}")
+    if params.quality not in ("fast", "best"):
+        raise CoreError(f"quality must be 'fast' or 'best', got {params.quality!r}")
     if params.device not in ("cpu", "cuda"):
         raise CoreError(f"device must be 'cpu' or 'cuda', got {params.device!r}")
     if int(params.t1) < 0 or int(params.t2) < 0:
@@ -105,8 +108,8 @@ def completion_args(params: CompletionParams, in_path: Path, out_path: Path) -> 
     steps = [f"--{name}={int(value)}" for name, value in (("t1", params.t1), ("t2", params.t2)) if int(value)]
     inputs = params.files.args() if params.files is not None else [str(in_path)]
     return ["complete", *inputs, f"--region={region}", "--samples", str(int(params.samples)),
-            "--seed", str(int(params.seed)), "--stage", params.stage, "--device", params.device,
-            *steps, "--progress", "jsonl",
+            "--seed", str(int(params.seed)), "--stage", params.stage, "--quality", params.quality,
+            "--device", params.device, *steps, "--progress", "jsonl",
             "--max-faces", str(int(params.max_faces)),      # 0: every triangle (the core's default is 1 M)
             *(["--semantics"] if params.semantics else []),
             *params.extra_args, "-o", str(out_path)]
@@ -121,7 +124,7 @@ class CompletionJob(Job):
         self.scene_name = params.scene_name
         self.run_name = params.run_name or f"hGCA {datetime.now():%Y-%m-%d %H:%M:%S}"
         self.collection_name = ""
-        self.stage_names = ("read", "coarse", "mesh", "write") if params.stage == "coarse" else STAGES
+        self.stage_names = STAGES if params.stage == "full" else ("read", "coarse", "mesh", "write")
         super().__init__(cmd, workdir)
 
     def on_progress(self, stage: str, event: dict[str, Any]) -> None:

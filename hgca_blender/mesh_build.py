@@ -110,9 +110,9 @@ def points_mesh(name: str, points: np.ndarray) -> bpy.types.Mesh:
     return mesh
 
 
-def add_point_colors(mesh: bpy.types.Mesh, rgba: np.ndarray) -> bpy.types.Attribute:
+def add_point_colors(mesh: bpy.types.Mesh, rgba: np.ndarray) -> None:
     """The scan's colours as its active colour attribute (what Solid view draws with colour = Attribute)."""
-    return add_color(mesh, colors.COLOR_ATTRIBUTE, rgba, active=True)
+    add_color(mesh, colors.COLOR_ATTRIBUTE, rgba, active=True)
 
 
 def attribute_material(mat: bpy.types.Material, attribute: str) -> tuple:
@@ -254,18 +254,20 @@ def observed_material(name: str = "hGCA observed/generated") -> bpy.types.Materi
     return mat
 
 
-def add_color(mesh: bpy.types.Mesh, name: str, rgba: np.ndarray, active: bool = False) -> bpy.types.Attribute:
-    """A point-domain colour attribute from (N, 4) RGBA; `active` makes it the one Solid view and renders use."""
+def add_color(mesh: bpy.types.Mesh, name: str, rgba: np.ndarray, active: bool = False) -> None:
+    """A point-domain colour attribute from (N, 4) RGBA; `active` makes it the one Solid view and renders use.
+    Returns nothing: a Python reference to an attribute dangles once another attribute is added (Blender
+    reallocates the layers), so callers name attributes, never keep them."""
     attr = mesh.color_attributes.new(name, "FLOAT_COLOR", "POINT")
     attr.data.foreach_set("color", np.ascontiguousarray(rgba, dtype=np.float32).ravel())
     if active:
-        set_active_color(mesh, attr)
-    return attr
+        set_active_color(mesh, name)
 
 
-def set_active_color(mesh: bpy.types.Mesh, attr: bpy.types.Attribute) -> None:
-    """`attr` becomes the colour attribute Solid view (colour = Attribute) and renders draw."""
-    mesh.color_attributes.active_color = attr
+def set_active_color(mesh: bpy.types.Mesh, name: str) -> None:
+    """The colour attribute `name` becomes the one Solid view (colour = Attribute) and renders draw; looked up by
+    name now, as a reference taken before other attributes were added no longer points at it."""
+    mesh.color_attributes.active_color = mesh.color_attributes[name]
     if hasattr(mesh.color_attributes, "render_color_index"):
         mesh.color_attributes.render_color_index = mesh.color_attributes.active_color_index
 
@@ -275,10 +277,9 @@ def color_results_by(objects: list, name: str) -> int:
     (the active colour attribute) and in renders (their material's Base Color); returns how many have it."""
     changed, materials = 0, set()
     for obj in objects:
-        attr = obj.data.color_attributes.get(name)
-        if attr is None:
+        if obj.data.color_attributes.get(name) is None:
             continue
-        set_active_color(obj.data, attr)
+        set_active_color(obj.data, name)
         materials.update(m for m in obj.data.materials if m is not None and m.get(ROLE_KEY) == "result")
         changed += 1
     for mat in materials:
@@ -308,12 +309,12 @@ def result_object(name: str, arrays: ResultArrays, material: bpy.types.Material,
     created.meshes.append(mesh)
     attr = mesh.attributes.new(OBSERVED_ATTRIBUTE, "FLOAT", "POINT")
     attr.data.foreach_set("value", arrays.observed_distance)
-    observed = add_color(mesh, OBSERVED_COLOR, confidence.observed_colors(arrays.observed_distance))
+    add_color(mesh, OBSERVED_COLOR, confidence.observed_colors(arrays.observed_distance))
     if agreement is not None:
         share = mesh.attributes.new(AGREEMENT_ATTRIBUTE, "FLOAT", "POINT")
         share.data.foreach_set("value", np.ascontiguousarray(agreement, dtype=np.float32))
         add_color(mesh, AGREEMENT_COLOR, confidence.agreement_colors(agreement, colors.RAMP))
-    set_active_color(mesh, observed)
+    set_active_color(mesh, OBSERVED_COLOR)   # after every attribute is added (see add_color)
     mesh.materials.append(material)
     obj = bpy.data.objects.new(name, mesh)
     created.objects.append(obj)

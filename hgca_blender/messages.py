@@ -52,6 +52,10 @@ def job_messages(job) -> list[tuple[str, str]]:
     out = [("WARNING", f"hgca: {w}") for w in getattr(job, "warnings", [])]
     if job.state == "error" and job.error:
         out.append(("ERROR", f"hGCA job failed: {job.error}"))
+    elif job.state == "done":
+        out.append(("INFO", f"hGCA: {job.success_status()}"))
+    elif job.state == "cancelled":
+        out.append(("INFO", "hGCA: job cancelled"))
     return out
 
 

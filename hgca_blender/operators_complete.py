@@ -37,15 +37,18 @@ def source_objects(context: bpy.types.Context) -> list[bpy.types.Object]:
 
 
 def panel_region(context: bpy.types.Context) -> region.Region:
+    """The panel's region in world coordinates (the CLI's --region): a box made by Add Region Box and left where
+    it stands gives the exact region `hgca region` gave, not its float32 transform."""
     props = _scene_props(context)
     if props.region_mode == "BOX":
         if props.region_object is None:
             raise region.RegionError("no region box: click 'Add Region Box' or pick an object")
-        return region.region_from_object(props.region_object)
-    return region.region_from_numbers(tuple(props.region_center), tuple(props.region_size), props.region_yaw)
+        return region.world_region_of(context.scene, props.region_object)
+    return georef.region_to_world(context.scene, region.region_from_numbers(
+        tuple(props.region_center), tuple(props.region_size), props.region_yaw))
 
 
-def gather_params(context: bpy.types.Context) -> jobs.CompletionParams:
+def gather_params(context: bpy.types.Context, preview: bool = False) -> jobs.CompletionParams:
     """Everything the panel says, turned into job parameters (raises with a user-facing message). Points and
     region go to the core in world coordinates: Blender's plus the scene's georeference origin (float64), the
     points with their sensor origins; an unchanged imported scan goes as its files (`job_inputs`)."""
@@ -55,8 +58,10 @@ def gather_params(context: bpy.types.Context) -> jobs.CompletionParams:
     sources.world_points(objects)  # refuses an empty selection or objects without points, with the reason
     return jobs.CompletionParams(
         python=preferences.core_python(context), **job_inputs.source_inputs(scene, objects),
-        region=georef.region_to_world(scene, panel_region(context)),
-        samples=props.samples, seed=props.seed, stage=props.stage, device=props.device,
+        region=panel_region(context),
+        # Preview: one sample of the fast coarse chain as a smooth surface, whatever the panel's stage says
+        samples=1 if preview else props.samples, seed=props.seed, stage="preview" if preview else props.stage,
+        quality="fast" if preview else props.quality, device=props.device,
         t1=props.t1, t2=props.t2, max_faces=properties.face_limit(props),
         decimate_to=properties.decimate_limit(props), semantics=props.semantics,
         class_collections=props.semantics and props.class_collections, scene_name=context.scene.name,
@@ -74,17 +79,20 @@ class HGCA_OT_add_region_box(bpy.types.Operator):
         props = _scene_props(context)
         try:
             objs = source_objects(context)
-            box_region = region.default_region(preferences.core_python(context), sources.world_points(objs),
-                                               sources.world_origins(objs), tuple(props.region_size))
+            sources.world_points(objs)   # refuses an empty selection or objects without points, with the reason
+            world = region.default_world_region(preferences.core_python(context), context.scene, objs,
+                                                tuple(props.region_size))
         except (core.CoreError, sources.SourceError, region.RegionError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        box = region.create_region_box(context.collection or context.scene.collection, box_region)
+        box_region = georef.region_to_scene(context.scene, world)
+        box = region.create_region_box(context.collection or context.scene.collection, box_region, world=world)
         props.region_object = box
         props.region_mode = "BOX"
         props.region_center = box_region[:3]
         props.region_yaw = math.radians(box_region[6])
-        self.report({"INFO"}, f"Added '{box.name}' around {len(objs)} object(s)")
+        names = ", ".join(f"'{o.name}'" for o in objs[:3]) + (f" and {len(objs) - 3} more" if len(objs) > 3 else "")
+        self.report({"INFO"}, f"Added '{box.name}' around {names}")
         return {"FINISHED"}
 
 
@@ -94,7 +102,18 @@ class HGCA_OT_complete(bpy.types.Operator):
     bl_idname = "hgca.complete"
     bl_label = "Complete"
 
+    preview: bpy.props.BoolProperty(
+        name="Preview", default=False, options={"SKIP_SAVE"},
+        description="One sample of the fast coarse chain as a smooth surface, in seconds: to decide where the "
+                    "region goes before a full completion")
     _timer = None
+
+    @classmethod
+    def description(cls, context: bpy.types.Context, properties) -> str:
+        if properties.preview:
+            return ("Preview the region in seconds: one sample of the fast coarse chain as a smooth surface "
+                    "(runs in the background; Esc cancels)")
+        return cls.__doc__
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
@@ -102,7 +121,7 @@ class HGCA_OT_complete(bpy.types.Operator):
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         try:
-            params = gather_params(context)
+            params = gather_params(context, preview=self.preview)
             job = jobs.start_job(params)
         except (core.CoreError, sources.SourceError, region.RegionError) as exc:
             return refuse_start(self, context, exc)

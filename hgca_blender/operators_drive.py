@@ -29,7 +29,8 @@ def drive_params(context: bpy.types.Context) -> drive_job.DriveParams:
     props = context.scene.hgca
     return drive_job.DriveParams(
         python=preferences.core_python(context), scans=[], out_dir=drive_folder(context), samples=props.samples,
-        seed=props.seed, stage=props.stage, device=props.device, t1=props.t1, max_faces=properties.face_limit(props),
+        seed=props.seed, stage=props.stage, quality=props.quality, device=props.device, t1=props.t1, t2=props.t2,
+        max_faces=properties.face_limit(props),
         workers=props.drive_workers, tile_size=props.drive_tile_size, overlap=props.drive_overlap,
         scene_name=context.scene.name, extra_args=preferences.core_extra_args(context))
 

@@ -121,6 +121,19 @@ def import_scans(python: str, paths: list[Path], collection: bpy.types.Collectio
     return obj, skipped, dropped
 
 
+def select_only(context: bpy.types.Context, obj: bpy.types.Object) -> None:
+    """The imported scan becomes the selection and the active object, as Blender's own importers leave theirs, so
+    the panel's next step (Add Region Box, Complete) works on it and not on what was selected before (the
+    startup Cube)."""
+    view_layer = context.view_layer
+    if view_layer is None or view_layer.objects.get(obj.name) is None:
+        return
+    for other in list(context.selected_objects or []):
+        other.select_set(False)
+    obj.select_set(True)
+    view_layer.objects.active = obj
+
+
 class _ImportScan:
     """What both import operators share: the options, the paths picked, and the import itself."""
 
@@ -169,6 +182,7 @@ class _ImportScan:
         except (core.CoreError, ValueError, OSError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
+        select_only(context, obj)
         if skipped:
             self.report({"WARNING"}, f"attributes not imported (not one value per point): {', '.join(skipped)}")
         left_out = dropped_text(dropped)

@@ -114,6 +114,7 @@ class HGCA_PT_main(_SidebarTab, bpy.types.Panel):
         col.prop(props, "samples")
         col.prop(props, "seed")
         col.prop(props, "stage")
+        col.prop(props, "quality")
         row = col.row(heading="Max Faces", align=True)
         row.prop(props, "keep_all_faces", text="All")
         sub = row.row(align=True)
@@ -184,7 +185,8 @@ class HGCA_PT_job(_SidebarTab, bpy.types.Panel):
             else:
                 layout.prop(props, "progress", slider=True, text=props.status or "Running")
         else:
-            row.operator("hgca.complete", icon="PLAY")
+            row.operator("hgca.complete", icon="PLAY").preview = False
+            row.operator("hgca.complete", text="Preview", icon="HIDE_OFF").preview = True
             if props.status:
                 layout.label(text=props.status, icon="ERROR" if props.status_is_error else "INFO")
 

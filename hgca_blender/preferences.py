@@ -54,6 +54,9 @@ def detect_python() -> str:
     env = os.environ.get(ENV_VAR, "").strip()
     if env:
         return env
+    installed = installer.installed_python()   # what *Install Core* made, when the preference is not at hand
+    if installed:
+        return installed
     script = shutil.which("hgca")
     if script:
         found = _python_from_script(Path(script))

@@ -55,9 +55,17 @@ class HGCA_PG_scene(bpy.types.PropertyGroup):
     seed: IntProperty(name="Seed", default=0, min=0, description="Same seed and input give the same mesh")
     stage: EnumProperty(
         name="Stage",
-        items=[("coarse", "Coarse", "Coarse 20 cm stage only (fast)"),
+        items=[("preview", "Preview", "The coarse 20 cm cells as a smooth surface, in seconds: to decide where "
+                                      "the region goes"),
+               ("coarse", "Coarse", "Coarse 20 cm stage only, as cubes (fast)"),
                ("full", "Full", "Coarse and fine stages")],
         default="full",
+    )
+    quality: EnumProperty(
+        name="Quality",
+        items=[("fast", "Fast", "The few-step students (T1 10, T2 5): several times faster"),
+               ("best", "Best", "The paper's chains (T1 30, T2 15)")],
+        default="best",
     )
     device: EnumProperty(
         name="Device",

@@ -16,6 +16,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
+from . import georef, job_inputs, sources
 from .core import CoreError, run_core_json
 from .mesh_build import ROLE_KEY
 from .sources import update_transforms
@@ -24,6 +25,7 @@ DEFAULT_SIZE = (38.4, 38.4, 8.0)  # the panel's default box size (the core's def
 MAX_TILT_DEG = 1.0
 REGION_TYPES = ("MESH", "EMPTY")  # objects whose box can be a region
 REGION_TIMEOUT_S = 600
+EXACT_KEY = "hgca_exact_region"   # custom property of a box the add-on made: its region in float64 world metres
 
 
 def decimal32(value: float) -> float:
@@ -44,26 +46,33 @@ class RegionError(ValueError):
 Region = tuple[float, float, float, float, float, float, float]
 
 
-def default_region(python: str, points: np.ndarray, origins: np.ndarray | None = None,
-                   size: tuple[float, float, float] = DEFAULT_SIZE) -> Region:
-    """The core's default region around world points (and the sensor origins when known): `hgca region --json`.
+def default_world_region(python: str, scene: bpy.types.Scene, objects: list[bpy.types.Object],
+                         size: tuple[float, float, float] = DEFAULT_SIZE) -> Region:
+    """The core's default region around source objects, in world coordinates: `hgca region --json` of the scan
+    files themselves when the objects are one unchanged import (float64, so the box is the one `hgca complete
+    FILE` uses, bit for bit), else of their world points and sensor origins.
 
     Raises CoreError when the core cannot be run or refuses the points."""
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
-        raise RegionError("cannot place a region: the source objects have no points")
+    size = clean(tuple(size))   # the panel's float32 size as the user typed it
     if min(size) <= 0:
         raise RegionError(f"region size must be positive, got {tuple(size)}")
+    size_arg = "--size=" + ",".join(repr(float(v)) for v in size)
     tmpdir = Path(tempfile.mkdtemp(prefix="hgca_region_"))
     try:
-        path = tmpdir / "points.npz"
-        arrays = {"points": pts}
-        if origins is not None and len(origins):
-            arrays["origins"] = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
-        np.savez(path, **arrays)
-        size_arg = ",".join(repr(float(v)) for v in size)
-        answer = run_core_json(python, ["region", str(path), f"--size={size_arg}", "--json"],
-                               timeout=REGION_TIMEOUT_S, cwd=tmpdir)
+        files = job_inputs.unchanged_files(scene, objects)
+        if files is not None:
+            args = ["region", *files.args()]
+        else:
+            pts = np.concatenate([job_inputs.object_world_points(scene, o) for o in objects])
+            if len(pts) == 0:
+                raise RegionError("cannot place a region: the source objects have no points")
+            arrays = {"points": pts}
+            origins = sources.world_origins(objects)
+            if origins is not None and len(origins):
+                arrays["origins"] = georef.to_world(scene, origins)
+            np.savez(tmpdir / "points.npz", **arrays)
+            args = ["region", str(tmpdir / "points.npz")]
+        answer = run_core_json(python, [*args, size_arg, "--json"], timeout=REGION_TIMEOUT_S, cwd=tmpdir)
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
     values = answer.get("region")
@@ -103,6 +112,29 @@ def region_from_object(obj: bpy.types.Object) -> Region:
     return clean((*map(float, centre[:3]), *map(float, size), float(yaw)))
 
 
+def world_region_of(scene: bpy.types.Scene, obj: bpy.types.Object) -> Region:
+    """The world region (the CLI's --region) a box stands for: the exact float64 region it was made from while it
+    stands where it was put, else the box as it now stands (`region_from_object`) in world coordinates."""
+    seen = region_from_object(obj)
+    exact = obj.get(EXACT_KEY)
+    if exact is not None and len(exact) == 7:
+        exact = tuple(float(v) for v in exact)
+        if _same_box(seen, georef.region_to_scene(scene, exact)):
+            return exact  # type: ignore[return-value]
+    return georef.region_to_world(scene, seen)  # type: ignore[return-value]
+
+
+def _same_box(seen: Region, exact: Region) -> bool:
+    """Whether the box Blender holds (float32) is still the exact region it was made from: each number within a
+    few float32 roundings of it, the yaw (read back through a float32 rotation matrix) within 1e-4 degrees. A
+    moved, scaled or turned box is not, and is read as it now stands."""
+    for i, (a, b) in enumerate(zip(seen, exact)):
+        tol = 1e-4 if i == 6 else 4 * float(np.spacing(np.float32(max(abs(a), abs(b), 1.0))))
+        if not math.isfinite(b) or abs(a - b) > tol:
+            return False
+    return True
+
+
 def region_from_numbers(centre: tuple[float, float, float], size: tuple[float, float, float],
                         yaw_rad: float) -> Region:
     if min(size) <= 0:
@@ -119,9 +151,10 @@ def _unit_cube(name: str) -> bpy.types.Mesh:
     return mesh
 
 
-def create_region_box(collection: bpy.types.Collection, region: Region,
-                      name: str = "hGCA Region") -> bpy.types.Object:
-    """A new wireframe box object showing `region`; it never renders."""
+def create_region_box(collection: bpy.types.Collection, region: Region, name: str = "hGCA Region",
+                      world: Region | None = None) -> bpy.types.Object:
+    """A new wireframe box object showing `region` (Blender coordinates); it never renders. `world`: the exact
+    world region it stands for, which `world_region_of` gives back while the box is left where it is."""
     obj = bpy.data.objects.new(name, _unit_cube(name))
     obj.display_type = "WIRE"
     obj.show_in_front = True
@@ -130,6 +163,10 @@ def create_region_box(collection: bpy.types.Collection, region: Region,
     obj.scale = region[3:6]
     obj.rotation_euler = (0.0, 0.0, math.radians(region[6]))
     obj[ROLE_KEY] = "region"
+    # Blender keeps transforms in float32 (z 1.160985 for 1.1609850125...); the exact numbers travel with the
+    # box, so an untouched box gives the core the very region `hgca region` gave, and the CLI's mesh
+    if world is not None:
+        obj[EXACT_KEY] = [float(v) for v in world]
     collection.objects.link(obj)
     return obj
 

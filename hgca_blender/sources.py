@@ -17,16 +17,36 @@ class SourceError(ValueError):
     """No usable source points; the message tells the user what to select."""
 
 
+def not_a_scan(obj: bpy.types.Object) -> str | None:
+    """Why `obj` is no scan (None when it is one). Scans are point clouds and meshes of vertices only, as the
+    import makes them; a mesh with faces (the startup Cube, a model) is a surface, whose 8 corners would make a
+    region box around the wrong thing."""
+    if obj.type not in POINT_TYPES:
+        return f"'{obj.name}' is a {obj.type.lower()}, not a scan"
+    if obj.get(ROLE_KEY) in ("region", "result"):
+        return f"'{obj.name}' is an hGCA {obj.get(ROLE_KEY)}, not a scan"
+    if obj.type == "MESH" and len(obj.data.polygons):
+        return f"'{obj.name}' is a mesh with {len(obj.data.polygons):,} face(s), not a scan of points"
+    return None
+
+
 def is_point_source(obj: bpy.types.Object, exclude: bpy.types.Object | None = None) -> bool:
-    """Meshes and point clouds, but not region boxes or earlier completion results."""
-    return obj.type in POINT_TYPES and obj is not exclude and obj.get(ROLE_KEY) not in ("region", "result")
+    """Point clouds and vertex-only meshes (imported scans), but not region boxes, results or surfaces."""
+    return obj is not exclude and not_a_scan(obj) is None
 
 
 def selected_sources(context: bpy.types.Context, exclude: bpy.types.Object | None = None) -> list[bpy.types.Object]:
-    objs = [o for o in (context.selected_objects or []) if is_point_source(o, exclude)]
+    """The selected scans (else the active object when it is one). Selected objects that are no scan are left
+    out; when nothing selected is a scan, the refusal names what was selected and why it is none."""
+    picked = [o for o in (context.selected_objects or []) if o is not exclude]
+    objs = [o for o in picked if is_point_source(o)]
     active = context.active_object
-    if not objs and active is not None and is_point_source(active, exclude):
-        objs = [active]
+    if not objs and active is not None and active is not exclude:
+        objs = [active] if is_point_source(active) else []
+        picked += [] if active in picked else [active]
+    if not objs and picked:
+        raise SourceError("; ".join(not_a_scan(o) or "" for o in picked[:3])
+                          + ": select an imported scan (File > Import > LiDAR Scan) or pick a source collection")
     return objs
 
 

@@ -15,12 +15,21 @@ import math
 import numbers
 import re
 from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
 from typing import Any
 
 from hgca_core.errors import InputError
 from hgca_core.nn.precision import DEFAULT_PRECISION, PRECISIONS
 
-STAGES = ("coarse", "full")
+STAGES = ("preview", "coarse", "full")
+# Quality levels: which shipped weights a completion runs when no weights file is named. best = the teacher chains
+# (T1 30, T2 15: coarse.pt, fine.pt); fast = the few-step students trained from them (T1 10, T2 5:
+# coarse_student.pt, fine_student.pt; `hgca train --recipe coarse-student / fine-student`). Their measured
+# quality and speed side by side: MODEL_CARD.md.
+QUALITIES = ("fast", "best")
+DEFAULT_QUALITY = "best"
+QUALITY_FILES = {"best": ("coarse.pt", "fine.pt"), "fast": ("coarse_student.pt", "fine_student.pt")}
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 # Observed free space: feature = the networks' input; mask = also forbid its core; auto = mask for weights trained
 # with the feature, nothing for others; off = neither (`pipeline.observed_free`).
 FREE_SPACE_MODES = ("auto", "feature", "mask", "off")
@@ -75,7 +84,10 @@ class CompletionConfig:
     """How one region is completed (`hgca complete`'s options).
 
     stage: "full" = 20 cm coarse GCA, 10 cm cGCA upsampling and an implicit mesh; "coarse" = the 20 cm cells'
-        blocky mesh only (faster).
+        blocky mesh only (faster); "preview" = the coarse cells as a smooth surface (scikit-image's marching
+        cubes of their blurred occupancy), for deciding where a region goes.
+    quality: the shipped weights used when `weights` / `fine_weights` are None (QUALITIES): fast = the few-step
+        students, best = the paper's 30 + 15 step chains.
     samples: completions k, one mesh each; sample i uses seed + i, so a (seed, i) pair names one mesh.
     t1, t2: coarse / fine steps; None or 0 = the weights' own (30 and 15 for the shipped ones).
     weights, fine_weights: weights files; None = the shipped ones.
@@ -100,11 +112,13 @@ class CompletionConfig:
     free_space: str = "auto"
     semantics: bool = False
     semantics_weights: str | None = None
+    quality: str = DEFAULT_QUALITY
 
     def __post_init__(self) -> None:
         if self.max_faces is None:
             object.__setattr__(self, "max_faces", DEFAULT_MAX_FACES)
         _choice("stage", self.stage, STAGES)
+        _choice("quality", self.quality, QUALITIES)
         _whole("samples", self.samples, 1, MAX_SAMPLES)
         _whole("seed", self.seed, 0, SEED_MAX)
         check_seed_span(self.seed, self.samples)
@@ -124,6 +138,16 @@ class CompletionConfig:
         check_device_name(self.device)
         _choice("precision", self.precision, PRECISIONS)
         _choice("free_space", self.free_space, FREE_SPACE_MODES)
+
+    def coarse_file(self) -> str | None:
+        """The coarse weights to load: `weights`, else the quality's shipped file (None: the loader's default,
+        the teacher's coarse.pt)."""
+        return self.weights or (None if self.quality == "best" else str(WEIGHTS_DIR / QUALITY_FILES[self.quality][0]))
+
+    def fine_file(self) -> str | None:
+        """The fine weights to load (the full stage): `fine_weights`, else the quality's shipped file."""
+        return self.fine_weights or (None if self.quality == "best"
+                                     else str(WEIGHTS_DIR / QUALITY_FILES[self.quality][1]))
 
     def with_(self, **changes: Any) -> "CompletionConfig":
         """A copy with `changes` (field names), checked again; an unknown name is an `InputError`."""
@@ -222,6 +246,7 @@ def addon_limits() -> dict[str, dict[str, Any]]:
         "samples": {"default": c.samples, "min": 1, "max": MAX_SAMPLES},
         "seed": {"default": c.seed, "min": 0, "max": SEED_MAX},
         "stage": {"default": c.stage, "choices": list(STAGES)},
+        "quality": {"default": c.quality, "choices": list(QUALITIES)},
         "device": {"default": c.device},
         "t1": {"default": c.t1 or 0, "min": 0, "max": MAX_STEPS},
         "t2": {"default": c.t2 or 0, "min": 0, "max": MAX_STEPS},

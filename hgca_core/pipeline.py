@@ -20,7 +20,7 @@ import numpy as np
 import torch
 import trimesh
 
-from hgca_core.config import (FREE_SPACE_MODES, MIN_FACES, SEED_MAX, CompletionConfig,  # noqa: F401 (the bounds'
+from hgca_core.config import (FREE_SPACE_MODES, MIN_FACES, SEED_MAX, STAGES, CompletionConfig,  # noqa: F401 (the bounds'
                               check_device_name, check_seed_span)                     # names, re-exported)
 from hgca_core.errors import HgcaWarning, InputError
 from hgca_core.geometry import coords as cs
@@ -157,8 +157,8 @@ def load_models(stage: str, weights: str | Path | None = None, fine_weights: str
     `hgca_core.models.weights` (checked and cached per file and device)."""
     from hgca_core.models.weights import load_coarse, load_fine
 
-    if stage not in ("coarse", "full"):
-        raise InputError(f"stage must be 'coarse' or 'full', not {stage!r}")
+    if stage not in STAGES:
+        raise InputError(f"stage must be one of {', '.join(STAGES)}, not {stage!r}")
     models = Models(load_coarse(weights, device)[0])
     if stage == "full":
         models.fine, models.autoencoder, _ = load_fine(fine_weights, device)
@@ -294,6 +294,11 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
             mesh = udf_mesh(models.autoencoder, c10, latents, voxel=models.autoencoder.cfg.voxel, points=local,
                             sensors=sensors, tree=tree)
             cells10, latents10 = c10.cpu().numpy(), latents.float().cpu().numpy()
+        elif stage == "preview":
+            from hgca_core.geometry.voxel_mesh import smooth_cells_mesh
+
+            report("mesh", 0, 1, tag, i)
+            mesh = smooth_cells_mesh(cells, COARSE, grid)
         else:
             report("mesh", 0, 1, tag, i)
             mesh = voxel_mesh(cells, COARSE)
@@ -329,7 +334,7 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
     frame; this wrapper moves points in and meshes out."""
     cfg = (config or DEFAULTS).with_(**settings) if settings else (config or DEFAULTS)
     check_device(cfg.device)
-    models = load_models(cfg.stage, cfg.weights, cfg.fine_weights, cfg.device)   # both files checked before work
+    models = load_models(cfg.stage, cfg.coarse_file(), cfg.fine_file(), cfg.device)   # both checked before work
     head = None
     if cfg.semantics:
         from hgca_core.models.weights import load_semantics

@@ -86,7 +86,7 @@ def refused_by_both(change: dict, message: str, config, entry) -> None:
 
 
 @pytest.mark.parametrize("change, message", [
-    ({"stage": "fine"}, "stage must be one of coarse, full"),
+    ({"stage": "fine"}, "stage must be one of preview, coarse, full"),
     ({"samples": 0}, "samples must be a whole number between 1"),
     ({"samples": True}, "samples must be a whole number"),
     ({"seed": -1}, "seed must be a whole number between 0 and 2\\*\\*63 - 1"),
@@ -118,7 +118,7 @@ def test_a_bad_completion_setting_is_refused_by_name_before_any_work(change, mes
     ({"tile_memory": -1.0}, "tile_memory must be a finite number above 0"),
     ({"mesh_format": "stl"}, "mesh_format must be one of ply, glb, obj, npz"),
     ({"seams": "yes"}, "seams must be True or False"),
-    ({"stage": "x"}, "stage must be one of coarse, full"),
+    ({"stage": "x"}, "stage must be one of preview, coarse, full"),
 ])
 def test_a_bad_drive_setting_is_refused_by_name_before_reading_a_scan(change, message, tmp_path):
     import hgca_core

@@ -16,7 +16,7 @@ MODULE = {"torch": "torch", "numpy": "numpy", "scipy": "scipy", "trimesh": "trim
           "pyarrow": "pyarrow", "ray": "ray",
           "embreex": None,   # trimesh's ray casting (synthetic LiDAR, ray-hit visibility)
           "rtree": None,     # trimesh's spatial index
-          "lazrs": "lazrs", "pillow": "PIL"}
+          "lazrs": "lazrs", "pillow": "PIL", "scikit-image": "skimage"}
 
 
 def _name(requirement: str) -> str:

@@ -15,7 +15,7 @@ import re
 from typing import Callable
 
 from hgca_core.config import (FREE_SPACE_MODES, MAX_SAMPLES, MAX_STEPS, MAX_THREADS, MAX_WORKERS, MESH_FORMATS,
-                              MIN_FACES, SEED_MAX, STAGES, CompletionConfig, check_seed_span as _check_seed_span)
+                              MIN_FACES, QUALITIES, SEED_MAX, STAGES, CompletionConfig, check_seed_span as _check_seed_span)
 from hgca_core.errors import InputError
 from hgca_core.nn.precision import PRECISIONS
 
@@ -136,10 +136,18 @@ def steps_arg(text: str) -> int:
 
 # The options of a completion (`CompletionConfig`'s fields), one definition each; `add_completion_arguments`
 # adds those a command takes and `completion_config` maps them back. Defaults come from the config.
-def add_stage_argument(p: argparse.ArgumentParser, help: str | None = None) -> None:
-    p.add_argument("--stage", choices=STAGES, default=DEFAULTS.stage,
+def add_stage_argument(p: argparse.ArgumentParser, help: str | None = None, quality: bool = True,
+                       stages: tuple[str, ...] = STAGES) -> None:
+    """`--stage` and (with `quality`) `--quality`: how far a completion goes and which shipped weights run it."""
+    p.add_argument("--stage", choices=stages, default=DEFAULTS.stage,
                    help=help or f"full: 20 cm coarse GCA, 10 cm cGCA upsampling and an implicit mesh; coarse: the "
-                                f"20 cm voxels only (faster); default {DEFAULTS.stage}")
+                                f"20 cm voxels only (faster); preview: the coarse cells as a smooth surface, for "
+                                f"deciding where a region goes (fastest); default {DEFAULTS.stage}")
+    if quality:
+        p.add_argument("--quality", choices=QUALITIES, default=DEFAULTS.quality,
+                       help=f"which shipped weights run when --weights / --fine-weights name none: fast = the "
+                            f"few-step students (T1 10, T2 5), best = the paper's chains (T1 30, T2 15); default "
+                            f"{DEFAULTS.quality} (their measured quality and speed: MODEL_CARD.md)")
 
 
 def add_precision_argument(p: argparse.ArgumentParser) -> None:
@@ -255,7 +263,7 @@ def add_completion_arguments(p: argparse.ArgumentParser, seed_help: str, max_fac
 def completion_config(args: argparse.Namespace, base: CompletionConfig = DEFAULTS) -> CompletionConfig:
     """The `CompletionConfig` of a command's parsed options (those it has; the rest from `base`)."""
     names = ("stage", "samples", "seed", "t1", "t2", "weights", "fine_weights", "device", "precision", "max_faces",
-             "free_space", "semantics", "semantics_weights")
+             "free_space", "semantics", "semantics_weights", "quality")
     given = {n: getattr(args, n) for n in names if hasattr(args, n)}
     if given.get("max_faces") is None:
         given.pop("max_faces", None)

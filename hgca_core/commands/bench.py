@@ -13,7 +13,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--widths", type=floats_arg("--widths", positive=True), default="40,60,80,100,120",
                    help="strip widths w (m) of 40 x w regions; '' for none")
     p.add_argument("--no-default", action="store_true", help="skip the default 38.4 x 38.4 m region")
-    add_stage_argument(p)
+    add_stage_argument(p, quality=False)
     add_device_argument(p)
     add_steps_arguments(p, ("t1",))
     add_weights_arguments(p)

@@ -99,7 +99,7 @@ def _run(args: argparse.Namespace, progress) -> list[Path]:
         from hgca_core.models.weights import load_semantics
 
         load_semantics(config.semantics_weights, config.device)
-    load_models(config.stage, config.weights, config.fine_weights, config.device)   # bad weights fail before any
+    load_models(config.stage, config.coarse_file(), config.fine_file(), config.device)   # bad weights fail before any
     # work; complete() gets the same models again from the cache
     progress("read", 0, 1, f"{len(args.scans)} scan(s)", 0)
     scan = read_inputs(args.scans, poses=args.poses, fmt=args.fmt, frames=args.frames)

@@ -17,7 +17,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--data", default="data/synth", help="dataset folder (hgca synth --split test)")
     p.add_argument("--split", default="test", choices=("val", "test"), help="the split to score (default test)")
-    add_stage_argument(p, help="full (default) adds the fine stage's rows (hGCA 10 cm voxels and implicit mesh; "
+    add_stage_argument(p, quality=False, help="full (default) adds the fine stage's rows (hGCA 10 cm voxels and implicit mesh; "
                                "needs fine weights) to the coarse ones")
     add_weights_arguments(p, noplanner=True)
     add_steps_arguments(p)

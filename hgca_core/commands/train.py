@@ -170,6 +170,15 @@ def _teacher(recipe: Recipe, cfg, recorded: str | None) -> tuple[str, str] | tup
     return str(Path(path).resolve()), digest
 
 
+def _schedule(cfg, recipe: Recipe) -> None:
+    """A new run's chain length and infusion slope from the recipe (a few-step student's), in the model config
+    its weights carry: sampling reads T from there."""
+    if recipe.steps is not None:
+        cfg.steps = recipe.steps
+    if recipe.alpha1 is not None:
+        cfg.alpha1 = recipe.alpha1
+
+
 def build_task(recipe: Recipe, data: list[str], run_file: dict | None = None):
     """The task of the recipe's stage. A continued run keeps the architecture it was started with; a run started
     from `init_from` takes the file's architecture (with the free space switched on when the recipe asks)."""
@@ -191,6 +200,8 @@ def build_task(recipe: Recipe, data: list[str], run_file: dict | None = None):
             GCAConfig(use_planner=recipe.stage == "coarse", free_space=recipe.free_space)
         if recipe.channels and not (saved or init):
             cfg.channels = tuple(recipe.channels)
+        if not saved:
+            _schedule(cfg, recipe)
         if cfg.use_planner != (recipe.stage == "coarse"):
             raise InputError(f"recipe field init_from: these weights are a model "
                              f"{'with' if cfg.use_planner else 'without'} the planner, not a {recipe.stage} model",
@@ -224,6 +235,7 @@ def build_task(recipe: Recipe, data: list[str], run_file: dict | None = None):
     cfg = CGCAConfig.from_dict(saved or init) if (saved or init) else CGCAConfig(free_space=recipe.free_space)
     if not saved:
         cfg.crop = recipe.crop
+        _schedule(cfg, recipe)
     return FineTask(data, cfg, autoencoder=recipe.autoencoder or str(shipped("autoencoder")))
 
 

@@ -60,3 +60,27 @@ def voxel_mesh(coords: np.ndarray, voxel: float, lower_corner: np.ndarray | floa
     faces = np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]])
     vertices = verts_int * voxel + np.asarray(lower_corner, dtype=np.float64)
     return trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+
+
+def smooth_cells_mesh(coords: np.ndarray, voxel: float, grid: tuple[int, int, int], sigma: float = 0.75,
+                      level: float = 0.3) -> trimesh.Trimesh:
+    """A smooth surface around occupied cells (region frame): their occupancy blurred by a Gaussian of `sigma`
+    cells and cut at `level` by scikit-image's marching cubes. What the preview stage shows instead of cubes: a
+    street's shape from the coarse chain alone, without the fine stage's cost. `level` 0.3 keeps walls one cell
+    thick (their blurred peak is about 0.5) and drops lone cells (about 0.2). Cell centres follow the project's
+    convention (`geometry.voxel.lower_corner`)."""
+    from skimage.filters import gaussian
+    from skimage.measure import marching_cubes
+
+    c = np.asarray(coords, dtype=np.int64).reshape(-1, 3)
+    shape = np.asarray(grid, dtype=np.int64) + 4      # two empty cells around the grid: closed at its sides
+    occ = np.zeros(tuple(shape), dtype=np.float32)
+    inside = c[np.all((c >= 0) & (c < np.asarray(grid)), axis=1)]
+    occ[tuple((inside + 2).T)] = 1.0
+    blurred = gaussian(occ, sigma=sigma, mode="constant", preserve_range=True)
+    if len(inside) == 0 or blurred.max() <= level:
+        return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), process=False)
+    verts, faces, _normals, _ = marching_cubes(blurred, level=level, spacing=(voxel,) * 3)
+    corner = np.asarray(default_corner(voxel), dtype=np.float64)
+    verts = verts.astype(np.float64) + corner + (0.5 - 2.0) * voxel   # index i's centre: corner + (i + 0.5) voxel
+    return trimesh.Trimesh(verts, faces[:, ::-1].astype(np.int64), process=False)

@@ -76,7 +76,7 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     cfg = (config or DriveConfig()).with_(**settings) if settings else (config or DriveConfig())
     c = cfg.completion
     stage, samples, seed, t1, t2 = c.stage, c.samples, c.seed, c.t1, c.t2
-    weights, fine_weights, device = c.weights, c.fine_weights, c.device
+    weights, fine_weights, device = c.coarse_file(), c.fine_file(), c.device
     workers, threads, address = cfg.workers, cfg.threads, cfg.address
 
     t_start = time.perf_counter()

@@ -53,7 +53,7 @@ class Settings:
     def of(cls, c: CompletionConfig, threads: int) -> "Settings":
         """A drive's tile settings: its completion config's fields, on `threads` torch threads."""
         return cls(stage=c.stage, samples=c.samples, seed=c.seed, t1=c.t1, t2=c.t2, precision=c.precision,
-                   max_faces=c.max_faces or None, weights=c.weights, fine_weights=c.fine_weights, device=c.device,
+                   max_faces=c.max_faces or None, weights=c.coarse_file(), fine_weights=c.fine_file(), device=c.device,
                    threads=threads, free_space=c.free_space)
 
     def keyed(self) -> dict:

@@ -56,6 +56,9 @@ class Recipe:
     autoencoder: str | None = None  # fine: the frozen autoencoder (None: the shipped one)
     val_every: float = 10.0        # minutes between validation runs
     placement: str | None = None   # semantics: the head's input (geometry, coarse-features, fine-latents)
+    steps: int | None = None       # coarse, fine: the chain's T (T1 / T2) the run trains and its weights sample
+                                   # with (a few-step student); None keeps init_from's (or the model's default)
+    alpha1: float | None = None    # coarse, fine: the infusion slope of that chain (alpha_t = alpha0 + alpha1 t)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -76,6 +79,14 @@ RECIPES: dict[str, Recipe] = {
     "coarse-noplanner-shipped": Recipe(stage="coarse-noplanner", precision="bf16", free_space=True, focus=0.5,
                                        init_from=shipped_file("coarse-noplanner")),
     "fine-shipped": Recipe(stage="fine", precision="bf16", free_space=True, init_from=shipped_file("fine")),
+    # few-step students (hgca complete --quality fast): the shipped weights trained on for chains of T1 = 10 and
+    # T2 = 5 steps, infusion training on the short schedule (alpha_t ends where the teacher's 30- and 15-step
+    # chains end, 0.295 and 0.22), with the teacher's other settings
+    "coarse-student": Recipe(stage="coarse", batch=4, buffer=12, lr=1.5e-4, free_space=True, focus=0.5,
+                             free_weight=8.0, cut=0.5, cut_free_loss=True, turn=0.5,
+                             init_from=shipped_file("coarse"), steps=10, alpha1=0.0161, val_every=12.0),
+    "fine-student": Recipe(stage="fine", lr=1.5e-4, free_space=True, init_from=shipped_file("fine"), steps=5,
+                           alpha1=0.0175, val_every=12.0),
     # the semantic head (hgca_core.models.semantics): a one-step task on perturbed ground-truth cells, 80-cell crops
     "semantics": Recipe(stage="semantics", batch=2, buffer=2, lr=1e-3, crop=80, val_every=8.0),
     # the same head on the frozen coarse kernel's last decoder features, and on the fine stage's pooled latents
@@ -194,6 +205,12 @@ def check(r: Recipe) -> Recipe:
         raise InputError(f"recipe field placement is the semantic head's input, one of "
                          f"{', '.join(SEMANTIC_PLACEMENTS)}" + ("" if r.stage == "semantics" else f", not for {r.stage}")
                          + f"; got {r.placement!r}")
+    if r.steps is not None and not 1 <= r.steps <= 1000:
+        raise InputError(f"recipe field steps must be between 1 and 1000 chain steps, got {r.steps}")
+    if r.alpha1 is not None:
+        _between("alpha1", r.alpha1, 0.0, 1.0)
+    if (r.steps is not None or r.alpha1 is not None) and r.stage not in ("coarse", "coarse-noplanner", "fine"):
+        raise InputError(f"recipe fields steps and alpha1 set the coarse and fine chains, not {r.stage}'s")
     if r.autoencoder and r.stage != "fine":
         raise InputError("recipe field autoencoder is for the fine stage")
     if r.free_weight and not r.free_space:

@@ -115,3 +115,29 @@ def test_batch_script_runs_from_the_installed_extensions_folder(tmp_path: Path) 
                           capture_output=True, text=True, timeout=400)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "Done: 1 sample" in proc.stdout and blend.is_file()
+
+
+def test_batch_uses_the_core_that_install_core_set(addon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The documented batch command without --python finds the core Install Core stored: the preference first,
+    then the core_env Install Core made in the extension's user folder (no environment variable, no hgca on PATH)."""
+    import argparse
+
+    from bl_helpers import addon_module, prefs
+
+    import importlib
+
+    batch = importlib.import_module(f"{addon.__name__}.batch")   # loaded as the installed extension loads it
+    installer = addon_module("installer")
+    monkeypatch.delenv("HGCA_PYTHON", raising=False)
+    monkeypatch.setenv("PATH", "/usr/bin:/bin")
+    prefs().python_path = str(tmp_path / "chosen" / "python")
+    assert batch.core_python(argparse.Namespace(python=None)) == str(tmp_path / "chosen" / "python")
+    assert batch.core_python(argparse.Namespace(python="/given/python")) == "/given/python"
+    prefs().python_path = ""
+    made = installer.env_dir() / "bin" / "python"
+    made.parent.mkdir(parents=True, exist_ok=True)
+    made.write_text("#!/bin/sh\n")
+    try:
+        assert batch.core_python(argparse.Namespace(python=None)) == str(made)
+    finally:
+        made.unlink()

@@ -89,3 +89,18 @@ def test_step_through_samples_and_colour_by_agreement(addon, tmp_path: Path) -> 
     assert {o.data.color_attributes.active_color.name for o in objs} == {mesh_build.AGREEMENT_COLOR}
     assert bpy.ops.hgca.result_colors(mode="OBSERVED") == {"FINISHED"}
     assert {o.data.color_attributes.active_color.name for o in objs} == {mesh_build.OBSERVED_COLOR}
+
+
+def test_solid_view_shows_observed_generated_for_several_samples(addon, tmp_path: Path) -> None:
+    """With 2 or more samples the agreement attributes are added too; the colour Solid view draws stays the
+    observed/generated one on every sample (and renders draw the same one)."""
+    mesh_build = addon_module("mesh_build")
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=np.float32)
+    for k in (2, 3):
+        paths = [write_sample(tmp_path / f"k{k}_s{i}.npz", verts + [0, 0, i], np.zeros(3)) for i in range(k)]
+        coll = mesh_build.build_results(bpy.context.scene, paths, f"hGCA k{k}")
+        for obj in coll.objects:
+            attrs = obj.data.color_attributes
+            assert attrs.active_color is not None, f"{obj.name}: no active colour attribute"
+            assert attrs.active_color_name == mesh_build.OBSERVED_COLOR
+            assert attrs[attrs.render_color_index].name == mesh_build.OBSERVED_COLOR

@@ -161,3 +161,14 @@ def test_drive_panel_draws_its_settings(addon) -> None:
     log = draw(addon_module("panels").HGCA_PT_drive)
     assert {n for k, n in log if k == "prop"} == {"drive_dir", "drive_tile_size", "drive_overlap", "drive_workers"}
     assert {n for k, n in log if k == "operator"} == {"hgca.drive_plan", "hgca.drive"}
+
+
+def test_the_panels_steps_reach_the_drive_command(addon) -> None:
+    """T1 and T2 set in the panel go to `hgca drive` as they go to `hgca complete` (T2 was once dropped)."""
+    props = bpy.context.scene.hgca
+    props.t1, props.t2 = 7, 3
+    args = addon_module("drive_job").drive_args(addon_module("operators_drive").drive_params(bpy.context))
+    assert args[args.index("--t1") + 1] == "7" and args[args.index("--t2") + 1] == "3"
+    props.t1, props.t2 = 0, 0
+    args = addon_module("drive_job").drive_args(addon_module("operators_drive").drive_params(bpy.context))
+    assert "--t1" not in args and "--t2" not in args

@@ -137,3 +137,22 @@ def test_uninstall_then_quit_exits_cleanly(tmp_path: Path) -> None:
                           capture_output=True, text=True, timeout=300)
     assert "uninstalled" in proc.stdout, proc.stdout + proc.stderr
     assert proc.returncode == 0, f"exit status {proc.returncode}: {proc.stderr[-2000:]}"
+
+
+def test_zip_without_blender_has_blenders_layout_and_passes_its_validate(tmp_path: Path) -> None:
+    """`make extension` on a machine with only Python (no bpy): the zip written without Blender's builder holds the
+    same files as Blender's, and Blender's own `validate` (the extensions platform's check) accepts it."""
+    plain = build_extension.build(tmp_path / "plain", use_blender=False)
+    blender = build_extension.build(tmp_path / "blender", use_blender=True)
+    assert sorted(zipfile.ZipFile(plain).namelist()) == sorted(zipfile.ZipFile(blender).namelist())
+    assert "Success" in build_extension.validate(plain)
+    bad = dict(build_extension.read_manifest(), tagline="Completes scans.")
+    with pytest.raises(build_extension.BuildError, match="tagline"):
+        build_extension.check_manifest(bad)
+
+
+def test_make_extension_needs_no_test_venv(tmp_path: Path) -> None:
+    """The Makefile's extension target runs with the system's Python alone: it depends on no venv."""
+    makefile = (REPO / "Makefile").read_text()
+    rule = makefile[makefile.index("\nextension:"):].split("\n\n")[0]
+    assert "$(STAMP)" not in rule.split("\n")[1] and "$(BIN)" not in rule and "$(PY) -m hgca_blender.build_extension" in rule

@@ -154,3 +154,27 @@ def test_install_core_offline_then_complete_a_scan_with_it(shipped, wheels_folde
     assert completion.state == "done", completion.error
     (result,) = bpy.data.collections[completion.collection_name].objects
     assert len(result.data.polygons) > 100
+
+
+def test_install_progress_moves_while_pip_is_silent_and_speaks_plainly(monkeypatch, capsys, tmp_path) -> None:
+    """pip prints nothing while it unpacks torch (about a minute): heartbeat records keep the bar moving every
+    HEARTBEAT_S; its retry warnings reach the status line as a plain sentence, the raw line only in the log."""
+    import io
+    import json as json_
+
+    from hgca_blender import install_core
+
+    monkeypatch.setattr(install_core, "HEARTBEAT_S", 0.2)
+    script = ("import time\nprint('Collecting numpy<2', flush=True)\n"
+              "print(\"WARNING: Retrying (Retry(total=4, connect=None)) after connection broken by "
+              "'ReadTimeoutError'\", flush=True)\nprint('Installing collected packages: torch', flush=True)\n"
+              "time.sleep(1.5)\nprint('Successfully installed torch', flush=True)\n")
+    log = io.StringIO()
+    install_core.run_logged([sys.executable, "-c", script], log, "pip", [0])
+    records = [json_.loads(line) for line in capsys.readouterr().out.splitlines()]
+    beats = [r for r in records if r["stage"] == "install" and r["total"] == int(install_core.INSTALL_S)]
+    assert len(beats) >= 4, records
+    assert [b["step"] for b in beats] == sorted(b["step"] for b in beats) and beats[-1]["step"] >= 1
+    messages = [r["message"] for r in records]
+    assert not any("Retry(total" in m for m in messages)
+    assert any("pip is retrying" in m for m in messages) and "Retry(total=4" in log.getvalue()

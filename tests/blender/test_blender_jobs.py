@@ -185,7 +185,12 @@ def test_add_region_box_places_the_box_hgca_region_gives(addon, tmp_path: Path) 
     assert box is not None and props.region_mode == "BOX" and box.get("hgca_role") == "region"
     got = region.region_from_object(box)
     expected = core_region(str(path), "--poses", str(poses))
-    np.testing.assert_allclose(got, expected, atol=1e-4)
+    np.testing.assert_allclose(got, expected, atol=1e-4)       # the box Blender shows (float32)
+    exact = region.world_region_of(bpy.context.scene, box)     # what goes to the core: bit for bit the CLI's
+    assert list(exact) == expected and exact[2] != got[2]
+    box.location.z += 0.01                                     # a moved box is read as it stands
+    assert region.world_region_of(bpy.context.scene, box)[2] == region.decimal32(box.location.z)
+    box.location.z -= 0.01
     np.testing.assert_allclose(got[:2], (100.0, -20.0), atol=1e-4)  # the sensor, where the pose put it
     # nuScenes: the HDL-32E sits 1.84 m above the road, so the road is near z = 3 - 1.84 and the box's bottom
     # 1 m below it (the ground estimator fits the road within a few cm on this sweep)
@@ -340,3 +345,78 @@ def test_full_stage_with_shipped_weights_inserts_the_implicit_mesh(addon) -> Non
         counts[stage] = len(obj.data.polygons)
         assert "observed_distance" in obj.data.attributes
     assert counts["coarse"] > 0 and 0 < counts["full"] <= 5000
+
+
+def test_the_startup_cube_is_never_a_region_source(addon) -> None:
+    """From Blender's startup file (the Cube selected and active): the import leaves the scan selected and active,
+    so Add Region Box surrounds the scan; with only the Cube selected, the refusal names it."""
+    bpy.ops.wm.read_homefile(use_empty=False, use_factory_startup=True)
+    cube = bpy.data.objects["Cube"]
+    assert cube.select_get() and bpy.context.view_layer.objects.active is cube
+    require_fixture(NUSCENES)
+    assert bpy.ops.import_scene.hgca_lidar(filepath=str(NUSCENES)) == {"FINISHED"}
+    (scan,) = [o for o in bpy.data.objects if o.type == "MESH" and o.name not in ("Cube",)]
+    assert bpy.context.view_layer.objects.active is scan and scan.select_get() and not cube.select_get()
+    assert addon_module("operators_complete").source_objects(bpy.context) == [scan]
+
+    scan.select_set(False)
+    cube.select_set(True)
+    bpy.context.view_layer.objects.active = cube
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="'Cube' is a mesh with 6 face"):
+        bpy.ops.hgca.add_region_box()
+    with pytest.raises(RuntimeError, match="'Cube' is a mesh with 6 face"):
+        bpy.ops.hgca.complete()
+    assert snapshot() == before and bpy.context.scene.hgca.region_object is None
+
+
+def test_a_core_killed_from_outside_says_so_and_what_to_try(addon, tmp_path: Path) -> None:
+    """The out-of-memory killer's SIGKILL ends the core mid-run: the job's error names the signal and what to try,
+    not the core's last progress line; a job that ends reports to the Info log either way."""
+    import signal as signal_
+
+    jobs, messages = addon_module("jobs"), addon_module("messages")
+    fake = tmp_path / "python"
+    fake.write_text("#!/bin/sh\necho '{\"protocol\": 1, \"stage\": \"coarse\", \"step\": 1, \"total\": 30, "
+                    "\"message\": \"hgca complete: working\"}'\necho 'hgca complete: working' >&2\n"
+                    "kill -KILL $$\n")
+    fake.chmod(0o755)
+    params = jobs.CompletionParams(python=str(fake), points=np.zeros((10, 3)), region=SMALL_REGION,
+                                   scene_name=bpy.context.scene.name)
+    before = snapshot()
+    job = jobs.start_job(params)
+    drive(job, timeout=60)
+    assert job.state == "error" and job.returncode == -signal_.SIGKILL
+    assert "killed (SIGKILL)" in job.error and "smaller region" in job.error and "working" not in job.error
+    assert snapshot() == before
+    assert messages.job_messages(job)[-1][0] == "ERROR"
+
+
+def test_a_finished_job_reports_in_the_info_log(addon) -> None:
+    messages = addon_module("messages")
+
+    class Ended:
+        warnings: list = []
+        state, error = "done", ""
+
+        def success_status(self) -> str:
+            return "Added 2 sample(s) to 'hGCA run'"
+
+    assert messages.job_messages(Ended()) == [("INFO", "hGCA: Added 2 sample(s) to 'hGCA run'")]
+
+
+def test_preview_button_asks_the_core_for_one_fast_smooth_sample(addon, tmp_path: Path) -> None:
+    """*Preview* is *Complete* with the preview stage, one sample, the fast students; the panel's own settings
+    (quality, stage, samples) go to the core as `hgca complete` takes them."""
+    jobs, ops = addon_module("jobs"), addon_module("operators_complete")
+    import_nuscenes()
+    use_numbers(SMALL_REGION, samples=3)
+    props = bpy.context.scene.hgca
+    props.quality = "best"
+    args = jobs.completion_args(ops.gather_params(bpy.context, preview=True), tmp_path / "in.npz",
+                                tmp_path / "out.npz")
+    assert args[args.index("--stage") + 1] == "preview" and args[args.index("--quality") + 1] == "fast"
+    assert args[args.index("--samples") + 1] == "1"
+    args = jobs.completion_args(ops.gather_params(bpy.context), tmp_path / "in.npz", tmp_path / "out.npz")
+    assert args[args.index("--stage") + 1] == "coarse" and args[args.index("--quality") + 1] == "best"
+    assert args[args.index("--samples") + 1] == "3"

@@ -59,7 +59,8 @@ def test_panels_draw_every_setting(addon) -> None:
     props = bpy.context.scene.hgca
     main = draw(panels.HGCA_PT_main)
     shown = {name for kind, name in main if kind == "prop"}
-    assert {"source_mode", "region_mode", "region_object", "samples", "seed", "stage", "max_faces", "device"} <= shown
+    assert {"source_mode", "region_mode", "region_object", "samples", "seed", "stage", "quality", "max_faces",
+            "device"} <= shown
     props.region_mode, props.source_mode = "NUMBERS", "COLLECTION"
     shown = {name for kind, name in draw(panels.HGCA_PT_main) if kind == "prop"}
     assert {"region_center", "region_size", "region_yaw", "source_collection"} <= shown
@@ -90,7 +91,9 @@ def test_main_panel_shows_the_active_scans_point_size_and_a_results_samples(addo
 
 def test_job_panel_shows_progress_and_cancel_while_running(addon) -> None:
     panels, jobs = addon_module("panels"), addon_module("jobs")
-    assert ("operator", "hgca.complete") in draw(panels.HGCA_PT_job)
+    job_panel = draw(panels.HGCA_PT_job)
+    assert ("operator", "hgca.complete") in job_panel
+    assert sum(1 for item in job_panel if item == ("operator", "hgca.complete")) == 2   # Complete and Preview
 
     class Running:
         running = True
