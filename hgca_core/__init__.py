@@ -1,6 +1,7 @@
 """hgca_core: headless hGCA (hierarchical Generative Cellular Automata) for LiDAR scene extrapolation.
 
-`hgca_core.complete(points, region=..., config=CompletionConfig(...))` is the Python API of `hgca complete`
+`hgca_core.complete_files(scans, out, poses=..., samples=...)` is `hgca complete` as a call (files in, mesh files
+out, the CLI's meshes); `hgca_core.complete(points, region=..., config=CompletionConfig(...))` completes arrays
 (`hgca_core.pipeline.complete`) and `hgca_core.drive(scans, out, poses=..., config=DriveConfig(...))` that of
 `hgca drive` (`hgca_core.tiling.run.drive`); single settings may be given as keywords (`stage="coarse"`). The
 configs (`hgca_core.config`) hold every default. All are imported on first use, so `import hgca_core` stays
@@ -37,7 +38,8 @@ def _version() -> str:
 
 __version__ = _version()
 
-__all__ = ["HgcaError", "InputError", "__version__", "complete", "drive", "Region", "CompletionConfig", "DriveConfig"]
+__all__ = ["HgcaError", "InputError", "__version__", "complete", "complete_files", "drive", "Region",
+           "CompletionConfig", "DriveConfig"]
 
 
 def __getattr__(name: str):
@@ -45,6 +47,10 @@ def __getattr__(name: str):
         from hgca_core.pipeline import complete
 
         return complete
+    if name == "complete_files":
+        from hgca_core.files import complete_files
+
+        return complete_files
     if name == "drive":
         from hgca_core.tiling.run import drive
 

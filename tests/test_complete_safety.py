@@ -251,7 +251,7 @@ def test_fifty_million_points_under_a_3_gib_limit_are_refused_up_front_with_the_
 
 
 def test_point_counts_come_from_the_headers(tmp_path):
-    from hgca_core.commands.memory import point_count_hint
+    from hgca_core.io.memory import point_count_hint
     from hgca_core.io import write_points
 
     pts = tiny_sample(3)["input_points"].astype(np.float64)

@@ -67,7 +67,7 @@ def drive_config(args: argparse.Namespace) -> DriveConfig:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hgca_core.commands.memory import check_read_memory
+    from hgca_core.io.memory import check_read_memory
 
     if args.plan_only:
         drive_config(args)

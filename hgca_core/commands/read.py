@@ -28,7 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hgca_core.commands.memory import check_read_memory
+    from hgca_core.io.memory import check_read_memory
     from hgca_core.io.paths import check_outputs
 
     if os.path.splitext(args.out)[1].lower() != ".npz":

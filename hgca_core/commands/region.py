@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.geometry.region import default_region, ground_height
     from hgca_core.io import read_scans
 
-    from hgca_core.commands.memory import check_read_memory
+    from hgca_core.io.memory import check_read_memory
 
     size = parse_size(args.size)
     check_read_memory(args.scans)
