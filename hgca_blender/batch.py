@@ -44,7 +44,8 @@ from typing import Callable
 
 import bpy
 
-from . import core, georef, job_inputs, jobs, mesh_build, operators_import, preferences, preview, region, sources
+from . import (core, georef, job_inputs, jobs, mesh_build, operators_import, preferences, preview, region, settings,
+               sources)
 
 
 def script_args(argv: list[str]) -> list[str]:
@@ -72,15 +73,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output .blend")
     p.add_argument("--region", default=None, help="cx,cy,cz,sx,sy,sz[,yaw_deg] (default: `hgca region`'s box, "
                                                   "38.4 x 38.4 x 8 m around the sensor, 1 m below the ground)")
-    p.add_argument("--samples", type=int, default=1)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--stage", choices=("preview", "coarse", "full"), default="full")
-    p.add_argument("--quality", choices=("fast", "best"), default="best",
+    # the core's defaults and choices (settings: the schema the extension build writes from hgca_core.config)
+    p.add_argument("--samples", type=int, default=settings.default("samples"))
+    p.add_argument("--seed", type=int, default=settings.default("seed"))
+    p.add_argument("--stage", choices=settings.choices("stage"), default=settings.default("stage"))
+    p.add_argument("--quality", choices=settings.choices("quality"), default=settings.default("quality"),
                    help="fast: the few-step students; best: the paper's chains (as `hgca complete --quality`)")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
-    p.add_argument("--t1", type=int, default=0, help="coarse steps T1 (0: from the weights)")
-    p.add_argument("--t2", type=int, default=0, help="fine steps T2 (0: from the weights)")
-    p.add_argument("--max-faces", type=int, default=1_000_000, help="simplify each mesh to this many triangles (0: keep all)")
+    p.add_argument("--t1", type=int, default=settings.default("t1"), help="coarse steps T1 (0: from the weights)")
+    p.add_argument("--t2", type=int, default=settings.default("t2"), help="fine steps T2 (0: from the weights)")
+    p.add_argument("--max-faces", type=int, default=settings.default("max_faces"),
+                   help="simplify each mesh to this many triangles (0: keep all)")
     p.add_argument("--simplify", choices=("bake", "modifier"), default="bake",
                    help="bake: the core simplifies to --max-faces; modifier: keep every triangle under a Decimate "
                         "modifier showing --max-faces (tunable in Blender, larger .blend)")
@@ -95,9 +98,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--drive", default=None, metavar="DIR",
                    help="complete the whole drive tile by tile (`hgca drive`, scans in trajectory order) into DIR "
                         "(kept: running again resumes); one object per tile per sample")
-    p.add_argument("--workers", type=int, default=1, help="--drive: tiles at once (more than 1 needs hgca[ray])")
-    p.add_argument("--tile-size", type=float, default=38.4, help="--drive: tile side in metres")
-    p.add_argument("--overlap", type=float, default=6.4, help="--drive: overlap of consecutive tiles in metres")
+    p.add_argument("--workers", type=int, default=settings.default("drive_workers"),
+                   help="--drive: tiles at once (more than 1 needs hgca[ray])")
+    p.add_argument("--tile-size", type=float, default=settings.default("drive_tile_size"),
+                   help="--drive: tile side in metres")
+    p.add_argument("--overlap", type=float, default=settings.default("drive_overlap"),
+                   help="--drive: overlap of consecutive tiles in metres")
     return p
 
 

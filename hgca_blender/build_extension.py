@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import json
 import re
 import shutil
 import subprocess
@@ -26,6 +27,18 @@ REPO_ROOT = PACKAGE_DIR.parent
 MANIFEST = REPO_ROOT / "blender_manifest.toml"
 # Development-only modules that are not shipped inside the extension.
 EXCLUDED = {"build_extension.py"}
+
+
+SETTINGS_FILE = "core_settings.json"   # the core's settings schema, which the add-on's properties are made from
+
+
+def core_settings() -> dict:
+    """`hgca_core.config.addon_schema()` of this checkout (torch-free: only the config module is imported)."""
+    if str(REPO_ROOT) not in sys.path:
+        sys.path.insert(0, str(REPO_ROOT))
+    from hgca_core.config import addon_schema
+
+    return addon_schema()
 
 
 class BuildError(RuntimeError):
@@ -80,6 +93,7 @@ def stage(dest: Path, manifest: Path = MANIFEST, package_dir: Path = PACKAGE_DIR
         shutil.copy2(src, dest / src.name)
     if not (dest / "__init__.py").is_file():
         raise BuildError(f"{package_dir} has no __init__.py")
+    (dest / SETTINGS_FILE).write_text(json.dumps(core_settings(), indent=1, sort_keys=True) + "\n")
     if core_wheel is not None:
         (dest / "core").mkdir()
         shutil.copy2(core_wheel, dest / "core" / Path(core_wheel).name)

@@ -26,7 +26,7 @@ from typing import Any
 import bpy
 import numpy as np
 
-from . import georef, jobs, mesh_build, messages, region, sources
+from . import georef, jobs, mesh_build, messages, region, settings, sources
 from .core import CoreError, Job, check_python, core_command, run_core_json
 
 # Share of the progress bar: reading the scans, the tiles, merging the samples.
@@ -44,17 +44,17 @@ class DriveParams:
     scans: list[str]
     out_dir: str
     poses: str | None = None
-    samples: int = 1
-    seed: int = 0
-    stage: str = "full"
-    quality: str = "best"        # `hgca drive --quality`: fast (the few-step students) or best
-    device: str = "cpu"
+    samples: int = settings.default("samples")     # defaults: the core's (settings)
+    seed: int = settings.default("seed")
+    stage: str = settings.default("stage")
+    quality: str = settings.default("quality")     # `hgca drive --quality`: fast (the few-step students) or best
+    device: str = settings.default("device")
     t1: int = 0                  # 0: from the weights
     t2: int = 0                  # 0: from the weights
     max_faces: int = 0           # per tile; 0: no limit
-    workers: int = 1
-    tile_size: float = 38.4
-    overlap: float = 6.4
+    workers: int = settings.default("drive_workers")
+    tile_size: float = settings.default("drive_tile_size")
+    overlap: float = settings.default("drive_overlap")
     scene_name: str = ""
     run_name: str = ""
     extra_args: list[str] = field(default_factory=list)
@@ -62,20 +62,17 @@ class DriveParams:
 
 def drive_args(params: DriveParams) -> list[str]:
     """The `hgca drive` command line (docs/CONTRACTS.md, "Drive CLI"), meshes as .npz for the add-on."""
-    args = ["drive", *params.scans, "--out", params.out_dir, "--samples", str(int(params.samples)),
-            "--seed", str(int(params.seed)), "--stage", params.stage, "--quality", params.quality,
-            "--device", params.device,
-            "--workers", str(int(params.workers)), *_plan_args(params), "--mesh-format", "npz", "--progress", "jsonl"]
-    for flag, steps in (("--t1", params.t1), ("--t2", params.t2)):
-        if int(steps):
-            args += [flag, str(int(steps))]
-    if int(params.max_faces):
-        args += ["--max-faces", str(int(params.max_faces))]
+    values = {**jobs.setting_values(params), "drive_workers": int(params.workers)}
+    if not int(params.max_faces):
+        values.pop("max_faces")          # a drive's tiles keep every triangle by default
+    args = ["drive", *params.scans, "--out", params.out_dir, *settings.core_args(values), *_plan_args(params),
+            "--mesh-format", "npz", "--progress", "jsonl"]
     return args + list(params.extra_args)
 
 
 def _plan_args(params: DriveParams) -> list[str]:
-    args = ["--size", repr(float(params.tile_size)), "--overlap", repr(float(params.overlap))]
+    """The plan's settings (tile size and overlap, through `settings.core_args`) and the poses."""
+    args = settings.core_args({"drive_tile_size": float(params.tile_size), "drive_overlap": float(params.overlap)})
     return args + (["--poses", params.poses] if params.poses else [])
 
 

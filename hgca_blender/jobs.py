@@ -19,7 +19,7 @@ from typing import Any
 import bpy
 import numpy as np
 
-from . import mesh_build, messages
+from . import mesh_build, messages, settings
 from .core import CoreError, Job, check_python, core_command
 from .job_inputs import ScanFiles
 
@@ -37,11 +37,11 @@ class CompletionParams:
     python: str
     points: np.ndarray  # (N, 3) world-space points
     region: tuple[float, ...]  # cx, cy, cz, sx, sy, sz, yaw_deg (world)
-    samples: int = 1
-    seed: int = 0
-    stage: str = "full"           # as `hgca complete` and the panel: preview, coarse or full
-    quality: str = "best"         # `hgca complete --quality`: fast (the few-step students) or best
-    device: str = "cpu"
+    samples: int = settings.default("samples")    # defaults: the core's (settings)
+    seed: int = settings.default("seed")
+    stage: str = settings.default("stage")        # as `hgca complete` and the panel: preview, coarse or full
+    quality: str = settings.default("quality")    # `hgca complete --quality`: fast (the few-step students) or best
+    device: str = settings.default("device")
     t1: int = 0                  # 0: the core's default, from the weights
     t2: int = 0                  # 0: the core's default, from the weights
     max_faces: int = 0           # 0: no limit
@@ -68,18 +68,12 @@ def validate_params(params: CompletionParams) -> np.ndarray:
     region = tuple(float(v) for v in params.region)
     if len(region) != 7 or not all(math.isfinite(v) for v in region) or min(region[3:6]) <= 0:
         raise CoreError(f"region must be 7 finite numbers with positive size, got {region}")
-    if not 1 <= int(params.samples) <= 8:
-        raise CoreError(f"sample count must be 1..8, got {params.samples}")
-    if params.stage not in ("preview", "coarse", "full"):
-        raise CoreError(f"stage must be 'preview', 'coarse' or 'full', got {params.stage!r}")
-    if params.quality not in ("fast", "best"):
-        raise CoreError(f"quality must be 'fast' or 'best', got {params.quality!r}")
+    try:
+        settings.core_args(setting_values(params))   # the core's own bounds and choices (core_settings.json)
+    except ValueError as exc:
+        raise CoreError(str(exc)) from None
     if params.device not in ("cpu", "cuda"):
         raise CoreError(f"device must be 'cpu' or 'cuda', got {params.device!r}")
-    if int(params.t1) < 0 or int(params.t2) < 0:
-        raise CoreError("T1 and T2 must be at least 1, or 0 for the weights' own step counts")
-    if int(params.max_faces) != 0 and int(params.max_faces) < 1000:
-        raise CoreError(f"max faces must be 0 (no limit) or at least 1000, got {params.max_faces}")
     if int(params.decimate_to) < 0:
         raise CoreError(f"the Decimate modifier's face count must be 0 (none) or more, got {params.decimate_to}")
     if params.origins is not None:
@@ -101,17 +95,21 @@ def input_arrays(params: CompletionParams, pts: np.ndarray) -> dict[str, np.ndar
     return arrays
 
 
+def setting_values(params) -> dict[str, Any]:
+    """The core settings a job's parameters hold (a completion's or a drive's), by the schema's names."""
+    return {"samples": int(params.samples), "seed": int(params.seed), "stage": params.stage,
+            "quality": params.quality, "device": params.device, "t1": int(params.t1), "t2": int(params.t2),
+            "max_faces": int(params.max_faces)}
+
+
 def completion_args(params: CompletionParams, in_path: Path, out_path: Path) -> list[str]:
-    """The `hgca complete` command line from CONTRACTS.md ("Completion CLI"); T1/T2 of 0 are left to the core.
-    The input is the scan files when `params.files` names them, else the .npz at `in_path`."""
+    """The `hgca complete` command line from CONTRACTS.md ("Completion CLI"): the settings through
+    `settings.core_args` (T1/T2 of 0 left to the core; max faces 0 keeps every triangle). The input is the scan
+    files when `params.files` names them, else the .npz at `in_path`."""
     region = ",".join(repr(float(v)) for v in params.region)
-    steps = [f"--{name}={int(value)}" for name, value in (("t1", params.t1), ("t2", params.t2)) if int(value)]
     inputs = params.files.args() if params.files is not None else [str(in_path)]
-    return ["complete", *inputs, f"--region={region}", "--samples", str(int(params.samples)),
-            "--seed", str(int(params.seed)), "--stage", params.stage, "--quality", params.quality,
-            "--device", params.device, *steps, "--progress", "jsonl",
-            "--max-faces", str(int(params.max_faces)),      # 0: every triangle (the core's default is 1 M)
-            *(["--semantics"] if params.semantics else []),
+    return ["complete", *inputs, f"--region={region}", *settings.core_args(setting_values(params)),
+            "--progress", "jsonl", *(["--semantics"] if params.semantics else []),
             *params.extra_args, "-o", str(out_path)]
 
 

@@ -4,11 +4,12 @@ import bpy
 from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty,
                        PointerProperty, StringProperty)
 
+from . import settings as core
 from .region import DEFAULT_SIZE
 
-
-MIN_FACES = 1000  # the core's smallest face limit (hgca complete --max-faces: 0 or at least this)
-
+# Every default, bound and choice of a core setting below comes from the core's schema (`settings`, made from
+# `hgca_core.config` by the extension build); only the labels and descriptions are the panel's own.
+MIN_FACES = core.low("max_faces")  # the core's smallest face limit (hgca complete --max-faces: 0 or at least this)
 
 
 
@@ -50,39 +51,41 @@ class HGCA_PG_scene(bpy.types.PropertyGroup):
                                      unit="LENGTH", description="Size of the region")
     region_yaw: FloatProperty(name="Yaw", subtype="ANGLE", description="Rotation of the region about Z")
 
-    samples: IntProperty(name="Samples", default=1, min=1, max=8,
+    samples: IntProperty(name="Samples", default=core.default("samples"), min=core.low("samples"),
+                         max=core.high("samples"), soft_max=8,
                          description="Number of completions (one mesh each, different seeds)")
-    seed: IntProperty(name="Seed", default=0, min=0, description="Same seed and input give the same mesh")
+    seed: IntProperty(name="Seed", default=core.default("seed"), min=core.low("seed"), max=core.high("seed"),
+                      description="Same seed and input give the same mesh")
     stage: EnumProperty(
         name="Stage",
         items=[("preview", "Preview", "The coarse 20 cm cells as a smooth surface, in seconds: to decide where "
                                       "the region goes"),
                ("coarse", "Coarse", "Coarse 20 cm stage only, as cubes (fast)"),
                ("full", "Full", "Coarse and fine stages")],
-        default="full",
+        default=core.default("stage"),
     )
     quality: EnumProperty(
         name="Quality",
         items=[("fast", "Fast", "The few-step students (T1 10, T2 5): several times faster"),
                ("best", "Best", "The paper's chains (T1 30, T2 15)")],
-        default="best",
+        default=core.default("quality"),
     )
     device: EnumProperty(
         name="Device",
         items=[("cpu", "CPU", "Run the model on the CPU"), ("cuda", "CUDA", "Run the model on an NVIDIA GPU")],
-        default="cpu",
+        default=core.default("device"),
     )
     show_advanced: BoolProperty(name="Advanced", default=False)
-    t1: IntProperty(name="T1", default=0, min=0, max=200,
+    t1: IntProperty(name="T1", default=core.default("t1"), min=core.low("t1"), max=core.high("t1"), soft_max=100,
                     description="Coarse GCA steps (0: the weights' own count, 30 for the shipped ones)")
-    t2: IntProperty(name="T2", default=0, min=0, max=200,
+    t2: IntProperty(name="T2", default=core.default("t2"), min=core.low("t2"), max=core.high("t2"), soft_max=100,
                     description="Fine cGCA steps (0: the weights' own count, 15 for the shipped ones)")
     # No `update` callback: on Blender 4.2 a scene property's callback crashes Blender on quit once the
     # extension was uninstalled. The core takes 0 (keep all) or >= MIN_FACES: a toggle and a hard minimum.
     keep_all_faces: BoolProperty(name="Keep All Faces", default=False,
                                  description="Keep every triangle (a default region's full-stage mesh has "
                                              "1.9-3.1 million) instead of simplifying to Max Faces")
-    max_faces: IntProperty(name="Max Faces", default=1_000_000, min=MIN_FACES, soft_max=10_000_000,
+    max_faces: IntProperty(name="Max Faces", default=core.default("max_faces"), min=MIN_FACES, soft_max=10_000_000,
                            description="Simplify each completed mesh to at most this many triangles")
     face_limit_mode: EnumProperty(
         name="Simplify", default="BAKE",
@@ -99,11 +102,14 @@ class HGCA_PG_scene(bpy.types.PropertyGroup):
     drive_dir: StringProperty(name="Drive Folder", subtype="DIR_PATH", default="",
                               description="Folder the drive's tiles are kept in (running again resumes; empty: "
                                           "hgca_drive beside the saved .blend, else in the temporary folder)")
-    drive_tile_size: FloatProperty(name="Tile Size", default=38.4, min=4.0, soft_max=80.0, unit="LENGTH",
+    drive_tile_size: FloatProperty(name="Tile Size", default=core.default("drive_tile_size"),
+                                   min=max(4.0, core.low("drive_tile_size")), soft_max=80.0, unit="LENGTH",
                                    description="Side of each square tile along the trajectory")
-    drive_overlap: FloatProperty(name="Overlap", default=6.4, min=0.5, soft_max=20.0, unit="LENGTH",
+    drive_overlap: FloatProperty(name="Overlap", default=core.default("drive_overlap"),
+                                 min=max(0.5, core.low("drive_overlap")), soft_max=20.0, unit="LENGTH",
                                  description="Overlap of consecutive tiles (the seams are conditioned across it)")
-    drive_workers: IntProperty(name="Workers", default=1, min=1, max=4096, soft_max=16,
+    drive_workers: IntProperty(name="Workers", default=core.default("drive_workers"), min=core.low("drive_workers"),
+                               max=core.high("drive_workers"), soft_max=16,
                                description="Tiles at once (more than 1 runs them on a local Ray: needs hgca[ray])")
 
     progress: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")

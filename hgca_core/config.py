@@ -257,6 +257,19 @@ def addon_limits() -> dict[str, dict[str, Any]]:
     }
 
 
+# The CLI flag of each setting the add-on shows (`hgca complete` / `hgca drive`), for its one config -> argv
+CLI_FLAGS = {"samples": "--samples", "seed": "--seed", "stage": "--stage", "quality": "--quality",
+             "device": "--device", "t1": "--t1", "t2": "--t2", "max_faces": "--max-faces",
+             "drive_tile_size": "--size", "drive_overlap": "--overlap", "drive_workers": "--workers"}
+
+
+def addon_schema() -> dict[str, Any]:
+    """What the Blender add-on knows of the core's settings, as JSON: each setting's default, bounds and choices
+    (`addon_limits`) and its CLI flag. The extension build writes it into the zip (`core_settings.json`), and the
+    add-on makes its panel properties and every job's command line from it, so the two cannot drift apart."""
+    return {"schema": 1, "settings": addon_limits(), "flags": dict(CLI_FLAGS)}
+
+
 def as_dict(config: CompletionConfig | DriveConfig) -> dict[str, Any]:
     """The config as plain JSON-able values (a run's record)."""
     return asdict(config)

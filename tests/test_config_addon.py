@@ -1,49 +1,54 @@
-"""The Blender add-on's settings follow the core's config: it runs the core as a subprocess and cannot import
-it, so its property defaults are held equal to `CompletionConfig` / `DriveConfig`'s (`config.addon_limits`) and
-its bounds inside the core's (the panel never offers what the core refuses)."""
+"""The Blender add-on's settings are the core's by construction: the extension build writes
+`hgca_core.config.addon_schema()` into the add-on (`core_settings.json`), and the panel's properties, the batch
+options and every job's command line are made from it (`hgca_blender/settings.py`). These tests hold the build
+to the schema and the add-on's sources to using it instead of numbers of their own; tests/blender checks the
+registered properties themselves."""
 from __future__ import annotations
 
 import ast
+import json
 from pathlib import Path
 
 import pytest
 
-from hgca_core.config import addon_limits
+from hgca_blender import build_extension
+from hgca_core.config import CLI_FLAGS, addon_limits, addon_schema
 
-PROPERTIES = Path(__file__).resolve().parents[1] / "hgca_blender" / "properties.py"
+ADDON = Path(__file__).resolve().parents[1] / "hgca_blender"
 
 
-def _properties() -> dict[str, dict]:
-    """Each annotated property of the scene's PropertyGroup: its keyword arguments, constants resolved."""
-    tree = ast.parse(PROPERTIES.read_text())
-    constants = {t.id: ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.Assign)
-                 for t in n.targets if isinstance(t, ast.Name) and isinstance(n.value, ast.Constant)}
-    group = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "HGCA_PG_scene")
-    out = {}
-    for node in group.body:
-        if isinstance(node, ast.AnnAssign) and isinstance(node.annotation, ast.Call):
-            kw = {}
-            for k in node.annotation.keywords:
-                if isinstance(k.value, ast.Name) and k.value.id in constants:
-                    kw[k.arg] = constants[k.value.id]
-                elif k.arg in ("default", "min", "max"):
-                    try:
-                        kw[k.arg] = ast.literal_eval(k.value)
-                    except ValueError:          # a name imported from another module (the region's size)
-                        kw[k.arg] = ast.unparse(k.value)
-                elif k.arg == "items":
-                    kw["choices"] = [ast.literal_eval(e.elts[0]) for e in k.value.elts]
-            out[node.target.id] = kw
-    return out
+def test_the_staged_addon_carries_the_cores_schema(tmp_path: Path) -> None:
+    staged = build_extension.stage(tmp_path / "hgca")
+    assert json.loads((staged / "core_settings.json").read_text()) == json.loads(json.dumps(addon_schema()))
+
+
+def _keyword_sources(path: Path, group: str) -> dict[str, dict[str, str]]:
+    """Each annotated property of the PropertyGroup `group`: its keywords as source text."""
+    tree = ast.parse(path.read_text())
+    cls = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == group)
+    return {n.target.id: {k.arg: ast.unparse(k.value) for k in n.annotation.keywords}
+            for n in cls.body if isinstance(n, ast.AnnAssign) and isinstance(n.annotation, ast.Call)}
 
 
 @pytest.mark.parametrize("name", sorted(addon_limits()))
-def test_an_addon_setting_has_the_cores_default_and_stays_in_its_bounds(name):
-    core, prop = addon_limits()[name], _properties()[name]
-    assert prop.get("default") == core["default"], (name, prop, core)
-    if "choices" in core:
-        assert set(prop["choices"]) <= set(core["choices"])
-    if core.get("min") is not None:
-        assert prop.get("min") is not None and prop["min"] >= core["min"], (name, prop, core)
-    if core.get("max") is not None:
-        assert prop.get("max", 2**31 - 1) <= core["max"], (name, prop, core)
+def test_a_panel_setting_takes_its_default_and_bounds_from_the_schema(name: str) -> None:
+    props = _keyword_sources(ADDON / "properties.py", "HGCA_PG_scene")
+    keywords = props[name]
+    assert f"core.default('{name}')" in keywords["default"], (name, keywords)
+    core = addon_limits()[name]
+    for bound in ("min", "max"):
+        if core.get(bound) is not None and name != "max_faces":
+            assert bound in keywords and f"'{name}'" in keywords[bound], (name, bound, keywords)
+
+
+def test_every_setting_the_addon_shows_has_a_cli_flag() -> None:
+    assert set(addon_limits()) == set(CLI_FLAGS)
+
+
+def test_jobs_build_their_command_lines_through_one_function() -> None:
+    """No job types the core's flags itself: completion and drive command lines come from settings.core_args."""
+    for module in ("jobs.py", "drive_job.py"):
+        text = (ADDON / module).read_text()
+        assert "settings.core_args(" in text
+        for flag in ("--samples", "--seed", "--stage", "--quality", "--t1", "--t2", "--max-faces", "--workers"):
+            assert f'"{flag}"' not in text, (module, flag)

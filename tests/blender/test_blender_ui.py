@@ -157,3 +157,21 @@ def test_timer_is_registered_by_complete(addon) -> None:
             bpy.ops.hgca.complete()
     finally:
         jobs.cancel_all()
+
+
+def test_registered_panel_properties_are_the_cores_settings(addon) -> None:
+    """Defaults, bounds and choices of the panel's properties, read back from Blender's RNA, are the core's
+    (`hgca_core.config.addon_limits`, carried by the zip's core_settings.json)."""
+    from hgca_core.config import addon_limits
+
+    rna = bpy.context.scene.hgca.bl_rna.properties
+    for name, core in addon_limits().items():
+        prop = rna[name]
+        assert prop.default == pytest.approx(core["default"]) if prop.type != "ENUM" else prop.default == core[
+            "default"], name
+        if "choices" in core:
+            assert {item.identifier for item in prop.enum_items} <= set(core["choices"]), name
+        if core.get("min") is not None:
+            assert prop.hard_min >= core["min"] - 1e-6, name
+        if core.get("max") is not None:
+            assert prop.hard_max <= core["max"], name

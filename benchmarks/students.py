@@ -1,0 +1,187 @@
+"""Few-step students against the teacher, paired per scene, with the teacher's seed-to-seed band from the same run.
+
+    .venv/bin/python benchmarks/students.py --data data/synth2f [--count 8] [--samples 3] [--full-count 4]
+    .venv/bin/python benchmarks/students.py --page-only      (the page again from the JSON files of a run)
+
+Runs `hgca eval` on the synthetic test split (IoU, ReSim, Street CD and their TMD, k samples per scene) for:
+the teacher (coarse.pt, T1 30) at two seeds, and the coarse student (coarse_student.pt, T1 10) at the first;
+then the full stage on the first `--full-count` scenes: best (coarse.pt + fine.pt) at two seeds, fast (both
+students). A student holds a measure when its mean paired difference from the teacher is no worse than the
+teacher's own mean seed-to-seed difference on those scenes. Each eval is its own process (one at a time, so their
+seconds per completion are comparable). Writes benchmarks/results/students.{json,md,png}.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from common import REPO, write_page
+
+WEIGHTS = REPO / "hgca_core" / "weights"
+OUT = REPO / "benchmarks" / "results"
+SEEDS = (0, 1000)
+# metric: (label, higher is better)
+METRICS = {"iou": ("IoU", True), "resim_min": ("ReSim min", False), "resim_avg": ("ReSim avg", False),
+           "street_cd_min": ("Street CD min", False), "street_cd_avg": ("Street CD avg", False),
+           "tmd": ("TMD (diversity)", True)}
+
+
+def run_eval(name: str, args: argparse.Namespace, stage: str, count: int, seed: int, coarse: Path,
+             fine: Path | None, work: Path) -> dict:
+    out = work / f"{name}.json"
+    if out.is_file():
+        return json.loads(out.read_text())
+    method = "hgca-full" if stage == "full" else "hgca"
+    cmd = [sys.executable, "-m", "hgca_core.cli", "eval", "--data", args.data, "--split", "test", "--stage", stage,
+           "--methods", method, "--count", str(count), "--samples", str(args.samples), "--seed", str(seed),
+           "--weights", str(coarse), "-o", str(out)]
+    if fine is not None:
+        cmd += ["--fine-weights", str(fine)]
+    print("$", " ".join(cmd), flush=True)
+    subprocess.run(cmd, cwd=REPO, check=True)
+    return json.loads(out.read_text())
+
+
+def row(result: dict) -> dict:
+    (only,) = result["rows"].values()
+    return only
+
+
+def paired(teacher: dict, band: dict, student: dict) -> dict:
+    """Per metric: the teacher's mean, the student's mean paired difference, the teacher's seed-to-seed band (mean
+    absolute per-scene difference between its two seeds) and whether the student holds (no worse than the band)."""
+    out = {}
+    for key, (label, higher) in METRICS.items():
+        t = np.asarray(teacher["per_scene"].get(key, []), dtype=np.float64)
+        b = np.asarray(band["per_scene"].get(key, []), dtype=np.float64)
+        s = np.asarray(student["per_scene"].get(key, []), dtype=np.float64)
+        if not (len(t) and len(t) == len(b) == len(s)):
+            continue
+        ok = np.isfinite(t) & np.isfinite(b) & np.isfinite(s)
+        delta = (s - t)[ok]
+        noise = float(np.mean(np.abs(b - t)[ok]))
+        worse = -float(delta.mean()) if higher else float(delta.mean())   # > 0: the student is worse
+        out[key] = {"label": label, "teacher": float(t[ok].mean()), "student": float(s[ok].mean()),
+                    "delta": float(delta.mean()), "band": noise, "scenes": int(ok.sum()),
+                    "student_better_scenes": int(((delta > 0) if higher else (delta < 0)).sum()),
+                    "holds": bool(worse <= noise)}
+    return out
+
+
+def cpu() -> dict:
+    info = {"machine": platform.machine(), "python": platform.python_version()}
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+        info["model"] = next(ln.split(":", 1)[1].strip() for ln in text.splitlines() if ln.startswith("model name"))
+        flags = next(ln.split(":", 1)[1].split() for ln in text.splitlines() if ln.startswith("flags"))
+        info["flags"] = sorted(f for f in flags if f.startswith(("avx", "amx", "fma")))
+    except (OSError, StopIteration):
+        pass
+    import os
+
+    info["cores"] = os.cpu_count()
+    return info
+
+
+def page(r: dict) -> str:
+    lines = ["# Few-step students against the teacher", "",
+             "What `--quality fast` (the students, `hgca train --recipe coarse-student` / `fine-student`) costs in "
+             "quality against `--quality best` (the teacher chains of the paper), on the synthetic test split "
+             f"(`{r['data']}`), paired per scene, {r['samples']} samples per scene. The band is the teacher's own "
+             "seed-to-seed difference (seeds 0 and 1000), measured in the same run: a student *holds* a measure when "
+             "its mean difference from the teacher is no worse than that band. Made by `benchmarks/students.py`.", "",
+             f"Machine: {r['cpu'].get('model', '?')}, {r['cpu'].get('cores')} cores, "
+             f"flags {' '.join(r['cpu'].get('flags', []))}.", ""]
+    for part, title in (("coarse", "Coarse stage: coarse_student.pt (T1 10) vs coarse.pt (T1 30)"),
+                        ("full", "Full stage: fast (both students, T1 10 + T2 5) vs best (T1 30 + T2 15)")):
+        if part not in r["pairs"]:
+            continue
+        p = r["pairs"][part]
+        lines += [f"## {title}", "", f"{r['scenes'][part]} scenes; seconds per completion: teacher "
+                  f"{r['seconds'][part]['teacher']:.1f}, student {r['seconds'][part]['student']:.1f} "
+                  "(in the eval's process, one at a time).", "",
+                  "| measure | teacher | student | student - teacher | teacher seed band | student better on | holds |",
+                  "|---|---:|---:|---:|---:|---:|---|"]
+        for m in p.values():
+            lines.append(f"| {m['label']} | {m['teacher']:.4f} | {m['student']:.4f} | {m['delta']:+.4f} | "
+                         f"{m['band']:.4f} | {m['student_better_scenes']}/{m['scenes']} | "
+                         f"{'yes' if m['holds'] else 'no'} |")
+        lines.append("")
+    lines += ["IoU at 20 cm over visible cells (higher is better); ReSim and Street CD are Chamfer-type distances, "
+              "x10 in metres as in the paper (lower is better); TMD is the spread between a scene's samples "
+              "(higher: more diverse).", "", "![students](students.png)", ""]
+    return "\n".join(lines)
+
+
+def plot(r: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    parts = [p for p in ("coarse", "full") if p in r["pairs"]]
+    fig, axes = plt.subplots(1, len(parts), figsize=(6 * len(parts), 3.6), squeeze=False)
+    for ax, part in zip(axes[0], parts):
+        items = list(r["pairs"][part].values())
+        x = np.arange(len(items))
+        ax.bar(x, [m["delta"] for m in items], color=["tab:green" if m["holds"] else "tab:red" for m in items])
+        ax.errorbar(x, np.zeros(len(items)), yerr=[m["band"] for m in items], fmt="none", ecolor="k", capsize=4,
+                    label="teacher seed band")
+        ax.axhline(0, color="grey", lw=0.8)
+        ax.set_xticks(x, [m["label"] for m in items], rotation=30, ha="right", fontsize=8)
+        ax.set_title(f"{part}: student - teacher (green: holds)", fontsize=9)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--data", default="data/synth2f")
+    ap.add_argument("--count", type=int, default=8, help="test scenes for the coarse stage")
+    ap.add_argument("--full-count", type=int, default=4, help="test scenes for the full stage (0: none)")
+    ap.add_argument("--samples", type=int, default=3)
+    ap.add_argument("--work", default="runs/students_eval", help="the evals' JSON files (a rerun reuses them)")
+    ap.add_argument("--page-only", action="store_true")
+    args = ap.parse_args()
+    work = REPO / args.work
+    work.mkdir(parents=True, exist_ok=True)
+    coarse_t, coarse_s = WEIGHTS / "coarse.pt", WEIGHTS / "coarse_student.pt"
+    fine_t, fine_s = WEIGHTS / "fine.pt", WEIGHTS / "fine_student.pt"
+    runs = {"coarse": {"teacher": ("coarse", args.count, SEEDS[0], coarse_t, None),
+                       "band": ("coarse", args.count, SEEDS[1], coarse_t, None),
+                       "student": ("coarse", args.count, SEEDS[0], coarse_s, None)}}
+    if args.full_count:
+        runs["full"] = {"teacher": ("full", args.full_count, SEEDS[0], coarse_t, fine_t),
+                        "band": ("full", args.full_count, SEEDS[1], coarse_t, fine_t),
+                        "student": ("full", args.full_count, SEEDS[0], coarse_s, fine_s)}
+    result = {"data": args.data, "samples": args.samples, "cpu": cpu(), "pairs": {}, "scenes": {}, "seconds": {},
+              "weights": {}}
+    for part, named in runs.items():
+        rows = {}
+        for who, spec in named.items():
+            name = f"{part}_{who}"
+            if args.page_only and not (work / f"{name}.json").is_file():
+                break
+            res = run_eval(name, args, *spec, work)
+            rows[who] = row(res)
+            result["weights"][name] = res.get("weights_sha256")
+        if len(rows) < 3:
+            continue
+        result["pairs"][part] = paired(rows["teacher"], rows["band"], rows["student"])
+        result["scenes"][part] = rows["teacher"]["n"]
+        result["seconds"][part] = {w: float(rows[w].get("seconds_per_completion", float("nan")))
+                                   for w in ("teacher", "student")}
+    print(write_page(OUT, "students", result, page, plot))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
