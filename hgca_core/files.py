@@ -34,6 +34,9 @@ def mesh_format(out: str | os.PathLike, asked: str | None) -> str:
 
 def output_paths(out: str | os.PathLike, samples: int, fmt: str | None = None) -> list[Path]:
     """OUT_s<i>.<format> for each sample (the names every sample's mesh is written to)."""
+    if str(out).endswith(("/", os.sep)):
+        raise InputError("the output ends in a path separator, so it names a folder: give the mesh file's name "
+                         "(e.g. DIR/completion.ply)", str(out))
     path = Path(out)
     fmt = mesh_format(out, fmt)
     stem = path.stem if path.suffix.lower() in MESH_EXTS else path.name

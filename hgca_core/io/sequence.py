@@ -151,6 +151,10 @@ def _open_nuscenes(root: str) -> Sequence:
     files = _files_only(root, "nuscenes")
     own = os.path.join(root, "poses.json")
     poses = None
+    if os.path.lexists(own) and not os.path.isfile(own):   # a folder, a dangling link, a device: say so
+        kind = "a folder" if os.path.isdir(own) else "not a regular file"
+        raise InputError(f"the nuScenes folder's poses.json is {kind}: it must be the poses JSON file (or give "
+                         "--poses)", own)
     if os.path.isfile(own):
         poses = tuple(e.pose for e in match_poses(load_poses(own), list(files), own))
     return Sequence("nuscenes", root, tuple(files), poses, "nuscenes")

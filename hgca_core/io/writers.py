@@ -268,8 +268,8 @@ def _glb(mesh: "trimesh.Trimesh") -> bytes:
 
 def write_mesh(path: str | os.PathLike, mesh: "trimesh.Trimesh", batch: AtomicBatch | None = None) -> str:
     """Write a trimesh to `.ply` (with `observed_distance`, normals `nx ny nz` and other scalar vertex
-    attributes, and scalar face attributes such as `material`), `.obj` (geometry only: OBJ has no per-vertex
-    scalars) or `.glb` (one primitive per material, see `mesh_parts`, with normals; custom vertex attributes
+    attributes, and scalar face attributes such as `material`), `.obj` (geometry, and for a labelled mesh one group
+    and material per class; OBJ has no per-vertex scalars) or `.glb` (one primitive per material, see `mesh_parts`, with normals; custom vertex attributes
     as `_name`)."""
     path = os.fspath(path)
     ext = _extension(path, (".ply", ".obj", ".glb"))
@@ -277,10 +277,31 @@ def write_mesh(path: str | os.PathLike, mesh: "trimesh.Trimesh", batch: AtomicBa
         return _save(path, lambda f: _mesh_ply(mesh, f), batch)
     if ext == ".glb":
         payload = _glb(mesh)
+    elif "label" in mesh.face_attributes:
+        payload = _obj_by_class(mesh)
     else:
         data = mesh.export(file_type="obj")
         payload = data.encode("utf-8") if isinstance(data, str) else bytes(data)
     return _save(path, lambda f: f.write(payload), batch)
+
+
+def _obj_by_class(mesh: "trimesh.Trimesh") -> bytes:
+    """A labelled mesh as OBJ text with one group and one material name per class (`g road` / `usemtl road`, the
+    names of `io.classes.CLASS_NAMES`): what OBJ readers, Blender's among them, split into parts and materials."""
+    import io
+
+    from hgca_core.io.classes import CLASS_NAMES
+
+    labels = np.asarray(mesh.face_attributes["label"]).astype(np.int64).reshape(-1)
+    faces = np.asarray(mesh.faces, dtype=np.int64) + 1
+    out = io.StringIO()
+    out.write(f"# hgca completion: {len(faces)} faces, one group and material per class\n")
+    np.savetxt(out, np.asarray(mesh.vertices, dtype=np.float64), fmt="v %.8f %.8f %.8f")
+    for k in np.unique(labels):
+        name = CLASS_NAMES[k] if 0 <= k < len(CLASS_NAMES) else f"class_{k}"
+        out.write(f"g {name}\nusemtl {name}\n")
+        np.savetxt(out, faces[labels == k], fmt="f %d %d %d")
+    return out.getvalue().encode("utf-8")
 
 
 __all__ = ["AtomicBatch", "write_points", "write_mesh", "write_mesh_npz", "atomic_write"]

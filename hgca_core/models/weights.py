@@ -223,11 +223,34 @@ DEFAULT_INT_BOUNDS = (0, 65536)
 FLOAT_BOUND = 1e6
 
 
+MAX_CONFIG_NESTING = 4
+
+
+def _nesting(value: Any, limit: int = MAX_CONFIG_NESTING + 1) -> int:
+    """How deeply lists, tuples and dicts nest in `value`, counted without recursion and only up to `limit` (a
+    file may hold 100,000 nested lists)."""
+    level, frontier = 0, [value]
+    while frontier and level <= limit:
+        children = []
+        for v in frontier:
+            if isinstance(v, dict):
+                children.extend(v.values())
+            elif isinstance(v, (list, tuple)):
+                children.extend(v)
+        if not children:
+            break
+        level, frontier = level + 1, children[:4096]
+    return level
+
+
 def check_config(config: dict, kind: str, what: str, path: str) -> None:
     """Refuse config values of the wrong type or out of bounds (a string "30" for steps, 10^9 steps, NaN), with
     the key, before any model is built. Types come from the dataclass defaults; unknown keys are ignored."""
     fields = KINDS[kind].config.__dataclass_fields__  # type: ignore[attr-defined]
     for key, value in config.items():
+        if _nesting(value) > MAX_CONFIG_NESTING:
+            raise InputError(f"the {what}config's {key!r} is nested more than {MAX_CONFIG_NESTING} levels deep: "
+                             "not a model config (a config holds numbers, names and short lists)", path)
         if key not in fields:
             continue
         default = fields[key].default
@@ -259,12 +282,16 @@ def check_config(config: dict, kind: str, what: str, path: str) -> None:
 
 
 def check_finite(state_dict: dict[str, torch.Tensor], what: str, path: str) -> None:
-    """Refuse tensors holding NaN or infinity: such weights give an empty mesh with exit 0."""
+    """Refuse tensors holding NaN or infinity, and BatchNorm running variances below zero: such weights load but
+    give an empty or meaningless mesh with exit 0."""
     for name, t in state_dict.items():
         if t.is_floating_point() and not bool(torch.isfinite(t).all()):
             bad = int((~torch.isfinite(t)).sum())
             raise InputError(f"the {what}tensor {name!r} holds {bad} NaN or infinite value(s) of {t.numel()}: "
                              "the file is corrupt", path)
+        if name.endswith("running_var") and t.is_floating_point() and bool((t < 0).any()):
+            raise InputError(f"the {what}tensor {name!r} holds {int((t < 0).sum())} negative variance(s): a "
+                             "BatchNorm variance is never below zero, so the file is corrupt", path)
 
 
 def identify(blob: dict) -> tuple[str | None, bool]:
