@@ -4,9 +4,10 @@
     .venv/bin/python benchmarks/students.py --page-only      (the page again from the JSON files of a run)
 
 Runs `hgca eval` on the synthetic test split (IoU, ReSim, Street CD and their TMD, k samples per scene) for:
-the teacher (coarse.pt, T1 30) at two seeds, and the coarse student (coarse_student.pt, T1 10) at the first;
-then the full stage on the first `--full-count` scenes: best (coarse.pt + fine.pt) at two seeds, fast (both
-students). A student holds a measure when its mean paired difference from the teacher is no worse than the
+the teacher (coarse.pt, T1 30) at two seeds, the coarse student (coarse_student.pt, T1 10) and the teacher run
+for the student's 10 steps untrained (what the training adds) at the first; then the full stage on the first
+`--full-count` scenes the same way: best (coarse.pt + fine.pt) at two seeds, fast (both students), and the
+teacher's files on 10 + 5 steps. A student holds a measure when its mean paired difference from the teacher is no worse than the
 teacher's own mean seed-to-seed difference on those scenes. Each eval is its own process (one at a time, so their
 seconds per completion are comparable). Writes benchmarks/results/students.{json,md,png}.
 """
@@ -26,6 +27,7 @@ from common import REPO, write_page
 WEIGHTS = REPO / "hgca_core" / "weights"
 OUT = REPO / "benchmarks" / "results"
 SEEDS = (0, 1000)
+STUDENT_STEPS = (10, 5)   # T1, T2 of the students
 # metric: (label, higher is better)
 METRICS = {"iou": ("IoU", True), "resim_min": ("ReSim min", False), "resim_avg": ("ReSim avg", False),
            "street_cd_min": ("Street CD min", False), "street_cd_avg": ("Street CD avg", False),
@@ -33,7 +35,7 @@ METRICS = {"iou": ("IoU", True), "resim_min": ("ReSim min", False), "resim_avg":
 
 
 def run_eval(name: str, args: argparse.Namespace, stage: str, count: int, seed: int, coarse: Path,
-             fine: Path | None, work: Path) -> dict:
+             fine: Path | None, work: Path, steps: tuple[int, int] | None = None) -> dict:
     out = work / f"{name}.json"
     if out.is_file():
         return json.loads(out.read_text())
@@ -43,6 +45,8 @@ def run_eval(name: str, args: argparse.Namespace, stage: str, count: int, seed: 
            "--weights", str(coarse), "-o", str(out)]
     if fine is not None:
         cmd += ["--fine-weights", str(fine)]
+    if steps is not None:
+        cmd += ["--t1", str(steps[0]), "--t2", str(steps[1])]
     print("$", " ".join(cmd), flush=True)
     subprocess.run(cmd, cwd=REPO, check=True)
     return json.loads(out.read_text())
@@ -98,13 +102,18 @@ def page(r: dict) -> str:
              "its mean difference from the teacher is no worse than that band. Made by `benchmarks/students.py`.", "",
              f"Machine: {r['cpu'].get('model', '?')}, {r['cpu'].get('cores')} cores, "
              f"flags {' '.join(r['cpu'].get('flags', []))}.", ""]
-    for part, title in (("coarse", "Coarse stage: coarse_student.pt (T1 10) vs coarse.pt (T1 30)"),
-                        ("full", "Full stage: fast (both students, T1 10 + T2 5) vs best (T1 30 + T2 15)")):
+    titles = (("coarse", "Coarse stage: coarse_student.pt (T1 10) vs coarse.pt (T1 30)"),
+              ("coarse_short", "Coarse stage, untrained: coarse.pt run for 10 steps vs its own 30"),
+              ("full", "Full stage: fast (both students, T1 10 + T2 5) vs best (T1 30 + T2 15)"),
+              ("full_short", "Full stage, untrained: coarse.pt + fine.pt run for 10 + 5 steps vs 30 + 15"))
+    for part, title in titles:
         if part not in r["pairs"]:
             continue
         p = r["pairs"][part]
-        lines += [f"## {title}", "", f"{r['scenes'][part]} scenes; seconds per completion: teacher "
-                  f"{r['seconds'][part]['teacher']:.1f}, student {r['seconds'][part]['student']:.1f} "
+        base = part.split("_")[0]
+        who = "short" if part.endswith("_short") else "student"
+        lines += [f"## {title}", "", f"{r['scenes'][base]} scenes; seconds per completion: teacher "
+                  f"{r['seconds'][base]['teacher']:.1f}, {who} {r['seconds'][base].get(who, float('nan')):.1f} "
                   "(in the eval's process, one at a time).", "",
                   "| measure | teacher | student | student - teacher | teacher seed band | student better on | holds |",
                   "|---|---:|---:|---:|---:|---:|---|"]
@@ -125,8 +134,8 @@ def plot(r: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    parts = [p for p in ("coarse", "full") if p in r["pairs"]]
-    fig, axes = plt.subplots(1, len(parts), figsize=(6 * len(parts), 3.6), squeeze=False)
+    parts = [p for p in ("coarse", "coarse_short", "full", "full_short") if p in r["pairs"]]
+    fig, axes = plt.subplots(1, len(parts), figsize=(4.5 * len(parts), 3.6), squeeze=False)
     for ax, part in zip(axes[0], parts):
         items = list(r["pairs"][part].values())
         x = np.arange(len(items))
@@ -149,36 +158,45 @@ def main() -> int:
     ap.add_argument("--full-count", type=int, default=4, help="test scenes for the full stage (0: none)")
     ap.add_argument("--samples", type=int, default=3)
     ap.add_argument("--work", default="runs/students_eval", help="the evals' JSON files (a rerun reuses them)")
+    ap.add_argument("--parts", default="coarse,full", help="which parts to run (two invocations, one part each, "
+                                                             "can share a machine's cores)")
     ap.add_argument("--page-only", action="store_true")
     args = ap.parse_args()
     work = REPO / args.work
     work.mkdir(parents=True, exist_ok=True)
     coarse_t, coarse_s = WEIGHTS / "coarse.pt", WEIGHTS / "coarse_student.pt"
     fine_t, fine_s = WEIGHTS / "fine.pt", WEIGHTS / "fine_student.pt"
+    # "short": the teacher's weights run on the students' short chains untrained (what the training adds)
     runs = {"coarse": {"teacher": ("coarse", args.count, SEEDS[0], coarse_t, None),
                        "band": ("coarse", args.count, SEEDS[1], coarse_t, None),
-                       "student": ("coarse", args.count, SEEDS[0], coarse_s, None)}}
+                       "student": ("coarse", args.count, SEEDS[0], coarse_s, None),
+                       "short": ("coarse", args.count, SEEDS[0], coarse_t, None, STUDENT_STEPS)}}
     if args.full_count:
         runs["full"] = {"teacher": ("full", args.full_count, SEEDS[0], coarse_t, fine_t),
                         "band": ("full", args.full_count, SEEDS[1], coarse_t, fine_t),
-                        "student": ("full", args.full_count, SEEDS[0], coarse_s, fine_s)}
+                        "student": ("full", args.full_count, SEEDS[0], coarse_s, fine_s),
+                        "short": ("full", args.full_count, SEEDS[0], coarse_t, fine_t, STUDENT_STEPS)}
     result = {"data": args.data, "samples": args.samples, "cpu": cpu(), "pairs": {}, "scenes": {}, "seconds": {},
               "weights": {}}
+    wanted = set(args.parts.split(","))
     for part, named in runs.items():
+        if part not in wanted and not args.page_only:
+            continue
         rows = {}
         for who, spec in named.items():
             name = f"{part}_{who}"
             if args.page_only and not (work / f"{name}.json").is_file():
                 break
-            res = run_eval(name, args, *spec, work)
+            res = run_eval(name, args, *spec[:5], work, *spec[5:])
             rows[who] = row(res)
             result["weights"][name] = res.get("weights_sha256")
         if len(rows) < 3:
             continue
         result["pairs"][part] = paired(rows["teacher"], rows["band"], rows["student"])
+        if "short" in rows:
+            result["pairs"][f"{part}_short"] = paired(rows["teacher"], rows["band"], rows["short"])
         result["scenes"][part] = rows["teacher"]["n"]
-        result["seconds"][part] = {w: float(rows[w].get("seconds_per_completion", float("nan")))
-                                   for w in ("teacher", "student")}
+        result["seconds"][part] = {w: float(rows[w].get("seconds_per_completion", float("nan"))) for w in rows}
     print(write_page(OUT, "students", result, page, plot))
     return 0
 

@@ -112,6 +112,7 @@ def test_bench_and_eval_share_the_step_and_device_checks(tmp_path):
     clear_error(hgca("eval", "--t2", "-2", "--data", tmp_path), "argument --t2")
 
 
+@pytest.mark.slow   # minutes on 2 cores: `make test-slow` (CI runs it)
 def test_bench_times_the_weights_it_is_given(small_weights, tmp_path, capsys):
     """`hgca bench --weights` runs the given file (its own 3 steps, not the shipped file's 30) and names it by
     sha256 in the result; a file that is not weights is a clear error before any run writes anything."""

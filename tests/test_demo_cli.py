@@ -6,12 +6,14 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 from plyfile import PlyData
 
 from hgca_core.commands.demo import EXAMPLE_DIR
 from hgca_core.geometry.region import Region
 
 
+@pytest.mark.slow   # minutes on 2 cores: `make test-slow` (CI runs it)
 def test_demo_completes_the_bundled_example_in_its_region(tmp_path):
     res = subprocess.run([sys.executable, "-m", "hgca_core.cli", "demo", "--out", str(tmp_path), "--stage", "coarse",
                           "--semantics", "--progress", "none"], capture_output=True, text=True, timeout=600)

@@ -238,31 +238,32 @@ def test_readme_commands_parse_and_name_files_in_the_clone():
 
 
 def test_readme_python_quick_start_runs_from_the_clone(monkeypatch):
-    """The README's Python block as written, from the clone's root: the files it reads are there, the names it
-    imports exist and its call fits `hgca_core.complete` (the completion itself is stubbed: it takes minutes)."""
+    """The README's Python block as written, from the clone's root: the files it reads are there and its call fits
+    `hgca_core.complete_files` with settings that are config fields in range (the completion itself is stubbed: it
+    takes minutes; tests/test_preview_and_quality.py runs the real call against the CLI)."""
     import inspect
-    from types import SimpleNamespace
+    from pathlib import Path as P
 
     import hgca_core
     from hgca_core.config import CompletionConfig
+    from hgca_core.files import complete_files, output_paths
 
     block = re.search(r"```python\n(.*?)```", (REPO / "README.md").read_text(), re.S).group(1)
-    real, calls, exported = hgca_core.complete, [], []
+    calls = []
 
-    def complete(*args, **kwargs):
-        bound = inspect.signature(real).bind(*args, **kwargs).arguments
+    def stub(*args, **kwargs):
+        bound = inspect.signature(complete_files).bind(*args, **kwargs).arguments
         CompletionConfig(**bound.get("settings", {}))   # every setting is a config field in range
         calls.append(bound)
-        mesh = SimpleNamespace(export=exported.append)
-        return [SimpleNamespace(vertices=None, faces=None, observed_distance=None, mesh=mesh,
-                                seed=bound["settings"]["seed"])]
+        return output_paths(bound["out"], CompletionConfig(**bound.get("settings", {})).samples)
 
     monkeypatch.chdir(REPO)
-    monkeypatch.setattr(hgca_core, "complete", complete)
-    exec(compile(block, "README.md", "exec"), {})
-    assert len(calls) == 1 and exported == ["out/completion_0.ply"]
-    # the example's five scans, and each point's sensor
-    assert len(calls[0]["points"]) == len(calls[0]["origin_index"]) > 100_000
+    monkeypatch.setattr(hgca_core, "complete_files", stub)
+    scope: dict = {}
+    exec(compile(block, "README.md", "exec"), scope)
+    assert len(calls) == 1 and len(block.strip().splitlines()) <= 4
+    assert all(P(s).is_file() for s in calls[0]["scans"]) and P(calls[0]["poses"]).is_file()
+    assert [p.name for p in scope["paths"]] == ["completion_s0.ply", "completion_s1.ply", "completion_s2.ply"]
 
 
 @pytest.mark.parametrize("page", [p for p in PAGES if p.startswith("docs/") and p != "docs/cli.md"])

@@ -41,6 +41,7 @@ def small_fine(tmp_path_factory):
     return path
 
 
+@pytest.mark.slow   # minutes on 2 cores: `make test-slow` (CI runs it)
 def test_eval_full_stage_table(small_split, small_fine, tmp_path, capsys):
     out = tmp_path / "eval.json"
     cmd = [sys.executable, "-m", "hgca_core.cli", "eval", "--data", str(small_split), "--split", "val",

@@ -15,6 +15,7 @@ def overlapping(tiles) -> int:
     return sum(b[0] < a[1] for a, b in zip(spans, spans[1:]))
 
 
+@pytest.mark.slow   # several Ray workers: `make test-slow` (CI runs it)
 def test_declared_memory_limits_tiles_at_once(drive_weights, tmp_path):
     ray = pytest.importorskip("ray")
     scans, poses = write_drive(tmp_path / "scans", length=30.0)

@@ -196,6 +196,7 @@ def test_resume_after_being_killed_halfway(tmp_path, drive_weights):
     assert not list(out.rglob(".*.tmp")), "temp files of the killed run are gone"
 
 
+@pytest.mark.slow   # several Ray workers: `make test-slow` (CI runs it)
 def test_ray_two_workers_survive_a_killed_worker(finished, flat_drive, drive_weights, tmp_path):
     """`--workers 2` on a local Ray: one tile's worker is killed while it runs; Ray retries that tile, and the drive
     ends with every tile exactly once and the very meshes the in-process run made (same plan, same keys)."""

@@ -129,6 +129,7 @@ def test_field_is_continuous_clamped_and_differentiable():
     assert torch.isfinite(g).all() and g.abs().sum() > 0
 
 
+@pytest.mark.slow   # minutes on 2 cores: `make test-slow` (CI runs it)
 def test_training_reconstructs_held_out_surfaces(tmp_path):
     """A short run on plane + box scenes; the val scenes (other seeds) are decoded from latents of their own
     distance pairs. Bound: 3 cm Chamfer to the dense GT surface, and at most 75 % of the Chamfer of the cell

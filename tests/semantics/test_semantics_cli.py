@@ -37,6 +37,7 @@ def _run(*args):
                           capture_output=True, text=True, timeout=300)
 
 
+@pytest.mark.slow   # minutes on 2 cores: `make test-slow` (CI runs it)
 def test_cli_labels_every_format_and_keeps_the_geometry(small_weights, head_weights, scan, tmp_path):
     base = ["--weights", small_weights, "--region", REGION, "--stage", "coarse", "--samples", 2, "--seed", 3,
             "--progress", "none"]

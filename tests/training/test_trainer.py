@@ -115,6 +115,7 @@ def test_loss_falls_when_overfitting_one_example(tiny_dataset, tmp_path):
     assert losses[-1] < 0.7 * losses[0]
 
 
+@pytest.mark.slow   # minutes on 2 cores: `make test-slow` (CI runs it)
 def test_torchrun_two_cpu_ranks_with_their_own_streams(tiny_dataset, tmp_path):
     """Two gloo ranks: each draws its own chains and keeps its own random streams, also across a resume."""
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
