@@ -146,7 +146,8 @@ def run(args: argparse.Namespace) -> int:
     except (region.RegionError, core.CoreError) as exc:
         _log(f"error: {exc}")
         return 2
-    region.create_region_box(scene.collection, georef.region_to_scene(scene, world_box), world=world_box)
+    box = georef.region_to_scene(scene, world_box)   # Blender coordinates: the preview camera frames it
+    region.create_region_box(scene.collection, box, world=world_box)
     params = jobs.CompletionParams(python=python, **job_inputs.source_inputs(scene, [obj]),
                                    region=world_box, samples=args.samples, seed=args.seed,
                                    stage=args.stage, quality=args.quality, device=args.device, t1=args.t1, t2=args.t2,

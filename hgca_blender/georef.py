@@ -45,10 +45,21 @@ def scene_origin(scene: bpy.types.Scene) -> np.ndarray:
     return origin
 
 
-def ensure_origin(scene: bpy.types.Scene, centre_world: np.ndarray) -> np.ndarray:
+def ensure_origin(scene: bpy.types.Scene, centre_world: np.ndarray, placed: list | None = None) -> np.ndarray:
     """The scene's origin, first set to `centre_world` rounded to whole metres when the scene has none and
-    the data is far from zero (a georeferenced scan); local data leaves the scene without one."""
+    the data is far from zero (a georeferenced scan); local data leaves the scene without one.
+
+    `placed`: objects already in the scene in its local frame (earlier imports, results, region boxes). Setting an
+    origin now would move every one of them into the georeferenced frame, kilometres from where they are meant to
+    be, so that is refused with the reason instead: georeferencing never moves an earlier import."""
     if (not has_origin(scene)) and float(np.abs(centre_world).max()) > RECENTER_ABOVE:
+        if placed:
+            names = ", ".join(f"'{o.name}'" for o in placed[:3]) + (" ..." if len(placed) > 3 else "")
+            distance = float(np.linalg.norm(np.asarray(centre_world, dtype=np.float64)))
+            raise ValueError(f"this scan lies in a georeferenced frame ({distance / 1000:.1f} km from the scene's "
+                             f"zero), but the scene already holds {names} in its local frame: importing it here "
+                             "would move them there too. Import it into a new scene (Scene > New), or remove "
+                             "those objects first")
         origin = [float(v) for v in np.round(centre_world)]
         scene[ORIGIN_KEY] = origin
         scene[GIS_X], scene[GIS_Y] = origin[0], origin[1]

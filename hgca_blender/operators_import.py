@@ -105,7 +105,8 @@ def import_scans(python: str, paths: list[Path], collection: bpy.types.Collectio
     radius = point_size / 2 if point_size > 0 else colors.default_point_radius(points, origins is not None)
     centre = offset + (points.min(axis=0).astype(np.float64) + points.max(axis=0)) / 2
     previous = georef.origin_keys(scene)
-    origin = georef.ensure_origin(scene, centre)
+    placed = [o for o in scene.objects if o.get(mesh_build.ROLE_KEY) in ("scan", "result", "region")]
+    origin = georef.ensure_origin(scene, centre, placed)
     georef.set_crs(scene, crs)
     vertices, location = georef.place(points, offset, origin)
     try:

@@ -134,10 +134,14 @@ def test_batch_uses_the_core_that_install_core_set(addon, tmp_path: Path, monkey
     assert batch.core_python(argparse.Namespace(python=None)) == str(tmp_path / "chosen" / "python")
     assert batch.core_python(argparse.Namespace(python="/given/python")) == "/given/python"
     prefs().python_path = ""
-    made = installer.env_dir() / "bin" / "python"
-    made.parent.mkdir(parents=True, exist_ok=True)
+    import shutil
+
+    env = installer.env_dir()
+    assert not env.exists()
+    made = env / "bin" / "python"
+    made.parent.mkdir(parents=True)
     made.write_text("#!/bin/sh\n")
     try:
         assert batch.core_python(argparse.Namespace(python=None)) == str(made)
     finally:
-        made.unlink()
+        shutil.rmtree(env)

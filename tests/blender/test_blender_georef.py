@@ -189,3 +189,18 @@ def test_set_origin_from_the_panel_keeps_float64_and_refuses_under_placed_object
     with pytest.raises(RuntimeError, match="placed relative to the current origin"):
         bpy.ops.hgca.set_origin(x="0", y="0", z="0", crs="")
     assert list(scene["hgca_origin"]) == [631000.125, 4833000.375, 12.5]
+
+
+def test_a_far_import_never_moves_an_earlier_local_one(addon, tmp_path: Path) -> None:
+    """A local scan first (no origin), then a georeferenced one: setting the origin now would move the local scan
+    kilometres away, so the import is refused with the reason and the scene stays as it was."""
+    rng = np.random.default_rng(1)
+    write_las(tmp_path / "local.las", rng.uniform([-20, -20, 0], [20, 20, 5], (3000, 3)))
+    write_las(tmp_path / "far.las", rng.uniform([-20, -20, 0], [20, 20, 5], (3000, 3)) + UTM_OFFSETS["utm"])
+    local = import_las(tmp_path / "local.las")
+    before = scene_world(local)
+    assert "hgca_origin" not in bpy.context.scene
+    with pytest.raises(RuntimeError, match=r"already holds 'local' in its local frame.*new scene"):
+        bpy.ops.import_scene.hgca_lidar(filepath=str(tmp_path / "far.las"))
+    assert "hgca_origin" not in bpy.context.scene and len(bpy.data.objects) == 1
+    np.testing.assert_array_equal(scene_world(local), before)
