@@ -31,6 +31,7 @@ from .core import CoreError, Job, check_python, core_command, run_core_json
 
 # Share of the progress bar: reading the scans, the tiles, merging the samples.
 WEIGHTS = {"read": 0.05, "tile": 0.9, "merge": 0.05}
+CHAIN_SHARE = {"planner": (0.0, 0.02), "coarse": (0.02, 0.5), "fine": (0.5, 0.9), "mesh": (0.9, 1.0)}   # of a tile
 PLAN_ROLE = "drive_plan"         # ROLE_KEY of the collection holding the planned tiles' boxes
 PLAN_TIMEOUT_S = 1800
 RAY_ATTRIBUTES = ("scan_index", "origin_index")   # point attributes the core uses to split scans and cast rays
@@ -219,7 +220,7 @@ class DriveJob(Job):
         self.params = params
         self.scene_name = params.scene_name
         self.run_name = params.run_name or f"hGCA drive {datetime.now():%Y-%m-%d %H:%M:%S}"
-        self.tiles = 0
+        self.tiles, self.tiles_done = 0, 0
         self.tile_states: dict[int, str] = {}
         self.plan_collection = ""
         scene = bpy.data.scenes[params.scene_name]
@@ -247,6 +248,9 @@ class DriveJob(Job):
                 self.plan_collection = show_plan(scene, event["plan"]).name
             return
         tile = event.get("tile")
+        if stage == "tile-step":
+            self._on_step(event)
+            return
         if stage == "tile" and isinstance(tile, int) and tile >= 0:
             state = str(event.get("state") or "")
             self.tile_states[tile] = state
@@ -263,11 +267,24 @@ class DriveJob(Job):
         if math.isfinite(value):
             self.progress = max(self.progress, min(value, 1.0))
         if stage == "tile":
-            self.tiles = int(total)
+            self.tiles, self.tiles_done = int(total), int(step)
             self.status = f"Tiles {step}/{total} done" + (f": {event['message']}" if event.get("message") else "")
         else:
             self.status = f"{stage.capitalize()} {step}/{total}" + (f": {event['message']}" if event.get("message")
                                                                       else "")
+
+    def _on_step(self, event: dict[str, Any]) -> None:
+        """A chain step of the tile the core runs now: the bar moves within the tile (its coarse chain the first
+        half, the fine chain to 90 %, the mesh the rest), and the status names the tile and step."""
+        step, total, chain = event.get("step"), event.get("total"), str(event.get("chain") or "")
+        if not (isinstance(step, (int, float)) and isinstance(total, (int, float)) and total > 0 and self.tiles):
+            return
+        lo, hi = CHAIN_SHARE.get(chain, (0.0, 0.0))
+        within = lo + (hi - lo) * min(max(step / total, 0.0), 1.0)
+        value = WEIGHTS["read"] + WEIGHTS["tile"] * (self.tiles_done + within) / self.tiles
+        if math.isfinite(value):
+            self.progress = max(self.progress, min(value, WEIGHTS["read"] + WEIGHTS["tile"]))
+        self.status = f"Tiles {self.tiles_done}/{self.tiles} done: tile {event.get('tile')} {chain} {step}/{total}"
 
     def _collect_finished(self) -> None:
         """Objects for every tile drive.json lists as done that has none yet (finished since the last record)."""

@@ -101,9 +101,15 @@ def run(args: argparse.Namespace) -> int:
     def on_plan(plan: dict) -> None:
         progress.record("plan", 0, len(plan["tiles"]), f"{len(plan['tiles'])} tiles", plan=plan)
 
+    def on_step(index: int, stage: str, step: int, total: int) -> None:
+        """A chain step of the tile running here: a `tile-step` record (the add-on's bar moves within a tile)."""
+        if bar is not None and total:
+            bar.set_postfix_str(f"tile {index}: {stage} {step}/{total}")
+        progress.record("tile-step", step, total, f"tile {index}: {stage} {step}/{total}", tile=index, chain=stage)
+
     try:
         doc = drive(args.scans, args.out, poses=args.poses, fmt=args.fmt, frames=args.frames, config=config,
-                    report=progress, on_tile=on_tile, on_plan=on_plan)
+                    report=progress, on_tile=on_tile, on_plan=on_plan, on_step=on_step)
     except Exception as exc:
         progress.error(str(exc))
         raise

@@ -52,7 +52,8 @@ def plan_drive(scans: list[DriveScan], size: float = TILE_SIZE, overlap: float =
 def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str | os.PathLike | None = None,
           fmt: str | None = None, frames: str | None = None, config: DriveConfig | None = None, *,
           report: Report | None = None, on_tile: Callable[[int, int, int, str], None] | None = None,
-          on_plan: Callable[[dict], None] | None = None, **settings) -> dict:
+          on_plan: Callable[[dict], None] | None = None,
+          on_step: Callable[[int, str, int, int], None] | None = None, **settings) -> dict:
     """Complete the drive seen by `scans` (scan files in any order,
     `order` finds the drive's; or one sequence folder with `frames`)
     into DIR=`out` as `config` says (`DriveConfig`, default: its defaults); `settings` change single fields,
@@ -65,7 +66,8 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     coarse cells in their initial state. `workers` > 1 or an `address` runs tiles on Ray, each declaring
     `tile_memory` bytes (default: `pipeline.memory_need` of a tile) so no node takes more tiles at once than
     fit. `report(stage, step, total, message, sample)` hears of reading and merging; `on_plan(plan)` gets
-    `plan_document` once the tiles are placed; `on_tile(done, total, index, state)` hears of each tile: state
+    `plan_document` once the tiles are placed; `on_step(index, stage, step, total)` hears of the chain steps of
+    a tile running in this process (Ray's tiles run elsewhere and report when done); `on_tile(done, total, index, state)` hears of each tile: state
     "cached" (finished by an earlier run) or "queued" for every tile first, then "running" (in-process runs
     only) and "done"; `done` counts finished tiles, resumed ones too. Only one run writes DIR at a time
     (`DriveStore.lock`); a signal that ends the `hgca` CLI leaves drive.json "interrupted".
@@ -155,7 +157,8 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
                 if pending:
                     runner = _runner(workers, threads, address, memory)
                     doc["timings"]["engine_start_s"] = round(time.perf_counter() - t_tiles, 3)
-                    runner.run(pending, inputs, on_result, lambda i: tell(finished, len(jobs), i, "running"))
+                    runner.run(pending, inputs, on_result, lambda i: tell(finished, len(jobs), i, "running"),
+                               on_step=on_step)
             except BaseException as exc:
                 doc["status"] = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
                 doc["error"] = f"{type(exc).__name__}: {exc}"

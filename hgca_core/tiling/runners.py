@@ -43,14 +43,20 @@ class LocalRunner:
     name = "local"
 
     def run(self, pending: list[Pending], scans: list, on_result: Callable[[dict], None],
-            on_start: Callable[[int], None] | None = None) -> None:
+            on_start: Callable[[int], None] | None = None,
+            on_step: Callable[[int, str, int, int], None] | None = None) -> None:
+        """`on_step(index, stage, step, total)`: each chain step of the tile running (its coarse, fine and mesh
+        stages), so a bar moves within a tile of a minute or more, not only between tiles."""
         made: dict[int, NeighbourCells] = {}
         for p in pending:
             if on_start:
                 on_start(p.job.index)
             cells = {**p.ready_cells, **made}
             neighbours = [cells[j] for j in p.conditioned_on]
-            result = complete_tile(p.job, [scans[i] for i in p.job.scans], neighbours)
+            steps = None
+            if on_step is not None:
+                steps = (lambda index: lambda stage, step, total, *_: on_step(index, stage, step, total))(p.job.index)
+            result = complete_tile(p.job, [scans[i] for i in p.job.scans], neighbours, steps)
             made[p.job.index] = (p.job.region, cells_of(result))
             on_result(result)
 
@@ -111,8 +117,10 @@ class RayRunner:
                              f"{largest / 2**30:.1f} GiB: use smaller tiles (--size) or bigger nodes")
 
     def run(self, pending: list[Pending], scans: list, on_result: Callable[[dict], None],
-            on_start: Callable[[int], None] | None = None) -> None:
-        """`scans`: the drive's `inputs.DriveScan`s; `on_start` is not called (Ray decides when a task starts).
+            on_start: Callable[[int], None] | None = None,
+            on_step: Callable[[int, str, int, int], None] | None = None) -> None:
+        """`scans`: the drive's `inputs.DriveScan`s; `on_start` and `on_step` are not called (Ray decides when a
+        task starts, and its steps run in a worker).
 
         Tasks are submitted along the drive, at most `in_flight` at a time, and the driver lets go of every
         object as soon as no task still to be submitted needs it: a scan once its last tile is submitted, a

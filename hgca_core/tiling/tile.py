@@ -15,6 +15,7 @@ import socket
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -109,7 +110,8 @@ def transfer_cells(cells: np.ndarray, source: Region, target: Region) -> np.ndar
     return voxelize(target.to_local(source.to_world(cell_centers(c, COARSE))), COARSE, target.size)
 
 
-def complete_tile(job: TileJob, scans: list, neighbour_cells: list[tuple[tuple, list[np.ndarray]]]) -> dict:
+def complete_tile(job: TileJob, scans: list, neighbour_cells: list[tuple[tuple, list[np.ndarray]]],
+                  progress: Callable | None = None) -> dict:
     """Complete one tile. `scans`: the tile's `inputs.DriveScan`s (float64 world points, origins, rays);
     `neighbour_cells`: (region tuple, [coarse cells of sample k]) of each finished neighbour. Returns the tile's
     result: per sample the mesh in the tile's region frame (float32 vertices: exact to micrometres in a 40 m
@@ -143,7 +145,7 @@ def complete_tile(job: TileJob, scans: list, neighbour_cells: list[tuple[tuple, 
             samples.append(_empty(job.seed + k, len(fixed)))
             continue
         # every point, not only the box's: a ray to a hit outside the tile still crosses it (complete_local crops)
-        r = complete_local(everything, region, models, s.stage, 1, job.seed + k, s.t1, s.t2, None, s.precision,
+        r = complete_local(everything, region, models, s.stage, 1, job.seed + k, s.t1, s.t2, progress, s.precision,
                            s.max_faces, origins=origins, origin_index=rays, free_space=s.free_space,
                            fixed_cells=fixed)[0]
         samples.append({"vertices": np.asarray(r.mesh.vertices, dtype=np.float32),

@@ -172,3 +172,18 @@ def test_the_panels_steps_reach_the_drive_command(addon) -> None:
     props.t1, props.t2 = 0, 0
     args = addon_module("drive_job").drive_args(addon_module("operators_drive").drive_params(bpy.context))
     assert "--t1" not in args and "--t2" not in args
+
+
+def test_the_bar_moves_within_a_tile_on_its_chain_steps(addon) -> None:
+    """`tile-step` records (a tile's chain steps) move the drive's bar between two finished tiles."""
+    drive_job = addon_module("drive_job")
+    job = object.__new__(drive_job.DriveJob)
+    job.tiles, job.tiles_done, job.progress, job.status = 4, 1, 0.0, ""
+    seen = []
+    for step in range(1, 11):
+        job._on_step({"stage": "tile-step", "step": step, "total": 10, "chain": "coarse", "tile": 1})
+        seen.append(job.progress)
+    one = drive_job.WEIGHTS["tile"] / 4
+    assert seen == sorted(seen) and len(set(seen)) == 10
+    assert drive_job.WEIGHTS["read"] + one < seen[0] and seen[-1] < drive_job.WEIGHTS["read"] + 2 * one
+    assert job.status.startswith("Tiles 1/4 done: tile 1 coarse 10/10")

@@ -309,3 +309,20 @@ def test_bad_input_is_one_clear_error_and_writes_nothing(flat_drive, drive_weigh
         assert rc == 2 and message in err and "Traceback" not in err, err
         assert json.loads(out.splitlines()[-1])["stage"] == "error"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bare.npz", "file"]
+
+
+def test_a_tile_in_this_process_reports_its_chain_steps(flat_drive, drive_weights, tmp_path):
+    """`--progress jsonl` on one worker: between the tile records come `tile-step` records of the running tile's
+    chain (T1 steps a sample), so a bar moves within a tile, not only between tiles."""
+    scans, poses = flat_drive
+    proc = _cli(*scans, "--poses", poses, "--out", tmp_path / "d", "--weights", drive_weights, *CLI_SMALL,
+                "--progress", "jsonl")
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err[-2000:]
+    records = [json.loads(line) for line in out.splitlines()]
+    steps = [r for r in records if r["stage"] == "tile-step"]
+    assert steps and {r["chain"] for r in steps} >= {"coarse"}
+    first = [r for r in steps if r["tile"] == 0 and r["chain"] == "coarse"]
+    assert [r["step"] for r in first] == list(range(1, 4)) and all(r["total"] == 3 for r in first)
+    done = [i for i, r in enumerate(records) if r["stage"] == "tile" and r.get("state") == "done"]
+    assert any(r["stage"] == "tile-step" for r in records[:done[0]])
