@@ -15,6 +15,8 @@ MODES = ("AUTO", "RGB", "INTENSITY", "HEIGHT", "NONE")
 RAMP = np.array([[0.267, 0.005, 0.329], [0.229, 0.322, 0.546], [0.128, 0.567, 0.551],
                  [0.369, 0.789, 0.383], [0.993, 0.906, 0.144]], dtype=np.float32)
 RGB_NAMES = (("red", "green", "blue"), ("r", "g", "b"))
+# the darkest intensity grey (linear): the weakest returns stay visible on Blender's dark viewport background
+INTENSITY_FLOOR = 0.12
 
 
 def rgb_of(attributes: dict[str, np.ndarray]) -> np.ndarray | None:
@@ -40,6 +42,18 @@ def normalised(values: np.ndarray, lo_pct: float = 1.0, hi_pct: float = 99.0) ->
     return np.clip((np.nan_to_num(v, nan=lo) - lo) / (hi - lo), 0.0, 1.0).astype(np.float32)
 
 
+def equalised(values: np.ndarray) -> np.ndarray:
+    """Each value's share of the finite values at or below it (0..1): LiDAR intensities are heavy-tailed (most
+    returns weak, a few retro-reflectors strong), so a linear scale leaves nearly every point black; ranks
+    spread them evenly. NaN maps to 0."""
+    v = np.asarray(values, dtype=np.float64)
+    finite = np.sort(v[np.isfinite(v)])
+    if not len(finite) or finite[0] == finite[-1]:
+        return np.full(len(v), 0.5, dtype=np.float32)
+    ranks = np.searchsorted(finite, np.nan_to_num(v, nan=-np.inf), side="right") / len(finite)
+    return ranks.astype(np.float32)
+
+
 def ramp(t: np.ndarray, stops: np.ndarray = RAMP) -> np.ndarray:
     """(N, 3) colours of `t` in 0..1 along `stops` (linear between them)."""
     x = np.clip(np.asarray(t, dtype=np.float64), 0.0, 1.0) * (len(stops) - 1)
@@ -63,8 +77,8 @@ def point_colors(mode: str, points: np.ndarray, attributes: dict[str, np.ndarray
     elif mode == "INTENSITY":
         if "intensity" not in attributes:
             raise ValueError("this scan has no intensity: colour it by height")
-        grey = normalised(attributes["intensity"])
-        colors = np.repeat(grey[:, None], 3, axis=1)
+        grey = INTENSITY_FLOOR + (1.0 - INTENSITY_FLOOR) * equalised(attributes["intensity"])
+        colors = np.repeat(grey[:, None].astype(np.float32), 3, axis=1)
     elif mode == "HEIGHT":
         colors = ramp(normalised(np.asarray(points)[:, 2], 2.0, 98.0))
     else:

@@ -29,11 +29,20 @@ def example():
     return scans.points[region.contains_local(local)], region
 
 
-@pytest.mark.parametrize("stage", ["coarse", "full"])
-def test_shipped_weights_complete_the_example(example, stage, one_thread):
+@pytest.mark.parametrize("stage,quality", [("coarse", "best"), ("full", "best"), ("coarse", "fast"),
+                                           ("full", "fast")])
+def test_shipped_weights_complete_the_example(example, stage, quality, one_thread):
+    """Both quality levels: the teacher chains (best) and the few-step students (fast)."""
+    from pathlib import Path
+
+    from hgca_core.config import CompletionConfig
+
+    cfg = CompletionConfig(stage=stage, quality=quality)
+    for path in (cfg.coarse_file(), cfg.fine_file()) if stage == "full" else (cfg.coarse_file(),):
+        assert Path(path or shipped("coarse")).exists(), "the package must ship its weights"
     assert shipped("coarse" if stage == "coarse" else "fine").exists(), "the package must ship its weights"
     pts, region = example
-    res = hgca_core.complete(pts, region=region, samples=1, seed=0, stage=stage)[0]
+    res = hgca_core.complete(pts, region=region, config=cfg.with_(samples=1, seed=0))[0]
     v = res.vertices
     assert len(res.faces) > 1000
     local = region.to_local(v)

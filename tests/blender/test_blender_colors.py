@@ -43,7 +43,11 @@ def test_sweep_defaults_to_intensity_grey_and_small_points(addon) -> None:
     obj = import_one(filepath=str(NUSCENES))
     rgba = colors_of(obj)
     assert np.array_equal(rgba[:, 0], rgba[:, 1]) and np.array_equal(rgba[:, 1], rgba[:, 2])
-    assert rgba[:, 0].min() == 0.0 and rgba[:, 0].max() == 1.0 and 0.0 < np.median(rgba[:, 0]) < 1.0
+    floor = addon_module("colors").INTENSITY_FLOOR
+    assert rgba[:, 0].min() >= floor and rgba[:, 0].max() == 1.0
+    # readable on the dark viewport: the real sweep's heavy-tailed intensities spread over the grey range (a
+    # linear scale between percentiles put its median near black)
+    assert 0.4 < np.median(rgba[:, 0]) < 0.75 and np.mean(rgba[:, 0] < 0.2) < 0.2
     assert addon_module("mesh_build").point_radius(obj) == pytest.approx(0.03)
 
 
