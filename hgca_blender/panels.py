@@ -142,6 +142,33 @@ class HGCA_PT_advanced(_Section, bpy.types.Panel):
         row.prop(props, "t2")
 
 
+_SIZES: dict[str, tuple[float, int | None]] = {}   # folder -> (when measured, bytes): redraws reuse it for 5 s
+SIZE_EVERY_S = 5.0
+
+
+def folder_size(folder: str) -> int | None:
+    """Bytes the drive folder holds (its tile cache, meshes and record), None when it does not exist; measured at
+    most every SIZE_EVERY_S seconds, since the panel redraws often."""
+    import os
+    import time
+
+    now = time.monotonic()
+    when, size = _SIZES.get(folder, (-1e9, None))
+    if now - when < SIZE_EVERY_S:
+        return size
+    size = None
+    if os.path.isdir(folder):
+        size = 0
+        for root, _dirs, files in os.walk(folder):
+            for name in files:
+                try:
+                    size += os.path.getsize(os.path.join(root, name))
+                except OSError:
+                    pass
+    _SIZES[folder] = (now, size)
+    return size
+
+
 class HGCA_PT_drive(_Section, bpy.types.Panel):
     """Complete along drive: tiles along the sources' sensor path, kept in a folder, resumable."""
 
@@ -152,6 +179,12 @@ class HGCA_PT_drive(_Section, bpy.types.Panel):
         layout.use_property_decorate = False
         props = context.scene.hgca
         layout.prop(props, "drive_dir")
+        from .operators_drive import drive_folder
+
+        folder = drive_folder(context)
+        used = folder_size(folder)
+        layout.label(text=f"{folder}: {used / 2**20:,.0f} MiB" if used is not None else f"{folder}: empty",
+                     icon="FILE_FOLDER")
         layout.prop(props, "drive_tile_size")
         layout.prop(props, "drive_overlap")
         layout.prop(props, "drive_workers")

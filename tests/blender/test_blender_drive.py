@@ -163,6 +163,22 @@ def test_drive_panel_draws_its_settings(addon) -> None:
     assert {n for k, n in log if k == "operator"} == {"hgca.drive_plan", "hgca.drive"}
 
 
+def test_drive_panel_shows_the_folder_and_its_size(addon, tmp_path) -> None:
+    """The panel names the drive folder and what it holds on disk (its tile cache grows ~100 MiB a tile)."""
+    from test_blender_ui import draw
+
+    panels = addon_module("panels")
+    folder = tmp_path / "drive"
+    bpy.context.scene.hgca.drive_dir = str(folder)
+    labels = [n for k, n in draw(panels.HGCA_PT_drive) if k == "label"]
+    assert any(lbl.endswith(": empty") and str(folder) in lbl for lbl in labels), labels
+    folder.mkdir()
+    (folder / "tile.npz").write_bytes(b"0" * (3 * 2**20))
+    panels._SIZES.clear()
+    labels = [n for k, n in draw(panels.HGCA_PT_drive) if k == "label"]
+    assert any(lbl.endswith(": 3 MiB") for lbl in labels), labels
+
+
 def test_the_panels_steps_reach_the_drive_command(addon) -> None:
     """T1 and T2 set in the panel go to `hgca drive` as they go to `hgca complete` (T2 was once dropped)."""
     props = bpy.context.scene.hgca
