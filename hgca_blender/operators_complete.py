@@ -9,7 +9,7 @@ import math
 
 import bpy
 
-from . import core, georef, job_inputs, jobs, preferences, properties, region, sources
+from . import core, georef, job_inputs, jobs, messages, preferences, properties, region, sources
 
 
 def _scene_props(context: bpy.types.Context):
@@ -68,6 +68,90 @@ def gather_params(context: bpy.types.Context, preview: bool = False) -> jobs.Com
         extra_args=preferences.core_extra_args(context))
 
 
+def place_region_box(scene: bpy.types.Scene, collection: bpy.types.Collection, world: region.Region,
+                     names: list[str]) -> str:
+    """The box of world region `world` in `scene`, made the panel's region; returns the report line."""
+    props = scene.hgca
+    box_region = georef.region_to_scene(scene, world)
+    box = region.create_region_box(collection, box_region, world=world)
+    props.region_object = box
+    props.region_mode = "BOX"
+    props.region_center = box_region[:3]
+    props.region_yaw = math.radians(box_region[6])
+    shown = ", ".join(f"'{n}'" for n in names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+    return f"Added '{box.name}' around {shown}"
+
+
+# Add Region Box in the interface: the scene is read on the main thread, `hgca region` (3-5 s: the core's
+# Python starting, the scan read) runs on a thread, and a timer adds the box, so the button never freezes Blender.
+REGION_BOX: dict = {}
+
+
+def start_region_box(context: bpy.types.Context) -> None:
+    """Begin Add Region Box (returns at once); `poll_region_box` adds the box when the core has answered.
+    Raises CoreError / SourceError / RegionError for what can be said at once."""
+    import shutil
+    import tempfile
+    import threading
+    from pathlib import Path
+
+    if REGION_BOX.get("thread") is not None and REGION_BOX["thread"].is_alive():
+        raise region.RegionError("a region box is being placed already")
+    objs = source_objects(context)
+    sources.world_points(objs)   # refuses an empty selection or objects without points, with the reason
+    python = preferences.core_python(context)
+    core.check_python(python)
+    folder = Path(tempfile.mkdtemp(prefix="hgca_region_"))
+    try:
+        args = region.region_request(context.scene, objs, tuple(context.scene.hgca.region_size), folder)
+    except Exception:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    REGION_BOX.clear()
+    REGION_BOX.update(scene=context.scene.name, names=[o.name for o in objs],
+                      collection=(context.collection or context.scene.collection).name)
+
+    def work() -> None:
+        try:
+            REGION_BOX["world"] = region.ask_core(python, args, folder)
+        except Exception as exc:  # noqa: BLE001  (said on the main thread)
+            REGION_BOX["error"] = exc
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+
+    REGION_BOX["thread"] = threading.Thread(target=work, name="hgca-region", daemon=True)
+    REGION_BOX["thread"].start()
+    if not bpy.app.background:
+        bpy.app.timers.register(_region_tick, first_interval=0.2)
+
+
+def poll_region_box() -> str | None:
+    """The report once the background Add Region Box has ended (the box added, or the error reported), else
+    None; main thread."""
+    thread = REGION_BOX.get("thread")
+    if thread is None or thread.is_alive():
+        return None
+    REGION_BOX["thread"] = None
+    scene = bpy.data.scenes.get(REGION_BOX.get("scene", ""))
+    if "error" in REGION_BOX or scene is None:
+        text = f"Add Region Box failed: {REGION_BOX.get('error', 'the scene is gone')}"
+        messages.report("ERROR", text)
+        return text
+    collection = bpy.data.collections.get(REGION_BOX["collection"]) or scene.collection
+    text = place_region_box(scene, collection, REGION_BOX["world"], REGION_BOX["names"])
+    messages.report("INFO", text)
+    if not bpy.app.background:
+        try:
+            bpy.ops.ed.undo_push(message="Add Region Box")
+        except RuntimeError:
+            pass
+    return text
+
+
+def _region_tick() -> float | None:
+    return None if poll_region_box() is not None else 0.2
+
+
 class HGCA_OT_add_region_box(bpy.types.Operator):
     """Add the box `hgca region` gives around the source points: centred on the sensor, 1 m below the ground"""
 
@@ -78,6 +162,10 @@ class HGCA_OT_add_region_box(bpy.types.Operator):
     def execute(self, context: bpy.types.Context) -> set[str]:
         props = _scene_props(context)
         try:
+            if context.window is not None and not bpy.app.background:
+                start_region_box(context)   # the core answers on a thread; a timer adds the box
+                self.report({"INFO"}, "Placing the region box ...")
+                return {"FINISHED"}
             objs = source_objects(context)
             sources.world_points(objs)   # refuses an empty selection or objects without points, with the reason
             world = region.default_world_region(preferences.core_python(context), context.scene, objs,
@@ -85,14 +173,9 @@ class HGCA_OT_add_region_box(bpy.types.Operator):
         except (core.CoreError, sources.SourceError, region.RegionError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        box_region = georef.region_to_scene(context.scene, world)
-        box = region.create_region_box(context.collection or context.scene.collection, box_region, world=world)
-        props.region_object = box
-        props.region_mode = "BOX"
-        props.region_center = box_region[:3]
-        props.region_yaw = math.radians(box_region[6])
-        names = ", ".join(f"'{o.name}'" for o in objs[:3]) + (f" and {len(objs) - 3} more" if len(objs) > 3 else "")
-        self.report({"INFO"}, f"Added '{box.name}' around {names}")
+        text = place_region_box(context.scene, context.collection or context.scene.collection, world,
+                                [o.name for o in objs])
+        self.report({"INFO"}, text)
         return {"FINISHED"}
 
 

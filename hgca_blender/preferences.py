@@ -105,14 +105,18 @@ class HGCA_OT_check_python(bpy.types.Operator):
         python = core_python(context)
         prefs = addon_preferences(context)
         try:
+            if not bpy.app.background:   # the interface: on a thread, the answer in a few seconds (no freeze)
+                installer.start_check(python)
+                if prefs is not None:
+                    prefs.check_result = f"Checking {python}: importing torch and loading the weights ..."
+                return {"FINISHED"}
             found = installer.check_core(python)
         except core.CoreError as exc:
             if prefs is not None:
                 prefs.check_result = f"Error: {exc}"
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        text = (f"hgca {found.get('hgca', '?')}, torch {found.get('torch', '?')}"
-                f"{', CUDA' if found.get('cuda') else ''}: the shipped weights load ({python})")
+        text = installer.check_text(found, python)
         if prefs is not None:
             prefs.check_result = text
         self.report({"INFO"}, text)

@@ -46,39 +46,48 @@ class RegionError(ValueError):
 Region = tuple[float, float, float, float, float, float, float]
 
 
-def default_world_region(python: str, scene: bpy.types.Scene, objects: list[bpy.types.Object],
-                         size: tuple[float, float, float] = DEFAULT_SIZE) -> Region:
-    """The core's default region around source objects, in world coordinates: `hgca region --json` of the scan
-    files themselves when the objects are one unchanged import (float64, so the box is the one `hgca complete
-    FILE` uses, bit for bit), else of their world points and sensor origins.
-
-    Raises CoreError when the core cannot be run or refuses the points."""
+def region_request(scene: bpy.types.Scene, objects: list[bpy.types.Object], size: tuple[float, float, float],
+                   folder: Path) -> list[str]:
+    """The `hgca region` arguments for the default region around source objects (main thread: reads Blender
+    data): the scan files themselves when the objects are one unchanged import (float64, so the box is the one
+    `hgca complete FILE` uses, bit for bit), else their world points and sensor origins written to `folder`."""
     size = clean(tuple(size))   # the panel's float32 size as the user typed it
     if min(size) <= 0:
         raise RegionError(f"region size must be positive, got {tuple(size)}")
     size_arg = "--size=" + ",".join(repr(float(v)) for v in size)
-    tmpdir = Path(tempfile.mkdtemp(prefix="hgca_region_"))
-    try:
-        files = job_inputs.unchanged_files(scene, objects)
-        if files is not None:
-            args = ["region", *files.args()]
-        else:
-            pts = np.concatenate([job_inputs.object_world_points(scene, o) for o in objects])
-            if len(pts) == 0:
-                raise RegionError("cannot place a region: the source objects have no points")
-            arrays = {"points": pts}
-            origins = sources.world_origins(objects)
-            if origins is not None and len(origins):
-                arrays["origins"] = georef.to_world(scene, origins)
-            np.savez(tmpdir / "points.npz", **arrays)
-            args = ["region", str(tmpdir / "points.npz")]
-        answer = run_core_json(python, [*args, size_arg, "--json"], timeout=REGION_TIMEOUT_S, cwd=tmpdir)
-    finally:
-        shutil.rmtree(tmpdir, ignore_errors=True)
+    files = job_inputs.unchanged_files(scene, objects)
+    if files is not None:
+        return ["region", *files.args(), size_arg, "--json"]
+    pts = np.concatenate([job_inputs.object_world_points(scene, o) for o in objects])
+    if len(pts) == 0:
+        raise RegionError("cannot place a region: the source objects have no points")
+    arrays = {"points": pts}
+    origins = sources.world_origins(objects)
+    if origins is not None and len(origins):
+        arrays["origins"] = georef.to_world(scene, origins)
+    np.savez(folder / "points.npz", **arrays)
+    return ["region", str(folder / "points.npz"), size_arg, "--json"]
+
+
+def ask_core(python: str, args: list[str], folder: Path) -> Region:
+    """`hgca region ... --json` answered (any thread: no Blender data): the world region. CoreError when the core
+    cannot be run or refuses the points."""
+    answer = run_core_json(python, args, timeout=REGION_TIMEOUT_S, cwd=folder)
     values = answer.get("region")
     if not isinstance(values, list) or len(values) != 7:
         raise CoreError(f"hgca region answered without a 7-number region: {answer!r}")
     return tuple(float(v) for v in values)  # type: ignore[return-value]
+
+
+def default_world_region(python: str, scene: bpy.types.Scene, objects: list[bpy.types.Object],
+                         size: tuple[float, float, float] = DEFAULT_SIZE) -> Region:
+    """The core's default region around source objects, in world coordinates (`region_request` + `ask_core`, in
+    this thread: batch runs and scripts)."""
+    folder = Path(tempfile.mkdtemp(prefix="hgca_region_"))
+    try:
+        return ask_core(python, region_request(scene, objects, size, folder), folder)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def _local_bounds(obj: bpy.types.Object) -> tuple[np.ndarray, np.ndarray]:

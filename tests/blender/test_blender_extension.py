@@ -85,6 +85,27 @@ def test_check_button_reports_the_core_version(addon) -> None:
     assert prefs().check_result.startswith("Error")
 
 
+def test_check_in_the_interface_returns_at_once_and_reports_when_done(addon) -> None:
+    """The interface's *Check* runs on a thread: starting it takes well under a second (importing torch and
+    loading the weights take 5-10 s), and its answer reaches the preferences and the report list."""
+    import time
+
+    installer = addon_module("installer")
+    from bl_helpers import CORE_PYTHON
+
+    t = time.monotonic()
+    installer.start_check(CORE_PYTHON)
+    started = time.monotonic() - t
+    assert started < 1.0, started
+    deadline = time.monotonic() + 300
+    while (result := installer.poll_check()) is None:
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+    assert result[0] == "INFO" and prefs().check_result.startswith("hgca ")
+    with pytest.raises(addon_module("core").CoreError, match="not found"):
+        installer.start_check("/nonexistent/python")
+
+
 def test_python_detection_order(addon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     preferences = addon_module("preferences")
     monkeypatch.setenv("HGCA_PYTHON", "/opt/core/bin/python")

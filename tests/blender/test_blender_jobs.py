@@ -421,3 +421,21 @@ def test_preview_button_asks_the_core_for_one_fast_smooth_sample(addon, tmp_path
     args = jobs.completion_args(ops.gather_params(bpy.context), tmp_path / "in.npz", tmp_path / "out.npz")
     assert args[args.index("--stage") + 1] == "coarse" and args[args.index("--quality") + 1] == "best"
     assert args[args.index("--samples") + 1] == "3"
+
+
+def test_add_region_box_in_the_interface_returns_at_once_and_adds_the_box_later(addon) -> None:
+    """The interface's Add Region Box asks `hgca region` on a thread: starting takes well under a second, and the
+    box (the same exact region as the synchronous path) arrives on a later main-thread poll."""
+    ops = addon_module("operators_complete")
+    scan = import_nuscenes()
+    t = time.monotonic()
+    ops.start_region_box(bpy.context)
+    assert time.monotonic() - t < 1.0
+    assert bpy.context.scene.hgca.region_object is None
+    deadline = time.monotonic() + 120
+    while (text := ops.poll_region_box()) is None:
+        assert time.monotonic() < deadline
+        time.sleep(0.1)
+    box = bpy.context.scene.hgca.region_object
+    assert text.startswith("Added") and f"'{scan.name}'" in text and box is not None
+    assert list(addon_module("region").world_region_of(bpy.context.scene, box)) == core_region(str(NUSCENES))
