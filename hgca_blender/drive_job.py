@@ -360,10 +360,40 @@ def start_drive_job(params: DriveParams, objects: list[bpy.types.Object] | None 
 
 
 def plan_objects(scene: bpy.types.Scene, params: DriveParams, objects: list[bpy.types.Object]) -> bpy.types.Collection:
-    """Ask the core where the tiles of a drive through `objects` go and show them as boxes (writes nothing else)."""
+    """Ask the core where the tiles of a drive through `objects` go and show them as boxes (writes nothing else;
+    in this thread: batch runs and scripts)."""
     folder = Path(tempfile.mkdtemp(prefix="hgca_drive_plan_"))
     try:
         params.scans = write_object_scans(scene, objects, folder)
         return show_plan(scene, plan_drive(params))
     finally:
         shutil.rmtree(folder, ignore_errors=True)
+
+
+def start_plan(scene: bpy.types.Scene, params: DriveParams, objects: list[bpy.types.Object]) -> None:
+    """*Show Tiles* in the interface (returns at once): the scans are written here, the core plans on a thread
+    (`background`), and the boxes are drawn on the main thread (`background.poll("drive_plan")` elsewhere)."""
+    from . import background
+
+    if background.busy("drive_plan"):
+        raise RuntimeError("Show Tiles is still running")
+    check_python(params.python)
+    folder = Path(tempfile.mkdtemp(prefix="hgca_drive_plan_"))
+    try:
+        params.scans = write_object_scans(scene, objects, folder)
+    except Exception:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    scene_name = scene.name
+
+    def work() -> dict[str, Any]:
+        try:
+            return plan_drive(params)
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+
+    def finish(plan: dict[str, Any]) -> str:
+        collection = show_plan(bpy.data.scenes[scene_name], plan)
+        return f"{len(collection.objects)} tiles in '{collection.name}'"
+
+    background.start("drive_plan", "Show Tiles", work, finish)

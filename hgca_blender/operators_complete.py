@@ -9,7 +9,7 @@ import math
 
 import bpy
 
-from . import core, georef, job_inputs, jobs, messages, preferences, properties, region, sources
+from . import background, core, georef, job_inputs, jobs, preferences, properties, region, sources
 
 
 def _scene_props(context: bpy.types.Context):
@@ -82,21 +82,17 @@ def place_region_box(scene: bpy.types.Scene, collection: bpy.types.Collection, w
     return f"Added '{box.name}' around {shown}"
 
 
-# Add Region Box in the interface: the scene is read on the main thread, `hgca region` (3-5 s: the core's
-# Python starting, the scan read) runs on a thread, and a timer adds the box, so the button never freezes Blender.
-REGION_BOX: dict = {}
-
-
 def start_region_box(context: bpy.types.Context) -> None:
-    """Begin Add Region Box (returns at once); `poll_region_box` adds the box when the core has answered.
-    Raises CoreError / SourceError / RegionError for what can be said at once."""
+    """Begin Add Region Box in the interface (returns at once): the scene is read here, `hgca region` (3-5 s: the
+    core's Python starting, the scan read) answers on a thread, and the box is added on the main thread
+    (`background`; `background.poll("region_box")` outside the interface). Raises CoreError / SourceError /
+    RegionError for what can be said at once."""
     import shutil
     import tempfile
-    import threading
     from pathlib import Path
 
-    if REGION_BOX.get("thread") is not None and REGION_BOX["thread"].is_alive():
-        raise region.RegionError("a region box is being placed already")
+    if background.busy("region_box"):
+        raise RuntimeError("Add Region Box is still running")
     objs = source_objects(context)
     sources.world_points(objs)   # refuses an empty selection or objects without points, with the reason
     python = preferences.core_python(context)
@@ -107,49 +103,20 @@ def start_region_box(context: bpy.types.Context) -> None:
     except Exception:
         shutil.rmtree(folder, ignore_errors=True)
         raise
-    REGION_BOX.clear()
-    REGION_BOX.update(scene=context.scene.name, names=[o.name for o in objs],
-                      collection=(context.collection or context.scene.collection).name)
+    scene_name, names = context.scene.name, [o.name for o in objs]
+    collection = (context.collection or context.scene.collection).name
 
-    def work() -> None:
+    def work() -> region.Region:
         try:
-            REGION_BOX["world"] = region.ask_core(python, args, folder)
-        except Exception as exc:  # noqa: BLE001  (said on the main thread)
-            REGION_BOX["error"] = exc
+            return region.ask_core(python, args, folder)
         finally:
             shutil.rmtree(folder, ignore_errors=True)
 
-    REGION_BOX["thread"] = threading.Thread(target=work, name="hgca-region", daemon=True)
-    REGION_BOX["thread"].start()
-    if not bpy.app.background:
-        bpy.app.timers.register(_region_tick, first_interval=0.2)
+    def finish(world: region.Region) -> str:
+        scene = bpy.data.scenes[scene_name]
+        return place_region_box(scene, bpy.data.collections.get(collection) or scene.collection, world, names)
 
-
-def poll_region_box() -> str | None:
-    """The report once the background Add Region Box has ended (the box added, or the error reported), else
-    None; main thread."""
-    thread = REGION_BOX.get("thread")
-    if thread is None or thread.is_alive():
-        return None
-    REGION_BOX["thread"] = None
-    scene = bpy.data.scenes.get(REGION_BOX.get("scene", ""))
-    if "error" in REGION_BOX or scene is None:
-        text = f"Add Region Box failed: {REGION_BOX.get('error', 'the scene is gone')}"
-        messages.report("ERROR", text)
-        return text
-    collection = bpy.data.collections.get(REGION_BOX["collection"]) or scene.collection
-    text = place_region_box(scene, collection, REGION_BOX["world"], REGION_BOX["names"])
-    messages.report("INFO", text)
-    if not bpy.app.background:
-        try:
-            bpy.ops.ed.undo_push(message="Add Region Box")
-        except RuntimeError:
-            pass
-    return text
-
-
-def _region_tick() -> float | None:
-    return None if poll_region_box() is not None else 0.2
+    background.start("region_box", "Add Region Box", work, finish)
 
 
 class HGCA_OT_add_region_box(bpy.types.Operator):
@@ -170,7 +137,7 @@ class HGCA_OT_add_region_box(bpy.types.Operator):
             sources.world_points(objs)   # refuses an empty selection or objects without points, with the reason
             world = region.default_world_region(preferences.core_python(context), context.scene, objs,
                                                 tuple(props.region_size))
-        except (core.CoreError, sources.SourceError, region.RegionError) as exc:
+        except (core.CoreError, sources.SourceError, region.RegionError, RuntimeError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         text = place_region_box(context.scene, context.collection or context.scene.collection, world,

@@ -51,8 +51,12 @@ class HGCA_OT_drive_plan(bpy.types.Operator):
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         try:
+            if context.window is not None and not bpy.app.background:   # the core plans on a thread: no freeze
+                drive_job.start_plan(context.scene, drive_params(context), drive_sources(context))
+                self.report({"INFO"}, "Planning the tiles ...")
+                return {"FINISHED"}
             collection = drive_job.plan_objects(context.scene, drive_params(context), drive_sources(context))
-        except (core.CoreError, sources.SourceError) as exc:
+        except (core.CoreError, sources.SourceError, RuntimeError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         self.report({"INFO"}, f"{len(collection.objects)} tiles in '{collection.name}'")

@@ -203,3 +203,24 @@ def test_the_bar_moves_within_a_tile_on_its_chain_steps(addon) -> None:
     assert seen == sorted(seen) and len(set(seen)) == 10
     assert drive_job.WEIGHTS["read"] + one < seen[0] and seen[-1] < drive_job.WEIGHTS["read"] + 2 * one
     assert job.status.startswith("Tiles 1/4 done: tile 1 coarse 10/10")
+
+
+def test_show_tiles_in_the_interface_returns_at_once(addon, small_weights, tmp_path) -> None:
+    """The interface's Show Tiles plans on a thread: starting takes well under a second, the boxes arrive on a
+    later main-thread poll, the same three tiles as the synchronous path."""
+    import time as time_
+
+    background, drive_job, ops = addon_module("background"), addon_module("drive_job"), addon_module("operators_drive")
+    import_drive(tmp_path / "scans", length=30.0)
+    use_drive_settings(small_weights, tmp_path / "drive")
+    t = time_.monotonic()
+    drive_job.start_plan(bpy.context.scene, ops.drive_params(bpy.context), ops.drive_sources(bpy.context))
+    assert time_.monotonic() - t < 1.0
+    with pytest.raises(RuntimeError, match="still running"):
+        drive_job.start_plan(bpy.context.scene, ops.drive_params(bpy.context), ops.drive_sources(bpy.context))
+    deadline = time_.monotonic() + TIMEOUT_S
+    while (text := background.poll("drive_plan")) is None:
+        assert time_.monotonic() < deadline
+        time_.sleep(0.1)
+    assert text.startswith("3 tiles in")
+    assert sum(o.get("hgca_tile") is not None for o in bpy.data.objects) == 3

@@ -433,7 +433,7 @@ def test_add_region_box_in_the_interface_returns_at_once_and_adds_the_box_later(
     assert time.monotonic() - t < 1.0
     assert bpy.context.scene.hgca.region_object is None
     deadline = time.monotonic() + 120
-    while (text := ops.poll_region_box()) is None:
+    while (text := addon_module("background").poll("region_box")) is None:
         assert time.monotonic() < deadline
         time.sleep(0.1)
     box = bpy.context.scene.hgca.region_object
