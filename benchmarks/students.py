@@ -52,16 +52,48 @@ def run_eval(name: str, args: argparse.Namespace, stage: str, count: int, seed: 
     return json.loads(out.read_text())
 
 
+REAL_METRICS = {"recall": ("2 m cut recall", True), "above_empty_share": ("above-cut share in observed empty", False),
+                "above_core_share": ("above-cut share in its core", False)}
+
+
+def run_real(name: str, args: argparse.Namespace, seed: int, coarse: Path, work: Path) -> dict:
+    """`hgca eval-real` of the coarse stage (the real fixtures, cut 2 m above the ground)."""
+    out = work / f"{name}.json"
+    if not out.is_file():
+        cmd = [sys.executable, "-m", "hgca_core.cli", "eval-real", "--methods", "hgca", "--cuts", "2",
+               "--samples", str(args.samples), "--seed", str(seed), "--weights", str(coarse),
+               "--threads", "1", "--no-render", "-o", str(out)]
+        print("$", " ".join(cmd), flush=True)
+        subprocess.run(cmd, cwd=REPO, check=True)
+    return json.loads(out.read_text())
+
+
+def real_rows(result: dict) -> dict:
+    """{"per_scene": {metric: [per input]}} of an eval-real result (the cut case's mean over its samples)."""
+    per: dict[str, list[float]] = {k: [] for k in REAL_METRICS}
+    for name in sorted(result["inputs"]):
+        case = next(v for k, v in result["inputs"][name]["cases"].items() if k.startswith("cut"))
+        summary = case["rows"]["hgca"]["summary"]
+        for key in REAL_METRICS:
+            per[key].append(float(summary[key]["mean"]))
+    seconds = [float(next(v for k, v in result["inputs"][n]["cases"].items() if k.startswith("cut"))["rows"]["hgca"]
+                     ["seconds_per_completion"]) for n in sorted(result["inputs"])]
+    return {"per_scene": per, "n": len(result["inputs"]), "seconds_per_completion": float(np.mean(seconds))}
+
+
 def row(result: dict) -> dict:
-    (only,) = result["rows"].values()
-    return only
+    """The eval's row of the product: the coarse stage's one row, or the full stage's mesh (implicit) row."""
+    rows = result["rows"]
+    if len(rows) == 1:
+        return next(iter(rows.values()))
+    return next(v for k, v in rows.items() if "implicit" in k)
 
 
-def paired(teacher: dict, band: dict, student: dict) -> dict:
+def paired(teacher: dict, band: dict, student: dict, metrics: dict = METRICS) -> dict:
     """Per metric: the teacher's mean, the student's mean paired difference, the teacher's seed-to-seed band (mean
     absolute per-scene difference between its two seeds) and whether the student holds (no worse than the band)."""
     out = {}
-    for key, (label, higher) in METRICS.items():
+    for key, (label, higher) in metrics.items():
         t = np.asarray(teacher["per_scene"].get(key, []), dtype=np.float64)
         b = np.asarray(band["per_scene"].get(key, []), dtype=np.float64)
         s = np.asarray(student["per_scene"].get(key, []), dtype=np.float64)
@@ -105,12 +137,13 @@ def page(r: dict) -> str:
     titles = (("coarse", "Coarse stage: coarse_student.pt (T1 10) vs coarse.pt (T1 30)"),
               ("coarse_short", "Coarse stage, untrained: coarse.pt run for 10 steps vs its own 30"),
               ("full", "Full stage: fast (both students, T1 10 + T2 5) vs best (T1 30 + T2 15)"),
-              ("full_short", "Full stage, untrained: coarse.pt + fine.pt run for 10 + 5 steps vs 30 + 15"))
+              ("full_short", "Full stage, untrained: coarse.pt + fine.pt run for 10 + 5 steps vs 30 + 15"),
+              ("real", "Real scans (`hgca eval-real`, cut 2 m above the ground): coarse_student.pt vs coarse.pt"))
     for part, title in titles:
         if part not in r["pairs"]:
             continue
         p = r["pairs"][part]
-        base = part.split("_")[0]
+        base = part.split("_")[0]   # coarse_short -> coarse
         who = "short" if part.endswith("_short") else "student"
         lines += [f"## {title}", "", f"{r['scenes'][base]} scenes; seconds per completion: teacher "
                   f"{r['seconds'][base]['teacher']:.1f}, {who} {r['seconds'][base].get(who, float('nan')):.1f} "
@@ -124,7 +157,10 @@ def page(r: dict) -> str:
         lines.append("")
     lines += ["IoU at 20 cm over visible cells (higher is better); ReSim and Street CD are Chamfer-type distances, "
               "x10 in metres as in the paper (lower is better); TMD is the spread between a scene's samples "
-              "(higher: more diverse).", "", "![students](students.png)", ""]
+              "(higher: more diverse). Real scans: each input's mean over its samples; recall is the share of the "
+              "cells cut away above 2 m that the completion brings back, the shares are of the generated cells above "
+              "the cut that lie where the sensor saw empty space (lower is better).", "",
+              "![students](students.png)", ""]
     return "\n".join(lines)
 
 
@@ -134,7 +170,7 @@ def plot(r: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    parts = [p for p in ("coarse", "coarse_short", "full", "full_short") if p in r["pairs"]]
+    parts = [p for p in ("coarse", "coarse_short", "full", "full_short", "real") if p in r["pairs"]]
     fig, axes = plt.subplots(1, len(parts), figsize=(4.5 * len(parts), 3.6), squeeze=False)
     for ax, part in zip(axes[0], parts):
         items = list(r["pairs"][part].values())
@@ -197,6 +233,17 @@ def main() -> int:
             result["pairs"][f"{part}_short"] = paired(rows["teacher"], rows["band"], rows["short"])
         result["scenes"][part] = rows["teacher"]["n"]
         result["seconds"][part] = {w: float(rows[w].get("seconds_per_completion", float("nan"))) for w in rows}
+    if "real" in wanted or args.page_only:
+        names = {"teacher": (SEEDS[0], coarse_t), "band": (SEEDS[1], coarse_t), "student": (SEEDS[0], coarse_s)}
+        rows = {}
+        for who, (seed, weights) in names.items():
+            if args.page_only and not (work / f"real_{who}.json").is_file():
+                break
+            rows[who] = real_rows(run_real(f"real_{who}", args, seed, weights, work))
+        if len(rows) == 3:
+            result["pairs"]["real"] = paired(rows["teacher"], rows["band"], rows["student"], REAL_METRICS)
+            result["scenes"]["real"] = rows["teacher"]["n"]
+            result["seconds"]["real"] = {w: rows[w]["seconds_per_completion"] for w in rows}
     print(write_page(OUT, "students", result, page, plot))
     return 0
 
