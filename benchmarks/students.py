@@ -145,7 +145,8 @@ def page(r: dict) -> str:
         p = r["pairs"][part]
         base = part.split("_")[0]   # coarse_short -> coarse
         who = "short" if part.endswith("_short") else "student"
-        lines += [f"## {title}", "", f"{r['scenes'][base]} scenes; seconds per completion: teacher "
+        k = f", k = {r.get('real_samples')} samples each" if part == "real" else ""
+        lines += [f"## {title}", "", f"{r['scenes'][base]} scenes{k}; seconds per completion: teacher "
                   f"{r['seconds'][base]['teacher']:.1f}, {who} {r['seconds'][base].get(who, float('nan')):.1f} "
                   "(in the eval's process, one at a time).", "",
                   "| measure | teacher | student | student - teacher | teacher seed band | student better on | holds |",
@@ -239,7 +240,9 @@ def main() -> int:
         for who, (seed, weights) in names.items():
             if args.page_only and not (work / f"real_{who}.json").is_file():
                 break
-            rows[who] = real_rows(run_real(f"real_{who}", args, seed, weights, work))
+            res = run_real(f"real_{who}", args, seed, weights, work)
+            rows[who] = real_rows(res)
+            result["real_samples"] = res["config"]["samples"]
         if len(rows) == 3:
             result["pairs"]["real"] = paired(rows["teacher"], rows["band"], rows["student"], REAL_METRICS)
             result["scenes"]["real"] = rows["teacher"]["n"]

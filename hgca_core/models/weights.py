@@ -150,12 +150,22 @@ def blend_files(a: str | os.PathLike, b: str | os.PathLike, t: float) -> dict:
 LINEAGE_KEYS = ("steps", "train_wall_s", "data", "seed", "sessions", "notes", "blend", "init")
 
 
+def shown_path(path: str | os.PathLike) -> str:
+    """`path` as a weights record names it: relative to the repository when it lies inside (a record must not
+    carry one machine's absolute paths), else as given."""
+    root = WEIGHTS_DIR.parents[1]
+    try:
+        return str(Path(path).resolve().relative_to(root))
+    except ValueError:
+        return str(path)
+
+
 def lineage(path: str | os.PathLike, meta: dict) -> dict:
     """The record of the weights at `path` that a file made from them keeps (a blend's two sources, a run's
     `--init-from`): content digest, steps, wall time, data, seed, sessions and notes, and their own blend or start,
     nested. Why: a file's card must name every session and device its tensors come from, not only the last
     run's (a blend of a blend, or a fine-tune of one, would otherwise lose the earlier hardware and steps)."""
-    return {"file": str(path), "sha256": file_digest(path), **{k: meta[k] for k in LINEAGE_KEYS if k in meta}}
+    return {"file": shown_path(path), "sha256": file_digest(path), **{k: meta[k] for k in LINEAGE_KEYS if k in meta}}
 
 
 def _architecture(kind: str, blob: dict) -> dict:

@@ -38,7 +38,7 @@ from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel, _gather, _table, sample
 from hgca_core.models import free as fs
 from hgca_core.models.infusion import alpha
-from hgca_core.models.weights import load_autoencoder, save_weights, shipped, trained_weights
+from hgca_core.models.weights import load_autoencoder, save_weights, shipped, shown_path, trained_weights
 from hgca_core.training.buffer import Chain
 from hgca_core.training.data import draw_crop, free_cells, grids, load_arrays, split_files
 from hgca_core.training.packed import refuse_packed
@@ -346,5 +346,5 @@ def export_fine(ckpt_path: str | Path, autoencoder: str | Path, dest: str | Path
     module = FineLoss(CGCAConfig.from_dict(ck["config"]))
     module.load_state_dict(trained_weights(ck))
     return save_weights(dest or shipped("fine"), module.model,
-                        {**record, "autoencoder": str(autoencoder), **(meta or {})},
+                        {**record, "autoencoder": shown_path(autoencoder), **(meta or {})},
                         autoencoder=load_autoencoder(autoencoder))

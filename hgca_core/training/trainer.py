@@ -233,12 +233,12 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
         if resume and rank == 0:
             print(f"no checkpoint at {ckpt_path}: starting {'from ' + str(init_from) if init_from else 'from scratch'}")
         if init_from:
-            from hgca_core.models.weights import lineage, load_into
+            from hgca_core.models.weights import lineage, load_into, shown_path
 
             meta = load_into(module.model, init_from)
             state["init"] = lineage(init_from, meta)
             state.setdefault("notes", []).append(
-                f"initialised from {init_from} ({meta.get('steps')} steps)"
+                f"initialised from {shown_path(init_from)} ({meta.get('steps')} steps)"
                 + (", its free-space inputs new and zero-initialised" if meta.get("widened") else ""))
     ema = EMA(module)     # a checkpoint from before the EMA existed starts it at its weights
     if ema_state:
