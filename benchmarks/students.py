@@ -149,7 +149,7 @@ def page(r: dict) -> str:
         lines += [f"## {title}", "", f"{r['scenes'][base]} scenes{k}; seconds per completion: teacher "
                   f"{r['seconds'][base]['teacher']:.1f}, {who} {r['seconds'][base].get(who, float('nan')):.1f} "
                   "(in the eval's process, one at a time).", "",
-                  "| measure | teacher | student | student - teacher | teacher seed band | student better on | holds |",
+                  f"| measure | teacher | {who} | {who} - teacher | teacher seed band | {who} better on | holds |",
                   "|---|---:|---:|---:|---:|---:|---|"]
         for m in p.values():
             lines.append(f"| {m['label']} | {m['teacher']:.4f} | {m['student']:.4f} | {m['delta']:+.4f} | "
