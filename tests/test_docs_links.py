@@ -78,11 +78,13 @@ QUOTED = [
     ("README.md", "benchmarks/results/real_scans.md", ["45.1", "41.0", "34.1", "6.3", "8.9", "12.3", "5.1", "4.9", "7.3"]),
     ("README.md", "hgca_core/weights/eval_test.md", ["2.70", "42.80", "5.07", "2.17", "47.88", "4.08", "2.55", "59.72",
                                                      "4.79", "2.13", "64.02", "3.83", "1.29", "64.38", "2.29"]),
-    ("README.md", "benchmarks/results/completion_coarse_cpu.md", ["18.0", "1.63"]),
-    ("README.md", "benchmarks/results/completion_full_cpu.md", ["45.3", "2.55"]),
+    ("README.md", "benchmarks/results/speed_students.md", ["82.2", "42.3"]),
+    ("README.md", "benchmarks/results/speed_preview.md", ["40.3", "17.2"]),
     ("MODEL_CARD.md", "benchmarks/results/real_scans.md", ["42.0–48.6", "38.2–43.8", "26.2–38.7", "4.7–8.6",
                                                            "7.4–10.6", "8.9–14.5"]),
-    ("docs/performance.md", "benchmarks/results/completion_full_cpu.md", ["45.3", "15.78", "18.77", "2.85", "7.32"]),
+    ("docs/performance.md", "benchmarks/results/completion_full_cpu.md", ["45.3"]),
+    ("docs/performance.md", "benchmarks/results/speed_students.md", ["82.2", "102.1", "42.3", "49.9"]),
+    ("docs/performance.md", "benchmarks/results/speed_preview.md", ["40.3", "43.4", "17.2", "19.7"]),
     ("docs/performance.md", "benchmarks/results/completion_scale_full_cpu.md", ["64.1", "2.90", "214.1", "5.31"]),
     ("docs/performance.md", "benchmarks/results/meshing_time.md", ["11.78", "12.25", "1352"]),
     ("docs/performance.md", "benchmarks/results/train_scaling.md", ["0.878", "1.138", "0.840"]),
@@ -188,15 +190,20 @@ def test_readme_synthetic_table_is_the_eval_page():
             assert row[col] == rows[names[row["method"]]][col], (row["method"], col)
 
 
-@pytest.mark.parametrize("stage, page", [("coarse (20 cm voxels)", "benchmarks/results/completion_coarse_cpu.md"),
-                                         ("full (mesh)", "benchmarks/results/completion_full_cpu.md")])
-def test_readme_speed_table_is_the_bench_page(stage, page):
+@pytest.mark.parametrize("what, page", [("full stage (mesh)", "benchmarks/results/speed_students.md"),
+                                        ("coarse stage (voxels) / preview (smooth)",
+                                         "benchmarks/results/speed_preview.md")])
+def test_readme_speed_table_is_the_bench_page(what, page):
+    """The README's speed row against the page of the side-by-side timing: best is the page's old side (B), fast
+    its new side (A); the wall medians and the peaks in GiB, at the default fp32 the page names."""
     text = _page(page)
-    measured = next(r for r in table_with(text, "region (m)", "total (s)") if r["region (m)"] == "38.4 x 38.4")
-    row = next(r for r in _readme_table("stage", "time", "peak memory") if r["stage"] == stage)
-    assert first_number(row["time"]) == first_number(measured["total (s)"])
-    assert first_number(row["peak memory"]) == first_number(measured["peak RSS (GiB)"])
-    assert "bf16" in text.splitlines()[0]   # the README names the precision the page was measured at
+    measured = {r["measure"]: r for r in table_with(text, "measure", "new (A)")}
+    row = next(r for r in _readme_table("what", "`--quality best` (T1 30, T2 15)") if r["what"] == what)
+    best, fast = row["`--quality best` (T1 30, T2 15)"], row["`--quality fast` (students, T1 10, T2 5)"]
+    assert first_number(best) == first_number(measured["wall (s)"]["old (B)"])
+    assert first_number(fast) == first_number(measured["wall (s)"]["new (A)"])
+    assert f"{first_number(measured['peak RSS (MiB)']['old (B)']) / 1024:.2f} GiB" in best
+    assert "fp32" in text
 
 
 def test_md_tables_reads_rows():

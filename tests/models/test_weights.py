@@ -75,11 +75,15 @@ def test_cache_sees_a_file_rewritten_in_place(tmp_path):
 def test_packaged_files_are_plain_and_of_their_kind():
     """Every shipped file loads with weights_only=True, holds fp16 / integer tensors and is the kind its name says."""
     names = sorted(p.name for p in WEIGHTS_DIR.glob("*.pt"))
-    assert names == ["autoencoder.pt", "coarse.pt", "coarse_noplanner.pt", "fine.pt", "semantics.pt"]
-    for stage in ("coarse", "coarse-noplanner", "autoencoder", "fine", "semantics"):
+    assert names == ["autoencoder.pt", "coarse.pt", "coarse_noplanner.pt", "coarse_student.pt", "fine.pt",
+                     "fine_student.pt", "semantics.pt"]
+    for stage in ("coarse", "coarse-noplanner", "autoencoder", "fine", "semantics", "coarse-student", "fine-student"):
         blob = load_file(shipped(stage))
         assert identify(blob) == (stage.split("-")[0], False)
         assert all(v.dtype in (torch.float16, torch.int64) for v in blob["state_dict"].values())
+    # the students are the teachers' networks on shorter chains
+    assert load_coarse(shipped("coarse-student"))[0].cfg.steps == 10
+    assert load_file(shipped("fine-student"))["config"]["steps"] == 5
     assert load_coarse(shipped("coarse-noplanner"))[0].planner is None
     assert load_coarse(shipped("coarse"))[0].planner is not None
 
