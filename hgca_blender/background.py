@@ -1,4 +1,4 @@
-"""Short core calls that would freeze Blender (*Add Region Box*, *Show Tiles*): the core's answer is awaited on a
+"""Short core calls that would freeze Blender (*Check*, *Add Region Box*, *Show Tiles*): the core's answer is awaited on a
 thread and what it means for the scene is done on the main thread by a timer.
 
 Blender data may only be touched on the main thread, so a task is split in three: the caller reads the scene and
@@ -24,12 +24,14 @@ def busy(key: str) -> bool:
     return task is not None and task["thread"].is_alive()
 
 
-def start(key: str, label: str, work: Callable[[], Any], finish: Callable[[Any], str]) -> None:
+def start(key: str, label: str, work: Callable[[], Any], finish: Callable[[Any], str],
+          on_error: Callable[[Exception], None] | None = None, undo: bool = True) -> None:
     """Run `work()` on a thread under `key` (one at a time per key) and `finish(its result)` later on the main
-    thread (a timer in the interface, `poll(key)` elsewhere). Returns at once."""
+    thread (a timer in the interface, `poll(key)` elsewhere); `on_error(exc)` there too when either raised.
+    `undo`: the finished task is an undo step (it changed the scene). Returns at once."""
     if busy(key):
         raise RuntimeError(f"{label} is still running")
-    task: dict[str, Any] = {"label": label, "finish": finish}
+    task: dict[str, Any] = {"label": label, "finish": finish, "on_error": on_error, "undo": undo}
 
     def run() -> None:
         try:
@@ -56,11 +58,13 @@ def poll(key: str) -> str | None:
             raise task["error"]
         text = task["finish"](task["result"])
     except Exception as exc:  # noqa: BLE001
+        if task["on_error"] is not None:
+            task["on_error"](exc)
         text = f"{task['label']} failed: {exc}"
         messages.report("ERROR", text)
         return text
     messages.report("INFO", text)
-    if not bpy.app.background:
+    if task["undo"] and not bpy.app.background:
         try:
             bpy.ops.ed.undo_push(message=task["label"])
         except RuntimeError:

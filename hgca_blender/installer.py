@@ -210,52 +210,34 @@ def check_core(python: str) -> dict[str, Any]:
         raise core.CoreError(f"the check printed no result: {done.stdout[-200:]!r}") from exc
 
 
-# *Check* from the preferences runs `check_core` on a thread (torch's import and the weights' load take 5-10 s,
-# which the button would otherwise freeze Blender for); a timer on the main thread shows the answer.
-CHECK: dict[str, Any] = {}
-
-
 def check_text(found: dict[str, Any], python: str) -> str:
     return (f"hgca {found.get('hgca', '?')}, torch {found.get('torch', '?')}"
             f"{', CUDA' if found.get('cuda') else ''}: the shipped weights load ({python})")
 
 
 def start_check(python: str) -> None:
-    """Begin *Check* of `python` in the background (returns at once); `poll_check` finishes it."""
-    import threading
+    """*Check* in the interface (returns at once): `check_core` runs on a thread, since torch's import and the
+    weights' load take 5-10 s, and the answer reaches the preferences on the main thread (`background`;
+    `background.poll("check")` outside the interface)."""
+    from . import background
 
     core.check_python(python)   # a missing interpreter is said at once, not after a thread
 
-    def work() -> None:
-        try:
-            CHECK["result"] = ("INFO", check_text(check_core(python), python))
-        except core.CoreError as exc:
-            CHECK["result"] = ("ERROR", str(exc))
+    def finish(found: dict[str, Any]) -> str:
+        text = check_text(found, python)
+        prefs = _prefs()
+        if prefs is not None:
+            prefs.check_result = text
+        _redraw_preferences()
+        return text
 
-    CHECK.clear()
-    CHECK["thread"] = threading.Thread(target=work, name="hgca-check", daemon=True)
-    CHECK["thread"].start()
-    if not bpy.app.background:
-        bpy.app.timers.register(_check_tick, first_interval=0.3)
+    def failed(exc: Exception) -> None:
+        prefs = _prefs()
+        if prefs is not None:
+            prefs.check_result = f"Error: {exc}"
+        _redraw_preferences()
 
-
-def poll_check() -> tuple[str, str] | None:
-    """(level, text) once the background *Check* ended (written to the preferences and Blender's report list),
-    else None; main thread."""
-    result = CHECK.get("result")
-    if result is None or CHECK.get("reported"):
-        return CHECK.get("result") if CHECK.get("reported") else None
-    CHECK["reported"] = True
-    prefs = _prefs()
-    if prefs is not None:
-        prefs.check_result = result[1] if result[0] == "INFO" else f"Error: {result[1]}"
-    messages.report(result[0], result[1] if result[0] == "INFO" else f"hGCA check failed: {result[1]}")
-    _redraw_preferences()
-    return result
-
-
-def _check_tick() -> float | None:
-    return None if poll_check() is not None else 0.3
+    background.start("check", "hGCA check", lambda: check_core(python), finish, on_error=failed, undo=False)
 
 
 def cancel_install() -> None:

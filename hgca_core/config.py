@@ -142,12 +142,15 @@ class CompletionConfig:
     def coarse_file(self) -> str | None:
         """The coarse weights to load: `weights`, else the quality's shipped file (None: the loader's default,
         the teacher's coarse.pt)."""
-        return self.weights or (None if self.quality == "best" else str(WEIGHTS_DIR / QUALITY_FILES[self.quality][0]))
+        return self.weights or self._shipped(0)
 
     def fine_file(self) -> str | None:
         """The fine weights to load (the full stage): `fine_weights`, else the quality's shipped file."""
-        return self.fine_weights or (None if self.quality == "best"
-                                     else str(WEIGHTS_DIR / QUALITY_FILES[self.quality][1]))
+        return self.fine_weights or self._shipped(1)
+
+    def _shipped(self, stage: int) -> str | None:
+        """The quality's shipped file of stage 0 (coarse) or 1 (fine); None for best, the loaders' own default."""
+        return None if self.quality == "best" else str(WEIGHTS_DIR / QUALITY_FILES[self.quality][stage])
 
     def with_(self, **changes: Any) -> "CompletionConfig":
         """A copy with `changes` (field names), checked again; an unknown name is an `InputError`."""

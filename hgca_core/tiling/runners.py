@@ -53,12 +53,21 @@ class LocalRunner:
                 on_start(p.job.index)
             cells = {**p.ready_cells, **made}
             neighbours = [cells[j] for j in p.conditioned_on]
-            steps = None
-            if on_step is not None:
-                steps = (lambda index: lambda stage, step, total, *_: on_step(index, stage, step, total))(p.job.index)
-            result = complete_tile(p.job, [scans[i] for i in p.job.scans], neighbours, steps)
+            result = complete_tile(p.job, [scans[i] for i in p.job.scans], neighbours,
+                                   _tile_steps(on_step, p.job.index))
             made[p.job.index] = (p.job.region, cells_of(result))
             on_result(result)
+
+
+def _tile_steps(on_step: Callable[[int, str, int, int], None] | None, index: int) -> Callable | None:
+    """The pipeline's progress callback (stage, step, total, message, sample) as `on_step` for tile `index`."""
+    if on_step is None:
+        return None
+
+    def report(stage: str, step: int, total: int, *_: object) -> None:
+        on_step(index, stage, step, total)
+
+    return report
 
 
 def tile_task(job: TileJob, n_scans: int, *inputs) -> tuple[dict, NeighbourCells]:
