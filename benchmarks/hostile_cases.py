@@ -176,7 +176,7 @@ BAD_FILES: dict[str, tuple[str, Callable[[Path], bytes | str], str]] = {
     "kitti nan": ("kn.bin", lambda d: np.array([[np.nan, 0, 0, 1], [1, 2, 3, 4]], "<f4").tobytes(), "NaN"),
     "nuscenes odd size": ("n.pcd.bin", lambda d: b"\0" * 21, "multiple of 20"),
     "ply content named las": ("x.las", lambda d: PLY_HEAD.format(n=0), "content is PLY"),
-    "unknown extension": ("scan.e57", lambda d: b"whatever", "unknown file extension"),
+    "unknown extension": ("scan.rcp", lambda d: b"whatever", "unknown file extension"),
 }
 
 

@@ -45,13 +45,13 @@ def output_paths(out: str | os.PathLike, samples: int, fmt: str | None = None) -
 
 def complete_files(scans: Sequence[str | os.PathLike], out: str | os.PathLike,
                    config: CompletionConfig | None = None, *, poses: str | os.PathLike | None = None,
-                   region: str | None = None, frames: str | None = None, fmt: str | None = None,
-                   mesh_format: str | None = None, progress: Callable | None = None, **settings) -> list[Path]:
+                   region: str | None = None, frames: str | None = None, topic: str | None = None,
+                   fmt: str | None = None, mesh_format: str | None = None, progress: Callable | None = None, **settings) -> list[Path]:
     """Complete scan files into mesh files; returns the paths written (OUT_s<i>.<format>, one per sample).
 
     `config` (default: its defaults) with `settings` (any of its fields: samples=, seed=, stage=, quality=, ...)
     says how; `region` is the CLI's "cx,cy,cz,sx,sy,sz[,yaw_deg]" (None: the default box around the first
-    sensor); `frames` picks a sequence folder's sweeps. Every check that can fail on the arguments runs before
+    sensor); `frames` picks a sequence folder's (bag's, E57's) sweeps, `topic` a bag's cloud topic. Every check that can fail on the arguments runs before
     the scans are read; no output may overwrite an input; the meshes are moved into place together (an error or
     a signal leaves none)."""
     from hgca_core.geometry.region import Region
@@ -85,7 +85,7 @@ def complete_files(scans: Sequence[str | os.PathLike], out: str | os.PathLike,
     # bad weights fail before any reading; complete() gets the same models again from the loaders' cache
     load_models(cfg.stage, cfg.coarse_file(), cfg.fine_file(), cfg.device)
     report("read", 0, 1, f"{len(scans)} scan(s)", 0)
-    scan = read_inputs(scans, poses=poses, fmt=fmt, frames=frames)
+    scan = read_inputs(scans, poses=poses, fmt=fmt, frames=frames, topic=topic)
     report("read", 1, 1, f"{len(scan.points)} points", 0)
     index = None
     if scan.origins is not None and len(scan.origins) and cfg.free_space != "off":

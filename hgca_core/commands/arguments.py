@@ -225,6 +225,8 @@ def add_frames_argument(p: argparse.ArgumentParser,
                         help: str = "frames of a sequence folder, in time order (default: the 5 around the middle)"
                         ) -> None:
     p.add_argument("--frames", metavar="START:STOP[:STEP]", help=help)
+    p.add_argument("--topic", metavar="TOPIC", help="a ROS bag's point cloud topic (sensor_msgs/PointCloud2; "
+                                                    "default: the bag's only one)")
 
 
 def add_poses_argument(p: argparse.ArgumentParser,

@@ -55,4 +55,4 @@ def _run(args: argparse.Namespace, progress) -> list[Path]:
     from hgca_core.files import complete_files
 
     return complete_files(args.scans, args.out, completion_config(args), poses=args.poses, region=args.region,
-                          frames=args.frames, fmt=args.fmt, mesh_format=args.mesh_format, progress=progress)
+                          frames=args.frames, topic=args.topic, fmt=args.fmt, mesh_format=args.mesh_format, progress=progress)

@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
         progress.record("tile-step", step, total, f"tile {index}: {stage} {step}/{total}", tile=index, chain=stage)
 
     try:
-        doc = drive(args.scans, args.out, poses=args.poses, fmt=args.fmt, frames=args.frames, config=config,
+        doc = drive(args.scans, args.out, poses=args.poses, fmt=args.fmt, frames=args.frames, topic=args.topic, config=config,
                     report=progress, on_tile=on_tile, on_plan=on_plan, on_step=on_step)
     except Exception as exc:
         progress.error(str(exc))
@@ -129,7 +129,7 @@ def _plan_only(args: argparse.Namespace) -> int:
     from hgca_core.tiling.inputs import read_drive_inputs
     from hgca_core.tiling.run import plan_drive
 
-    scans = read_drive_inputs(args.scans, args.poses, args.fmt, args.frames)
+    scans = read_drive_inputs(args.scans, args.poses, args.fmt, args.frames, topic=args.topic)
     _, _, plan = plan_drive(scans, args.size, args.overlap, args.scans_per_tile)
     if args.json:
         print(json.dumps(plan))

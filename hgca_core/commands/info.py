@@ -44,14 +44,17 @@ def describe(path: str, fmt: str | None = None) -> dict[str, Any]:
     return info
 
 
-def describe_sequence(root: str, frames: str | None, poses: str | None) -> dict[str, Any]:
-    """Facts about the chosen frames of a sequence folder, accumulated with its poses."""
-    from hgca_core.io.read import read_scans
+def describe_sequence(root: str, frames: str | None, poses: str | None, topic: str | None = None) -> dict[str, Any]:
+    """Facts about the chosen frames of a sequence folder (bag, E57), accumulated with its poses."""
+    from hgca_core.io.read import accumulate, read_scans
     from hgca_core.io.sequence import open_sequence, parse_frames, select
 
-    seq = open_sequence(root, poses)
+    seq = open_sequence(root, poses, topic)
     files, mats = select(seq, frames)
-    scan = read_scans(files, poses=mats, fmt=seq.fmt)
+    if seq.reader is None:
+        scan = read_scans(files, poses=mats, fmt=seq.fmt)
+    else:
+        scan = accumulate([seq.read_frame(seq.files.index(f)) for f in files], files, mats)
     return {
         "file": root,
         "format": f"{seq.layout} sequence",
@@ -102,9 +105,10 @@ def run(args: argparse.Namespace) -> int:
     if is_sequence(files):
         if args.fmt is not None:
             raise InputError("--format applies to scan files, not to a sequence folder", files[0])
-        infos = [describe_sequence(files[0], args.frames, args.poses)]
-    elif args.frames is not None or args.poses is not None:
-        raise InputError("--frames and --poses need a sequence folder (KITTI, Argoverse 2 or nuScenes)")
+        infos = [describe_sequence(files[0], args.frames, args.poses, args.topic)]
+    elif args.frames is not None or args.poses is not None or args.topic is not None:
+        raise InputError("--frames, --poses and --topic need a sequence folder (KITTI, Argoverse 2 or nuScenes), "
+                         "a ROS bag or an E57")
     else:
         infos = [describe(f, args.fmt) for f in files]
     if args.json:

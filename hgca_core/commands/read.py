@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.io.sequence import read_inputs
     from hgca_core.io.writers import NPZ_RESERVED
 
-    scan = read_inputs(args.scans, poses=args.poses, fmt=args.fmt, frames=args.frames)
+    scan = read_inputs(args.scans, poses=args.poses, fmt=args.fmt, frames=args.frames, topic=args.topic)
     attributes = {k: v for k, v in scan.attributes.items() if k not in NPZ_RESERVED}
     write_points(args.out, scan.points, attributes, origins=scan.origins)
     scans = int(scan.attributes["scan_index"].max()) + 1

@@ -84,24 +84,9 @@ def _refuse_repeats(paths: list[str]) -> None:
         seen[key] = p
 
 
-def _check_accumulated(points: np.ndarray, scan_index: np.ndarray, paths: list[str],
-                       poses: str | os.PathLike | Sequence | None) -> None:
-    """Posed or accumulated scans must still fit one float32 frame (`georef.check_coordinates`); the message
-    names the scan of the first point that lies apart."""
-    source = os.fspath(poses) if isinstance(poses, (str, os.PathLike)) else None
-    via = " moved by its pose" if poses is not None else ""
-    check_coordinates(points, source, "accumulated point",
-                      lambda row: f"scan {int(scan_index[row])}, {paths[int(scan_index[row])]}{via}")
-
-
 def read_scans(paths: Sequence[str | os.PathLike], poses: str | os.PathLike | Sequence | None = None,
                fmt: str | None = None) -> Scan:
-    """Accumulate scans in one world frame; adds `scan_index` (uint16) and keeps attributes all scans share.
-
-    With poses, each scan's points go through its sensor->world pose and its origin is the JSON `origin`,
-    else its own origins moved by the pose, else the pose translation. Without poses, points and origins
-    are taken as already in one frame.
-    """
+    """Accumulate scan files in one world frame (`accumulate`), with poses from a JSON sidecar or 4x4 arrays."""
     paths = [os.fspath(p) for p in paths]
     if not paths:
         raise InputError("no scan files given")
@@ -110,6 +95,26 @@ def read_scans(paths: Sequence[str | os.PathLike], poses: str | os.PathLike | Se
     _refuse_repeats(paths)
     pose_mats, json_origins = _pose_list(poses, paths) if poses is not None else (None, None)
     scans = [read_scan(p, fmt) for p in paths]
+    source = os.fspath(poses) if isinstance(poses, (str, os.PathLike)) else None
+    return accumulate(scans, paths, pose_mats, json_origins, source)
+
+
+def accumulate(scans: list[Scan], names: list[str], pose_mats: list[np.ndarray] | None = None,
+               json_origins: list | None = None, source: str | None = None) -> Scan:
+    """Scans (each in its sensor frame, or all in one frame without poses) in one world frame; adds
+    `scan_index` (uint16) and keeps the attributes all scans share.
+
+    With poses, each scan's points go through its sensor->world pose and its origin is the JSON `origin`,
+    else its own origins moved by the pose, else the pose translation. Without poses, points and origins
+    are taken as already in one frame. `names` name the scans in messages (files, or a container's frames);
+    `source` is the poses file, when there is one.
+    """
+    if not scans:
+        raise InputError("no scans given")
+    if len(scans) > np.iinfo(np.uint16).max + 1:
+        raise InputError(f"too many scans ({len(scans)}); at most 65536 can be accumulated")
+    if json_origins is None and pose_mats is not None:
+        json_origins = [None] * len(pose_mats)
     common = set(scans[0].attributes)
     for s in scans[1:]:
         common &= set(s.attributes)
@@ -141,14 +146,16 @@ def read_scans(paths: Sequence[str | os.PathLike], poses: str | os.PathLike | Se
         [np.full(len(s), i, dtype=np.uint16) for i, s in enumerate(scans)])
     accumulated = np.concatenate(points)
     if pose_mats is not None or len(scans) > 1:
-        _check_accumulated(accumulated, attributes["scan_index"], paths, poses)
+        via = " moved by its pose" if pose_mats is not None else ""
+        index = attributes["scan_index"]
+        check_coordinates(accumulated, source, "accumulated point",
+                          lambda row: f"scan {int(index[row])}, {names[int(index[row])]}{via}")
     if any_origin:
-        check_bound(np.concatenate(origins), poses if isinstance(poses, (str, os.PathLike)) else None,
-                    "sensor origin")
+        check_bound(np.concatenate(origins), source, "sensor origin")
     return Scan(
         points=accumulated,
         attributes=attributes,
         origins=np.concatenate(origins) if any_origin else None,
-        path=paths[0] if len(paths) == 1 else None,
+        path=names[0] if len(names) == 1 else None,
         dropped={k: sum(s.dropped.get(k, 0) for s in scans) for k in sorted({k for s in scans for k in s.dropped})},
     )

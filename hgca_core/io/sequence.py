@@ -14,9 +14,11 @@ A poses JSON given explicitly (`--poses`) replaces the layout's own poses for an
 from __future__ import annotations
 
 import glob
+import importlib
 import os
 import re
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -35,12 +37,44 @@ class Sequence:
 
     layout: str
     root: str
-    files: tuple[str, ...]
+    files: tuple[str, ...]  # each frame's scan file; a container's frames are named "CONTAINER#N"
     poses: tuple[np.ndarray, ...] | None  # None: no poses needed (a single sweep) or given later
     fmt: str
+    reader: Callable[[int], Scan] | None = None  # a container's frame i in its sensor frame (files: read_scan)
 
     def __len__(self) -> int:
         return len(self.files)
+
+    def read_frame(self, i: int) -> Scan:
+        """Frame i as its reader gives it (sensor frame for posed layouts), with the usual checks."""
+        if self.reader is not None:
+            return self.reader(i)
+        from hgca_core.io.read import read_scan
+
+        return read_scan(self.files[i], self.fmt)
+
+
+# Files and folders that hold a whole sequence in one container: layout -> "module:opener", each opener
+# `open(path, topic) -> Sequence` (the module is imported only when such an input is given).
+CONTAINERS: dict[str, str] = {
+    "rosbag": "hgca_core.io.rosbag:open_bag",
+    "e57": "hgca_core.io.e57:open_e57",
+}
+CONTAINER_EXTENSIONS: tuple[tuple[str, str], ...] = ((".bag", "rosbag"), (".mcap", "rosbag"), (".db3", "rosbag"),
+                                                     (".e57", "e57"))
+
+
+def container_layout(path: str) -> str | None:
+    """The container layout of a file (ROS 1/2 bag, E57) or of a ROS 2 bag folder, or None."""
+    if os.path.isdir(path):
+        return "rosbag" if os.path.isfile(os.path.join(path, "metadata.yaml")) else None
+    name = os.path.basename(path).lower()
+    return next((layout for ext, layout in CONTAINER_EXTENSIONS if name.endswith(ext)), None)
+
+
+def _open_container(layout: str, path: str, topic: str | None) -> Sequence:
+    module, _, name = CONTAINERS[layout].partition(":")
+    return getattr(importlib.import_module(module), name)(path, topic)
 
 
 def parse_frames(spec: str | None, count: int, what: str = "sequence") -> list[int]:
@@ -160,9 +194,21 @@ def _open_nuscenes(root: str) -> Sequence:
     return Sequence("nuscenes", root, tuple(files), poses, "nuscenes")
 
 
-def open_sequence(root: str | os.PathLike, poses: str | os.PathLike | None = None) -> Sequence:
-    """The sequence in folder `root`; `poses` (our JSON) replaces the layout's own poses when given."""
+def open_sequence(root: str | os.PathLike, poses: str | os.PathLike | None = None,
+                  topic: str | None = None) -> Sequence:
+    """The sequence in folder `root` (or container file: a ROS bag, an E57); `poses` (our JSON) replaces the
+    layout's own poses when given; `topic` picks a bag's point cloud topic."""
     root = os.fspath(root)
+    container = container_layout(root) if os.path.exists(root) else None
+    if container is not None:
+        seq = _open_container(container, root, topic)
+        if poses is None:
+            return seq
+        pose_path = os.fspath(poses)
+        entries = match_poses(load_poses(pose_path), list(seq.files), pose_path)
+        return Sequence(seq.layout, seq.root, seq.files, tuple(e.pose for e in entries), seq.fmt, seq.reader)
+    if topic is not None:
+        raise InputError("--topic applies to a ROS bag (.bag, .mcap, .db3 or a ROS 2 bag folder)", root)
     if not os.path.isdir(root):
         raise InputError("sequence folder not found", root)
     layout = detect_layout(root)
@@ -207,16 +253,20 @@ def select(seq: Sequence, frames: str | None) -> tuple[list[str], list[np.ndarra
 
 
 def read_sequence(root: str | os.PathLike, frames: str | None = None, poses: str | os.PathLike | None = None,
-                  calibration: str | os.PathLike | None = None) -> Scan:
+                  calibration: str | os.PathLike | None = None, topic: str | None = None) -> Scan:
     """The chosen frames of a sequence accumulated in its world frame (float64), via `read_scans`.
 
     `calibration` (AV2 only) is an egovehicle_SE3_sensor table to take the lidar origins from, for a log
     that lacks its own (the av2-api test logs): without one such a log's origins are the ego origins."""
-    from hgca_core.io.read import read_scans
+    from hgca_core.io.read import accumulate, read_scans
 
-    seq = open_sequence(root, poses)
+    seq = open_sequence(root, poses, topic)
     files, mats = select(seq, frames)
-    scan = read_scans(files, poses=mats, fmt=seq.fmt)
+    if seq.reader is None:
+        scan = read_scans(files, poses=mats, fmt=seq.fmt)
+    else:
+        chosen = [seq.files.index(f) for f in files]
+        scan = accumulate([seq.read_frame(i) for i in chosen], files, mats)
     if calibration is not None:
         if seq.layout != "av2":
             raise InputError(f"a lidar calibration applies to Argoverse 2 logs, not to a {seq.layout} sequence",
@@ -229,23 +279,27 @@ def read_sequence(root: str | os.PathLike, frames: str | None = None, poses: str
 
 
 def is_sequence(inputs: list[str]) -> bool:
-    """True when the inputs are one folder (a sequence); a folder among files is an error."""
-    dirs = [p for p in inputs if os.path.isdir(p)]
+    """True when the inputs are one folder (a sequence) or one container file (a ROS bag, an E57); a folder
+    or container among other inputs is an error."""
+    dirs = [p for p in inputs if os.path.isdir(p) or container_layout(p) is not None]
     if dirs and len(inputs) > 1:
-        raise InputError(f"give one sequence folder or scan files, not both ({len(dirs)} folder(s) "
-                         f"among {len(inputs)} inputs)", dirs[0])
+        raise InputError(f"give one sequence folder, bag or E57, or scan files, not both ({len(dirs)} "
+                         f"sequence(s) among {len(inputs)} inputs)", dirs[0])
     return bool(dirs)
 
 
 def read_inputs(inputs: list[str], poses: str | None = None, fmt: str | None = None,
-                frames: str | None = None) -> Scan:
-    """What `hgca read` and `hgca complete` read: one sequence folder (with --frames) or scan files."""
+                frames: str | None = None, topic: str | None = None) -> Scan:
+    """What `hgca read` and `hgca complete` read: one sequence folder, bag or E57 (with --frames, --topic) or
+    scan files."""
     from hgca_core.io.read import read_scans
 
     if is_sequence(inputs):
         if fmt is not None:
             raise InputError("--format applies to scan files, not to a sequence folder", inputs[0])
-        return read_sequence(inputs[0], frames, poses)
+        return read_sequence(inputs[0], frames, poses, topic=topic)
+    if topic is not None:
+        raise InputError("--topic applies to a ROS bag (.bag, .mcap, .db3 or a ROS 2 bag folder)", inputs[0])
     if frames is not None:
         raise InputError("--frames needs a sequence folder (KITTI, Argoverse 2 or nuScenes), not scan files")
     return read_scans(inputs, poses=poses, fmt=fmt)

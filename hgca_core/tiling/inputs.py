@@ -76,13 +76,14 @@ def split_scans(scan, name: str) -> list[DriveScan]:
 
 def read_drive_inputs(inputs: Sequence[str | os.PathLike], poses: str | os.PathLike | None = None,
                       fmt: str | None = None, frames: str | None = None,
-                      report: Report | None = None) -> list[DriveScan]:
+                      report: Report | None = None, topic: str | None = None) -> list[DriveScan]:
     """The drive's scans in trajectory order, read one file at a time (the same readers, pose matching and
     checks as `hgca complete`): a sequence folder's frames (`frames` START:STOP[:STEP], all by default, in time
     order), or the scan files, an accumulated file split by its `scan_index`, put in the drive's order
     (`order`: the poses file's, else time stamps, else the chain of sensor positions). A jump between
     consecutive scans is reported as a warning."""
     from hgca_core.io import read_scan, read_scans
+    from hgca_core.io.read import accumulate
     from hgca_core.io.sequence import is_sequence, open_sequence, select
     from hgca_core.tiling.order import order_scans, poses_order, warn_jumps
 
@@ -94,14 +95,18 @@ def read_drive_inputs(inputs: Sequence[str | os.PathLike], poses: str | os.PathL
     if is_sequence(paths):
         if fmt is not None:
             raise InputError("--format applies to scan files, not to a sequence folder", paths[0])
-        seq = open_sequence(paths[0], poses)
+        seq = open_sequence(paths[0], poses, topic)
         files, mats = select(seq, frames if frames is not None else ":")
         for i, f in enumerate(files):
-            scan = read_scans([f], poses=[mats[i]] if mats is not None else None, fmt=seq.fmt)
+            pose = [mats[i]] if mats is not None else None
+            scan = (read_scans([f], poses=pose, fmt=seq.fmt) if seq.reader is None
+                    else accumulate([seq.read_frame(seq.files.index(f))], [f], pose))
             out.extend(split_scans(scan, f))
             say("read", i + 1, len(files), os.path.basename(f), 0)
         warn_jumps([s.name for s in out], np.array([s.position for s in out]))
         return out
+    if topic is not None:
+        raise InputError("--topic applies to a ROS bag (.bag, .mcap, .db3 or a ROS 2 bag folder)", paths[0])
     if frames is not None:
         raise InputError("--frames needs a sequence folder (KITTI, Argoverse 2 or nuScenes), not scan files")
     if poses is not None:

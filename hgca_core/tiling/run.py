@@ -51,11 +51,12 @@ def plan_drive(scans: list[DriveScan], size: float = TILE_SIZE, overlap: float =
 
 def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str | os.PathLike | None = None,
           fmt: str | None = None, frames: str | None = None, config: DriveConfig | None = None, *,
+          topic: str | None = None,
           report: Report | None = None, on_tile: Callable[[int, int, int, str], None] | None = None,
           on_plan: Callable[[dict], None] | None = None,
           on_step: Callable[[int, str, int, int], None] | None = None, **settings) -> dict:
     """Complete the drive seen by `scans` (scan files in any order,
-    `order` finds the drive's; or one sequence folder with `frames`)
+    `order` finds the drive's; or one sequence folder, bag or E57 with `frames`, a bag's cloud `topic`)
     into DIR=`out` as `config` says (`DriveConfig`, default: its defaults); `settings` change single fields,
     the drive's (size=, workers=, ...) or each tile's completion's (stage=, seed=, t1=, ...). Returns
     drive.json's content.
@@ -101,7 +102,7 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     load_models(stage, weights, fine_weights, device)              # bad weights fail before reading a scan
     digests = tuple(file_digest(p) for p in weight_files(stage, weights, fine_weights))
 
-    inputs = read_drive_inputs(paths, poses, fmt, frames, say)
+    inputs = read_drive_inputs(paths, poses, fmt, frames, say, topic)
     t_read = time.perf_counter()
     plans, regions, plan_doc = plan_drive(inputs, cfg.size, cfg.overlap, cfg.scans_per_tile)
     memory = cfg.tile_memory or memory_need(regions[0])

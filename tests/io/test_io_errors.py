@@ -113,8 +113,8 @@ def test_wrong_extension(real_dir, tmp_path):
     raises_naming(tmp_path / "fake.laz", "content is PLY")
     shutil.copy(real_dir / "simple.laz", tmp_path / "scan.bin")
     raises_naming(tmp_path / "scan.bin", "content is LAS")
-    shutil.copy(real_dir / "simple.las", tmp_path / "scan.e57")
-    raises_naming(tmp_path / "scan.e57", "unknown file extension '.e57'")
+    shutil.copy(real_dir / "simple.las", tmp_path / "scan.rcp")
+    raises_naming(tmp_path / "scan.rcp", "unknown file extension '.rcp'")
     raises_naming(tmp_path / "real.ply", "unknown format", fmt="obj")
     raises_naming(tmp_path / "real.ply", "--format ply", fmt="las")
 
