@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip wheel setuptools
 	$(BIN)/python -m pip install -q "torch==2.13.0" "numpy<2"
-	$(BIN)/python -m pip install -q -e ".[test,eval,real,ray]"
+	$(BIN)/python -m pip install -q -e ".[test,eval,real,ray,recordings]"
 	touch $(STAMP)
 
 venv: $(STAMP)

@@ -25,9 +25,9 @@ from pathlib import Path
 PROTOCOL = 1
 TORCH = "torch==2.13.0"
 TORCH_CPU_INDEX = "https://download.pytorch.org/whl/cpu"
-EXTRAS = "real"  # pyarrow: Argoverse 2 logs
-# pip prints one "Collecting" line per distribution: about this many for hgca[real] and torch
-EXPECTED_PACKAGES = 40
+EXTRAS = "real,recordings"  # pyarrow: Argoverse 2 logs; rosbags, pye57, kiss-icp: ROS bags, E57, odometry
+# pip prints one "Collecting" line per distribution: about this many for hgca[real,recordings] and torch
+EXPECTED_PACKAGES = 60
 
 
 # pip is silent while it unpacks (torch alone: about a minute): a heartbeat record every HEARTBEAT_S seconds keeps
