@@ -65,13 +65,42 @@ def describe_sequence(root: str, frames: str | None, poses: str | None, topic: s
     }
 
 
+def _sequence_info(root: str, frames: str | None, poses: str | None, topic: str | None) -> dict[str, Any]:
+    """describe_sequence, and for a ROS bag its topics listing first (alone when no cloud topic is chosen)."""
+    from hgca_core.io.sequence import container_layout
+
+    if container_layout(root) != "rosbag":
+        return describe_sequence(root, frames, poses, topic)
+    from hgca_core.io.rosbag import describe_bag
+
+    bag = describe_bag(root, topic)
+    if bag["cloud"] is None:
+        return {"file": root, "format": "rosbag", "bag": bag}
+    return {**describe_sequence(root, frames, poses, topic), "bag": bag}
+
+
+def _bag_text(bag: dict[str, Any]) -> list[str]:
+    width = max(len(t["topic"]) for t in bag["topics"]) if bag["topics"] else 0
+    lines = ["  topics:", *[f"    {t['topic']:<{width}}  {t['type']}  {t['messages']}" for t in bag["topics"]]]
+    c = bag["cloud"]
+    clouds = [t["topic"] for t in bag["topics"] if t["type"] == "sensor_msgs/msg/PointCloud2"]
+    if c is None:
+        return lines + [f"  cloud:      give --topic ({len(clouds)} point cloud topics: {', '.join(clouds) or 'none'})"]
+    return lines + [f"  cloud:      {c['topic']}: {c['frames']} frames over {c['duration_s']:.3f} s "
+                    f"({c['start_s']:.3f} to {c['end_s']:.3f}), frame {', '.join(c['sensor_frames'])}",
+                    f"  poses:      {c['poses']}"]
+
+
 def _text(info: dict[str, Any]) -> str:
     def fmt3(v: list[float]) -> str:
         return " ".join(f"{x:.3f}" for x in v)
 
+    bag = _bag_text(info["bag"]) if "bag" in info else []
+    if "points" not in info:
+        return "\n".join([info["file"], f"  format:     {info['format']}", *bag])
     lines = [
-        info["file"],
-        f"  format:     {info['format']}",
+        *([info["file"], f"  format:     {info['format']}", *bag] if bag else []),
+        *([] if bag else [info["file"], f"  format:     {info['format']}"]),
         *([f"  frames:     {len(info['frames'])} of {info['frames_total']} "
            f"({info['frames'][0]} to {info['frames'][-1]}): "
            + ", ".join(os.path.basename(f) for f in info["scans"][:3]) + (" ..." if len(info["scans"]) > 3 else "")]
@@ -105,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
     if is_sequence(files):
         if args.fmt is not None:
             raise InputError("--format applies to scan files, not to a sequence folder", files[0])
-        infos = [describe_sequence(files[0], args.frames, args.poses, args.topic)]
+        infos = [_sequence_info(files[0], args.frames, args.poses, args.topic)]
     elif args.frames is not None or args.poses is not None or args.topic is not None:
         raise InputError("--frames, --poses and --topic need a sequence folder (KITTI, Argoverse 2 or nuScenes), "
                          "a ROS bag or an E57")

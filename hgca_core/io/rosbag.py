@@ -265,8 +265,11 @@ def describe_bag(path: str, topic: str | None) -> dict[str, Any]:
     if index.topic is not None:
         stamps = [f.stamp for f in index.frames]
         try:
-            posed = tf_poses(index) is not None
-            why = "tf" if posed else "none in tf: LiDAR odometry"
+            frames = sorted({f.frame_id for f in index.frames})
+            if tf_poses(index) is not None:
+                why = f"from tf ({', '.join(frames)} in {index.tf.chain(frames[0])[-1]})"  # type: ignore[union-attr]
+            else:
+                why = f"LiDAR odometry (tf does not place {', '.join(frames)})"
         except InputError as exc:
             why = f"tf unusable: {str(exc)[len(path) + 2:]}"
         out["cloud"] = {"topic": index.topic, "frames": len(index.frames), "start_s": min(stamps) / 1e9,
