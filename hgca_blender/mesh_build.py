@@ -39,16 +39,16 @@ class Created:
         self.node_groups: list[bpy.types.NodeTree] = []
 
     def rollback(self) -> None:
-        for obj in self.objects:
-            bpy.data.objects.remove(obj, do_unlink=True)
-        for mesh in self.meshes:
-            bpy.data.meshes.remove(mesh, do_unlink=True)
-        for mat in self.materials:
-            bpy.data.materials.remove(mat, do_unlink=True)
-        for coll in self.collections:
-            bpy.data.collections.remove(coll, do_unlink=True)
-        for ng in self.node_groups:
-            bpy.data.node_groups.remove(ng, do_unlink=True)
+        """Remove every recorded datablock; one the user already deleted (results go in over many timer ticks,
+        while the interface answers) is skipped."""
+        for items, data in ((self.objects, bpy.data.objects), (self.meshes, bpy.data.meshes),
+                            (self.materials, bpy.data.materials), (self.collections, bpy.data.collections),
+                            (self.node_groups, bpy.data.node_groups)):
+            for item in items:
+                try:
+                    data.remove(item, do_unlink=True)
+                except ReferenceError:
+                    pass
         self.__init__()
 
 
