@@ -101,9 +101,10 @@ def scan_pose(lib: Any, scan: Any, i: int, path: str) -> np.ndarray:
     except lib.E57Exception as exc:
         raise InputError(f"scan {i}: pose is incomplete ({_first_line(exc)})", path) from None
     shown = ", ".join(f"{v:.6g}" for v in q)
-    if not np.isfinite(q).all():
+    norm = float(np.linalg.norm(q)) if np.isfinite(q).all() else np.inf
+    if not np.isfinite(norm):  # libE57 reads 'nan' as 0 and an overflow (1e999) as the largest double
         raise InputError(f"scan {i}: pose rotation quaternion (w, x, y, z) = ({shown}) is not finite", path)
-    if np.linalg.norm(q) < 1e-6:
+    if norm < 1e-6:  # also an all-'nan' quaternion, as libE57 reads it
         raise InputError(f"scan {i}: pose rotation quaternion (w, x, y, z) = ({shown}) is zero: it is no rotation",
                          path)
     if not np.isfinite(t).all():
