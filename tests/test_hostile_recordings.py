@@ -1,0 +1,102 @@
+"""Hostile recordings (ROS bags, E57 files) through the CLI entry point in-process: exit 2, one `error:` line
+naming the file (and the frame or scan where one is at fault), no traceback, inputs untouched, nothing written."""
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pytest
+
+from e57_files import cartesian, float_text, patch_xml, write_e57
+from hgca_testdata import folder_state, require_real
+from hgca_core.cli import main
+
+
+def _e57_truncated(d: Path) -> Path:
+    path = write_e57(d / "site.e57", [cartesian(np.random.default_rng(0).normal(size=(5000, 3)))])
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    return path
+
+
+def _e57_renamed_las(d: Path) -> Path:
+    return Path(shutil.copy(require_real() / "simple.las", d / "site.e57"))
+
+
+def _e57_wrong_magic(d: Path) -> Path:
+    path = d / "site.e57"
+    path.write_bytes(b"ASTM-E56" + bytes(2040))
+    return path
+
+
+def _e57_no_scans(d: Path) -> Path:
+    import pye57
+
+    pye57.E57(str(d / "site.e57"), mode="w").close()  # the standard header, an empty data3D
+    return d / "site.e57"
+
+
+def _e57_no_coordinates(d: Path) -> Path:
+    return write_e57(d / "site.e57", [cartesian(np.ones((4, 3))), {"intensity": np.ones(4)}])
+
+
+def _e57_zero_quaternion(d: Path) -> Path:
+    return write_e57(d / "site.e57", [cartesian(np.ones((4, 3))), cartesian(np.ones((4, 3)),
+                                                                            rotation=(0.0, 0.0, 0.0, 0.0))])
+
+
+def _e57_nan_quaternion(d: Path) -> Path:
+    """A pose written as 'nan' by an exporter (libE57 reads 'nan' as 0, so this is the zero quaternion again)."""
+    q = (0.111, 0.222, 0.333, 0.444)
+    path = write_e57(d / "site.e57", [cartesian(np.ones((4, 3)), rotation=q, translation=(1.0, 2.0, 3.0))])
+    for v in q:
+        patch_xml(path, float_text(v), b"nan")
+    return path
+
+
+def _e57_overflowing_quaternion(d: Path) -> Path:
+    """1e999 in the file: libE57 reads it as the largest double, whose square overflows."""
+    path = write_e57(d / "site.e57", [cartesian(np.ones((4, 3)), rotation=(0.5, 0.111, 0.5, 0.5))])
+    patch_xml(path, float_text(0.111), b"1e999")
+    return path
+
+
+def _e57_all_invalid(d: Path) -> Path:
+    return write_e57(d / "site.e57", [cartesian(np.ones((5, 3)), cartesianInvalidState=np.full(5, 2))])
+
+
+E57_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
+    "truncated": (_e57_truncated, "corrupt or truncated E57 file"),
+    "renamed LAS": (_e57_renamed_las, "not an E57 file: it does not start with the ASTM-E57 signature (its "
+                                      "content is LAS/LAZ)"),
+    "wrong magic": (_e57_wrong_magic, "not an E57 file"),
+    "no scans": (_e57_no_scans, "E57 file holds no scans"),
+    "no coordinates": (_e57_no_coordinates, "scan 1 has neither cartesian"),
+    "zero quaternion": (_e57_zero_quaternion, "scan 1: pose rotation quaternion (w, x, y, z) = (0, 0, 0, 0) is zero"),
+    "nan quaternion": (_e57_nan_quaternion, "scan 0: pose rotation quaternion (w, x, y, z) = (0, 0, 0, 0) is zero"),
+    "overflowing quaternion": (_e57_overflowing_quaternion, "scan 0: pose rotation quaternion (w, x, y, z) = "
+                                                            "(0.5, 1.79769e+308, 0.5, 0.5) is not finite"),
+    "all points invalid": (_e57_all_invalid, "scan 0: all 5 points are marked invalid (cartesianInvalidState != 0)"),
+}
+
+
+@pytest.mark.parametrize("command", ["read", "info", "complete"])
+@pytest.mark.parametrize("case", list(E57_CASES))
+def test_hostile_e57_is_one_clear_error(case: str, command: str, tmp_path, monkeypatch, capsys):
+    build, expect = E57_CASES[case]
+    path = build(tmp_path)
+    argv = {"read": ["read", path, "-o", "out.npz"], "info": ["info", path],
+            "complete": ["complete", path, "-o", "out.ply", "--stage", "coarse", "--progress", "none"]}[command]
+    before = folder_state(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["hgca"])
+    monkeypatch.chdir(tmp_path)
+    code = main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    assert code == 2, f"exit {code}: {err[-1500:]}"
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith(f"hgca {command}: error: {path}: "), err
+    assert expect in lines[0], err
+    assert folder_state(tmp_path) == before, "an input changed or an output appeared"
