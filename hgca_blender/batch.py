@@ -70,6 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--poses", default=None, help="poses JSON for the scans")
     p.add_argument("--frames", default="", metavar="START:STOP[:STEP]",
                    help="frames of a sequence folder given as the one scan (default: the 5 around the middle)")
+    p.add_argument("--topic", default="", help="the point cloud topic of a ROS bag given as the one scan")
     p.add_argument("--out", required=True, help="output .blend")
     p.add_argument("--region", default=None, help="cx,cy,cz,sx,sy,sz[,yaw_deg] (default: `hgca region`'s box, "
                                                   "38.4 x 38.4 x 8 m around the sensor, 1 m below the ground)")
@@ -130,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
         obj, skipped, dropped = operators_import.import_scans(python, [Path(s) for s in args.scans],
                                                               scene.collection,
                                                               Path(args.poses) if args.poses else None, scene=scene,
-                                                              frames=args.frames)
+                                                              frames=args.frames, topic=args.topic)
     except (core.CoreError, ValueError, OSError) as exc:
         _log(f"error: {exc}")
         return 2

@@ -26,15 +26,18 @@ INDEX_ATTRIBUTES = ("origin_index", "scan_index")
 
 @dataclass
 class ScanFiles:
-    """The core's own inputs for an imported scan: `hgca complete PATHS [--frames F] [--poses P]`."""
+    """The core's own inputs for an imported scan: `hgca complete PATHS [--frames F] [--poses P] [--topic T]`
+    (the topic picks a ROS bag's point cloud stream)."""
 
     paths: list[str]
     frames: str = ""
     poses: str = ""
+    topic: str = ""
 
     def args(self) -> list[str]:
         return [*self.paths, *(["--frames", self.frames] if self.frames else []),
-                *(["--poses", self.poses] if self.poses else [])]
+                *(["--poses", self.poses] if self.poses else []),
+                *(["--topic", self.topic] if self.topic else [])]
 
 
 def _stat(path: str) -> list[int]:
@@ -59,7 +62,7 @@ def object_world_points(scene: bpy.types.Scene, obj: bpy.types.Object) -> np.nda
 
 def remember_files(scene: bpy.types.Scene, obj: bpy.types.Object, files: ScanFiles) -> None:
     """Store on a freshly imported object the files it was read from and a digest of its world points."""
-    record = {"paths": files.paths, "frames": files.frames, "poses": files.poses,
+    record = {"paths": files.paths, "frames": files.frames, "poses": files.poses, "topic": files.topic,
               "stats": [_stat(p) for p in [*files.paths, *([files.poses] if files.poses else [])]],
               "digest": points_digest(object_world_points(scene, obj))}
     obj[SOURCE_KEY] = json.dumps(record)
@@ -72,7 +75,8 @@ def unchanged_files(scene: bpy.types.Scene, objects: list[bpy.types.Object]) -> 
     raw = objects[0].get(SOURCE_KEY)
     try:
         record = json.loads(raw) if isinstance(raw, str) else None
-        files = ScanFiles([str(p) for p in record["paths"]], str(record["frames"]), str(record["poses"]))
+        files = ScanFiles([str(p) for p in record["paths"]], str(record["frames"]), str(record["poses"]),
+                          str(record.get("topic", "")))   # records of older versions name no topic
         stats, digest = record["stats"], str(record["digest"])
     except (TypeError, KeyError, ValueError):
         return None
