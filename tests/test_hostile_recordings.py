@@ -100,3 +100,123 @@ def test_hostile_e57_is_one_clear_error(case: str, command: str, tmp_path, monke
     assert lines[0].startswith(f"hgca {command}: error: {path}: "), err
     assert expect in lines[0], err
     assert folder_state(tmp_path) == before, "an input changed or an output appeared"
+
+
+# ---------------------------------------------------------------- ROS bags
+
+
+def _bagwriter():
+    """tests/io/bagwriter.py, the bag tests' writer (tests/io is not a package: imported from its folder)."""
+    import importlib
+
+    folder = str(Path(__file__).parent / "io")
+    if folder not in sys.path:
+        sys.path.append(folder)
+    return importlib.import_module("bagwriter")
+
+
+def _bag_of(d: Path, kind: str, name: str, stamps_ms=(0, 100), layout: dict | None = None, cols=None, **extra):
+    """A small bag of clouds on /points (stamps in ms after 2024) and an identity /tf, written by `kind`."""
+    bw = _bagwriter()
+    bag = bw.Bag(kind)
+    rng = np.random.default_rng(0)
+    base = 1_700_000_000 * 10**9
+    for k, ms in enumerate(stamps_ms):
+        stamp = base + ms * 1_000_000
+        columns = cols or {a: rng.uniform(-20, 20, 400) for a in "xyz"}
+        bag.add("/points", bw.CLOUD, base + k * 100_000_000, bw.cloud(bag.store, stamp, "lidar", columns, **(layout or {})))
+        bag.add("/tf", bw.TF, stamp, bw.tf_message(bag.store, [(stamp, "odom", "lidar", np.eye(4))]))
+    for key, value in extra.items():
+        setattr(bag, key, value)
+    return bag.write(d / name)
+
+
+def _bag_truncated_ros1(d: Path):
+    path = _bag_of(d, "ros1", "drive.bag")
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    return path, []
+
+
+def _bag_truncated_mcap(d: Path):
+    folder = _bag_of(d, "mcap", "drive")
+    (mcap,) = folder.glob("*.mcap")
+    mcap.write_bytes(mcap.read_bytes()[: mcap.stat().st_size * 3 // 4])
+    return folder, []
+
+
+def _bag_truncated_db3(d: Path):
+    folder = _bag_of(d, "sqlite3", "drive")
+    (db3,) = folder.glob("*.db3")
+    db3.write_bytes(db3.read_bytes()[: db3.stat().st_size // 2])
+    return db3, []
+
+
+def _bag_truncated_message(d: Path):
+    """A cloud whose data is shorter than its height x row_step (a cut-off message)."""
+    bw = _bagwriter()
+    bag = bw.Bag("ros1")
+    msg = bw.cloud(bag.store, 1_700_000_000 * 10**9, "lidar", {a: np.ones(100, dtype=np.float32) for a in "xyz"})
+    msg.data = msg.data[:-12]
+    bag.add("/points", bw.CLOUD, 1, msg)
+    return bag.write(d / "drive.bag"), []
+
+
+def _bag_not_a_cloud(d: Path):
+    return _bag_of(d, "ros1", "drive.bag"), ["--topic", "/tf"]
+
+
+def _bag_missing_topic(d: Path):
+    return _bag_of(d, "mcap", "drive"), ["--topic", "/velodyne_points"]
+
+
+def _bag_empty_topic(d: Path):
+    bw = _bagwriter()
+    bag = bw.Bag("sqlite3", empty=[("/points", bw.CLOUD)])
+    bag.add("/tf", bw.TF, 1, bw.tf_message(bag.store, [(1, "odom", "lidar", np.eye(4))]))
+    return bag.write(d / "drive"), []
+
+
+def _bag_no_xyz(d: Path):
+    return _bag_of(d, "ros1", "drive.bag", cols={n: np.ones(50, dtype=np.float32) for n in ("a", "b", "c")}), []
+
+
+def _bag_clock_backwards(d: Path):
+    return _bag_of(d, "mcap", "drive", stamps_ms=(0, 100, 200, 50, 300)), []
+
+
+BAG_CASES: dict[str, tuple[Callable[[Path], tuple[Path, list[str]]], str]] = {
+    "bag truncated ros1": (_bag_truncated_ros1, "corrupt or truncated bag: Bag index looks damaged"),
+    "bag truncated mcap": (_bag_truncated_mcap, "corrupt or truncated bag"),
+    "bag truncated db3": (_bag_truncated_db3, "corrupt or truncated bag: Cannot open database"),
+    "bag truncated message": (_bag_truncated_message, "topic /points, frame 0: point cloud data holds 1188 bytes "
+                                                      "but height 1 x width 100 (row_step 1200, point_step 12) "
+                                                      "needs 1200: truncated message"),
+    "bag topic not a cloud": (_bag_not_a_cloud, "topic /tf holds tf2_msgs/msg/TFMessage messages, not "
+                                                "sensor_msgs/PointCloud2 (point cloud topics: /points (2))"),
+    "bag missing topic": (_bag_missing_topic, "the bag has no topic /velodyne_points (point cloud topics: "
+                                              "/points (2))"),
+    "bag empty topic": (_bag_empty_topic, "topic /points has no messages"),
+    "bag without xyz": (_bag_no_xyz, "topic /points, frame 0: point cloud has no x/y/z field (fields: a, b, c)"),
+    "bag clocks backwards": (_bag_clock_backwards, "topic /points: header stamps go backwards by 0.150 s at "
+                                                   "message 3"),
+}
+
+
+@pytest.mark.parametrize("command", ["read", "info", "complete"])
+@pytest.mark.parametrize("case", list(BAG_CASES))
+def test_hostile_bag_is_one_clear_error(case: str, command: str, tmp_path, monkeypatch, capsys):
+    build, expect = BAG_CASES[case]
+    path, extra = build(tmp_path)
+    argv = {"read": ["read", path, "-o", "out.npz"], "info": ["info", path],
+            "complete": ["complete", path, "-o", "out.ply", "--stage", "coarse", "--progress", "none"]}[command]
+    before = folder_state(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["hgca"])
+    monkeypatch.chdir(tmp_path)
+    code = main([str(a) for a in [*argv, *extra]])
+    err = capsys.readouterr().err
+    assert code == 2, f"exit {code}: {err[-1500:]}"
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith(f"hgca {command}: error: {path}: "), err
+    assert expect in lines[0], err
+    assert folder_state(tmp_path) == before, "an input changed or an output appeared"

@@ -46,8 +46,12 @@ def _bad(exc: Exception, path: str, topic: str | None) -> InputError:
     if isinstance(exc, MemoryError):
         return InputError("bag is too large to read into memory", path)
     about = f" (topic {topic})" if topic else ""
-    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    return InputError(f"corrupt or truncated bag{about}: {type(exc).__name__}: {text}", path)
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+    if type(exc).__name__ not in ("AnyReaderError", "ReaderError") or not text:
+        text = f"{type(exc).__name__}: {text}".rstrip(": ")
+    hint = ("; an unfinished ROS 1 recording can be repaired with `rosbag reindex`"
+            if path.lower().endswith(".bag") and "index" in text.lower() else "")
+    return InputError(f"corrupt or truncated bag{about}: {text}{hint}", path)
 
 
 def _stamp_ns(msg: Any) -> int:

@@ -85,6 +85,7 @@ class Bag:
 
     kind: str  # ros1, sqlite3, mcap
     messages: list[tuple[str, str, int, object]] = field(default_factory=list)
+    empty: list[tuple[str, str]] = field(default_factory=list)  # (topic, msgtype) connections without messages
 
     @property
     def store(self):
@@ -103,7 +104,7 @@ class Bag:
             writer = Writer2(path, version=9, storage_plugin=plugin)
             serialize = store.serialize_cdr
         with writer:
-            conns = {}
+            conns = {topic: writer.add_connection(topic, msgtype, typestore=store) for topic, msgtype in self.empty}
             for topic, msgtype, received, msg in sorted(self.messages, key=lambda m: m[2]):
                 if topic not in conns:
                     conns[topic] = writer.add_connection(topic, msgtype, typestore=store)
