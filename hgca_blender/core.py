@@ -206,6 +206,7 @@ class Job:
         self._reported_error = ""
         self._ended = False
         self._done_event: dict[str, Any] | None = None
+        self.finishing: Any = None   # what on_success returned: results going into the scene over the next polls
         try:
             self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                           stdin=subprocess.DEVNULL, text=True, errors="replace", bufsize=1,
@@ -264,7 +265,9 @@ class Job:
         """
         if self.state != "running":
             return False
-        while self.state == "running":
+        if self.finishing is not None:
+            self._step_finishing()
+        while self.state == "running" and self.finishing is None:
             try:
                 event = self._events.get_nowait()
             except queue.Empty:
@@ -305,9 +308,13 @@ class Job:
             self.publish()
 
     def _stop(self) -> bool:
-        """End a running process and its files; False when the job had already ended."""
+        """End a running process, the results it was adding (removed again) and its files; False when the job had
+        already ended."""
         if self.state != "running":
             return False
+        if self.finishing is not None:
+            self.finishing.cancel()
+            self.finishing = None
         _terminate_tree(self._proc)
         self._out_thread.join(timeout=5.0)
         self._cleanup()
@@ -337,10 +344,11 @@ class Job:
         try:
             if returncode == 0 and self._done_event is not None:
                 self.outputs = self._output_paths(self._done_event)
-                self.on_success(self.outputs)
-                self.state = "done"
-                self.progress = 1.0
-                self.status = self.success_status()
+                self.finishing = self.on_success(self.outputs)
+                if self.finishing is None:
+                    self._succeed()
+                else:
+                    self.status = self.finishing.status
             else:
                 if returncode == 0:
                     message = "hgca_core finished without reporting its outputs"
@@ -351,8 +359,27 @@ class Job:
                 self._fail(message)
         except Exception as exc:  # building results failed: on_success rolled back, report why
             self._fail(f"could not load the results: {exc}")
-        finally:
+        if self.finishing is None:
             self._cleanup()
+
+    def _succeed(self) -> None:
+        self.state, self.progress, self.status = "done", 1.0, self.success_status()
+
+    def _step_finishing(self) -> None:
+        """One time-bounded slice of the results going in (`result_insert.Insertion`); the job ends with them."""
+        finishing = self.finishing
+        if finishing.step():
+            self.status = finishing.status
+            return
+        self.finishing = None
+        try:
+            if finishing.error:
+                raise RuntimeError(finishing.error)
+            self.on_inserted(finishing)
+            self._succeed()
+        except Exception as exc:  # noqa: BLE001  (the insertion removed what it made)
+            self._fail(f"could not load the results: {exc}")
+        self._cleanup()
 
     def _fail(self, message: str) -> None:
         self.state = "error"
@@ -375,8 +402,12 @@ class Job:
     def on_progress(self, stage: str, event: dict[str, Any]) -> None:
         """A progress record (any stage but done/error); update `progress` and `status` (main thread)."""
 
-    def on_success(self, outputs: list[Path]) -> None:
-        """Consume the outputs (main thread). Must leave Blender untouched if it raises."""
+    def on_success(self, outputs: list[Path]) -> Any:
+        """Consume the outputs (main thread). Must leave Blender untouched if it raises. May return an insertion
+        (`step()`, `cancel()`, `status`, `error`): the job then runs on until it is done, then `on_inserted`."""
+
+    def on_inserted(self, insertion: Any) -> None:
+        """The results `on_success` began are in the scene (main thread)."""
 
     def success_status(self) -> str:
         return "Done"

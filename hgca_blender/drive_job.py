@@ -4,8 +4,8 @@ tile per sample, as they finish.
 The core plans the tiles (`hgca drive --plan-only --json`, and the `plan` record of a run: the same planner),
 so the add-on only draws the regions it gets. It writes every tile's own part (cut at the overlap midlines) to
 DIR/tiles/<i>_s<k>.npz and says so in a `tile` record (`state` done, or cached for a tile an earlier run
-finished): the add-on adds that tile's objects at once, so the objects tile the drive without doubled geometry
-and a cancelled job keeps what it finished. DIR is the user's: cancelling stops the core (drive.json says
+finished): the add-on queues that tile's objects, added in slices while the drive runs on (`drive_results`), so
+the objects tile the drive without doubled geometry and a cancelled job keeps what it finished. DIR is the user's: cancelling stops the core (drive.json says
 "interrupted"), the finished tiles stay there, and the same job started again resumes.
 
 Inputs are scan files (batch: `--drive`) or the panel's source objects: each object goes to the core as one
@@ -27,6 +27,7 @@ import bpy
 import numpy as np
 
 from . import georef, jobs, mesh_build, messages, region, settings, sources
+from .drive_results import DriveResults
 from .core import CoreError, Job, check_python, core_command, run_core_json
 
 # Share of the progress bar: reading the scans, the tiles, merging the samples.
@@ -155,55 +156,6 @@ def remove_plan(scene: bpy.types.Scene) -> None:
         bpy.data.collections.remove(coll)
 
 
-# -- the results: one collection, objects added tile by tile ---------------------------------------------
-
-class DriveResults:
-    """The drive's collection in its scene (made at the first finished tile), one object per tile per sample
-    ("<run> tile i sample k", custom properties hgca_tile / hgca_sample); only sample 0 shows."""
-
-    def __init__(self, scene: bpy.types.Scene, run_name: str) -> None:
-        self.scene_name = scene.name
-        self.run_name = run_name
-        self.collection_name = ""
-        self.material_name = ""
-        self.tiles: set[int] = set()
-
-    def add(self, index: int, paths: list[Path]) -> None:
-        """Tile `index`'s objects from its sample files; every file is read first, and a failure adds nothing."""
-        if index in self.tiles:
-            return
-        scene = bpy.data.scenes.get(self.scene_name)
-        if scene is None:
-            raise CoreError(f"scene {self.scene_name!r} no longer exists")
-        arrays = [mesh_build.read_result(p) for p in paths]
-        origin = georef.scene_origin(scene)
-        created = mesh_build.Created()
-        try:
-            collection = bpy.data.collections.get(self.collection_name) if self.collection_name else None
-            if collection is None:
-                collection = bpy.data.collections.new(self.run_name)
-                created.collections.append(collection)
-                scene.collection.children.link(collection)
-            material = bpy.data.materials.get(self.material_name) if self.material_name else None
-            if material is None:
-                material = mesh_build.observed_material(f"{self.run_name} observed/generated")
-                created.materials.append(material)
-            hidden = []
-            for k, arr in enumerate(arrays):
-                obj = mesh_build.result_object(f"{self.run_name} tile {index} sample {k}", arr, material, created,
-                                               origin)
-                obj["hgca_tile"], obj["hgca_sample"] = index, k
-                collection.objects.link(obj)
-                if k:
-                    hidden.append(obj)
-            mesh_build.hide_in_scene(scene, hidden)
-        except Exception:
-            created.rollback()
-            raise
-        self.collection_name, self.material_name = collection.name, material.name
-        self.tiles.add(index)
-
-
 def finished_tiles(folder: Path) -> list[int]:
     """The tiles drive.json lists as done (their files are written before drive.json says so)."""
     try:
@@ -287,12 +239,35 @@ class DriveJob(Job):
         self.status = f"Tiles {self.tiles_done}/{self.tiles} done: tile {event.get('tile')} {chain} {step}/{total}"
 
     def _collect_finished(self) -> None:
-        """Objects for every tile drive.json lists as done that has none yet (finished since the last record)."""
+        """Queue every tile drive.json lists as done that has no objects yet (finished since the last record)."""
         for index in finished_tiles(Path(self.params.out_dir)):
             self.results.add(index, self.tile_paths(index))
 
-    def on_success(self, outputs: list[Path]) -> None:
+    def poll_once(self) -> bool:
+        """As `core.Job.poll_once`, and first a slice of the finished tiles going in while the core runs on."""
+        if self.running and self.finishing is None and self.results.pending:
+            self.results.step()
+            if self.results.error and self._stop():
+                self._fail(f"could not load the results: {self.results.error}")
+                self.publish()
+                self._ended = True
+                self.on_end()
+                return False
+            if self.results.status:
+                self.status = self.results.status
+        return super().poll_once()
+
+    @property
+    def inserting(self) -> bool:
+        """Finished tiles are going in (the timer polls again soon)."""
+        return self.results.pending
+
+    def on_success(self, outputs: list[Path]) -> DriveResults:
+        """The tiles still waiting go in over the next polls (`on_inserted` then)."""
         self._collect_finished()
+        return self.results
+
+    def on_inserted(self, results: DriveResults) -> None:
         if not self.results.collection_name:
             raise CoreError("the drive finished without tiles")
         jobs.undo_push(f"hGCA: {self.run_name}")
@@ -303,13 +278,14 @@ class DriveJob(Job):
     def cancel(self) -> None:
         """Stop the core (its drive.json then says "interrupted"); the tiles it finished stay, as objects here
         and in DIR, where the same job started again resumes."""
+        self.finishing = None      # the tiles going in are kept, not removed (core.Job._stop)
         if not self._stop():
             return
         self.state = "cancelled"
-        try:
-            self._collect_finished()
-        except Exception as exc:  # noqa: BLE001  (what was loaded stays; say why the rest is missing)
-            self.status = f"Cancelled; some finished tiles could not be loaded: {exc}"
+        self._collect_finished()
+        self.results.run()         # the tiles the core finished, at once
+        if self.results.error:     # what was loaded stays; say why the rest is missing
+            self.status = f"Cancelled; some finished tiles could not be loaded: {self.results.error}"
         else:
             kept = len(self.results.tiles)
             self.status = (f"Cancelled: {kept} finished tile(s) kept" +

@@ -19,7 +19,7 @@ from typing import Any
 import bpy
 import numpy as np
 
-from . import mesh_build, messages, settings
+from . import messages, result_insert, settings
 from .core import CoreError, Job, check_python, core_command
 from .job_inputs import ScanFiles
 
@@ -28,6 +28,7 @@ STAGES = ("read", "coarse", "fine", "mesh", "write")
 STAGE_WEIGHTS = {"read": 0.05, "coarse": 0.45, "fine": 0.25, "mesh": 0.2, "write": 0.05}
 PER_SAMPLE_STAGES = ("coarse", "fine", "mesh")
 POLL_INTERVAL_S = 0.2
+INSERT_INTERVAL_S = 0.02   # between two slices of results going in (result_insert.SLICE_S each)
 
 
 @dataclass
@@ -161,13 +162,16 @@ class CompletionJob(Job):
     def _scene(self) -> bpy.types.Scene | None:
         return bpy.data.scenes.get(self.scene_name)
 
-    def on_success(self, outputs: list[Path]) -> None:
+    def on_success(self, outputs: list[Path]) -> result_insert.Insertion:
+        """Begin adding the results: read on a thread, built in slices over the next polls (`result_insert`)."""
         scene = self._scene()
         if scene is None:
             raise CoreError(f"scene {self.scene_name!r} no longer exists")
-        collection = mesh_build.build_results(scene, outputs, self.run_name, int(self.params.decimate_to),
+        return result_insert.start_completion(scene, outputs, self.run_name, int(self.params.decimate_to),
                                               class_collections=bool(self.params.class_collections))
-        self.collection_name = collection.name
+
+    def on_inserted(self, insertion: result_insert.Insertion) -> None:
+        self.collection_name = insertion.result
         undo_push(f"hGCA: {self.run_name}")
 
     def success_status(self) -> str:
@@ -306,8 +310,12 @@ def poll_all() -> bool:
 
 
 def _timer_tick() -> float | None:
-    """bpy.app.timers callback: keeps polling while jobs run, then unregisters itself."""
-    return POLL_INTERVAL_S if poll_all() else None
+    """bpy.app.timers callback: keeps polling while jobs run, then unregisters itself; while results go in, again
+    soon after each slice (the interface answers in between)."""
+    if not poll_all():
+        return None
+    inserting = any(j.finishing is not None or getattr(j, "inserting", False) for j in ACTIVE.values())
+    return INSERT_INTERVAL_S if inserting else POLL_INTERVAL_S
 
 
 def ensure_timer() -> None:

@@ -1,7 +1,8 @@
 """hGCA panel operators: add a region box, start a completion job, cancel it.
 
 "Complete" only gathers inputs and starts a `jobs.CompletionJob`; the meshes are built later on the
-main thread by `poll_once()` (driven by a timer in the UI).
+main thread by `poll_once()` (driven by a timer in the UI), in slices of at most `result_insert.SLICE_S`; Esc or
+Cancel then removes what was added so far.
 """
 from __future__ import annotations
 
@@ -198,8 +199,11 @@ class HGCA_OT_complete(bpy.types.Operator):
             return self._finish(context)
         if job is None or not job.running:
             return self._finish(context)
-        jobs.status_bar(context, f"hGCA: {job.status} ({job.progress * 100:.0f}%{jobs.time_left(job)})  "
-                                 "Esc: cancel")
+        if job.finishing is not None:   # the results going in, slice by slice: "Adding sample 2 of 3: 45 %"
+            jobs.status_bar(context, f"hGCA: {job.status}  Esc: cancel")
+        else:
+            jobs.status_bar(context, f"hGCA: {job.status} ({job.progress * 100:.0f}%{jobs.time_left(job)})  "
+                                     "Esc: cancel")
         return {"PASS_THROUGH"}
 
     def _finish(self, context: bpy.types.Context) -> set[str]:
@@ -211,7 +215,7 @@ class HGCA_OT_complete(bpy.types.Operator):
 
 
 class HGCA_OT_cancel(bpy.types.Operator):
-    """Stop the running completion; nothing is added to the scene"""
+    """Stop the running completion; nothing is added to the scene (results going in are removed again)"""
 
     bl_idname = "hgca.cancel"
     bl_label = "Cancel"

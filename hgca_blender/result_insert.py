@@ -24,7 +24,7 @@ import bpy
 import numpy as np
 
 from . import mesh_build, semantics
-from .result_prepare import MeshArrays, SampleArrays, element_count
+from .result_prepare import MeshArrays, SampleArrays
 
 SLICE_S = 0.2          # main-thread time one step() may take before it returns (plus at most one step)
 # (units of work, what the status line says, the Blender call; what it returns, if anything, becomes `result`)
@@ -59,8 +59,10 @@ class Insertion:
     def running(self) -> bool:
         return self.state in ("reading", "adding")
 
-    def step(self, budget_s: float = SLICE_S) -> bool:
-        """Run steps until `budget_s` is spent (measured after each step); True while there is more to do."""
+    def step(self, budget_s: float | None = None) -> bool:
+        """Run steps until `budget_s` (default `SLICE_S`) is spent, measured after each step; True while there is
+        more to do."""
+        budget_s = SLICE_S if budget_s is None else budget_s
         if self.state == "reading" and not self._begin():
             return self.running
         if self.state != "adding":
