@@ -12,7 +12,7 @@ from types import ModuleType
 
 # Registration order: properties before the panels that draw them, preferences before operators use them.
 _MODULES = ("properties", "messages", "preferences", "jobs", "operators_import", "operators_complete", "operators_drive",
-            "operators_results", "operators_georef", "panels")
+            "operators_results", "operators_georef", "operators_poses", "panels")
 
 
 def _modules() -> list[ModuleType]:

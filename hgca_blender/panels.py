@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import georef, jobs, mesh_build, operators_results
+from . import georef, jobs, mesh_build, operators_poses, operators_results, recordings
 
 
 class _SidebarTab:
@@ -96,6 +96,9 @@ class HGCA_PT_main(_SidebarTab, bpy.types.Panel):
             n = sum(1 for o in context.selected_objects if o.type in {"MESH", "POINTCLOUD"})
             col.label(text=f"{n} selected object(s)")
 
+        folder = getattr(context.scene, operators_poses.FOLDER_PROPERTY, "")
+        if folder.strip() and recordings.missing_poses(bpy.path.abspath(folder)):   # an import found no poses
+            operators_poses.draw_poses(layout, context)
         draw_point_size(layout, context.active_object)
         draw_results(layout, context.active_object)
 
@@ -200,6 +203,15 @@ class HGCA_PT_drive(_Section, bpy.types.Panel):
                          icon="INFO")
 
 
+class HGCA_PT_poses(_Section, bpy.types.Panel):
+    """Estimate Poses for a folder of sweeps that has none (LiDAR odometry, written to the folder's poses.json)."""
+
+    bl_label = "Estimate Poses"
+
+    def draw(self, context: bpy.types.Context) -> None:
+        operators_poses.draw_poses(self.layout, context)
+
+
 class HGCA_PT_job(_SidebarTab, bpy.types.Panel):
     bl_label = "Job"
     bl_parent_id = "HGCA_PT_main"
@@ -224,7 +236,7 @@ class HGCA_PT_job(_SidebarTab, bpy.types.Panel):
                 layout.label(text=props.status, icon="ERROR" if props.status_is_error else "INFO")
 
 
-CLASSES = (HGCA_PT_main, HGCA_PT_advanced, HGCA_PT_drive, HGCA_PT_job)
+CLASSES = (HGCA_PT_main, HGCA_PT_advanced, HGCA_PT_drive, HGCA_PT_poses, HGCA_PT_job)
 
 
 register, unregister = bpy.utils.register_classes_factory(CLASSES)
