@@ -22,7 +22,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_poses_argument(p)
     add_format_argument(p)
     add_out_argument(p, "FILE.npz", required=True,
-                     help="output .npz: points (N,3) f32 relative to offset (3,) f64, attributes, origins")
+                     help="output .npz: points (N,3) f64 relative to offset (3,) f64, attributes (scan_index, "
+                          "origin_index, ...), origins, and the inputs' crs")
     add_json_argument(p, "print one JSON object (out, points, scans, attributes, dropped: returns the reader left "
                          "out, by reason) instead of the sentence")
 
@@ -36,20 +37,22 @@ def run(args: argparse.Namespace) -> int:
     check_outputs([args.out], [*args.scans, args.poses])
     check_read_memory(args.scans)
 
-    from hgca_core.io import write_points
-    from hgca_core.io.sequence import read_inputs
-    from hgca_core.io.writers import NPZ_RESERVED
+    from hgca_core.io.arrays import READ_RESERVED, write_accumulated
+    from hgca_core.io.las_crs import check_inputs
+    from hgca_core.io.read import read_scans
+    from hgca_core.io.sequence import is_sequence, read_inputs
 
-    scan = read_inputs(args.scans, poses=args.poses, fmt=args.fmt, frames=args.frames, topic=args.topic)
-    attributes = {k: v for k, v in scan.attributes.items() if k not in NPZ_RESERVED}
-    write_points(args.out, scan.points, attributes, origins=scan.origins)
+    if is_sequence(args.scans) or args.frames is not None or args.topic is not None:
+        scan = read_inputs(args.scans, poses=args.poses, fmt=args.fmt, frames=args.frames, topic=args.topic)
+    else:  # the files' own numbers, whatever their unit: the CRS written beside them says which
+        scan = read_scans(args.scans, poses=args.poses, fmt=args.fmt, metric=False)
+    crs, unit = check_inputs(args.scans, metric=False)
+    attributes = {k: v for k, v in scan.attributes.items() if k not in READ_RESERVED}
+    write_accumulated(args.out, scan, attributes, crs, unit)
     scans = int(scan.attributes["scan_index"].max()) + 1
     if args.json:
-        from hgca_core.io.las_crs import files_crs
-
         print(json.dumps({"out": args.out, "points": len(scan), "scans": scans, "attributes": list(attributes),
-                          "dropped": {why: int(n) for why, n in scan.dropped.items()},
-                          "crs": files_crs([str(s) for s in args.scans])}))
+                          "dropped": {why: int(n) for why, n in scan.dropped.items()}, "crs": crs}))
     else:
         print(f"{args.out}: {len(scan)} points from {scans} scan(s), attributes: {', '.join(attributes) or 'none'}"
               + "".join(f"; left out {n} {why}" for why, n in scan.dropped.items()))

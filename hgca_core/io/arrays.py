@@ -1,13 +1,23 @@
 """NumPy files: `.npy` holding an (N, >=3) table (or a structured array with x, y, z fields) and `.npz`
 archives as written by `hgca read` (`points`, per-point attributes, optional `origins`, optional float64
-`offset` added to `points`: see `hgca_core.io.georef`)."""
+`offset` added to `points`: see `hgca_core.io.georef`, optional `crs` and `unit` strings).
+
+`hgca read` writes its .npz here (`write_accumulated`): float64 `points` relative to `offset`, `scan_index`,
+`origin_index`, `origins` and the CRS, so that completing the .npz is completing what it was read from, bit for bit.
+"""
 from __future__ import annotations
+
+import os
+from typing import Mapping
 
 import numpy as np
 
 from hgca_core.errors import InputError
-from hgca_core.io.georef import read_offset
+from hgca_core.io.atomic import atomic_write
+from hgca_core.io.georef import local_offset, read_offset
 from hgca_core.io.scan import Scan
+
+READ_RESERVED = ("points", "origins", "offset", "crs", "unit", "unit_metres")  # `hgca read`'s non-attributes
 
 
 def _numeric(a: np.ndarray, what: str, path: str) -> np.ndarray:
@@ -77,7 +87,7 @@ def read_npz(path: str) -> Scan:
         attributes = {}
         offset = read_offset(z["offset"], path) if "offset" in keys else np.zeros(3)
         for key in keys:
-            if key in ("points", "origins", "offset"):
+            if key in READ_RESERVED:
                 continue
             value = z[key]
             if value.shape == (n,) and value.dtype.kind in "biuf":
@@ -88,3 +98,52 @@ def read_npz(path: str) -> Scan:
             if origins.ndim not in (1, 2) or origins.shape[-1] != 3:
                 raise InputError(f"'origins' must be (S, 3), got shape {origins.shape}", path)
     return Scan(points[:, :3].astype(np.float64) + offset, attributes, origins, path)
+
+
+def _text(z, key: str) -> str | None:
+    if key not in z.files:
+        return None
+    value = z[key]
+    return str(value[()]) if value.shape == () and value.dtype.kind == "U" and str(value[()]) else None
+
+
+def npz_georef(path: str) -> tuple[str | None, tuple[str, float | None] | None]:
+    """(`crs`, (`unit`, metres per unit) when `unit` is not metres) of an .npz `hgca read` wrote, else Nones."""
+    from hgca_core.io.las_crs import EPSG_UNITS, crs_unit
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            crs, unit = _text(z, "crs"), _text(z, "unit")
+            factor = z["unit_metres"] if "unit_metres" in z.files else None
+    except Exception:  # noqa: BLE001 - the reader itself reports a broken file
+        return None, None
+    if unit is None or unit == "metre":
+        return crs, crs_unit(crs)
+    known = {name: f for name, f in EPSG_UNITS.values()}
+    f = float(factor) if factor is not None and np.asarray(factor).shape == () else known.get(unit)
+    return crs, (unit, f)
+
+
+def write_accumulated(path: str | os.PathLike, scan: Scan, attributes: Mapping[str, np.ndarray],
+                      crs: str | None = None, unit: tuple[str, float | None] | None = None) -> str:
+    """`hgca read`'s .npz: `points` (N,3) float64 relative to `offset` (3,) float64 (whole metres, as
+    `georef.local_offset`; local numbers for the add-on, and `points + offset` gives the accumulated points back),
+    the attributes (with `scan_index` and `origin_index`), `origins` (S,3) float64, and `crs` / `unit` (0-d
+    strings) when the inputs declare them. Why float64: float32 moves points by up to a few micrometres, enough to
+    put some in another cell, so completing the .npz gave another mesh than completing the scans themselves."""
+    pts = np.asarray(scan.points, dtype=np.float64)
+    offset = local_offset(pts)
+    arrays: dict[str, np.ndarray] = {"points": pts - offset, "offset": offset}
+    for name, values in attributes.items():
+        if name in READ_RESERVED:
+            raise ValueError(f"attribute name {name!r} is reserved")
+        arrays[name] = np.asarray(values)
+    if scan.origins is not None:
+        arrays["origins"] = np.asarray(scan.origins, dtype=np.float64).reshape(-1, 3)
+    if crs:
+        arrays["crs"] = np.array(crs)
+    if unit is not None:
+        arrays["unit"] = np.array(unit[0])
+        if unit[1] is not None:
+            arrays["unit_metres"] = np.array(float(unit[1]))
+    return atomic_write(os.fspath(path), lambda f: np.savez(f, **arrays))

@@ -96,7 +96,7 @@ def test_read_command_accumulates_with_poses(tmp_path, monkeypatch, capsys):
     assert code == 0 and "3 points" in stdout
     with np.load(out) as z:
         assert set(z.keys()) == {"points", "offset", "intensity", "scan_index", "origins"}
-        assert z["points"].dtype == np.float32
+        assert z["points"].dtype == np.float64
         np.testing.assert_allclose(z["points"], [[1, 0, 0], [3, 0, 1.5], [3, 1, 1.5]])
         np.testing.assert_array_equal(z["scan_index"], [0, 1, 1])
         np.testing.assert_allclose(z["origins"], [[0, 0, 0], [3, 0, 1.5]])
