@@ -13,19 +13,19 @@ import os
 import signal
 import socket
 import time
-import warnings
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
 from hgca_core.config import MESH_FORMATS, TILE_OVERLAP, TILE_SIZE, DriveConfig, check_seed_span
-from hgca_core.errors import HgcaWarning, InputError
+from hgca_core.errors import InputError
 from hgca_core.geometry.region import DEFAULT_SIZE, Region
 from hgca_core.io.digest import file_digest
 from hgca_core.tiling.merge import merge_sample, write_piece
 from hgca_core.tiling.inputs import DriveScan, read_drive_inputs
 from hgca_core.tiling.plan import TilePlan, neighbours, plan_tiles, tile_region
+from hgca_core.tiling.records import check_cache, check_meshes, checksums, made_from, recorded, sweep
 from hgca_core.tiling.store import DriveStore
 from hgca_core.tiling.tile import Settings, TileJob, cells_of, weight_files
 
@@ -113,16 +113,13 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     jobs = _jobs(plans, regions, scan_digests, seed, samples, tile, digests, cfg.seams)
 
     store.prepare()
-    for job in jobs:                  # a cache entry cut short (a full disk, a copy) is recomputed, not fatal
-        problem = store.damaged(job.key)
-        if problem:
-            warnings.warn(HgcaWarning(f"tile {job.index}: its finished result {store.entry(job.key)} is unreadable "
-                                      f"({problem}); computing the tile again"), stacklevel=2)
-            store.discard(job.key)
+    previous = store.read_manifest()  # None (with a warning) when edited or corrupt: each tile is checked alone
+    cached = check_cache(store, jobs, previous)    # what fails its checks (cut short, another drive's) is recomputed
     doc: dict = {}
     try:
         with last_words(lambda signum: _stopped(store, doc, signum)):
-            run_no = _start_manifest(store, doc, inputs, plans, jobs, plan_doc, tile, digests, samples, ext,
+            run_no = _start_manifest(store, doc, previous, cached, inputs, plans, jobs, plan_doc, tile, digests,
+                                     samples, ext,
                                      {"engine": "ray" if (workers > 1 or address) else "local", "workers": workers,
                                       "threads": threads, "address": address, "tile_memory": memory,
                                       "seams": cfg.seams, "mesh_format": cfg.mesh_format,
@@ -132,9 +129,12 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
                 on_plan(plan_doc)
 
             finished = sum(t["status"] == "done" for t in doc["tiles"])
-            for t, job in zip(doc["tiles"], jobs):            # a resumed run re-exports missing tile meshes
-                if t["status"] == "done" and not all((store.root / o).is_file() for o in t["outputs"]):
-                    _export_tile(store, store.load(job.key), regions, ext)
+            # a resumed run writes again the tile meshes missing or not matching their checksums, and removes the
+            # meshes of other plans (another --size) so that none is left under the names this run writes
+            check_meshes(store, doc["tiles"], previous,
+                         lambda i: _export_tile(store, store.load(jobs[i].key), regions, ext))
+            sweep(store, doc, previous)
+            store.write_manifest(doc)
             for t in doc["tiles"]:
                 tell(finished, len(jobs), t["index"], "cached" if t["status"] == "done" else "queued")
             pending = _pending(jobs, doc["tiles"], store)
@@ -142,10 +142,13 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
 
             def on_result(result: dict) -> None:
                 nonlocal finished
-                store.save(result)
+                job = jobs[result["index"]]
+                store.save(result, made_from(job))
                 faces = _export_tile(store, result, regions, ext)
                 finished += 1
-                doc["tiles"][result["index"]].update({
+                t = doc["tiles"][result["index"]]
+                t.update({"made_from": made_from(job), "sha256": checksums(store, job.key, t["outputs"])})
+                t.update({
                     "status": "done", "seconds": result["seconds"], "run": run_no, "started": result["started"],
                     "finished": result["finished"], "worker": result["worker"], "peak_rss": result["peak_rss"],
                     "faces": faces, "fixed_cells": [s["fixed_cells"] for s in result["samples"]],
@@ -183,14 +186,15 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
         store.unlock()
 
 
-def _start_manifest(store: DriveStore, doc: dict, inputs: list[DriveScan], plans: list[TilePlan],
-                    jobs: list[TileJob], plan_doc: dict, settings: Settings, digests: tuple[str, ...], samples: int,
-                    ext: str, run: dict) -> int:
-    """Fill `doc` (drive.json) for a new run: the plan, scans and tiles, finished ones marked done with what the
-    run that made them recorded; returns this run's number."""
-    previous = store.read_manifest() or {}
+def _start_manifest(store: DriveStore, doc: dict, previous: dict | None, cached: dict[str, str],
+                    inputs: list[DriveScan], plans: list[TilePlan], jobs: list[TileJob], plan_doc: dict,
+                    settings: Settings, digests: tuple[str, ...], samples: int, ext: str, run: dict) -> int:
+    """Fill `doc` (drive.json) for a new run: the plan, scans and tiles, finished ones (`cached`: the checked
+    cache entries' sha256 by key) marked done with what the run that made them recorded (`previous`, the checked
+    drive.json or None); returns this run's number."""
+    previous = previous or {}
     run_no = int(previous.get("runs", 0)) + 1
-    old_tiles = {t.get("key"): t for t in previous.get("tiles", []) if isinstance(t, dict)}
+    old_tiles = recorded(previous)
     kept = ("seconds", "worker", "run", "peak_rss", "faces", "started", "finished", "fixed_cells", "free_cells")
     files = weight_files(settings.stage, settings.weights, settings.fine_weights)
     doc.update({"status": "running", "runs": run_no, "pid": os.getpid(), "host": socket.gethostname(),
@@ -203,7 +207,7 @@ def _start_manifest(store: DriveStore, doc: dict, inputs: list[DriveScan], plans
                            "origins": int(len(s.origins)), "sha256": s.digest()} for s in inputs],
                 "tiles": [], "outputs": [], "timings": {"read_s": run["read_s"]}})
     for t, job in zip(plans, jobs):
-        done = store.has(job.key)
+        done = job.key in cached
         entry = {"index": t.index, "phase": t.phase, "arc": round(t.arc, 3), "region": list(job.region),
                  "scans": list(t.scans), "seeds": [job.seed + k for k in range(samples)], "key": job.key,
                  "conditioned_on": list(neighbours(t.index, len(plans))) if job.conditioned_on else [],
@@ -212,6 +216,8 @@ def _start_manifest(store: DriveStore, doc: dict, inputs: list[DriveScan], plans
         if done:
             entry.update({k: v for k, v in old_tiles.get(job.key, {}).items() if k in kept})
             entry.setdefault("run", None)
+            entry.update({"made_from": made_from(job), "sha256": {store.relative(store.entry(job.key)):
+                                                                   cached[job.key]}})
         doc["tiles"].append(entry)
     return run_no
 

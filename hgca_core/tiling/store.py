@@ -1,11 +1,12 @@
 """A drive's folder: finished tiles under their content key, the tile meshes people open, and drive.json.
 
-    DIR/cache/<key>.npz      one finished tile, all samples (written atomically, once: the commit record that
-                             makes a tile finished; a re-run with the same inputs, weights, seed and settings
-                             finds it and skips the tile)
+    DIR/cache/<key>.npz      one finished tile, all samples, and what it was made from (written atomically,
+                             once: the commit record that makes a tile finished; a re-run with the same inputs,
+                             weights, seed and settings finds it, checks it (`check_entry`) and skips the tile)
     DIR/tiles/<i>_s<k>.ply   tile i, sample k: the part of it the tile owns (exported from the cache entry)
     DIR/drive_s<k>.ply       the merged drive, sample k
-    DIR/drive.json           the plan, scans, tiles (regions, seeds, keys, status, timings, worker) and status
+    DIR/drive.json           the plan, scans, tiles (regions, seeds, keys, what each was made from, the sha256
+                             of its files, status, timings, worker) and status; checked when read (`records`)
     DIR/.lock                held (an OS file lock) by the one run writing the folder; the OS drops the lock
                              when that process ends in any way, so a crashed run never leaves it stuck
 
@@ -25,6 +26,7 @@ from hgca_core.errors import InputError
 from hgca_core.io.atomic import atomic_write
 
 FORMAT = 1
+ARRAYS = ("vertices", "faces", "observed_distance", "cells")   # per sample, `s<k>_<name>` in a cache entry
 
 
 class DriveStore:
@@ -94,38 +96,52 @@ class DriveStore:
     def has(self, key: str) -> bool:
         return self.entry(key).is_file()
 
-    def damaged(self, key: str) -> str:
-        """'' when the entry is missing or readable (its arrays and record open), else what is wrong with it."""
+    def relative(self, path: Path) -> str:
+        """A path in DIR as drive.json names it (`tiles/0_s0.ply`)."""
+        return Path(path).relative_to(self.root).as_posix()
+
+    def check_entry(self, key: str, made_from: dict, samples: int, sha256: str | None) -> tuple[str, str]:
+        """('', its sha256) when the entry under `key` can be reused: it reads whole, it was made for this tile
+        (its key and `made_from`; entries of older versions carry the key alone), every sample's mesh is whole
+        (faces index its vertices), and it matches the sha256 its drive.json record gives (when there is one).
+        Else (what is wrong, '')."""
+        from hgca_core.tiling.records import sha256_file
+
         path = self.entry(key)
-        if not path.is_file():
-            return ""
         try:
-            with zipfile.ZipFile(path) as z:
-                bad = z.testzip()
-                if bad is None:
-                    with z.open("meta.npy") as f:
-                        meta = json.loads(str(np.lib.format.read_array(f, allow_pickle=False)))
-                    bad = None if isinstance(meta, dict) and isinstance(meta.get("samples"), list) else "meta"
-            if bad is not None:
-                return f"a damaged member {bad}"
+            digest = sha256_file(path)
+            with np.load(path, allow_pickle=False) as z:
+                meta = json.loads(str(z["meta"]))
+                problem = _check_meta(meta, key, made_from, samples)
+                for k in range(samples if not problem else 0):
+                    problem = _check_sample(k, {n: z[f"s{k}_{n}"] for n in ARRAYS})
+                    if problem:
+                        break
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
-            return f"{type(exc).__name__}: {exc}"
-        return ""
+            return f"is unreadable ({type(exc).__name__}: {exc})", ""
+        if problem:
+            return problem, ""
+        if sha256 is not None and sha256 != digest:
+            return "does not match its checksum in drive.json (cut short, or another file copied over it?)", ""
+        return "", digest
 
     def discard(self, key: str) -> None:
         """Remove a damaged entry so the tile is computed and saved again."""
         self.entry(key).unlink(missing_ok=True)
 
-    def save(self, result: dict) -> Path:
-        """Write a tile result under its key (atomically; an existing entry is the same content and is kept)."""
+    def save(self, result: dict, made_from: dict | None = None) -> Path:
+        """Write a tile result under its key (atomically; an existing entry is the same content and is kept),
+        with what it was made from (`records.made_from`), so that a resumed run can tell it is this tile's."""
         path = self.entry(result["key"])
         if path.exists():
             return path
         arrays: dict[str, np.ndarray] = {}
         meta = {k: v for k, v in result.items() if k != "samples"}
+        if made_from is not None:
+            meta["made_from"] = made_from
         meta["samples"] = []
         for k, s in enumerate(result["samples"]):
-            for name in ("vertices", "faces", "observed_distance", "cells"):
+            for name in ARRAYS:
                 arrays[f"s{k}_{name}"] = s[name]
             meta["samples"].append({"seed": s["seed"], "fixed_cells": s["fixed_cells"],
                                    "free_cells": s.get("free_cells")})
@@ -137,7 +153,7 @@ class DriveStore:
         """A finished tile's result, as `complete_tile` returned it; with `only`, the arrays of that sample alone
         (the others' are None), so merging sample k does not hold every sample of every tile."""
         path = self.entry(key)
-        names = ("vertices", "faces", "observed_distance", "cells")
+        names = ARRAYS
         try:
             with np.load(path, allow_pickle=False) as z:
                 meta = json.loads(str(z["meta"]))
@@ -162,17 +178,72 @@ class DriveStore:
         return self.root / "drive.json"
 
     def read_manifest(self) -> dict | None:
-        """The previous run's drive.json, or None (missing or unreadable: a run that died while writing it
-        cannot have, since it is written atomically, but a user may have edited it)."""
+        """The previous run's drive.json, or None when there is none or it cannot be trusted: not JSON, another
+        format, or a field a resume reads missing or of another type than the drive writes (`records.
+        check_record`; a user may have edited it). An untrusted record is said in one warning naming the key;
+        the run then checks every cached tile on its own and writes a new record."""
+        from hgca_core.tiling.records import check_record, warn
+
         try:
-            doc = json.loads(self.manifest.read_text())
-        except (OSError, ValueError):
+            text = self.manifest.read_text()
+        except FileNotFoundError:
             return None
-        return doc if isinstance(doc, dict) and doc.get("format") == FORMAT else None
+        except (OSError, UnicodeDecodeError) as exc:
+            warn(f"{self.manifest}: unreadable ({exc}): writing a new one")
+            return None
+        try:
+            doc = json.loads(text)
+        except ValueError as exc:
+            warn(f"{self.manifest}: not JSON ({exc}; cut short or edited?): writing a new one, every cached tile "
+                 "is checked on its own")
+            return None
+        problem = check_record(doc)
+        if not problem and doc["format"] != FORMAT:
+            problem = f"format is {doc['format']}, not {FORMAT} (another hgca version's)"
+        if problem:
+            warn(f"{self.manifest}: {problem} (edited by hand?): writing a new one, every cached tile is checked "
+                 "on its own")
+            return None
+        return doc
 
     def write_manifest(self, doc: dict) -> None:
         text = json.dumps({"format": FORMAT, **doc}, indent=1)
         atomic_write(self.manifest, lambda f: f.write(text.encode()))
+
+
+def _check_meta(meta, key: str, made_from: dict, samples: int) -> str:
+    """'' when a cache entry's record says it is the result of this tile with `samples` samples."""
+    if not isinstance(meta, dict) or not isinstance(meta.get("samples"), list):
+        return "is unreadable (its record is not a tile's)"
+    if meta.get("key") != key:
+        return f"was made for another tile (its key is {str(meta.get('key'))[:12]}...: another drive's or plan's?)"
+    if "made_from" in meta and meta["made_from"] != made_from:
+        return "was made from other inputs or settings than this tile's"
+    if len(meta["samples"]) != samples:
+        return f"has {len(meta['samples'])} samples, not {samples}"
+    if not all(isinstance(s, dict) and isinstance(s.get("fixed_cells"), int) for s in meta["samples"]):
+        return "is unreadable (its samples' record is damaged)"
+    if "made_from" in meta and [s.get("seed") for s in meta["samples"]] != [made_from["seed"] + k
+                                                                             for k in range(samples)]:
+        return "has samples of other seeds than this tile's"
+    return ""
+
+
+def _check_sample(k: int, a: dict[str, np.ndarray]) -> str:
+    """'' when sample k's arrays make a mesh (faces index its vertices) with a distance per vertex and cells."""
+    v, f, d, c = (a[n] for n in ARRAYS)
+    if not (v.ndim == 2 and v.shape[1] == 3 and v.dtype.kind == "f" and np.isfinite(v).all()):
+        return f"has damaged vertices (sample {k}: shape {v.shape}, {v.dtype})"
+    if not (f.ndim == 2 and f.shape[1] == 3 and f.dtype.kind in "iu"):
+        return f"has damaged faces (sample {k}: shape {f.shape}, {f.dtype})"
+    if len(f) and (f.min() < 0 or f.max() >= len(v)):
+        worst = int(f.max()) if f.max() >= len(v) else int(f.min())
+        return f"has faces that index past its vertices (sample {k}: index {worst}, {len(v)} vertices)"
+    if d.shape != (len(v),) or d.dtype.kind != "f":
+        return f"has a damaged observed_distance (sample {k}: shape {d.shape}, {len(v)} vertices)"
+    if not (c.ndim == 2 and c.shape[1] == 3 and c.dtype.kind in "iu"):
+        return f"has damaged cells (sample {k}: shape {c.shape}, {c.dtype})"
+    return ""
 
 
 def _try_lock(fd: int) -> bool:
