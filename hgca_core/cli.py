@@ -74,6 +74,7 @@ OMP_DEFAULTS = {"OMP_WAIT_POLICY": "PASSIVE"}
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    _hold_closed_descriptors()
     if "torch" not in sys.modules:
         for key, value in OMP_DEFAULTS.items():
             os.environ.setdefault(key, value)
@@ -84,6 +85,26 @@ def main(argv: list[str] | None = None) -> int:
         return _main(argv)
     finally:
         interrupt.restore(previous)
+
+
+def _hold_closed_descriptors() -> None:
+    """A standard descriptor the caller closed (`>&-`) gets /dev/null, so that no file the command opens (a mesh
+    being written) takes descriptor 1 and receives what a library prints. `sys.stdout` stays None: progress
+    records then know they have no reader (`progress.Progress` says so on stderr and the work goes on). A closed
+    stderr becomes /dev/null: progress bars and warnings then have somewhere to go."""
+    for fd in (0, 1, 2):
+        try:
+            os.fstat(fd)
+        except OSError:
+            try:
+                held = os.open(os.devnull, os.O_RDWR)
+                if held != fd:
+                    os.dup2(held, fd)
+                    os.close(held)
+            except OSError:
+                return
+    if sys.stderr is None:   # closed by the caller: messages go nowhere, as asked, instead of onto stdout
+        sys.stderr = open(os.devnull, "w", encoding="utf-8")
 
 
 def _main(argv: list[str]) -> int:
@@ -126,7 +147,8 @@ def _one_line_warning(command: str, default):
     """`hgca CMD: warning: ...` for our own warnings; library warnings keep Python's format."""
     def show(message, category, filename, lineno, file=None, line=None):
         if issubclass(category, HgcaWarning):
-            print(f"hgca {command}: warning: {message}", file=sys.stderr)
+            if sys.stderr is not None:   # closed (`2>&-`): never onto stdout, which may carry JSON lines
+                print(f"hgca {command}: warning: {message}", file=sys.stderr)
         else:
             default(message, category, filename, lineno, file, line)
     return show
