@@ -9,7 +9,9 @@ the containers, so no ROS installation is needed.
 """
 from __future__ import annotations
 
+import contextlib
 import os
+import threading
 from collections.abc import Sequence as SequenceABC
 from dataclasses import dataclass
 from pathlib import Path
@@ -154,20 +156,54 @@ def index_bag(path: str, topic: str | None, required: bool = True) -> BagIndex:
     return BagIndex(path, topics, chosen, ordered, tf if tf.edges else None)
 
 
-def read_cloud(path: str, topic: str, frame: Frame, index: int) -> Scan:
+class OpenBag:
+    """One reader kept open between frames: reopening a bag reads its whole index again (0.1 s for a few
+    hundred clouds, more for a long drive), which reading frame after frame would pay each time."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self._reader: Any = None
+        self._lock = threading.Lock()
+
+    def message(self, topic: str, frame: Frame) -> Any:
+        """The deserialised message of `frame`, or None when the bag no longer holds it."""
+        with self._lock:
+            if self._reader is None:
+                reader = _anyreader(self.path)
+                reader.open()
+                self._reader = reader
+            try:
+                conns = [c for c in self._reader.connections if c.topic == topic]
+                found = [(c, raw) for c, _, raw in
+                         self._reader.messages(conns, start=frame.received, stop=frame.received + 1)]
+                if len(found) <= frame.nth:
+                    return None
+                conn, raw = found[frame.nth]
+                return self._reader.deserialize(raw, conn.msgtype)
+            except BaseException:
+                self.close()
+                raise
+
+    def close(self) -> None:
+        reader, self._reader = self._reader, None
+        if reader is not None:
+            with contextlib.suppress(Exception):
+                reader.close()
+
+    def __del__(self) -> None:
+        self.close()
+
+
+def read_cloud(bag: OpenBag, topic: str, frame: Frame, index: int) -> Scan:
     """Frame `index` of the topic: its PointCloud2 decoded in the sensor frame, with the finite policy applied."""
+    path = bag.path
     where = f"{path}#{index}"
     try:
-        with _anyreader(path) as reader:
-            conns = [c for c in reader.connections if c.topic == topic]
-            found = [(c, raw) for c, _, raw in reader.messages(conns, start=frame.received, stop=frame.received + 1)]
-            if len(found) <= frame.nth:
-                raise InputError(f"topic {topic}: frame {index} is no longer in the bag (changed since it was "
-                                 "opened?)", path)
-            conn, raw = found[frame.nth]
-            msg = reader.deserialize(raw, conn.msgtype)
+        msg = bag.message(topic, frame)
     except Exception as exc:  # noqa: BLE001
         raise _bad(exc, path, topic) from None
+    if msg is None:
+        raise InputError(f"topic {topic}: frame {index} is no longer in the bag (changed since it was opened?)", path)
     try:
         return finalize(decode_cloud(msg, frame.stamp, where), where)
     except InputError as exc:
@@ -206,8 +242,7 @@ class OdometryPoses(SequenceABC):
         self._read, self._count, self._stamps, self._names = seq_reader, count, stamps, names
         self._span: tuple[int, int] | None = None
         self._poses: list[np.ndarray] = []
-        self._anchor: int | None = None
-        self._anchor_pose = np.eye(4)
+        self._anchor: int | None = None  # the first frame asked for: its sensor frame is the world frame
 
     def __len__(self) -> int:
         return self._count
@@ -223,8 +258,7 @@ class OdometryPoses(SequenceABC):
                                [self._names[i] for i in idx])
         if self._anchor is None:
             self._anchor = lo
-        # keep the first asked-for frame at its earlier pose: world stays that frame's sensor frame
-        shift = self._anchor_pose @ np.linalg.inv(found[self._anchor - lo])
+        shift = np.linalg.inv(found[self._anchor - lo])  # the anchor at identity, whatever span was run
         self._poses = [shift @ np.asarray(m, dtype=np.float64) for m in found]
         self._span = (lo, hi)
 
@@ -251,8 +285,10 @@ def open_bag(path: str | os.PathLike, topic: str | None = None) -> Sequence:
     frames = index.frames
     names = tuple(f"{path}#{i}" for i in range(len(frames)))
 
+    bag = OpenBag(path)
+
     def reader(i: int) -> Scan:
-        return read_cloud(path, chosen, frames[i], i)
+        return read_cloud(bag, chosen, frames[i], i)
 
     poses: Any = tf_poses(index)
     if poses is None:
