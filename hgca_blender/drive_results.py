@@ -90,7 +90,7 @@ class DriveResults:
             raise CoreError(f"scene {self.scene_name!r} no longer exists")
         origin, run_name = georef.scene_origin(scene), self.run_name
         self.current_index = index
-        self.current = result_insert.Insertion(lambda: prepare_tile(paths, origin, run_name, index),
+        self.current = result_insert.Insertion(lambda note: prepare_tile(paths, origin, run_name, index),
                                                lambda samples, created: self._plan(index, samples, created))
 
     def _plan(self, index: int, samples: list[SampleArrays], created: mesh_build.Created) -> list:

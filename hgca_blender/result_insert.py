@@ -32,28 +32,35 @@ Step = tuple[int, str, Callable[[], Any]]
 
 
 class Insertion:
-    """Arrays made by `prepare()` on a worker thread, then Blender data made by `plan(arrays, created)`'s steps in
+    """Arrays made by `prepare(note)` on a worker thread (`note(text)` says what it reads), then Blender data made by `plan(arrays, created)`'s steps in
     slices of `SLICE_S` (main thread). `status` says how far ("Adding sample 2 of 3: 45 %"), `progress` is the
     share of all steps' units done (never decreasing), `result` what the last step set."""
 
-    def __init__(self, prepare: Callable[[], Any], plan: Callable[[Any, mesh_build.Created], list[Step]]) -> None:
+    def __init__(self, prepare: Callable[[Callable[[str], None]], Any],
+                 plan: Callable[[Any, mesh_build.Created], list[Step]]) -> None:
         self.created = mesh_build.Created()
         self.state = "reading"      # -> "adding" -> "done" | "error" | "cancelled"
         self.status, self.error, self.progress = "Reading the results", "", 0.0
         self.result: Any = None
         self.slices: list[float] = []     # seconds of each step() that made Blender data
-        self.longest_step = 0.0
+        self.longest_step, self.longest_name = 0.0, ""    # the longest single step (seconds, its function)
         self._plan, self._steps, self._next, self._done, self._total = plan, [], 0, 0, 1
-        self._totals: dict[str, int] = {}
+        self._label_total: dict[str, int] = {}   # units per status label ("Adding sample 2 of 3") and done
+        self._label_done: dict[str, int] = {}
         self._prepared: dict[str, Any] = {}
         self._thread = threading.Thread(target=self._read, args=(prepare,), name="hgca-results", daemon=True)
         self._thread.start()
 
     def _read(self, prepare: Callable[[], Any]) -> None:
         try:
-            self._prepared["arrays"] = prepare()
+            self._prepared["arrays"] = prepare(self._note)
         except Exception as exc:  # noqa: BLE001  (reported on the main thread)
             self._prepared["error"] = exc
+
+    def _note(self, text: str) -> None:
+        """What the worker is reading now, for the status line (the worker's only write)."""
+        if self.state == "reading":
+            self.status = text
 
     @property
     def running(self) -> bool:
@@ -73,12 +80,14 @@ class Insertion:
                 units, label, call = self._steps[self._next]
                 began = time.perf_counter()
                 value = call()
+                took = time.perf_counter() - began
                 if value is not None:
                     self.result = value
-                self.longest_step = max(self.longest_step, time.perf_counter() - began)
+                if took > self.longest_step:
+                    self.longest_step, self.longest_name = took, call.__name__
                 self._next += 1
                 self._done += units
-                self._totals[label + "/done"] = self._totals.get(label + "/done", 0) + units
+                self._label_done[label] = self._label_done.get(label, 0) + units
                 self._say(label)
                 if time.perf_counter() - start >= budget_s:
                     break
@@ -104,7 +113,7 @@ class Insertion:
             self._fail(exc)
             return False
         for units, label, _ in self._steps:
-            self._totals[label] = self._totals.get(label, 0) + units
+            self._label_total[label] = self._label_total.get(label, 0) + units
         self._total = max(sum(u for u, _, _ in self._steps), 1)
         self.state = "adding"
         if self._steps:
@@ -113,7 +122,7 @@ class Insertion:
 
     def _say(self, label: str) -> None:
         self.progress = min(self._done / self._total, 1.0)
-        share = self._totals.get(label + "/done", 0) / max(self._totals.get(label, 0), 1)
+        share = self._label_done.get(label, 0) / max(self._label_total.get(label, 0), 1)
         self.status = f"{label}: {share * 100:.0f} %"
 
     def run(self) -> None:
@@ -319,5 +328,5 @@ def start_completion(scene: bpy.types.Scene, outputs: list, run_name: str, decim
 
     origin = georef.scene_origin(scene)          # Blender data: read here, on the main thread
     paths = [Path(p) for p in outputs]
-    return Insertion(lambda: prepare_results(paths, origin, run_name, class_collections),
+    return Insertion(lambda note: prepare_results(paths, origin, run_name, class_collections, note),
                      completion_plan(scene.name, run_name, int(decimate_to)))

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -95,16 +96,22 @@ def class_parts(mesh: MeshArrays, labels: np.ndarray, names: tuple[str, ...]) ->
     return parts
 
 
-def prepare_results(paths: list[Path], origin: np.ndarray, run_name: str,
-                    class_collections: bool = False) -> list[SampleArrays]:
+def prepare_results(paths: list[Path], origin: np.ndarray, run_name: str, class_collections: bool = False,
+                    note: Callable[[str], None] = lambda text: None) -> list[SampleArrays]:
     """A completion's samples ("<run> sample i"), as `mesh_build.build_results` makes them: checked, placed
     relative to `origin`, with colours, agreement (k > 1), labels and, with `class_collections`, sample 0's classes
-    as parts. Raises ValueError (a damaged file) before anything reaches Blender."""
-    arrays = [read_result(Path(p)) for p in paths]
+    as parts. Raises ValueError (a damaged file) before anything reaches Blender. `note(text)`: what it does now."""
+    k = len(paths)
+    arrays = []
+    for i, p in enumerate(paths):
+        note(f"Reading sample {i + 1} of {k}")
+        arrays.append(read_result(Path(p)))
+    note(f"Comparing the {k} samples")
     shares = confidence.agreement([a.vertices.astype(np.float64) + a.offset for a in arrays]) \
         if len(arrays) > 1 else [None] * len(arrays)
     samples = []
     for i, (arr, path) in enumerate(zip(arrays, paths)):
+        note(f"Preparing sample {i + 1} of {k}")
         sample = _sample(f"{run_name} sample {i}", arr, origin, shares[i])
         sample.labels = semantics.read_labels(Path(path))
         if sample.labels is not None and class_collections and i == 0:

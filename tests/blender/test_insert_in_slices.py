@@ -207,3 +207,31 @@ def test_a_job_runs_on_while_its_results_go_in_and_cancel_removes_them(addon, re
     assert bpy.ops.hgca.cancel() == {"FINISHED"}
     assert job.state == "cancelled" and jobs.active_job(bpy.context.scene.name) is None
     assert snapshot() == before and not job.workdir.exists()
+
+
+def test_drive_tiles_go_in_slice_by_slice_and_cancel_removes_only_the_half_added_one(addon, tmp_path: Path) -> None:
+    drive_results = addon_module("drive_results")
+    tiles = {i: [grid_result(tmp_path / f"{i}_s{k}.npz", 20_000, 10 * i + k) for k in range(2)] for i in range(3)}
+    before = snapshot()
+    results = drive_results.DriveResults(bpy.context.scene, "hGCA drive")
+    for i in (0, 1, 0):                                  # a tile reported twice goes in once
+        results.add(i, tiles[i])
+    statuses = []
+    while results.step(0.002) and not results.tiles:
+        statuses.append(results.status)
+    assert results.tiles == {0} and any(s.startswith("Tile 0: Adding tile 0: ") for s in statuses)
+    coll = bpy.data.collections[results.collection_name]
+    assert sorted((o["hgca_tile"], o["hgca_sample"]) for o in coll.objects) == [(0, 0), (0, 1)]
+    kept = snapshot()
+    while results.current is None or not results.current.created.objects:      # tile 1 half added
+        results.step(0.002)
+    results.cancel()
+    assert not results.pending and snapshot() == kept and kept != before
+
+    damaged = tmp_path / "2_s1.npz"
+    np.savez(damaged, vertices=np.zeros((3, 3), np.float32), faces=np.array([[0, 1, 5]]))
+    results.add(2, tiles[2])
+    while results.step(0.002):
+        pass
+    assert "tile 2" in results.error and "out of range" in results.error
+    assert snapshot() == kept, "the failed tile is removed whole; tile 0 stays"
