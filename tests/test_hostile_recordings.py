@@ -124,7 +124,8 @@ def _bag_of(d: Path, kind: str, name: str, stamps_ms=(0, 100), layout: dict | No
     for k, ms in enumerate(stamps_ms):
         stamp = base + ms * 1_000_000
         columns = cols or {a: rng.uniform(-20, 20, 400) for a in "xyz"}
-        bag.add("/points", bw.CLOUD, base + k * 100_000_000, bw.cloud(bag.store, stamp, "lidar", columns, **(layout or {})))
+        msg = bw.cloud(bag.store, stamp, "lidar", columns, **(layout or {}))
+        bag.add("/points", bw.CLOUD, base + k * 100_000_000, msg)
         bag.add("/tf", bw.TF, stamp, bw.tf_message(bag.store, [(stamp, "odom", "lidar", np.eye(4))]))
     for key, value in extra.items():
         setattr(bag, key, value)

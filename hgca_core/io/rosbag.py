@@ -232,6 +232,22 @@ def tf_poses(index: BagIndex) -> tuple[np.ndarray, ...] | None:
     return tuple(poses)
 
 
+class _LazyScans(SequenceABC):
+    """The frames odometry runs over, read when it gets to each: a drive's thousands of sweeps would not fit
+    in memory at once."""
+
+    def __init__(self, read: Any, idx: list[int]) -> None:
+        self._read, self._idx = read, idx
+
+    def __len__(self) -> int:
+        return len(self._idx)
+
+    def __getitem__(self, k: Any) -> Any:
+        if isinstance(k, slice):
+            return [self._read(i) for i in self._idx[k]]
+        return self._read(self._idx[k])
+
+
 class OdometryPoses(SequenceABC):
     """Poses from LiDAR odometry, computed only when asked for and only over the frames between the first
     and the last one asked for (a bag can hold thousands of sweeps; a completion reads a handful). The world
@@ -254,8 +270,8 @@ class OdometryPoses(SequenceABC):
         from hgca_core.io.odometry import estimate_poses
 
         idx = list(range(lo, hi + 1))
-        found = estimate_poses([self._read(i) for i in idx], [self._stamps[i] / 1e9 for i in idx],
-                               [self._names[i] for i in idx])
+        scans: Any = _LazyScans(self._read, idx)
+        found = estimate_poses(scans, [self._stamps[i] / 1e9 for i in idx], [self._names[i] for i in idx])
         if self._anchor is None:
             self._anchor = lo
         shift = np.linalg.inv(found[self._anchor - lo])  # the anchor at identity, whatever span was run
