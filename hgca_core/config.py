@@ -43,7 +43,6 @@ DEFAULT_MAX_FACES = 1_000_000   # a default region's full-stage mesh has ~2 M tr
 MIN_STRIDE = 0.2          # metres between tile centres: one coarse cell (a finer stride only repeats tiles)
 MAX_WORKERS = 4096
 MAX_THREADS = 4096
-MAX_SCANS_PER_TILE = 10_000
 TILE_SIZE = 38.4          # metres: the paper's region
 TILE_OVERLAP = 6.4        # metres: 32 coarse cells, wider than the GCA's receptive field on either side
 _DEVICE = re.compile(r"cpu|cuda(:\d+)?")
@@ -179,7 +178,7 @@ class DriveConfig:
     completion: each tile's completion; sample k of tile i uses seed + i * samples + k. Its default keeps every
         triangle of a tile (max_faces 0), so neighbouring tiles' surfaces meet at the seams as computed.
     size, overlap: tile side and overlap of consecutive tiles, metres (tiles are 8 m high).
-    scans_per_tile: each tile is completed from its N nearest scans.
+    scans_per_tile: each tile is completed from its N nearest scans (N above the drive's scan count: all of them).
     seams: condition each second-phase tile on its finished neighbours' coarse cells (joins agree).
     workers: tiles at once; more than 1 (or an `address`) runs them on Ray.
     address: an existing Ray cluster (ray://host:port), or None.
@@ -203,7 +202,7 @@ class DriveConfig:
         if not isinstance(self.completion, CompletionConfig):
             raise InputError(f"completion must be a CompletionConfig, got {type(self.completion).__name__}")
         check_stride(self.size, self.overlap)
-        _whole("scans_per_tile", self.scans_per_tile, 1, MAX_SCANS_PER_TILE)
+        _whole("scans_per_tile", self.scans_per_tile, 1)   # more than the drive's scans: all of them
         if not isinstance(self.seams, bool):
             raise InputError(f"seams must be True or False, got {self.seams!r}")
         _whole("workers", self.workers, 1, MAX_WORKERS)

@@ -112,7 +112,7 @@ def test_a_bad_completion_setting_is_refused_by_name_before_any_work(change, mes
     ({"size": float("nan")}, "--size must be a finite tile side"),
     ({"overlap": 12.8, "size": 12.8}, "--overlap must be between 0 and the tile size"),
     ({"overlap": 12.7, "size": 12.8}, "the stride must be at least 0.2 m"),
-    ({"scans_per_tile": 0}, "scans_per_tile must be a whole number between 1"),
+    ({"scans_per_tile": 0}, "scans_per_tile must be a whole number at least 1"),
     ({"workers": 0}, "workers must be a whole number between 1"),
     ({"threads": 0}, "threads must be a whole number between 1"),
     ({"tile_memory": -1.0}, "tile_memory must be a finite number above 0"),

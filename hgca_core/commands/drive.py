@@ -17,7 +17,7 @@ from hgca_core.commands.arguments import (MAX_WORKERS, add_completion_arguments,
                                           add_out_argument, add_poses_argument, add_progress_argument,
                                           add_threads_argument,
                                           check_device, completion_config, counted, positive_float)
-from hgca_core.config import MAX_SCANS_PER_TILE, DriveConfig
+from hgca_core.config import DriveConfig
 from hgca_core.errors import InputError
 
 DEFAULTS = DriveConfig()
@@ -36,8 +36,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"tile side in metres (default {DEFAULTS.size}, the paper's region)")
     p.add_argument("--overlap", type=positive_float, default=DEFAULTS.overlap,
                    help=f"overlap of consecutive tiles in metres (default {DEFAULTS.overlap})")
-    p.add_argument("--scans-per-tile", type=counted(1, MAX_SCANS_PER_TILE), default=DEFAULTS.scans_per_tile,
-                   help=f"each tile is completed from its N nearest scans (default {DEFAULTS.scans_per_tile})")
+    p.add_argument("--scans-per-tile", type=counted(1), default=DEFAULTS.scans_per_tile,
+                   help=f"each tile is completed from its N nearest scans (default {DEFAULTS.scans_per_tile}; N at or "
+                        "above the drive's scan count means all of them)")
     p.add_argument("--plan-only", action="store_true",
                    help="print the tiles (regions along the trajectory, their scans) and stop; writes nothing")
     add_json_argument(p, "--plan-only: print the plan as one JSON object")

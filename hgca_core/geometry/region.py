@@ -12,9 +12,10 @@ from typing import Sequence
 import numpy as np
 
 from hgca_core.errors import InputError
-from hgca_core.geometry.voxel import grid_shape
+from hgca_core.geometry.voxel import COARSE, grid_shape
 
 DEFAULT_SIZE = (38.4, 38.4, 8.0)
+MIN_SIZE = COARSE   # metres: the thinnest region side, one coarse cell (grids are rounded to whole cells)
 BELOW_GROUND = 1.0  # the box starts this far below the ground under the sensor (paper: [-1, 7] m)
 
 
@@ -40,6 +41,10 @@ class Region:
             raise InputError("region has non-finite numbers")
         if np.any(self.size <= 0):
             raise InputError(f"region size must be positive, got {self.size.tolist()}")
+        if np.any(self.size < MIN_SIZE):   # thinner boxes hold no whole 20 cm cell along that axis: nothing to grow
+            thin = ", ".join("xyz"[i] for i in np.flatnonzero(self.size < MIN_SIZE))
+            raise InputError(f"region size must be at least {MIN_SIZE:g} m (one {COARSE * 100:.0f} cm cell) along each "
+                             f"axis, got {self.size.tolist()} ({thin} too thin)")
 
     @property
     def rotation(self) -> np.ndarray:

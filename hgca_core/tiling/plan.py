@@ -92,7 +92,7 @@ def plan_tiles(positions: np.ndarray, size: float = DEFAULT_SIZE[0], overlap: fl
                scans_per_tile: int = 5) -> list[TilePlan]:
     """Tiles covering the trajectory through `positions` (the scans' sensor positions, in scan order) with
     `overlap` metres between consecutive tiles and a margin of overlap / 2 before the first and after the last
-    position; each tile takes the `scans_per_tile` scans nearest its centre."""
+    position; each tile takes the `scans_per_tile` scans nearest its centre (all of them when there are fewer)."""
     stride = check_stride(size, overlap)
     if scans_per_tile < 1:
         raise InputError(f"scans per tile must be at least 1, got {scans_per_tile}")
