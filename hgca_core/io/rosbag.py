@@ -20,6 +20,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from hgca_core.errors import InputError
+from hgca_core.io.paths import check_readable
 from hgca_core.io.rosbag_cloud import decode_cloud
 from hgca_core.io.rosbag_tf import TfTree, frame_name
 from hgca_core.io.scan import Scan, finalize
@@ -127,11 +128,33 @@ def _order(path: str, topic: str, frames: list[Frame]) -> tuple[Frame, ...]:
     return tuple(frames[i] for i in order)
 
 
+def _signature(path: str) -> tuple:
+    """What changes when the bag does: size and time of the file, or of every file in a bag folder."""
+    files = [os.path.join(path, n) for n in sorted(os.listdir(path))] if os.path.isdir(path) else [path]
+    return tuple((f, os.stat(f).st_size, os.stat(f).st_mtime_ns) for f in files if os.path.isfile(f))
+
+
+_LAST: dict[tuple, BagIndex] = {}  # the last index made: `hgca info` lists a bag, then opens it
+
+
 def index_bag(path: str, topic: str | None, required: bool = True) -> BagIndex:
     """One pass over the bag: topics, the cloud topic's frames in time order and the tf tree."""
     path = os.fspath(path)
-    if not os.path.exists(path):
-        raise InputError("bag not found", path)
+    if not os.path.isdir(path):
+        check_readable(path, "bag")  # missing, empty, unreadable: said as such, not as a corrupt bag
+    elif not os.path.isfile(os.path.join(path, "metadata.yaml")):
+        raise InputError("folder is not a ROS 2 bag: it has no metadata.yaml", path)
+    key = (path, topic, _signature(path))
+    if key in _LAST:
+        return _LAST[key]
+    index = _index(path, topic, required)
+    if index.topic is not None:
+        _LAST.clear()
+        _LAST[key] = index
+    return index
+
+
+def _index(path: str, topic: str | None, required: bool) -> BagIndex:
     chosen = topic
     try:
         with _anyreader(path) as reader:
