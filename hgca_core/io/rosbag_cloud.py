@@ -26,20 +26,22 @@ ABSOLUTE_S = 1e6    # larger float times are absolute seconds (a sweep lasts wel
 
 
 def _field_table(msg: Any, where: str) -> dict[str, tuple[int, str]]:
-    """name -> (offset, numpy type) of the scalar fields (count 1) that fit in a point."""
+    """name -> (offset, numpy type) of the single-valued fields that fit in a point. A field hgca does not read
+    may be anything; x, y and z must be readable."""
     order = ">" if msg.is_bigendian else "<"
     step = int(msg.point_step)
     fields: dict[str, tuple[int, str]] = {}
     for f in msg.fields:
-        name, kind = str(f.name), DATATYPES.get(int(f.datatype))
-        if kind is None:
-            raise InputError(f"field {name!r} has datatype {int(f.datatype)}: PointField datatypes are 1 to 8", where)
-        size = np.dtype(kind).itemsize * max(int(f.count), 1)
-        if int(f.offset) < 0 or int(f.offset) + size > step:
-            raise InputError(f"field {name!r} at offset {int(f.offset)} ({size} bytes) does not fit in a "
-                             f"point of point_step {step} bytes", where)
-        if int(f.count) in (0, 1) and name not in fields:
-            fields[name] = (int(f.offset), order + kind)
+        name, kind, count, offset = str(f.name), DATATYPES.get(int(f.datatype)), int(f.count), int(f.offset)
+        size = np.dtype(kind).itemsize * max(count, 1) if kind else 0
+        problem = (f"has datatype {int(f.datatype)} (PointField datatypes are 1 to 8)" if kind is None else
+                   f"has count {count} (one value per point is needed)" if count not in (0, 1) else
+                   f"at offset {offset} ({size} bytes) does not fit in a point of point_step {step} bytes"
+                   if offset < 0 or offset + size > step else "")
+        if problem and name in ("x", "y", "z"):
+            raise InputError(f"field {name!r} {problem}", where)
+        if not problem and name not in fields:
+            fields[name] = (offset, order + str(kind))
     return fields
 
 
@@ -75,7 +77,9 @@ def decode_cloud(msg: Any, stamp_ns: int, where: str) -> Scan:
     """The cloud's points (float64, sensor frame) with intensity, ring and time when present; origin at the
     sensor. Raises InputError (naming `where`) for a layout that does not fit its data or lacks x/y/z."""
     height, width, step, row = int(msg.height), int(msg.width), int(msg.point_step), int(msg.row_step)
-    fields = _field_table(msg, where) if step > 0 else {}
+    if step <= 0 and height * width:
+        raise InputError(f"point_step is {step}: each point needs a positive size", where)
+    fields = _field_table(msg, where)
     missing = [a for a in "xyz" if a not in fields]
     if missing:
         present = ", ".join(str(f.name) for f in msg.fields) or "none"

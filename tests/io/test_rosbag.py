@@ -229,7 +229,8 @@ def test_header_stamp_order_beats_receive_order(tmp_path, sweeps):
     base = sweeps[0][0]
     for k, got in enumerate([0, 250, 120, 300]):  # received ms; stamps 0, 100, 200, 300 ms
         stamp = base + k * 100_000_000
-        bag.add("/points", CLOUD, base + got * 1_000_000, cloud(bag.store, stamp, "lidar", _small(sweeps[0][1], 10 + k)))
+        msg = cloud(bag.store, stamp, "lidar", _small(sweeps[0][1], 10 + k))
+        bag.add("/points", CLOUD, base + got * 1_000_000, msg)
     seq = open_bag(bag.write(tmp_path / "jitter"), None)
     assert [len(seq.read_frame(i)) for i in range(4)] == [10, 11, 12, 13]
 
@@ -267,3 +268,73 @@ def test_bag_completes_like_the_log_folder(completions):
     assert len(fa) > 100
     np.testing.assert_array_equal(fa, fb)
     np.testing.assert_allclose(va, vb, rtol=0, atol=1e-6)
+
+
+def test_without_tf_poses_come_from_odometry(tmp_path, sweeps):
+    """No /tf: the frames (one sweep seen from three places 1.5 m and 3 degrees apart) are placed by LiDAR
+    odometry, so they accumulate onto the first frame's points."""
+    pytest.importorskip("hgca_core.io.odometry")  # (being written alongside; the test runs once it is there)
+    stamp0, scan, _ = sweeps[0]
+    moves = [np.eye(4)]
+    for k in (1, 2):
+        moves.append(turn(np.eye(4), np.radians(3.0 * k), np.array([1.5 * k, 0.1 * k, 0.0])))
+    bag = Bag("mcap")
+    for k, m in enumerate(moves):
+        cols = {n: v for n, v in columns(scan, np.linalg.inv(m)).items() if n != "t"}  # no times: no deskew
+        stamp = stamp0 + k * 100_000_000
+        bag.add("/points", CLOUD, stamp, cloud(bag.store, stamp, "lidar", cols))
+    path = bag.write(tmp_path / "no_tf")
+    assert describe_bag(str(path), None)["cloud"]["poses"].startswith("LiDAR odometry")
+    accumulated = read_sequence(path, "0:3")
+    n = len(scan)
+    assert len(accumulated) == 3 * n
+    for k in (1, 2):
+        gap = np.linalg.norm(accumulated.points[k * n:(k + 1) * n] - scan.points, axis=1)
+        assert np.median(gap) < 0.02 and np.percentile(gap, 99) < 0.05, (k, np.median(gap))
+
+
+def test_odometry_poses_stay_in_the_first_asked_frame(monkeypatch):
+    """Frames asked for one by one, forwards then backwards, get poses in one world frame: the first asked
+    frame's sensor frame; the odometry runs over growing spans, not once per frame."""
+    odometry = pytest.importorskip("hgca_core.io.odometry")
+    from hgca_core.io.rosbag import OdometryPoses
+
+    truth = [turn(np.eye(4), 0.1 * i, np.array([2.0 * i, 0.3 * i * i, 0.0])) for i in range(12)]
+    spans = []
+
+    def fake(scans, times, names, progress=None):
+        idx = [int(n.rsplit("#", 1)[1]) for n in names]
+        spans.append((idx[0], idx[-1]))
+        return [np.linalg.inv(truth[idx[0]]) @ truth[i] for i in idx]
+
+    monkeypatch.setattr(odometry, "estimate_poses", fake)
+    names = [f"d.bag#{i}" for i in range(12)]
+    poses = OdometryPoses(lambda i: None, 12, [i * 10**8 for i in range(12)], names)
+    asked = [5, 6, 7, 8, 9, 3, 2, 11]
+    for i in asked:
+        np.testing.assert_allclose(poses[i], np.linalg.inv(truth[5]) @ truth[i], atol=1e-12)
+    assert len(spans) <= 5 and spans[0] == (5, 5) and spans[-1][0] <= 2 and spans[-1][1] == 11
+
+
+def test_field_problems_only_matter_for_xyz(sweeps):
+    """A field hgca does not read may be anything; x, y, z must be single values inside the point."""
+    store = Bag("sqlite3").store
+    cols = {**_small(sweeps[0][1], 100), "junk": np.zeros(100, dtype=np.float32)}
+    stamp = sweeps[0][0]
+
+    def decode(field: str, **change):
+        msg = cloud(store, stamp, "lidar", cols)
+        for f in msg.fields:
+            if f.name == field:
+                for k, v in change.items():
+                    setattr(f, k, v)
+        return decode_cloud(msg, stamp, "x.bag#0")
+
+    assert len(decode("junk", datatype=9)) == 100 and len(decode("junk", offset=1000)) == 100
+    with pytest.raises(InputError, match="field 'x' has count 3"):
+        decode("x", count=3)
+    with pytest.raises(InputError, match="field 'z' has datatype 0"):
+        decode("z", datatype=0)
+    with pytest.raises(InputError, match="field 'y' at offset 38 \\(8 bytes\\) does not fit in a point of "
+                                         "point_step 38 bytes"):
+        decode("y", offset=38, datatype=8)
