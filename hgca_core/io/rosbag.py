@@ -293,6 +293,10 @@ class OdometryPoses(SequenceABC):
         from hgca_core.io.odometry import estimate_poses
 
         idx = list(range(lo, hi + 1))
+        if lo == hi:  # one frame alone needs no odometry: it stays in its sensor frame
+            self._anchor = lo if self._anchor is None else self._anchor
+            self._poses, self._span = [np.eye(4)], (lo, hi)
+            return
         scans: Any = _LazyScans(self._read, idx)
         found = estimate_poses(scans, [self._stamps[i] / 1e9 for i in idx], [self._names[i] for i in idx])
         if self._anchor is None:
