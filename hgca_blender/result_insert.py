@@ -4,8 +4,9 @@ A full completion is several meshes of hundreds of thousands of faces; built in 
 thread for seconds. An `Insertion` splits the work: `result_prepare` reads and computes every array on a worker
 thread (numpy only), then the Blender part runs as a list of small steps (a mesh's vertices, its edges, its corners,
 an attribute, the object), and each `step()` call from the job's timer runs steps only until its time budget
-(`SLICE_S`) is spent. The longest stall is then the budget plus the longest single step (storing the face starts:
-about 85 ns a face, 0.17 s for 2M faces), not the whole insertion.
+(`SLICE_S`) is spent. A step that would overrun what is left of the budget (by its kind's rate, measured as it
+goes) waits for the next slice, so a call lasts about the budget or one large step alone (storing the face starts,
+which Blender copies face by face: benchmarks/results/blender_insert.md), never the whole insertion.
 
 Each step copies whole arrays with `foreach_set` on the mesh's attributes (position, .edge_verts, .corner_vert,
 .corner_edge, material_index), the fast path: the `vertices` / `loops` / `polygons` collections copy element by
@@ -27,6 +28,9 @@ from . import mesh_build, semantics
 from .result_prepare import MeshArrays, SampleArrays
 
 SLICE_S = 0.2          # main-thread time one step() may take before it returns (plus at most one step)
+# Seconds per unit of each kind of step (by its function's name), as last measured in this session: a step that
+# would not fit what is left of a slice's budget waits for the next slice.
+RATES: dict[str, float] = {}
 # (units of work, what the status line says, the Blender call; what it returns, if anything, becomes `result`)
 Step = tuple[int, str, Callable[[], Any]]
 
@@ -67,20 +71,25 @@ class Insertion:
         return self.state in ("reading", "adding")
 
     def step(self, budget_s: float | None = None) -> bool:
-        """Run steps until `budget_s` (default `SLICE_S`) is spent, measured after each step; True while there is
+        """Run steps until `budget_s` (default `SLICE_S`) is spent, measured after each step, or until the next one
+        would overrun it by its kind's measured rate (never before the slice's first step); True while there is
         more to do."""
         budget_s = SLICE_S if budget_s is None else budget_s
         if self.state == "reading" and not self._begin():
             return self.running
         if self.state != "adding":
             return False
-        start = time.perf_counter()
+        start, ran = time.perf_counter(), False
         try:
             while self._next < len(self._steps):
                 units, label, call = self._steps[self._next]
                 began = time.perf_counter()
+                if ran and began - start + units * RATES.get(call.__name__, 0.0) > budget_s:
+                    break            # this step would overrun the budget: it starts the next slice
+                ran = True
                 value = call()
                 took = time.perf_counter() - began
+                RATES[call.__name__] = took / max(units, 1)
                 if value is not None:
                     self.result = value
                 if took > self.longest_step:
