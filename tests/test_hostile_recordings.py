@@ -115,8 +115,10 @@ def _bagwriter():
     return importlib.import_module("bagwriter")
 
 
-def _bag_of(d: Path, kind: str, name: str, stamps_ms=(0, 100), layout: dict | None = None, cols=None, **extra):
-    """A small bag of clouds on /points (stamps in ms after 2024) and an identity /tf, written by `kind`."""
+def _bag_of(d: Path, kind: str, name: str, stamps_ms=(0, 100), layout: dict | None = None, cols=None,
+            tf_ms=None, **extra):
+    """A small bag of clouds on /points (stamps in ms after 2023-11) and an identity /tf at those stamps (or at
+    `tf_ms`), written by `kind`."""
     bw = _bagwriter()
     bag = bw.Bag(kind)
     rng = np.random.default_rng(0)
@@ -126,6 +128,8 @@ def _bag_of(d: Path, kind: str, name: str, stamps_ms=(0, 100), layout: dict | No
         columns = cols or {a: rng.uniform(-20, 20, 400) for a in "xyz"}
         msg = bw.cloud(bag.store, stamp, "lidar", columns, **(layout or {}))
         bag.add("/points", bw.CLOUD, base + k * 100_000_000, msg)
+    for ms in stamps_ms if tf_ms is None else tf_ms:
+        stamp = base + ms * 1_000_000
         bag.add("/tf", bw.TF, stamp, bw.tf_message(bag.store, [(stamp, "odom", "lidar", np.eye(4))]))
     for key, value in extra.items():
         setattr(bag, key, value)
@@ -185,6 +189,10 @@ def _bag_clock_backwards(d: Path):
     return _bag_of(d, "mcap", "drive", stamps_ms=(0, 100, 200, 50, 300)), []
 
 
+def _bag_tf_ends_early(d: Path):
+    return _bag_of(d, "ros1", "drive.bag", stamps_ms=(0, 100, 200, 300), tf_ms=(0, 100)), []
+
+
 BAG_CASES: dict[str, tuple[Callable[[Path], tuple[Path, list[str]]], str]] = {
     "bag truncated ros1": (_bag_truncated_ros1, "corrupt or truncated bag: Bag index looks damaged"),
     "bag truncated mcap": (_bag_truncated_mcap, "corrupt or truncated bag"),
@@ -198,6 +206,9 @@ BAG_CASES: dict[str, tuple[Callable[[Path], tuple[Path, list[str]]], str]] = {
                                               "/points (2))"),
     "bag empty topic": (_bag_empty_topic, "topic /points has no messages"),
     "bag without xyz": (_bag_no_xyz, "topic /points, frame 0: point cloud has no x/y/z field (fields: a, b, c)"),
+    "bag tf ends early": (_bag_tf_ends_early, "topic /points, frame 3: no tf for frame 'lidar' (in 'odom') at the "
+                                              "cloud stamp 1700000000.300 s: /tf covers it from 1700000000.000 to "
+                                              "1700000000.100 s"),
     "bag clocks backwards": (_bag_clock_backwards, "topic /points: header stamps go backwards by 0.150 s at "
                                                    "message 3"),
 }

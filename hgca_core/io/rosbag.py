@@ -234,9 +234,26 @@ def read_cloud(bag: OpenBag, topic: str, frame: Frame, index: int) -> Scan:
         raise InputError(f"topic {topic}, frame {index}: {text}", path) from None
 
 
-def tf_poses(index: BagIndex) -> tuple[np.ndarray, ...] | None:
-    """Each frame's sensor->fixed-frame pose from tf, or None when tf does not place the sensor frames."""
-    if index.tf is None:
+class TfPoses(SequenceABC):
+    """Each frame's sensor->fixed-frame pose from tf; a frame tf does not cover (recorded before tf starts or
+    after it stops) is refused when its pose is asked for, so the frames tf does cover stay usable."""
+
+    def __init__(self, path: str, topic: str, mats: list[np.ndarray], problems: list[str | None]) -> None:
+        self._path, self._topic, self._mats, self.problems = path, topic, mats, problems
+
+    def __len__(self) -> int:
+        return len(self._mats)
+
+    def __getitem__(self, i: Any) -> Any:
+        i = range(len(self._mats))[i]
+        if self.problems[i]:
+            raise InputError(f"topic {self._topic}, frame {i}: {self.problems[i]}", self._path)
+        return self._mats[i]
+
+
+def tf_poses(index: BagIndex) -> TfPoses | None:
+    """The frames' poses from tf, or None when tf does not place the sensor frames."""
+    if index.tf is None or index.topic is None:
         return None
     names = sorted({f.frame_id for f in index.frames})
     chains = {n: index.tf.chain(n) for n in names}
@@ -246,13 +263,14 @@ def tf_poses(index: BagIndex) -> tuple[np.ndarray, ...] | None:
     if len(roots) > 1:
         raise InputError(f"the clouds' frames {', '.join(names)} belong to different tf trees "
                          f"({', '.join(sorted(roots))})", index.path)
-    poses: list[np.ndarray] = [np.eye(4)] * len(index.frames)
+    mats: list[np.ndarray] = [np.eye(4)] * len(index.frames)
+    problems: list[str | None] = [None] * len(index.frames)
     for n in names:
         rows = [i for i, f in enumerate(index.frames) if f.frame_id == n]
-        mats = index.tf.poses(n, np.array([index.frames[i].stamp for i in rows]))
-        for i, m in zip(rows, mats):
-            poses[i] = m
-    return tuple(poses)
+        found, why = index.tf.poses(n, np.array([index.frames[i].stamp for i in rows]))
+        for i, m, w in zip(rows, found, why):
+            mats[i], problems[i] = m, w
+    return TfPoses(index.path, index.topic, mats, problems)
 
 
 class _LazyScans(SequenceABC):
@@ -349,8 +367,11 @@ def describe_bag(path: str, topic: str | None) -> dict[str, Any]:
         stamps = [f.stamp for f in index.frames]
         try:
             frames = sorted({f.frame_id for f in index.frames})
-            if tf_poses(index) is not None:
+            posed = tf_poses(index)
+            if posed is not None:
                 why = f"from tf ({', '.join(frames)} in {index.tf.chain(frames[0])[-1]})"  # type: ignore[union-attr]
+                uncovered = sum(1 for p in posed.problems if p)
+                why += f"; {uncovered} frame(s) outside tf's time span have none" if uncovered else ""
             else:
                 why = f"LiDAR odometry (tf does not place {', '.join(frames)})"
         except InputError as exc:

@@ -3,8 +3,8 @@
 tf stores each transform as an edge parent -> child (the child's pose in the parent frame); a frame has at most
 one parent, so following parents from the sensor frame ends at the tree's root (map, odom, world...), the fixed
 frame the clouds are accumulated in. Dynamic edges are interpolated at each cloud's stamp (linear translation,
-slerp rotation); a stamp more than `TOLERANCE_S` outside an edge's recorded span is refused rather than
-extrapolated, since a guessed pose would misplace that whole sweep.
+slerp rotation); a stamp more than `TOLERANCE_S` outside an edge's recorded span has no pose (the frame is
+refused when it is read, not extrapolated), since a guessed pose would misplace that whole sweep.
 """
 from __future__ import annotations
 
@@ -69,8 +69,9 @@ class TfTree:
             out.append(parent)
         return out
 
-    def _edge_poses(self, child: str, stamps: np.ndarray) -> np.ndarray:
-        """(n, 4, 4) child->parent matrices at `stamps` (ns)."""
+    def _edge_poses(self, child: str, stamps: np.ndarray, problems: list[str | None]) -> np.ndarray:
+        """(n, 4, 4) child->parent matrices at `stamps` (ns); a stamp the edge does not cover gets the nearest
+        end's pose and its reason in `problems` (the first reason per stamp is kept)."""
         e = self.edges[child]
         t = np.asarray(e.times, dtype=np.int64)
         trans = np.asarray(e.translations, dtype=np.float64)
@@ -90,10 +91,10 @@ class TfTree:
         t, trans, quats = t[last], trans[last], quats[last]
         tol = int(TOLERANCE_S * 1e9)
         outside = (stamps < t[0] - tol) | (stamps > t[-1] + tol)
-        if outside.any():
-            s = int(stamps[outside][0])
-            raise InputError(f"no tf for frame {child!r} (in {e.parent!r}) at the cloud stamp {s / 1e9:.3f} s: "
-                             f"/tf covers it from {t[0] / 1e9:.3f} to {t[-1] / 1e9:.3f} s", self.source)
+        for k in np.flatnonzero(outside):
+            problems[k] = problems[k] or (f"no tf for frame {child!r} (in {e.parent!r}) at the cloud stamp "
+                                          f"{stamps[k] / 1e9:.3f} s: /tf covers it from {t[0] / 1e9:.3f} to "
+                                          f"{t[-1] / 1e9:.3f} s")
         at = np.clip(stamps, t[0], t[-1])
         rel = (at - t[0]).astype(np.float64) / 1e9
         knots = (t - t[0]).astype(np.float64) / 1e9
@@ -103,11 +104,13 @@ class TfTree:
         out[:, :3, :3] = (Slerp(knots, rots)(rel) if len(t) > 1 else rots[[0] * len(rel)]).as_matrix()
         return out
 
-    def poses(self, frame: str, stamps: np.ndarray) -> np.ndarray:
-        """(n, 4, 4) sensor->root poses of `frame` at `stamps` (ns): the chain's edges composed."""
+    def poses(self, frame: str, stamps: np.ndarray) -> tuple[np.ndarray, list[str | None]]:
+        """(n, 4, 4) sensor->root poses of `frame` at `stamps` (ns), the chain's edges composed, and for each
+        stamp None or why tf does not give its pose."""
         stamps = np.asarray(stamps, dtype=np.int64)
         chain = self.chain(frame)
         out = np.tile(np.eye(4), (len(stamps), 1, 1))
+        problems: list[str | None] = [None] * len(stamps)
         for child in reversed(chain[:-1]):  # root-most edge first: root <- ... <- sensor
-            out = out @ self._edge_poses(child, stamps)
-        return out
+            out = out @ self._edge_poses(child, stamps, problems)
+        return out, problems

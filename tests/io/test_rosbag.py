@@ -141,24 +141,29 @@ def test_tf_chain_is_interpolated_at_the_stamp(bags, sweeps):
 
 
 def test_tf_far_from_the_stamp_is_refused(tmp_path, sweeps):
-    """A cloud 0.3 s after the last /tf sample has no pose: refused naming the frame (not extrapolated)."""
-    late = [(stamp + 300_000_000, scan, pose) for stamp, scan, pose in sweeps[1:]]
+    """A cloud 0.3 s after the last /tf sample has no pose: picking it is refused naming the frame (not
+    extrapolated), while the frames tf covers stay usable; within 0.1 s of the span the end pose holds."""
     bag = Bag("mcap")
     st = bag.store
-    for stamp, scan, pose in sweeps[:1] + late:
-        bag.add("/points", CLOUD, stamp, cloud(st, stamp, "base_link", columns(scan)))
-    for stamp, _, pose in sweeps:
+    for stamp, scan, pose in sweeps:
         bag.add("/tf", TF, stamp, tf_message(st, [(stamp, "odom", "base_link", pose)]))
-    path = bag.write(tmp_path / "late")
-    with pytest.raises(InputError, match=r"no tf for frame 'base_link' \(in 'odom'\) at the cloud stamp"):
-        open_bag(path, None)
-    # within 0.1 s of the span, the end pose holds
-    near = [(stamp + 60_000_000, scan, pose) for stamp, scan, pose in sweeps[1:]]
-    bag.messages = [m for m in bag.messages if m[0] == "/tf"]
-    for stamp, scan, _ in sweeps[:1] + near:
-        bag.add("/points", CLOUD, stamp, cloud(st, stamp, "base_link", columns(scan)))
-    seq = open_bag(bag.write(tmp_path / "near"), None)
-    np.testing.assert_allclose(seq.poses[1], sweeps[1][2], atol=1e-12)
+    clouds = {"late": 300_000_000, "near": 60_000_000}
+    for name, after in clouds.items():
+        bag.messages = [m for m in bag.messages if m[0] == "/tf"]
+        for k, (stamp, scan, _) in enumerate(sweeps):
+            s = stamp + after * k
+            bag.add("/points", CLOUD, s, cloud(st, s, "base_link", _small(scan)))
+        seq = open_bag(bag.write(tmp_path / name), None)
+        np.testing.assert_allclose(seq.poses[0], sweeps[0][2], atol=1e-12)
+        if name == "near":
+            np.testing.assert_allclose(seq.poses[1], sweeps[1][2], atol=1e-12)
+            continue
+        with pytest.raises(InputError, match=r"topic /points, frame 1: no tf for frame 'base_link' \(in 'odom'\) "
+                                             r"at the cloud stamp 315966265.660 s: /tf covers it from "
+                                             r"315966265.260 to 315966265.360 s"):
+            seq.poses[1]
+        assert len(read_sequence(tmp_path / name, "0:1")) == 1200
+        assert "1 frame(s) outside tf's time span" in describe_bag(str(tmp_path / name), None)["cloud"]["poses"]
 
 
 def _small(scan, n: int = 1200) -> dict[str, np.ndarray]:
