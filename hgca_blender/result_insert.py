@@ -148,7 +148,8 @@ class Insertion:
 
     def _fail(self, exc: Exception) -> None:
         self.created.rollback()
-        self.state, self.error, self.status = "error", str(exc), f"Error: {exc}"
+        self.error = str(exc) or type(exc).__name__      # never empty: the job tells failure by it
+        self.state, self.status = "error", f"Error: {self.error}"
 
 
 # -- the steps: one mesh -------------------------------------------------------------------------------------

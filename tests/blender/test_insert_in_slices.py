@@ -235,3 +235,15 @@ def test_drive_tiles_go_in_slice_by_slice_and_cancel_removes_only_the_half_added
         pass
     assert "tile 2" in results.error and "out of range" in results.error
     assert snapshot() == kept, "the failed tile is removed whole; tile 0 stays"
+
+
+def test_a_damaged_result_fails_the_job_and_adds_nothing(addon, results: list[Path], tmp_path: Path) -> None:
+    jobs = addon_module("jobs")
+    bad = tmp_path / "out_s2.npz"
+    np.savez(bad, vertices=np.zeros((3, 3), np.float32), faces=np.array([[0, 1, 7]], np.int32))
+    before = snapshot()
+    job = fake_job(jobs, [*results[:2], bad], tmp_path / "job", bpy.context.scene)
+    while job.poll_once():
+        time.sleep(0.005)
+    assert job.state == "error" and "could not load the results" in job.error and "out of range" in job.error
+    assert snapshot() == before and not job.workdir.exists()
