@@ -17,7 +17,6 @@ import json
 import os
 import re
 import warnings
-from pathlib import Path
 from typing import Any, Callable
 
 from hgca_core.config import MESH_FORMATS
@@ -150,10 +149,12 @@ def check_cache(store, jobs: list[TileJob], previous: dict | None) -> dict[str, 
         if not store.has(job.key):
             continue
         record, want = records.get(job.key, {}), made_from(job)
+        if record.get("made_from", want) != want:       # the record is wrong, not (yet) the entry: set it aside
+            warn(f"tile {job.index}: its record in drive.json names other inputs than the tile's key (edited by "
+                 "hand?): checking its finished result on its own and writing its meshes again")
+            record.pop("sha256", None)
         problem, digest = store.check_entry(job.key, want, job.settings.samples,
                                             record.get("sha256", {}).get(store.relative(store.entry(job.key))))
-        if not problem and record.get("made_from", want) != want:
-            problem = "has a record in drive.json made from other inputs (edited by hand?)"
         if problem:
             warn(f"tile {job.index}: its finished result {store.entry(job.key)} {problem}: computing the tile again")
             store.discard(job.key)
@@ -165,10 +166,10 @@ def check_cache(store, jobs: list[TileJob], previous: dict | None) -> dict[str, 
     return kept
 
 
-def checksums(store, key: str, outputs: list[str], entry_sha256: str | None = None) -> dict[str, str]:
+def checksums(store, key: str, outputs: list[str]) -> dict[str, str]:
     """The sha256 of a finished tile's files, by path in DIR: its cache entry and its tile meshes."""
     entry = store.entry(key)
-    sums = {store.relative(entry): entry_sha256 or sha256_file(entry)}
+    sums = {store.relative(entry): sha256_file(entry)}
     sums.update({o: sha256_file(store.root / o) for o in outputs})
     return sums
 
@@ -210,7 +211,8 @@ def sweep(store, doc: dict, previous: dict | None) -> None:
     stale = [p for p in sorted(store.tiles.iterdir()) if MESH_NAME.match(p.name) and store.relative(p) not in done]
     same = previous is not None and [t["key"] for t in previous["tiles"]] == [t["key"] for t in tiles]
     ext = "." + doc["plan"]["mesh_format"]
-    # without a trusted record the merged meshes go without a word: the warning about drive.json said so
+    # without a trusted record the merged meshes go without a word of their own: nothing vouches for them, and
+    # a rejected drive.json's warning said that the meshes are written again
     stale += [p for p in sorted(store.root.iterdir()) if DRIVE_NAME.match(p.name) and p.is_file()
               and (not same or p.suffix != ext)]
     if previous is None and all(DRIVE_NAME.match(p.name) for p in stale):

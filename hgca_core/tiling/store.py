@@ -26,6 +26,7 @@ from hgca_core.errors import InputError
 from hgca_core.io.atomic import atomic_write
 
 FORMAT = 1
+_ANEW = "writing a new one; every cached tile is checked on its own and its meshes are written again"
 ARRAYS = ("vertices", "faces", "observed_distance", "cells")   # per sample, `s<k>_<name>` in a cache entry
 
 
@@ -117,7 +118,7 @@ class DriveStore:
                     problem = _check_sample(k, {n: z[f"s{k}_{n}"] for n in ARRAYS})
                     if problem:
                         break
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        except (OSError, ValueError, KeyError, EOFError, RecursionError, zipfile.BadZipFile) as exc:
             return f"is unreadable ({type(exc).__name__}: {exc})", ""
         if problem:
             return problem, ""
@@ -189,20 +190,19 @@ class DriveStore:
         except FileNotFoundError:
             return None
         except (OSError, UnicodeDecodeError) as exc:
-            warn(f"{self.manifest}: unreadable ({exc}): writing a new one")
+            warn(f"{self.manifest}: unreadable ({exc}): {_ANEW}")
             return None
         try:
             doc = json.loads(text)
-        except ValueError as exc:
-            warn(f"{self.manifest}: not JSON ({exc}; cut short or edited?): writing a new one, every cached tile "
-                 "is checked on its own")
+        except (ValueError, RecursionError) as exc:
+            warn(f"{self.manifest}: not JSON ({exc}; cut short or edited?): {_ANEW}")
             return None
         problem = check_record(doc)
-        if not problem and doc["format"] != FORMAT:
-            problem = f"format is {doc['format']}, not {FORMAT} (another hgca version's)"
         if problem:
-            warn(f"{self.manifest}: {problem} (edited by hand?): writing a new one, every cached tile is checked "
-                 "on its own")
+            warn(f"{self.manifest}: {problem} (edited by hand?): {_ANEW}")
+            return None
+        if doc["format"] != FORMAT:
+            warn(f"{self.manifest}: format {doc['format']}, not {FORMAT} (another hgca version's): {_ANEW}")
             return None
         return doc
 
