@@ -28,6 +28,7 @@ from hgca_core.io.sequence import Sequence
 
 CLOUD = "sensor_msgs/msg/PointCloud2"
 TF_TOPICS = {"/tf": False, "/tf_static": True}  # topic -> static
+TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")  # tf2's, and ROS 1's older tf (the same fields)
 EXTRA = "reading ROS bags needs the recordings extra (pip install 'hgca[recordings]')"
 
 
@@ -166,7 +167,7 @@ def _index(path: str, topic: str | None, required: bool) -> BagIndex:
             last, nth = None, 0
             for conn, received, raw in reader.messages(connections=wanted) if wanted else ():
                 if conn.topic in TF_TOPICS:
-                    if conn.msgtype == "tf2_msgs/msg/TFMessage":
+                    if conn.msgtype in TF_TYPES:
                         tf.add(reader.deserialize(raw, conn.msgtype), TF_TOPICS[conn.topic])
                     continue
                 nth = nth + 1 if received == last else 0

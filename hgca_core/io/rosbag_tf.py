@@ -40,17 +40,18 @@ class TfTree:
     def __init__(self, source: str) -> None:
         self.source = source  # the bag, for messages
         self.edges: dict[str, Edge] = {}
+        self.conflicts: dict[str, str] = {}  # child -> a second parent it was given (an error if a chain uses it)
 
     def add(self, message: object, static: bool) -> None:
-        """Record a tf2_msgs/TFMessage's transforms; a child given two parents is refused (not a tree)."""
+        """Record a tf2_msgs/TFMessage's transforms; a child given two parents is noted (not a tree)."""
         for ts in message.transforms:  # type: ignore[attr-defined]
             child, parent = frame_name(ts.child_frame_id), frame_name(ts.header.frame_id)
             edge = self.edges.get(child)
             if edge is None or (edge.static and not static):  # dynamic samples take over a static edge
                 edge = self.edges[child] = Edge(parent, static)
             elif edge.parent != parent:
-                raise InputError(f"tf frame {child!r} has two parents, {edge.parent!r} and {parent!r}: the tf "
-                                 "tree is ambiguous", self.source)
+                self.conflicts.setdefault(child, parent)
+                continue
             elif static != edge.static:
                 continue
             tr, q = ts.transform.translation, ts.transform.rotation
@@ -63,6 +64,9 @@ class TfTree:
         """The frames from `frame` up to its root (`[frame]` alone when tf does not know its parent)."""
         out = [frame_name(frame)]
         while out[-1] in self.edges:
+            if out[-1] in self.conflicts:
+                raise InputError(f"tf frame {out[-1]!r} has two parents, {self.edges[out[-1]].parent!r} and "
+                                 f"{self.conflicts[out[-1]]!r}: the tf tree is ambiguous", self.source)
             parent = self.edges[out[-1]].parent
             if parent in out:
                 raise InputError(f"tf has a loop through frame {parent!r}", self.source)

@@ -345,3 +345,21 @@ def test_field_problems_only_matter_for_xyz(sweeps):
     with pytest.raises(InputError, match="field 'y' at offset 38 \\(8 bytes\\) does not fit in a point of "
                                          "point_step 38 bytes"):
         decode("y", offset=38, datatype=8)
+
+
+def test_tf_tree_with_two_parents_matters_only_on_the_chain():
+    """A frame given two parents makes the tree ambiguous: refused when the sensor's chain passes through it,
+    ignored elsewhere (a camera's mount on another branch)."""
+    from hgca_core.io.rosbag_tf import TfTree
+
+    store = Bag("sqlite3").store
+    up = np.eye(4)
+    up[2, 3] = 1.0
+    tree = TfTree("x.bag")
+    tree.add(tf_message(store, [(5, "odom", "base_link", up), (5, "base_link", "/lidar", up),
+                                (5, "base_link", "camera", up), (5, "lidar", "camera", up)]), static=False)
+    assert tree.chain("lidar") == ["lidar", "base_link", "odom"]
+    mats, problems = tree.poses("lidar", np.array([5]))
+    assert mats[0][2, 3] == 2.0 and problems == [None]
+    with pytest.raises(InputError, match="tf frame 'camera' has two parents, 'base_link' and 'lidar'"):
+        tree.chain("camera")
