@@ -162,6 +162,8 @@ def select_only(context: bpy.types.Context, obj: bpy.types.Object,
     the panel's next step (Add Region Box, Complete) works on it and not on what was selected before (the
     startup Cube)."""
     view_layer = view_layer or context.view_layer
+    if view_layer is not None and view_layer.objects.get(obj.name) is None:
+        view_layer.update()   # a new object is in the view layer once it is synced
     if view_layer is None or view_layer.objects.get(obj.name) is None:
         return
     for other in view_layer.objects:

@@ -20,6 +20,8 @@ from bpy.props import StringProperty
 from . import core, jobs, messages, preferences, recordings
 
 FOLDER_PROPERTY = "hgca_poses_folder"   # Scene property: the folder the panel offers to estimate poses for
+# The progress bar's share of each stage the core reports (reading the frames, then registering them one by one)
+STAGE_SHARE = {"read": (0.0, 0.3), "odometry": (0.3, 1.0)}
 
 
 def estimate_args(folder: Path, out: Path, topic: str = "") -> list[str]:
@@ -41,11 +43,15 @@ class PosesJob(core.Job):
     def on_progress(self, stage: str, event: dict[str, Any]) -> None:
         self.records.append(event)
         step, total = event.get("step"), event.get("total")
-        if isinstance(step, (int, float)) and isinstance(total, (int, float)) and total > 0:
-            self.progress = max(self.progress, min(max(float(step) / float(total), 0.0), 1.0))
-            self.status = f"Estimating poses: frame {int(step)} of {int(total)}"
-        else:
-            self.status = f"Estimating poses: {event.get('message') or stage}"
+        counted = isinstance(step, (int, float)) and isinstance(total, (int, float)) and total > 0
+        if counted and stage in STAGE_SHARE:
+            low, high = STAGE_SHARE[stage]
+            share = low + (high - low) * min(max(float(step) / float(total), 0.0), 1.0)
+            self.progress = max(self.progress, share)
+        what = {"read": "Reading frame", "odometry": "Placing frame"}.get(stage, stage.capitalize())
+        count = f" {int(step)} of {int(total)}" if counted else ""
+        message = str(event.get("message") or "")
+        self.status = f"{what}{count}" + (f": {message}" if message else "")
 
     def _output_paths(self, done: dict[str, Any]) -> list[Path]:
         if not self.out.is_file():

@@ -154,6 +154,25 @@ def test_e57_imports_as_the_cli_reads_it(addon, recordings) -> None:
     assert obj.name == "scans [0:2]"
 
 
+def test_interface_import_reads_on_a_thread(addon, recordings) -> None:
+    """The path the interface takes: `start_import` returns at once, the core reads on a thread, and the object is
+    added on the main thread by the poll (a timer in Blender; called here, as timers never fire in bpy)."""
+    ops, background = addon_module("operators_import"), addon_module("background")
+    e57 = recordings["e57"]
+    before = snapshot()
+    started = time.monotonic()
+    ops.start_import(bpy.context, CORE_PYTHON, [e57], None, bpy.context.scene.collection,
+                     {"show_points": True, "frames": "0:1", "color_by": "AUTO", "point_size": 0.0, "topic": ""})
+    assert time.monotonic() - started < 1.0 and snapshot() == before   # nothing waited for, nothing added yet
+    deadline = time.monotonic() + 300
+    while (text := background.poll("import")) is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    obj = imported(before)
+    assert text == f"Imported {len(obj.data.vertices):,} points as '{obj.name}'"
+    assert bpy.context.view_layer.objects.active == obj and obj.select_get()
+    assert np.abs(world_vertices(obj) - cli_read(e57, "--frames", "0:1")).max() < 2e-3
+
+
 def test_bag_errors_are_the_cores_line_and_add_nothing(addon, tmp_path: Path) -> None:
     bad = tmp_path / "broken.bag"
     bad.write_bytes(b"#ROSBAG V2.0\n" + b"\x00" * 64)
@@ -161,3 +180,67 @@ def test_bag_errors_are_the_cores_line_and_add_nothing(addon, tmp_path: Path) ->
     with pytest.raises(RuntimeError, match="broken.bag"):
         bpy.ops.hgca.import_scan(filepath=str(bad))
     assert snapshot() == before
+
+
+# -- a folder of sweeps without poses ---------------------------------------------------------------------------
+
+def sweeps_folder(tmp_path: Path) -> Path:
+    """The log's two sweeps as a bare folder of scan files: no pose table beside them."""
+    folder = tmp_path / "sweeps"
+    folder.mkdir()
+    for sweep in sorted((AV2_LOG / "sensors" / "lidar").glob("*.feather")):
+        (folder / sweep.name).write_bytes(require_fixture(sweep).read_bytes())
+    return folder
+
+
+def listing(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def test_estimate_poses_then_the_folder_imports(addon, tmp_path: Path) -> None:
+    from test_blender_ui import draw
+
+    folder = sweeps_folder(tmp_path)
+    scene = bpy.context.scene
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="Estimate Poses"):   # the import says why, and what to do
+        bpy.ops.hgca.import_scan(directory=str(folder), frames="0:2")
+    assert snapshot() == before
+    assert scene.hgca_poses_folder == str(folder)               # the panel now offers it
+    panels = addon_module("panels")
+    assert ("operator", "hgca.estimate_poses") in draw(panels.HGCA_PT_main)
+
+    assert bpy.ops.hgca.estimate_poses() == {"FINISHED"}
+    job = addon_module("jobs").ACTIVE[scene.name]
+    assert job.wait(timeout=300) == "done", job.error
+    steps = [(r.get("step"), r.get("total")) for r in job.records if "total" in r]
+    assert steps and steps[-1][0] == steps[-1][1] == 2        # progress per frame, up to both frames
+    assert scene.hgca.progress == 1.0
+    doc = json.loads((folder / "poses.json").read_text())
+    assert len(doc["scans"]) == 2
+    assert ("operator", "hgca.import_scan") in draw(panels.HGCA_PT_poses)   # the box offers the import
+
+    before = snapshot()
+    assert bpy.ops.hgca.import_scan(directory=str(folder), frames="0:2") == {"FINISHED"}
+    obj = imported(before)
+    want = cli_read(folder, "--frames", "0:2")
+    assert len(obj.data.vertices) == len(want) > 150_000
+    assert np.abs(world_vertices(obj) - want).max() < 2e-3
+
+
+def test_cancelled_estimate_leaves_the_folder_as_it_was(addon, tmp_path: Path) -> None:
+    folder = sweeps_folder(tmp_path)
+    was = listing(folder)
+    scene = bpy.context.scene
+    assert bpy.ops.hgca.estimate_poses(folder=str(folder)) == {"FINISHED"}
+    jobs = addon_module("jobs")
+    job = jobs.ACTIVE[scene.name]
+    deadline = time.monotonic() + 120
+    while job.poll_once() and not job.records and time.monotonic() < deadline:
+        time.sleep(0.01)                                       # until the core is estimating
+    assert job.running, f"the estimate ended before it could be cancelled ({job.state})"
+    job.cancel()
+    jobs.poll_all()
+    assert job.state == "cancelled" and job._proc.poll() is not None   # the core is gone: it writes nothing later
+    assert listing(folder) == was                              # no poses.json, no temp file
+    assert scene.hgca.status == "Cancelled" and jobs.active_job(scene.name) is None
