@@ -58,6 +58,13 @@ def _bad(exc: Exception, path: str, topic: str | None) -> InputError:
     return InputError(f"corrupt or truncated bag{about}: {text}{hint}", path)
 
 
+def _clean(path: str | os.PathLike) -> str:
+    """The bag's path as given, less trailing separators: a bag folder given as "drive/" names its frames
+    "drive#N"."""
+    path = os.fspath(path)
+    return path.rstrip("/\\") or path
+
+
 def _stamp_ns(msg: Any) -> int:
     return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
 
@@ -339,8 +346,7 @@ class OdometryPoses(SequenceABC):
 def open_bag(path: str | os.PathLike, topic: str | None = None) -> Sequence:
     """The bag's point cloud topic as a sequence (layout "rosbag"): frames `BAG#N` in time order, read with
     `read_frame`, posed by tf when it places the sensor frame, else by LiDAR odometry."""
-    path = os.fspath(path)
-    path = path.rstrip("/\\") or path  # a bag folder given as "drive/" names its frames "drive#N"
+    path = _clean(path)
     index = index_bag(path, topic)
     chosen = index.topic
     assert chosen is not None
@@ -361,6 +367,7 @@ def open_bag(path: str | os.PathLike, topic: str | None = None) -> Sequence:
 def describe_bag(path: str, topic: str | None) -> dict[str, Any]:
     """What `hgca info BAG` lists: each topic with its type and count; for the cloud topic (the one given, else
     the only one) its frames, time span and whether tf gives the poses."""
+    path = _clean(path)
     index = index_bag(path, topic, required=False)
     out: dict[str, Any] = {"topics": [{"topic": t, "type": k, "messages": n} for t, (k, n) in
                                       sorted(index.topics.items())], "cloud": None}
