@@ -41,11 +41,14 @@ def object_name(paths: list[Path], frames: str = "") -> str:
 
 def check_inputs(paths: list[Path], poses: Path | None, frames: str, topic: str
                  ) -> tuple[list[Path], Path | None]:
-    """Absolute paths (the core runs in a temporary folder; poses then match scans by their resolved paths),
+    """Absolute paths (the core runs in a temporary folder; poses then match scans by their resolved paths), and
+    the poses (the given ones, else those Estimate Poses wrote for a KITTI / AV2 folder without its own),
     refusing at once what the core would refuse later: missing files, frames or a topic without a sequence."""
     paths = [Path(p).absolute() for p in paths]
     poses = Path(poses).absolute() if poses is not None else None
     folder = len(paths) == 1 and paths[0].is_dir()
+    if folder and poses is None:   # a KITTI / AV2 folder placed by Estimate Poses, not by its own table
+        poses = recordings.estimated_poses(paths[0])
     missing = [str(p) for p in paths if not (folder or p.is_file())]
     if missing:
         raise core.CoreError(f"file not found: {', '.join(missing)}")

@@ -106,6 +106,19 @@ def missing_poses(folder: Path) -> str:
     return f"its {len(scans)} scans have no {POSES_FILE}"
 
 
+def estimated_poses(folder: Path) -> Path | None:
+    """The poses.json Estimate Poses wrote into a KITTI or Argoverse 2 folder that lacks its own pose table:
+    those layouts read only their own table, so the import hands this one over as `--poses` (a folder of scan
+    files and nuScenes sweeps read their poses.json by themselves)."""
+    folder = Path(folder)
+    own = folder / POSES_FILE
+    if not folder.is_dir() or not own.is_file():
+        return None
+    kitti = (folder / "velodyne").is_dir() and not (folder / "poses.txt").is_file()
+    av2 = (folder / "sensors" / "lidar").is_dir() and not (folder / "city_SE3_egovehicle.feather").is_file()
+    return own if kitti or av2 else None
+
+
 def poses_hint(folder: Path) -> str:
     """The sentence the import adds when a folder failed to read for want of poses, else ""."""
     why = missing_poses(folder)

@@ -244,3 +244,23 @@ def test_cancelled_estimate_leaves_the_folder_as_it_was(addon, tmp_path: Path) -
     assert job.state == "cancelled" and job._proc.poll() is not None   # the core is gone: it writes nothing later
     assert listing(folder) == was                              # no poses.json, no temp file
     assert scene.hgca.status == "Cancelled" and jobs.active_job(scene.name) is None
+
+
+def test_layout_folder_without_its_pose_table(addon, tmp_path: Path) -> None:
+    """An Argoverse 2 log without city_SE3_egovehicle.feather: the import says so, Estimate Poses writes the
+    folder's poses.json, and the import then hands that file to the core (the layout reads only its own table)."""
+    import shutil
+
+    log = tmp_path / "log"
+    shutil.copytree(require_fixture(AV2_LOG), log, ignore=shutil.ignore_patterns("city_SE3_egovehicle.feather"))
+    with pytest.raises(RuntimeError, match="has no city_SE3_egovehicle.feather: press Estimate Poses"):
+        bpy.ops.hgca.import_scan(directory=str(log), frames="0:2")
+    assert bpy.ops.hgca.estimate_poses(folder=str(log)) == {"FINISHED"}
+    job = addon_module("jobs").ACTIVE[bpy.context.scene.name]
+    assert job.wait(timeout=300) == "done", job.error
+    before = snapshot()
+    assert bpy.ops.hgca.import_scan(directory=str(log), frames="0:2") == {"FINISHED"}
+    obj = imported(before)
+    poses = log / "poses.json"
+    assert json.loads(obj["hgca_source"])["poses"] == str(poses)
+    assert np.abs(world_vertices(obj) - cli_read(log, "--frames", "0:2", "--poses", str(poses))).max() < 2e-3
