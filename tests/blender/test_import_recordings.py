@@ -264,3 +264,14 @@ def test_layout_folder_without_its_pose_table(addon, tmp_path: Path) -> None:
     poses = log / "poses.json"
     assert json.loads(obj["hgca_source"])["poses"] == str(poses)
     assert np.abs(world_vertices(obj) - cli_read(log, "--frames", "0:2", "--poses", str(poses))).max() < 2e-3
+
+
+def test_estimate_error_is_the_cores_line(addon, tmp_path: Path) -> None:
+    folder = tmp_path / "not_sweeps"
+    folder.mkdir()
+    (folder / "notes.md").write_text("no scans here\n")
+    assert bpy.ops.hgca.estimate_poses(folder=str(folder)) == {"FINISHED"}
+    job = addon_module("jobs").ACTIVE[bpy.context.scene.name]
+    assert job.wait(timeout=300) == "error"
+    assert str(folder) in job.error and "\n" not in job.error
+    assert bpy.context.scene.hgca.status_is_error and sorted(p.name for p in folder.iterdir()) == ["notes.md"]
