@@ -134,7 +134,7 @@ class DriveStore:
         """Write a tile result under its key (atomically; an existing entry is the same content and is kept),
         with what it was made from (`records.made_from`), so that a resumed run can tell it is this tile's."""
         path = self.entry(result["key"])
-        if path.exists():
+        if path.is_file():
             return path
         arrays: dict[str, np.ndarray] = {}
         meta = {k: v for k, v in result.items() if k != "samples"}
