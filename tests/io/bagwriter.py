@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
+from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from scipy.spatial.transform import Rotation
 
@@ -86,6 +87,7 @@ class Bag:
     kind: str  # ros1, sqlite3, mcap
     messages: list[tuple[str, str, int, object]] = field(default_factory=list)
     empty: list[tuple[str, str]] = field(default_factory=list)  # (topic, msgtype) connections without messages
+    compress: bool = False  # ROS 1: LZ4 chunks; ROS 2: zstd per message
 
     @property
     def store(self):
@@ -98,10 +100,14 @@ class Bag:
         store = self.store
         if self.kind == "ros1":
             writer = Writer1(path)
+            if self.compress:
+                writer.set_compression(Writer1.CompressionFormat.LZ4)
             serialize = store.serialize_ros1
         else:
             plugin = StoragePlugin.MCAP if self.kind == "mcap" else StoragePlugin.SQLITE3
             writer = Writer2(path, version=9, storage_plugin=plugin)
+            if self.compress:
+                writer.set_compression(CompressionMode.MESSAGE, CompressionFormat.ZSTD)
             serialize = store.serialize_cdr
         with writer:
             conns = {topic: writer.add_connection(topic, msgtype, typestore=store) for topic, msgtype in self.empty}

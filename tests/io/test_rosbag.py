@@ -52,11 +52,12 @@ def turn(m: np.ndarray, angle: float, shift: np.ndarray) -> np.ndarray:
     return out
 
 
-def av2_bag(path: Path, kind: str, sweeps, layout: str = "base", topic: str = "/points") -> Path:
+def av2_bag(path: Path, kind: str, sweeps, layout: str = "base", topic: str = "/points",
+            compress: bool = False) -> Path:
     """The sweeps as a bag. layout "base": clouds in base_link, /tf odom -> base_link at the sweep stamps and
     /tf_static map -> odom (identity); "lidar": clouds in a lidar frame (/tf_static base_link -> lidar) with
     /tf samples 50 ms either side of each sweep, whose interpolation is the sweep's pose; "none": no tf."""
-    bag = Bag(kind)
+    bag = Bag(kind, compress=compress)
     st = bag.store
     for stamp, scan, pose in sweeps:
         to_sensor = np.linalg.inv(LIDAR) if layout == "lidar" else None
@@ -90,7 +91,7 @@ def sweeps(log):
 @pytest.fixture(scope="module")
 def bags(tmp_path_factory, sweeps) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("bags")
-    out = {"ros1": av2_bag(root / "drive.bag", "ros1", sweeps, "lidar"),
+    out = {"ros1": av2_bag(root / "drive.bag", "ros1", sweeps, "lidar", compress=True),  # LZ4 chunks
            "sqlite3": av2_bag(root / "drive_db3", "sqlite3", sweeps),
            "mcap": av2_bag(root / "drive_mcap", "mcap", sweeps),
            "none": av2_bag(root / "still.bag", "ros1", sweeps, "none")}
