@@ -221,5 +221,6 @@ def topic_items(self, context: bpy.types.Context) -> list[tuple[str, str, str]]:
         items = [(t, t, f"Point cloud topic {t}") for t in found]
         if len(found) > 1:
             items.insert(0, (NO_TOPIC, "Choose a topic", f"The bag has {len(found)} point cloud topics"))
-    _ITEMS[str(bag)] = items   # Blender reads the strings after this returns
-    return items
+    if _ITEMS.get(str(bag)) != items:   # Blender reads the strings after this returns: keep them, and the same
+        _ITEMS[str(bag)] = items         # list while they do not change
+    return _ITEMS[str(bag)]

@@ -216,6 +216,11 @@ def test_estimate_poses_then_the_folder_imports(addon, tmp_path: Path) -> None:
     steps = [(r.get("step"), r.get("total")) for r in job.records if "total" in r]
     assert steps and steps[-1][0] == steps[-1][1] == 2        # progress per frame, up to both frames
     assert scene.hgca.progress == 1.0
+    from test_blender_ui import Recorder
+
+    shown: list = []   # the status bar's header while the job runs: a progress bar with the job's status
+    addon_module("operators_poses")._status_drawer(job)(SimpleNamespace(layout=Recorder(shown)), bpy.context)
+    assert ("progress", f"{job.status} (100%)") in shown
     doc = json.loads((folder / "poses.json").read_text())
     assert len(doc["scans"]) == 2
     assert ("operator", "hgca.import_scan") in draw(panels.HGCA_PT_poses)   # the box offers the import
