@@ -5,6 +5,7 @@ import laspy
 import numpy as np
 import pytest
 
+from hgca_core.errors import InputError
 from hgca_core.io import read_scan, read_scans
 from hgca_core.io.las import las_header_info
 from hgca_core.io.sensor_bin import EGO_RETURNS
@@ -102,11 +103,14 @@ def test_accumulate_real_las_keeps_common_attributes(real_dir, tmp_path):
     las.header.offsets = np.zeros(3)
     las.x, las.y, las.z = local
     las.write(tmp_path / "simple.las")
-    scan = read_scans([tmp_path / "simple.las", real_dir / NUSCENES])
+    scan = read_scans([tmp_path / "simple.las", real_dir / NUSCENES], poses=[np.eye(4), np.eye(4)])
     nuscenes = read_scan(real_dir / NUSCENES)
     assert len(scan) == 1065 + len(nuscenes) and scan.dropped == nuscenes.dropped
     assert set(scan.attributes) == {"intensity", "scan_index"}
     assert scan.attributes["scan_index"].dtype == np.uint16
     assert (scan.attributes["scan_index"][:1065] == 0).all() and (scan.attributes["scan_index"][1065:] == 1).all()
-    # Only the nuScenes sweep knows its sensor origin.
-    np.testing.assert_array_equal(scan.origins, [[0.0, 0.0, 0.0]])
+    # With poses each scan has an origin (the LAS its pose's); without, only the nuScenes sweep knows its sensor,
+    # and the LAS points' rays would be cast from it: refused.
+    np.testing.assert_array_equal(scan.origins, [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    with pytest.raises(InputError, match="no sensor origin but .*has one"):
+        read_scans([tmp_path / "simple.las", real_dir / NUSCENES])
