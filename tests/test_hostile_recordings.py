@@ -210,7 +210,7 @@ BAG_CASES: dict[str, tuple[Callable[[Path], tuple[Path, list[str]]], str]] = {
                                               "cloud stamp 1700000000.300 s: /tf covers it from 1700000000.000 to "
                                               "1700000000.100 s"),
     "bag clocks backwards": (_bag_clock_backwards, "topic /points: header stamps go backwards by 0.150 s at "
-                                                   "message 3"),
+                                                   "message 3 in recording order (frame interval 0.100 s)"),
 }
 
 

@@ -131,7 +131,7 @@ def _order(path: str, topic: str, frames: list[Frame]) -> tuple[Frame, ...]:
     if len(back):
         k = int(back[0]) + 1
         raise InputError(f"topic {topic}: header stamps go backwards by {-steps[k - 1] / 1e9:.3f} s at message {k} "
-                         f"(frame interval {interval / 1e9:.3f} s): the clocks are out of order", path)
+                         f"in recording order (frame interval {interval / 1e9:.3f} s): the clocks are out of order", path)
     order = np.argsort(stamps, kind="stable")
     return tuple(frames[i] for i in order)
 
