@@ -121,6 +121,21 @@ def test_sliced_insertion_is_the_one_go_mesh_byte_for_byte(addon, results: list[
     assert [c.name for c in scene.collection.children][-2:] == ["run A", "run B"]
 
 
+def test_empty_and_degenerate_results_match_the_one_go_build_too(addon, tmp_path: Path) -> None:
+    """No faces at all, and a face that repeats a vertex (Blender then computes the edges itself)."""
+    mesh_build, result_insert = addon_module("mesh_build"), addon_module("result_insert")
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32)
+    empty, degenerate = tmp_path / "empty.npz", tmp_path / "degenerate.npz"
+    np.savez(empty, vertices=verts, faces=np.zeros((0, 3), np.int32))
+    np.savez(degenerate, vertices=verts, faces=np.array([[0, 1, 2], [1, 3, 3]], np.int32))
+    for path in (empty, degenerate):
+        one_go = mesh_build.build_results(bpy.context.scene, [path], "run A")
+        insertion = result_insert.start_completion(bpy.context.scene, [path], "run B")
+        slices(insertion)
+        assert insertion.state == "done", insertion.error
+        assert scene_data(one_go, "run A") == scene_data(bpy.data.collections[insertion.result], "run B"), path.name
+
+
 def test_every_slice_stays_within_its_budget(addon, tmp_path: Path) -> None:
     """A slice ends after the step that spends its budget: never longer than budget + the longest step, which is
     one copy into one mesh (the face starts: ~85 ns a face), so the bound holds on any CPU."""
