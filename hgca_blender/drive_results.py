@@ -59,7 +59,7 @@ class DriveResults:
             return False
         insertion = self.current
         if insertion.step(budget_s):
-            self.status = f"Tile {self.current_index}: {insertion.status}"
+            self.status = insertion.status if insertion.state == "adding" else f"Reading tile {self.current_index}"
             return True
         self.current, index, self.current_index = None, self.current_index, -1
         if insertion.state != "done":

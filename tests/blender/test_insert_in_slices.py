@@ -234,7 +234,7 @@ def test_drive_tiles_go_in_slice_by_slice_and_cancel_removes_only_the_half_added
     statuses = []
     while results.step(0.002) and not results.tiles:
         statuses.append(results.status)
-    assert results.tiles == {0} and any(s.startswith("Tile 0: Adding tile 0: ") for s in statuses)
+    assert results.tiles == {0} and any(s.startswith("Adding tile 0: ") for s in statuses)
     coll = bpy.data.collections[results.collection_name]
     assert sorted((o["hgca_tile"], o["hgca_sample"]) for o in coll.objects) == [(0, 0), (0, 1)]
     kept = snapshot()
