@@ -83,7 +83,7 @@ def bag_topics(python: str, bag: Path) -> list[str]:
 
 def _scan_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and p.name.lower().endswith(SCAN_EXTENSIONS)
-                  and p.name != POSES_FILE)
+                  and not p.name.startswith("."))   # hidden files (a writer's temp file) are no sweeps
 
 
 def missing_poses(folder: Path) -> str:
