@@ -9,6 +9,8 @@ Layouts:
 - AV2: `sensors/lidar/<timestamp_ns>.feather` with `city_SE3_egovehicle.feather` (see `hgca_core.io.av2`).
 - nuScenes: `*.pcd.bin` sweeps, with poses from `poses.json` in the folder (or `--poses`); a single sweep
   needs none (it stays in its sensor frame).
+- files: any other folder of scan files of one known format (ply, pcd, las, ...), in natural name order
+  (scan2 before scan10), with poses from `poses.json` beside them (`hgca poses --estimate` writes it).
 A poses JSON given explicitly (`--poses`) replaces the layout's own poses for any layout.
 """
 from __future__ import annotations
@@ -108,8 +110,39 @@ def detect_layout(root: str) -> str:
         return "av2"
     if glob.glob(os.path.join(glob.escape(root), "*.pcd.bin")):
         return "nuscenes"
+    if _scan_files(root):
+        return "files"
     raise InputError("folder is not a known sequence layout: expected velodyne/ (KITTI), sensors/lidar/ "
-                     "(Argoverse 2) or *.pcd.bin sweeps (nuScenes)", root)
+                     "(Argoverse 2), *.pcd.bin sweeps (nuScenes) or scan files of one format", root)
+
+
+def natural_key(path: str) -> list:
+    """Sort key of a file name in natural order: scan2 before scan10."""
+    return [(0, int(t), "") if t.isdigit() else (1, 0, t.lower()) for t in re.split(r"(\d+)", os.path.basename(path))]
+
+
+def _scan_files(root: str) -> dict[str, list[str]]:
+    """The folder's scan files by format (from the extension), each list in natural order."""
+    from hgca_core.io.formats import format_from_extension
+
+    found: dict[str, list[str]] = {}
+    for name in os.listdir(root):
+        path = os.path.join(root, name)
+        fmt = format_from_extension(name)
+        if fmt is not None and not name.startswith(".") and os.path.isfile(path):
+            found.setdefault(fmt, []).append(path)
+    return {fmt: sorted(paths, key=natural_key) for fmt, paths in found.items()}
+
+
+def _files_format(root: str) -> str:
+    """The one scan format of a "files" folder; several is an InputError naming them (which frames belong
+    together is then unknown)."""
+    found = _scan_files(root)
+    if len(found) != 1:
+        kinds = ", ".join(f"{len(v)} {k}" for k, v in sorted(found.items()))
+        raise InputError(f"folder holds scan files of several formats ({kinds}): a sequence folder holds one "
+                         "format; move the others out or give the files themselves", root)
+    return next(iter(found))
 
 
 def _kitti_matrix(values: list[str], what: str, path: str) -> np.ndarray:
@@ -181,27 +214,32 @@ def _open_av2(root: str) -> Sequence:
     return Sequence("av2", root, files, tuple(av2.ego_poses(root, [av2.sweep_timestamp(f) for f in files])), "av2")
 
 
-def _open_nuscenes(root: str) -> Sequence:
-    files = _files_only(root, "nuscenes")
+def _open_nuscenes(root: str, layout: str = "nuscenes", fmt: str = "nuscenes") -> Sequence:
+    """Sweeps with poses from the poses.json beside them (nuScenes, and the "files" layout)."""
+    files = _files_only(root, layout)
     own = os.path.join(root, "poses.json")
     poses = None
     if os.path.lexists(own) and not os.path.isfile(own):   # a folder, a dangling link, a device: say so
         kind = "a folder" if os.path.isdir(own) else "not a regular file"
-        raise InputError(f"the nuScenes folder's poses.json is {kind}: it must be the poses JSON file (or give "
+        what = "nuScenes folder" if layout == "nuscenes" else "scan folder"
+        raise InputError(f"the {what}'s poses.json is {kind}: it must be the poses JSON file (or give "
                          "--poses)", own)
     if os.path.isfile(own):
         poses = tuple(e.pose for e in match_poses(load_poses(own), list(files), own))
-    return Sequence("nuscenes", root, tuple(files), poses, "nuscenes")
+    return Sequence(layout, root, tuple(files), poses, fmt)
 
 
 def open_sequence(root: str | os.PathLike, poses: str | os.PathLike | None = None,
-                  topic: str | None = None) -> Sequence:
+                  topic: str | None = None, own_poses: bool = True) -> Sequence:
     """The sequence in folder `root` (or container file: a ROS bag, an E57); `poses` (our JSON) replaces the
-    layout's own poses when given; `topic` picks a bag's point cloud topic."""
+    layout's own poses when given; `topic` picks a bag's point cloud topic; `own_poses=False` reads none (the
+    frames only, for `hgca poses --estimate`)."""
     root = os.fspath(root)
     container = container_layout(root) if os.path.exists(root) else None
     if container is not None:
         seq = _open_container(container, root, topic)
+        if not own_poses:
+            return Sequence(seq.layout, seq.root, seq.files, None, seq.fmt, seq.reader)
         if poses is None:
             return seq
         pose_path = os.fspath(poses)
@@ -212,11 +250,16 @@ def open_sequence(root: str | os.PathLike, poses: str | os.PathLike | None = Non
     if not os.path.isdir(root):
         raise InputError("sequence folder not found", root)
     layout = detect_layout(root)
+    fmt = _files_format(root) if layout == "files" else _FORMAT[layout]
+    if not own_poses:
+        return Sequence(layout, root, _files_only(root, layout), None, fmt)
     if poses is not None:
         files = _files_only(root, layout)
         pose_path = os.fspath(poses)
         entries = match_poses(load_poses(pose_path), list(files), pose_path)
-        return Sequence(layout, root, files, tuple(e.pose for e in entries), _FORMAT[layout])
+        return Sequence(layout, root, files, tuple(e.pose for e in entries), fmt)
+    if layout == "files":
+        return _open_nuscenes(root, "files", fmt)
     return {"kitti": _open_kitti, "av2": _open_av2, "nuscenes": _open_nuscenes}[layout](root)
 
 
@@ -237,6 +280,8 @@ def _files_only(root: str, layout: str) -> tuple[str, ...]:
         lidar = os.path.join(root, "sensors", "lidar")
         return tuple(sorted((os.path.join(lidar, n) for n in os.listdir(lidar) if n.endswith(".feather")),
                             key=av2.sweep_timestamp))
+    if layout == "files":
+        return tuple(_scan_files(root)[_files_format(root)])
     return tuple(sorted(glob.glob(os.path.join(glob.escape(root), "*.pcd.bin"))))
 
 
