@@ -30,7 +30,8 @@ COMMANDS = {
     "drive": "complete a whole drive tile by tile along its trajectory (resumable, parallel on Ray)",
     "eval": "evaluate completion on the synthetic test split against baselines",
     "eval-real": "score completions of real scans without ground truth (height cut, observed free space)",
-    "poses": "write the poses JSON of a sequence folder (KITTI, Argoverse 2, nuScenes)",
+    "poses": "write the poses JSON of a sequence folder (KITTI, Argoverse 2, nuScenes), or estimate the poses of "
+             "scans that have none (--estimate: LiDAR odometry)",
     "bench": "measure time and memory of completion per stage",
     "demo": "complete the bundled example and render it",
 }
