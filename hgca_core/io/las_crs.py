@@ -212,8 +212,8 @@ def crs_unit(crs: str | None) -> tuple[str, float | None] | None:
     if match is None:
         return wkt_unit(crs)
     code = int(match.group(1))
-    if code in FEET_CODES:
-        return "US survey foot" if code != 2222 else "foot", 1200 / 3937 if code != 2222 else 0.3048
+    if code in FEET_CODES:   # US survey or international feet, by zone: either is 0.3048 m to 2 ppm
+        return "feet (a NAD83 State Plane zone in feet)", None
     if code in GEOGRAPHIC_CODES:
         return "degree", None
     return None
