@@ -91,7 +91,8 @@ def drift(truth: list[np.ndarray], est: list[np.ndarray]) -> dict:
              for i in range(len(truth) - 1)]
     yaw = [float(np.degrees(np.arctan2(p[1, 0], p[0, 0]))) for p in truth]
     still_t, still_r = pose_error(truth[-1], np.eye(4))
-    return {"identity_end_m": still_t, "identity_end_deg": still_r,"frames": len(truth), "travelled_m": travelled, "turned_deg": max(yaw) - min(yaw),
+    return {"identity_end_m": still_t, "identity_end_deg": still_r, "frames": len(truth), "travelled_m": travelled,
+            "turned_deg": max(yaw) - min(yaw),
             "end_translation_m": end_t, "end_rotation_deg": end_r,
             "translation_pct": 100.0 * end_t / travelled, "rotation_deg_per_m": end_r / travelled,
             "worst_step_translation_m": max(s[0] for s in steps), "worst_step_rotation_deg": max(s[1] for s in steps),
@@ -156,7 +157,8 @@ def synthetic(seed: int, frames: int) -> dict:
     t2 = time.process_time()
     truth = [np.linalg.inv(poses[0]) @ p for p in poses]
     return {"drift": drift(truth, found.poses), "estimated": found.record(), "scene_seed": seed,
-            "cpu_s": {"simulate": t1 - t0, "estimate": t2 - t1}, "points_per_sweep": int(np.median([len(s) for s in scans]))}
+            "cpu_s": {"simulate": t1 - t0, "estimate": t2 - t1},
+            "points_per_sweep": int(np.median([len(s) for s in scans]))}
 
 
 def main() -> None:
