@@ -82,10 +82,49 @@ def main(argv: list[str] | None = None) -> int:
     if argv[:1] != ["train"]:
         tune_allocator()
     previous = interrupt.install(argv[0] if argv[:1] and argv[0] in COMMANDS else "")
+    stderr, sys.stderr = sys.stderr, _Survivor(sys.stderr)
     try:
         return _main(argv)
     finally:
+        sys.stderr = stderr
         interrupt.restore(previous)
+
+
+class _Survivor:
+    """stderr that outlives its reader (`hgca drive ... 2>&1 | head -1`): once a write fails on the closed pipe,
+    the descriptor points at /dev/null and later writes (progress bars, warnings) are dropped, so the command
+    finishes its work and writes its outputs instead of ending on a BrokenPipeError with exit 0 and nothing."""
+
+    def __init__(self, stream) -> None:
+        self._stream = stream
+        self._lost = False
+
+    def write(self, text: str) -> int:
+        if not self._lost:
+            try:
+                return self._stream.write(text)
+            except (BrokenPipeError, ValueError):   # the reader left; ValueError: a closed file object
+                self._lose()
+        return len(text)
+
+    def flush(self) -> None:
+        if not self._lost:
+            try:
+                self._stream.flush()
+            except (BrokenPipeError, ValueError):
+                self._lose()
+
+    def _lose(self) -> None:
+        self._lost = True
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, self._stream.fileno())
+            os.close(devnull)
+        except (OSError, ValueError, AttributeError):   # no descriptor (a test's buffer)
+            pass
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
 
 
 def _hold_closed_descriptors() -> None:

@@ -239,6 +239,22 @@ def test_progress_to_a_closed_stream_is_dropped_once():
     assert progress.lost and [w.category for w in caught] == [HgcaWarning]
 
 
+def test_stderr_whose_reader_left_drops_writes_instead_of_failing():
+    """`hgca drive ... 2>&1 | head -1` in bar mode: the tiles bar's next write met a closed pipe, and the drive
+    ended with exit 0, status "failed" and no mesh."""
+    from hgca_core.cli import _Survivor
+
+    read, write = os.pipe()
+    os.close(read)
+    survivor = _Survivor(os.fdopen(write, "w"))
+    for _ in range(3):
+        survivor.write("tiles: 1/3\r" * 10000)
+        survivor.flush()
+    assert survivor._lost
+    survivor.write("dropped")                       # the descriptor is /dev/null now: nothing fails
+    survivor.flush()
+
+
 # --- 4. numbers at the edges ------------------------------------------------------------------------------------
 
 def test_thin_region_is_refused_naming_the_minimum(tmp_path, monkeypatch, capsys):

@@ -39,13 +39,11 @@ def run(args: argparse.Namespace) -> int:
 
     from hgca_core.io.arrays import READ_RESERVED, write_accumulated
     from hgca_core.io.las_crs import check_inputs
-    from hgca_core.io.read import read_scans
-    from hgca_core.io.sequence import is_sequence, read_inputs
+    from hgca_core.io.read import keep_units
+    from hgca_core.io.sequence import read_inputs
 
-    if is_sequence(args.scans) or args.frames is not None or args.topic is not None:
+    with keep_units():   # the files' own numbers, whatever their unit: the CRS written beside them says which
         scan = read_inputs(args.scans, poses=args.poses, fmt=args.fmt, frames=args.frames, topic=args.topic)
-    else:  # the files' own numbers, whatever their unit: the CRS written beside them says which
-        scan = read_scans(args.scans, poses=args.poses, fmt=args.fmt, metric=False)
     crs, unit = check_inputs(args.scans, metric=False)
     attributes = {k: v for k, v in scan.attributes.items() if k not in READ_RESERVED}
     write_accumulated(args.out, scan, attributes, crs, unit)

@@ -6,7 +6,9 @@ ever see one error type whose message names the file.
 from __future__ import annotations
 
 import os
-from typing import Callable, Sequence
+from contextlib import contextmanager
+from contextvars import ContextVar
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -151,12 +153,28 @@ def _refuse_repeats(paths: list[str]) -> None:
         seen[key] = p
 
 
+_KEEP_UNITS: ContextVar[bool] = ContextVar("hgca_keep_units", default=False)
+
+
+@contextmanager
+def keep_units() -> Iterator[None]:
+    """Within it `read_scans` keeps files whose CRS is in feet or degrees as they are instead of refusing them:
+    `hgca read` writes their own numbers with their CRS and unit, which completing the .npz then refuses."""
+    token = _KEEP_UNITS.set(True)
+    try:
+        yield
+    finally:
+        _KEEP_UNITS.reset(token)
+
+
 def read_scans(paths: Sequence[str | os.PathLike], poses: str | os.PathLike | Sequence | None = None,
-               fmt: str | None = None, metric: bool = True) -> Scan:
+               fmt: str | None = None, metric: bool | None = None) -> Scan:
     """Accumulate scan files in one world frame (`accumulate`), with poses from a JSON sidecar or 4x4 arrays.
 
-    Files declaring different CRSs are refused, and with `metric` (what completing needs) files whose CRS is not
-    in metres (`las_crs.check_inputs`); `hgca read` passes metric=False and keeps the file's own numbers."""
+    Files declaring different CRSs are refused, and with `metric` (what completing needs; the default outside
+    `keep_units`) files whose CRS is not in metres (`las_crs.check_inputs`)."""
+    if metric is None:
+        metric = not _KEEP_UNITS.get()
     paths = [os.fspath(p) for p in paths]
     if not paths:
         raise InputError("no scan files given")
