@@ -11,6 +11,7 @@ import argparse
 import glob
 import json
 import os
+from collections.abc import Sequence as SequenceABC
 
 from hgca_core.commands.arguments import add_format_argument, add_frames_argument, add_out_argument, \
     add_progress_argument
@@ -94,10 +95,7 @@ def _estimate_document(args: argparse.Namespace, progress) -> dict:
     check_outputs([args.out], readable)        # an old poses.json beside the sweeps is no input here
     idx = list(range(len(seq))) if args.frames is None else parse_frames(args.frames, len(seq), seq.root)
     names = [seq.files[i] for i in idx]
-    scans = []
-    for k, i in enumerate(idx):
-        scans.append(seq.read_frame(i))
-        progress("read", k + 1, len(idx), os.path.basename(names[k]))
+    scans = _Frames(seq, idx)
     times = getattr(seq, "times", None)
     times = [times[i] for i in idx] if times is not None else frame_times(names, _kitti_root(seq))
     found = estimate(scans, times, names, lambda i, n: progress("odometry", i, n, os.path.basename(names[i - 1])))
@@ -110,6 +108,26 @@ def _estimate_document(args: argparse.Namespace, progress) -> dict:
     text = json.dumps(doc, indent=1).encode("utf-8")
     atomic_write(args.out, lambda f: f.write(text))
     return doc
+
+
+class _Frames(SequenceABC):
+    """The chosen frames, each read when the odometry gets to it (a long drive would not fit in memory at once);
+    the last two are kept, since the odometry looks at frames 0 and 1 twice."""
+
+    def __init__(self, seq, idx: list[int]) -> None:
+        self._seq, self._idx = seq, idx
+        self._kept: dict[int, object] = {}
+
+    def __len__(self) -> int:
+        return len(self._idx)
+
+    def __getitem__(self, k):  # type: ignore[override]
+        if isinstance(k, slice):
+            return [self[j] for j in range(len(self))[k]]
+        if k not in self._kept:
+            self._kept = {j: v for j, v in self._kept.items() if j >= k - 1}
+            self._kept[k] = self._seq.read_frame(self._idx[k])
+        return self._kept[k]
 
 
 def _expand(inputs: list[str]) -> list[str]:

@@ -91,9 +91,10 @@ def estimate(scans: list[Scan], times: list[float] | None, names: list[str],
     if len(names) != n or (times is not None and len(times) != n):
         raise ValueError("scans, names and times must have one entry per frame")
     dts = _check_times(times, names)
-    first = np.linalg.norm(scans[0].points, axis=1)
+    head = scans[0]                   # scans may be a lazy sequence (a bag's frames): each is read when needed
+    first = np.linalg.norm(head.points, axis=1)
     max_range = float(min(100.0, max(1.0, np.percentile(first, RANGE_QUANTILE)))) if len(first) else 100.0
-    deskew = all(_stamps(s) is not None for s in scans)
+    deskew = _stamps(head) is not None
     voxel = min(MAX_VOXEL, max_range / 100.0) if voxel_size is None else float(voxel_size)
     settings = {"max_range": round(max_range, 3), "min_range": 0.0, "voxel_size": round(voxel, 4),
                 "deskew": deskew, "max_points_per_voxel": 20, "min_points": MIN_POINTS, "min_fitness": MIN_FITNESS,
@@ -108,13 +109,16 @@ def estimate(scans: list[Scan], times: list[float] | None, names: list[str],
         # KISS-ICP starts at rest, so the first sweep enters the map undeskewed (smeared by a frame's motion);
         # a first look at frames 0 and 1 gives the motion to deskew frame 0 with and to predict frame 1 from
         probe = KissICP(config)
-        for scan in scans[:2]:
-            probe.register_frame(np.ascontiguousarray(scan.points, dtype=np.float64), _stamps(scan)[0])
+        for scan in (head, scans[1]):
+            stamps = _stamps(scan)
+            probe.register_frame(np.ascontiguousarray(scan.points, dtype=np.float64),
+                                 stamps[0] if stamps is not None else np.zeros(0))
         odometry.last_delta = np.asarray(probe.last_delta, dtype=np.float64).copy()
     poses: list[np.ndarray] = []
     frames: list[dict] = []
     previous = np.eye(4)
-    for i, scan in enumerate(scans):
+    for i in range(n):
+        scan = head if i == 0 else scans[i]
         where = f"frame {i} of {n}"
         pts = np.ascontiguousarray(scan.points, dtype=np.float64)
         r = np.linalg.norm(pts, axis=1)
