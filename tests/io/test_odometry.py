@@ -252,3 +252,23 @@ def test_cli_estimate_refusals(tmp_path, drive):
     assert res.returncode == 2 and "pattern matches no file" in res.stderr
     res = cli("poses", folder / names[0], folder / names[1], "-o", tmp_path / "p.json")
     assert res.returncode == 2 and "need --estimate" in res.stderr
+
+
+def test_cli_estimate_scan_files_then_read_them_with_the_poses(tmp_path, drive):
+    """Scan files given by name (in the order given), the JSON written elsewhere: `--poses` places them (the entries
+    name the files relative to the JSON), and the accumulated frames line up with the truth."""
+    scans, truth, _, names = drive
+    folder = tmp_path / "sweeps"
+    write_sweeps(folder, scans[:3], names[:3])
+    out = tmp_path / "elsewhere" / "poses.json"
+    out.parent.mkdir()
+    files = [folder / n for n in names[:3]]
+    res = cli("poses", "--estimate", *files, "-o", out, "--progress", "none")
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(out.read_text())
+    assert [e["file"] for e in doc["scans"]] == [f"../sweeps/{n}" for n in names[:3]] and doc["layout"] == "files"
+    got = cli("read", *files, "--poses", out, "-o", tmp_path / "all.npz")
+    assert got.returncode == 0, got.stderr
+    with np.load(tmp_path / "all.npz") as z:
+        assert len(z["points"]) == sum(len(s) for s in scans[:3])
+    assert pose_error(truth[2], np.asarray(doc["scans"][2]["pose"]))[0] < 0.2     # 2 m driven
