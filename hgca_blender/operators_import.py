@@ -24,6 +24,9 @@ EXTENSIONS = (".ply", ".las", ".laz", ".pcd", ".xyz", ".csv", ".txt", ".npy", ".
 READ_TIMEOUT_S = 3600
 
 
+# what `hgca read` writes beside the per-point attributes: the frame and the georeferencing of the whole scan
+NOT_ATTRIBUTES = ("points", "origins", "offset", "crs", "unit", "unit_metres")
+
 def object_name(paths: list[Path], frames: str = "") -> str:
     """Name after the first file ("scan", or "scan +4" for five files; drops double suffixes), or after a
     sequence folder, bag or E57 and its frames ("00 [0:5]")."""
@@ -91,7 +94,7 @@ def read_scans(python: str, paths: list[Path], poses: Path | None = None, frames
                 raise core.CoreError("hgca read wrote no 'points' array")
             points = np.asarray(data["points"])
             offset = np.asarray(data["offset"], dtype=np.float64) if "offset" in data.files else np.zeros(3)
-            attributes = {k: np.asarray(data[k]) for k in data.files if k not in ("points", "origins", "offset")}
+            attributes = {k: np.asarray(data[k]) for k in data.files if k not in NOT_ATTRIBUTES}
             origins = np.asarray(data["origins"], dtype=np.float64) if "origins" in data.files else None
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)

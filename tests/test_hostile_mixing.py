@@ -78,7 +78,8 @@ def street_las(path: Path, vlrs=(), shift: float = 0.0) -> Path:
 def test_scans_in_two_crss_are_refused_naming_both(tmp_path, monkeypatch, capsys):
     a = street_las(tmp_path / "utm33.las", [geokeys((1024, 1), (3072, 32633))])
     b = street_las(tmp_path / "utm34.las", [geokeys((1024, 1), (3072, 32634))], shift=10.0)
-    for argv in (["read", a, b, "-o", tmp_path / "both.npz"], ["complete", a, b, "-o", tmp_path / "m.ply", *FAST]):
+    for argv in (["read", a, b, "-o", tmp_path / "both.npz"], ["complete", a, b, "-o", tmp_path / "m.ply", *FAST],
+                 ["drive", a, b, "-o", tmp_path / "drive", "--stage", "coarse"]):
         code, _, err = cli(monkeypatch, capsys, *argv)
         assert code == 2, err
         line = err.strip().splitlines()[-1]

@@ -107,6 +107,9 @@ def read_drive_inputs(inputs: Sequence[str | os.PathLike], poses: str | os.PathL
         return out
     if topic is not None:
         raise InputError("--topic applies to a ROS bag (.bag, .mcap, .db3 or a ROS 2 bag folder)", paths[0])
+    from hgca_core.io.las_crs import check_inputs
+
+    check_inputs(paths)     # one CRS in metres across all the drive's files (each is read on its own below)
     if frames is not None:
         raise InputError("--frames needs a sequence folder (KITTI, Argoverse 2 or nuScenes), not scan files")
     if poses is not None:
