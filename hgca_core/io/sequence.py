@@ -292,7 +292,8 @@ def select(seq: Sequence, frames: str | None) -> tuple[list[str], list[np.ndarra
     if seq.poses is None:
         if len(idx) > 1:
             raise InputError(f"{len(idx)} {seq.layout} sweeps selected but the folder has no poses.json: give "
-                             "their poses with --poses, or select one sweep with --frames", seq.root)
+                             "their poses with --poses, estimate them (hgca poses --estimate FOLDER -o "
+                             "FOLDER/poses.json), or select one sweep with --frames", seq.root)
         return files, None
     return files, [seq.poses[i] for i in idx]
 
@@ -356,7 +357,7 @@ def poses_document(seq: Sequence, frames: str | None, out_dir: str) -> dict:
     if seq.poses is None:
         if len(idx) > 1:
             raise InputError(f"the {seq.layout} folder has no poses.json: its {len(idx)} sweeps have no poses "
-                             "to write", seq.root)
+                             "to write (--estimate estimates them from the scans)", seq.root)
         mats = [np.eye(4)]
     else:
         mats = [seq.poses[i] for i in idx]
