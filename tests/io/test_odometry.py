@@ -272,3 +272,11 @@ def test_cli_estimate_scan_files_then_read_them_with_the_poses(tmp_path, drive):
     with np.load(tmp_path / "all.npz") as z:
         assert len(z["points"]) == sum(len(s) for s in scans[:3])
     assert pose_error(truth[2], np.asarray(doc["scans"][2]["pose"]))[0] < 0.2     # 2 m driven
+
+
+def test_kitti_times_txt_gives_the_frame_times(tmp_path):
+    (tmp_path / "velodyne").mkdir()
+    (tmp_path / "times.txt").write_text("0.0\n0.1036\n0.2073\n")
+    names = [str(tmp_path / "velodyne" / f"{i:06d}.bin") for i in (1, 2)]
+    assert frame_times(names, str(tmp_path)) == [0.1036, 0.2073]
+    assert frame_times(names + [str(tmp_path / "velodyne" / "000009.bin")], str(tmp_path)) is None
