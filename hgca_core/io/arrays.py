@@ -100,30 +100,6 @@ def read_npz(path: str) -> Scan:
     return Scan(points[:, :3].astype(np.float64) + offset, attributes, origins, path)
 
 
-def _text(z, key: str) -> str | None:
-    if key not in z.files:
-        return None
-    value = z[key]
-    return str(value[()]) if value.shape == () and value.dtype.kind == "U" and str(value[()]) else None
-
-
-def npz_georef(path: str) -> tuple[str | None, tuple[str, float | None] | None]:
-    """(`crs`, (`unit`, metres per unit) when `unit` is not metres) of an .npz `hgca read` wrote, else Nones."""
-    from hgca_core.io.las_crs import EPSG_UNITS, crs_unit
-
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            crs, unit = _text(z, "crs"), _text(z, "unit")
-            factor = z["unit_metres"] if "unit_metres" in z.files else None
-    except Exception:  # noqa: BLE001 - the reader itself reports a broken file
-        return None, None
-    if unit is None or unit == "metre":
-        return crs, crs_unit(crs)
-    known = {name: f for name, f in EPSG_UNITS.values()}
-    f = float(factor) if factor is not None and np.asarray(factor).shape == () else known.get(unit)
-    return crs, (unit, f)
-
-
 def write_accumulated(path: str | os.PathLike, scan: Scan, attributes: Mapping[str, np.ndarray],
                       crs: str | None = None, unit: tuple[str, float | None] | None = None) -> str:
     """`hgca read`'s .npz: `points` (N,3) float64 relative to `offset` (3,) float64 (whole metres, as

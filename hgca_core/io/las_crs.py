@@ -249,10 +249,33 @@ def file_georef(path: str) -> tuple[str | None, tuple[str, float | None] | None]
         except Exception:  # noqa: BLE001 - the reader itself reports a broken file
             return None, None
     if name.endswith(".npz"):
-        from hgca_core.io.arrays import npz_georef
-
         return npz_georef(path)
     return None, None
+
+
+def _text(z, key: str) -> str | None:
+    """A 0-d string entry of an open .npz, or None."""
+    if key not in z.files:
+        return None
+    value = z[key]
+    return str(value[()]) if value.shape == () and value.dtype.kind == "U" and str(value[()]) else None
+
+
+def npz_georef(path: str) -> tuple[str | None, tuple[str, float | None] | None]:
+    """(`crs`, (`unit`, metres per unit) when `unit` is not metres) of an .npz `hgca read` wrote, else Nones."""
+    import numpy as np
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            crs, unit = _text(z, "crs"), _text(z, "unit")
+            factor = z["unit_metres"] if "unit_metres" in z.files else None
+    except Exception:  # noqa: BLE001 - the reader itself reports a broken file
+        return None, None
+    if unit is None or unit == "metre":
+        return crs, crs_unit(crs)
+    known = {name: f for name, f in EPSG_UNITS.values()}
+    f = float(factor) if factor is not None and np.asarray(factor).shape == () else known.get(unit)
+    return crs, (unit, f)
 
 
 def short_crs(crs: str) -> str:

@@ -210,19 +210,19 @@ def _registration_checks(source: np.ndarray, map_points: np.ndarray | None, pose
     """Fitness (share of registration points with a map point within `fit_distance`), the rmse (m) of the
     correspondences within the ICP's `threshold`, and how well they pin down all six degrees of freedom
     (`_constraint`)."""
-    from scipy.spatial import cKDTree
+    from hgca_core.geometry.nearest import PointIndex
 
     if map_points is None or len(map_points) < NEIGHBOURS or len(source) == 0:
         return {"fitness": 0.0, "fit_m": round(fit_distance, 3), "rmse_m": None, "constraint": 0.0}
     world = source @ pose[:3, :3].T + pose[:3, 3]
-    tree = cKDTree(map_points)
-    dist, idx = tree.query(world, distance_upper_bound=threshold)
+    tree = PointIndex(map_points)
+    dist, idx = tree.nearest(world, upper=threshold)
     hit = np.isfinite(dist)
     fitness = float((dist <= fit_distance).mean())
     base = {"fitness": round(fitness, 4), "fit_m": round(fit_distance, 3)}
     if hit.sum() < 6:
         return {**base, "rmse_m": None, "constraint": 0.0}
-    _, near = tree.query(map_points[idx[hit]], k=NEIGHBOURS)
+    near = tree.k_nearest(map_points[idx[hit]], NEIGHBOURS)
     nb = map_points[near]                                   # (M, k, 3)
     centred = nb - nb.mean(axis=1, keepdims=True)
     _, vecs = np.linalg.eigh(np.einsum("mki,mkj->mij", centred, centred))
