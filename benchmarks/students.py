@@ -134,11 +134,14 @@ def page(r: dict) -> str:
              "its mean difference from the teacher is no worse than that band. Made by `benchmarks/students.py`.", "",
              f"Machine: {r['cpu'].get('model', '?')}, {r['cpu'].get('cores')} cores, "
              f"flags {' '.join(r['cpu'].get('flags', []))}.", ""]
-    titles = (("coarse", "Coarse stage: coarse_student.pt (T1 10) vs coarse.pt (T1 30)"),
+    student = Path(r.get("coarse_student", "coarse_student.pt")).name
+    if student != "coarse_student.pt":
+        lines += [f"The coarse student here is `{r['coarse_student']}`, not the shipped one.", ""]
+    titles = (("coarse", f"Coarse stage: {student} (T1 10) vs coarse.pt (T1 30)"),
               ("coarse_short", "Coarse stage, untrained: coarse.pt run for 10 steps vs its own 30"),
               ("full", "Full stage: fast (both students, T1 10 + T2 5) vs best (T1 30 + T2 15)"),
               ("full_short", "Full stage, untrained: coarse.pt + fine.pt run for 10 + 5 steps vs 30 + 15"),
-              ("real", "Real scans (`hgca eval-real`, cut 2 m above the ground): coarse_student.pt vs coarse.pt"))
+              ("real", f"Real scans (`hgca eval-real`, cut 2 m above the ground): {student} vs coarse.pt"))
     for part, title in titles:
         if part not in r["pairs"]:
             continue
@@ -198,10 +201,14 @@ def main() -> int:
     ap.add_argument("--parts", default="coarse,full", help="which parts to run (two invocations, one part each, "
                                                              "can share a machine's cores)")
     ap.add_argument("--page-only", action="store_true")
+    ap.add_argument("--coarse-student", default=None, help="another coarse student's weights against the teacher "
+                                                            "(default: the shipped coarse_student.pt)")
+    ap.add_argument("--page", default="students", help="the results page's name (benchmarks/results/NAME.md)")
     args = ap.parse_args()
     work = REPO / args.work
     work.mkdir(parents=True, exist_ok=True)
-    coarse_t, coarse_s = WEIGHTS / "coarse.pt", WEIGHTS / "coarse_student.pt"
+    coarse_t = WEIGHTS / "coarse.pt"
+    coarse_s = Path(args.coarse_student).resolve() if args.coarse_student else WEIGHTS / "coarse_student.pt"
     fine_t, fine_s = WEIGHTS / "fine.pt", WEIGHTS / "fine_student.pt"
     # "short": the teacher's weights run on the students' short chains untrained (what the training adds)
     runs = {"coarse": {"teacher": ("coarse", args.count, SEEDS[0], coarse_t, None),
@@ -247,7 +254,8 @@ def main() -> int:
             result["pairs"]["real"] = paired(rows["teacher"], rows["band"], rows["student"], REAL_METRICS)
             result["scenes"]["real"] = rows["teacher"]["n"]
             result["seconds"]["real"] = {w: rows[w]["seconds_per_completion"] for w in rows}
-    print(write_page(OUT, "students", result, page, plot))
+    result["coarse_student"] = str(coarse_s.relative_to(REPO)) if coarse_s.is_relative_to(REPO) else str(coarse_s)
+    print(write_page(OUT, args.page, result, page, plot))
     return 0
 
 
