@@ -77,7 +77,7 @@ def inputs_of(args: argparse.Namespace) -> list[dict]:
 
     if args.inputs:
         return [{"name": Path(p.rstrip("/")).name.split(".")[0], "path": p, "frames": args.frames,
-                 "calibration": args.calibration} for p in args.inputs]
+                 "calibration": args.calibration, "topic": args.topic} for p in args.inputs]
     root = Path(args.real_dir)
     if not root.is_dir():
         raise InputError("real fixtures folder not found (give --real-dir or inputs)", str(root))

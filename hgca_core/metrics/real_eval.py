@@ -30,14 +30,12 @@ WAYMO_NA = ("not applicable: the paper's Waymo protocol needs 5 input scans plus
 
 
 def read_input(item: dict):
-    """The scan of one input (a scan file or a sequence folder), accumulated in its world frame."""
-    import os
-
+    """The scan of one input (a scan file, or a sequence folder, bag or E57), accumulated in its world frame."""
     from hgca_core.io.read import read_scans
-    from hgca_core.io.sequence import read_sequence
+    from hgca_core.io.sequence import is_sequence, read_sequence
 
-    if os.path.isdir(item["path"]):
-        return read_sequence(item["path"], item["frames"], calibration=item["calibration"])
+    if is_sequence([item["path"]]):
+        return read_sequence(item["path"], item["frames"], calibration=item["calibration"], topic=item.get("topic"))
     return read_scans([item["path"]])
 
 

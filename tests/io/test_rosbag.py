@@ -363,3 +363,20 @@ def test_tf_tree_with_two_parents_matters_only_on_the_chain():
     assert mats[0][2, 3] == 2.0 and problems == [None]
     with pytest.raises(InputError, match="tf frame 'camera' has two parents, 'base_link' and 'lidar'"):
         tree.chain("camera")
+
+
+def test_eval_real_reads_a_bag_with_its_topic(bags, folder_points):
+    """`hgca eval-real BAG --topic T` scores the bag's clouds (its inputs go through `read_sequence` with the
+    topic), not an error or the wrong topic."""
+    import argparse
+
+    from hgca_core.commands.eval_real import inputs_of
+    from hgca_core.metrics.real_eval import read_input
+
+    args = argparse.Namespace(inputs=[str(bags["mcap"])], frames=None, calibration=None, topic="/points")
+    (item,) = inputs_of(args)
+    scan = read_input(item)
+    assert np.allclose(np.sort(scan.points, axis=0), np.sort(folder_points, axis=0), atol=1e-6, rtol=0)
+    args.topic = "/not_there"
+    with pytest.raises(InputError, match="/not_there"):
+        read_input(inputs_of(args)[0])
