@@ -10,12 +10,13 @@ finishes and writes its outputs as it would have (`Progress.lost`).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sys
 import time
 import warnings
-from typing import TextIO
+from typing import Iterator, TextIO
 
 from tqdm import tqdm
 
@@ -85,6 +86,18 @@ class Progress:
         self.close()
         if self.mode == "jsonl":
             self._emit({"stage": "error", "message": message})
+
+    @contextlib.contextmanager
+    def failures_reported(self) -> Iterator[None]:
+        """Every failure inside also ends the stream with an `error` record, then goes on up: the add-on must
+        hear of each one, not only of bad input (an `InputError` by its message, anything else with its type)."""
+        try:
+            yield
+        except Exception as exc:
+            from hgca_core.errors import InputError
+
+            self.error(str(exc) if isinstance(exc, InputError) else f"{exc.__class__.__name__}: {exc}")
+            raise
 
     def close(self) -> None:
         if self._bar is not None:

@@ -9,7 +9,6 @@ from hgca_core.commands.arguments import (add_completion_arguments, add_format_a
                                           add_semantics_argument,
                                           add_out_argument, add_precision_argument, add_progress_argument,
                                           completion_config, device_arg, steps_arg)
-from hgca_core.errors import InputError
 from hgca_core.files import mesh_format, output_paths
 
 __all__ = ["device_arg", "steps_arg", "add_arguments", "add_precision_argument", "run", "output_paths",
@@ -39,14 +38,8 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.progress import Progress
 
     progress = Progress(args.progress, samples=args.samples)
-    try:
+    with progress.failures_reported():
         outputs = _run(args, progress)
-    except InputError as exc:
-        progress.error(str(exc))
-        raise
-    except Exception as exc:  # the add-on must hear about every failure, not only bad input
-        progress.error(f"{exc.__class__.__name__}: {exc}")
-        raise
     progress.done([str(p) for p in outputs])
     return 0
 

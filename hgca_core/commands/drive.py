@@ -77,15 +77,12 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.tiling.run import drive
 
     progress = Progress(args.progress if args.progress != "bar" else "none", samples=args.samples)
-    try:
+    with progress.failures_reported():
         config = drive_config(args)
         check_device(args.device)
         check_read_memory(args.scans)
         if not args.out:
             raise InputError("--out DIR is required (the drive folder), except with --plan-only")
-    except InputError as exc:
-        progress.error(str(exc))
-        raise
     bar = None
 
     def on_tile(done: int, total: int, index: int, state: str) -> None:
@@ -109,11 +106,9 @@ def run(args: argparse.Namespace) -> int:
         progress.record("tile-step", step, total, f"tile {index}: {stage} {step}/{total}", tile=index, chain=stage)
 
     try:
-        doc = drive(args.scans, args.out, poses=args.poses, fmt=args.fmt, frames=args.frames, topic=args.topic, config=config,
-                    report=progress, on_tile=on_tile, on_plan=on_plan, on_step=on_step)
-    except Exception as exc:
-        progress.error(str(exc))
-        raise
+        with progress.failures_reported():
+            doc = drive(args.scans, args.out, poses=args.poses, fmt=args.fmt, frames=args.frames, topic=args.topic,
+                        config=config, report=progress, on_tile=on_tile, on_plan=on_plan, on_step=on_step)
     finally:
         if bar is not None:
             bar.close()

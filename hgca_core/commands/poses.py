@@ -59,14 +59,8 @@ def _estimate(args: argparse.Namespace) -> int:
     from hgca_core.progress import Progress
 
     progress = Progress(args.progress)
-    try:
+    with progress.failures_reported():
         doc = _estimate_document(args, progress)
-    except InputError as exc:
-        progress.error(str(exc))
-        raise
-    except Exception as exc:  # the add-on must hear about every failure, not only bad input
-        progress.error(f"{exc.__class__.__name__}: {exc}")
-        raise
     progress.done([args.out])
     if args.progress != "jsonl":
         print(f"{args.out}: estimated poses of {len(doc['scans'])} scan(s) (KISS-ICP)")
