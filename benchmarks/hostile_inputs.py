@@ -1,4 +1,4 @@
-"""Hostile-input campaign against the real `hgca` executable: every case of benchmarks/hostile_cases.py in its own
+"""Hostile-input campaign against the real `hgca` executable: every case of tests/hostile/ in its own
 subprocess (`python -m hgca_core.cli ...`), checked for exit 2, an `error:` line, no traceback, untouched
 inputs and no new files. Writes benchmarks/results/hostile_inputs.{json,md,png}.
 
@@ -16,8 +16,9 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from common import REPO, folder_state
-from hostile_cases import CASES
+from common import REPO  # noqa: I001  (puts tests/ on the path: the cases and folder_state are the tests')
+from builders import folder_state
+from hostile import CASES
 
 
 def run_case(case, timeout: float) -> dict:

@@ -1,6 +1,6 @@
 """Mesh-quality benchmark of the fine stage (run by hand): `python benchmarks/mesh_quality.py [options]`.
 
-Before = the earlier mesher (marching cubes of {d < 3 cm}, a two-sheet shell; benchmarks/meshing_reference.py), after =
+Before = the earlier mesher (marching cubes of {d < 3 cm}, a two-sheet shell; tests/meshing_reference.py), after =
 the single-layer surface of `hgca_core.meshing.udf_mesh`, both from the same fine-stage cells and latents. Per
 synthetic test scene (and the real nuScenes / Argoverse 2 fixtures): layers per vertical ray on flat road and
 sidewalk patches, RMS height residual to a plane per 2 x 2 m patch (mesh, input points, ground truth), triangles,

@@ -40,7 +40,7 @@ def ring_stats(local: np.ndarray, ring: np.ndarray, elev: np.ndarray, n_azimuth:
 
 
 def real_stats() -> dict:
-    from common import av2_sweeps, elevations, nuscenes_sweep
+    from builders import av2_sweeps, elevations, nuscenes_sweep
 
     from hgca_core.geometry.region import estimate_ground
     from hgca_core.synth.lidar import _AV2_DOWN, _AV2_UP, HDL32E
@@ -159,7 +159,7 @@ def plot(real: dict, sim: dict, path: Path) -> None:
 
 def _bev(ax_real, ax_sim, path: Path) -> None:
     """Top views: the real nuScenes sweep and a simulated HDL-32E sweep, 40 m around the sensor."""
-    from common import nuscenes_sweep
+    from builders import nuscenes_sweep
 
     from hgca_core.geometry.raycast import make_intersector
     from hgca_core.synth.dataset import Drive

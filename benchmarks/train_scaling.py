@@ -55,7 +55,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--procs", type=int, default=os.cpu_count() or 2, help="threads, or ranks, of the wide runs")
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--out", default=str(ROOT / "benchmarks/results/train_scaling.json"))
+    p.add_argument("--print-commands", action="store_true",
+                   help="print each configuration's command line and OMP_NUM_THREADS as JSON, run nothing")
     args = p.parse_args(argv)
+    if args.print_commands:   # what would run, so a check (tests/metrics/test_train_scaling.py) needs no training
+        try:
+            shown = {k: command(k, args.data, Path(args.out).parent / k, args.steps, args.batch, args.procs, 29600)
+                     for k in ("one", "threads", "ranks")}
+        except ValueError as exc:
+            p.error(str(exc))
+        print(json.dumps({k: {"cmd": cmd, "omp": env["OMP_NUM_THREADS"]} for k, (cmd, env) in shown.items()}))
+        return 0
     from hgca_core.training.data import free_cells
 
     for sample in sorted(Path(args.data, "train").glob("sample_*.npz")):

@@ -1,24 +1,19 @@
 """The tests' way to the shared builders and to the real LiDAR fixtures (importable from any test as
 `hgca_testdata`). The builders a benchmark also needs (the tiny synthetic sample, LAS files, the real sweeps, a
-folder's state) live once in benchmarks/common.py, which this module puts on the path and re-exports; what is
-pytest's (skip or fail on a missing fixture, a tmpfs) stays here."""
+folder's state) live once in tests/builders.py, re-exported here; benchmarks import that module (never this one:
+it imports pytest). What is pytest's (skip or fail on a missing fixture, a tmpfs) stays here. Tests never import
+benchmarks/ (tests/test_layering.py)."""
 from __future__ import annotations
 
 import contextlib
 import os
-import sys
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-if str(BENCHMARKS) not in sys.path:
-    sys.path.append(str(BENCHMARKS))
-
-from common import (REAL_FIXTURES, UTM_OFFSETS, folder_state, tiny_sample, with_distance_pairs,  # noqa: E402
-                    write_las)
+from builders import REAL_FIXTURES, UTM_OFFSETS, folder_state, tiny_sample, with_distance_pairs, write_las
 
 __all__ = ["REAL_FIXTURES", "UTM_OFFSETS", "folder_state", "in_ci", "refusal", "require_real", "small_tmpfs", "tiny_sample",
            "tiny_scan_file", "with_distance_pairs", "write_las"]

@@ -1,7 +1,8 @@
-"""The fine stage's earlier mesher, kept as a reference for tests and the mesh-quality benchmark: marching cubes at
-an iso-level above zero of the unsigned distance (0.6 grid steps), which gives a closed two-sheet shell around
-every surface instead of the surface itself. Not used by the package (see hgca_core.geometry.udf_surface). It lives
-beside the benchmark that compares against it (mesh_quality.py); tests/test_meshing_udf.py imports the same copy."""
+"""The fine stage's earlier mesher, kept as a naive reference for tests and the mesh-quality benchmark: marching
+cubes at an iso-level above zero of the unsigned distance (0.6 grid steps), which gives a closed two-sheet shell
+around every surface instead of the surface itself. Not used by the package (see hgca_core.meshing.udf_surface).
+It lives in tests/ with the other shared builders (tests never import benchmarks/); tests/test_meshing_udf.py and
+benchmarks/mesh_quality.py import this one copy."""
 from __future__ import annotations
 
 import numpy as np

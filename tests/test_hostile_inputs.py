@@ -1,4 +1,4 @@
-"""The hostile-input campaign of benchmarks/hostile_cases.py, each case through the CLI entry point in-process:
+"""The hostile-input campaign of tests/hostile/, each case through the CLI entry point in-process:
 exit 2, one clear `error:` line naming the problem, no traceback, inputs untouched, nothing written."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from hgca_testdata import folder_state
-from hostile_cases import CASES, Case
+from hostile import CASES, Case
 from hgca_core.cli import main
 
 

@@ -3,7 +3,7 @@ functions). The architecture's layers (docs/architecture.md): `commands` -> `pip
 `nn` -> `geometry`; meshing is called by the pipeline (and training's validation), never by models; `training` and
 `metrics` use `models`, never the reverse; no two modules import each other, even through a function-level import.
 Only hgca_core/models/weights.py calls torch.load / torch.save, and only with weights_only=True.
-Benchmarks never import a module of tests/ nor put tests/ or the repository root on sys.path."""
+Tests never import benchmarks/; benchmarks import of tests/ only the shared builders (tests/builders.py and co)."""
 import ast
 from pathlib import Path
 
@@ -174,7 +174,12 @@ def test_only_the_front_ends_read_the_command_line():
 
 
 REPO = CORE.parent
-SELF_FOLDER = "str(Path(__file__).resolve().parent)"   # the one sys.path entry a benchmark may add: its own folder
+SELF_FOLDER = "str(Path(__file__).resolve().parent)"   # a sys.path entry a benchmark may add: its own folder
+TESTS_FOLDER = "str(TESTS)"   # and the one benchmarks/common.py adds: tests/, for the shared builders
+# The modules of tests/ a benchmark may import: builders that import neither pytest nor any other test module.
+SHARED_BUILDERS = {"builders", "meshing_reference", "hostile"}
+# Tests about a benchmark script's own behaviour; they run it as a subprocess, never import it.
+SCRIPT_TESTS = {"tests/drive/test_gpu_check.py", "tests/metrics/test_train_scaling.py"}
 
 
 def _sys_path_edits(tree: ast.AST, text: str) -> list[str]:
@@ -196,20 +201,68 @@ def _sys_path_edits(tree: ast.AST, text: str) -> list[str]:
     return found
 
 
-def test_benchmarks_never_reach_into_tests():
-    """Benchmarks import the installed package and their folder's shared builders (benchmarks/common.py), never a
-    module of tests/, and put nothing on sys.path but their own folder (not tests/, not the repository root)."""
+def _imported(tree: ast.AST) -> list[str]:
+    """Every absolute import's module name (`import a.b` -> a.b, `from a import b` -> a)."""
+    names = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.append(node.module)
+    return names
+
+
+def _code_strings(tree: ast.AST) -> list[str]:
+    """The string constants of a module that are not docstrings."""
+    docs = {id(n.body[0].value) for n in ast.walk(tree)
+            if isinstance(n, (ast.Module, ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and n.body
+            and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
+    return [n.value for n in ast.walk(tree) if isinstance(n, ast.Constant) and isinstance(n.value, str)
+            and id(n) not in docs]
+
+
+def test_tests_never_import_benchmarks():
+    """Tests never import a benchmark script nor put benchmarks/ on sys.path (what both need lives in tests/); a test
+    names a script only when it is about that script's own behaviour (SCRIPT_TESTS), and runs it as a subprocess."""
+    bench = {p.stem for p in (REPO / "benchmarks").glob("*.py")}
+    tests = REPO / "tests"
+    own = {p.stem for p in tests.rglob("*.py")} | {p.name for p in tests.rglob("*") if p.is_dir()}
+    bad = []
+    for path in sorted(tests.rglob("*.py")):
+        rel = str(path.relative_to(REPO))
+        text = path.read_text()
+        tree = ast.parse(text, rel)
+        bad += [f"{rel} puts {v} on sys.path" for v in _sys_path_edits(tree, text) if "bench" in v.lower()]
+        bad += [f"{rel} imports {n} from benchmarks/" for n in _imported(tree)
+                if n.split(".")[0] in bench - own or n.split(".")[0] == "benchmarks"]
+        scripts = sorted({s for s in _code_strings(tree) for b in bench if s == f"{b}.py" or s.endswith(f"benchmarks/{b}.py")})
+        reads_them = path.name == "test_layering.py"   # this file reads the scripts' source, it runs none
+        if scripts and not reads_them and (rel not in SCRIPT_TESTS or "subprocess" not in _imported(tree)):
+            bad.append(f"{rel} names the benchmark script(s) {scripts} outside a subprocess test of that script")
+    assert not bad, bad
+
+
+def test_benchmarks_reach_into_tests_only_for_the_shared_builders():
+    """Benchmarks import the installed package, their folder's scripts and, of tests/, only the shared builders
+    (which import neither pytest nor another test module, so they run outside pytest); they put nothing on sys.path
+    but their own folder and, in benchmarks/common.py, tests/."""
     bench = REPO / "benchmarks"
+    tests = REPO / "tests"
     own = {p.stem for p in bench.glob("*.py")}
-    in_tests = {p.stem for p in (REPO / "tests").rglob("*.py")} - own
+    in_tests = ({p.stem for p in tests.rglob("*.py")} | {p.parent.name for p in tests.rglob("__init__.py")}) - own
     bad = []
     for path in sorted(bench.glob("*.py")):
         text = path.read_text()
         tree = ast.parse(text, str(path))
-        bad += [f"{path.name} puts {v} on sys.path" for v in _sys_path_edits(tree, text) if v != SELF_FOLDER]
-        for node in ast.walk(tree):
-            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
-                [node.module] if isinstance(node, ast.ImportFrom) and node.module and node.level == 0 else []
-            bad += [f"{path.name} imports {n} from tests/" for n in names
-                    if n.split(".")[0] == "tests" or n.split(".")[0] in in_tests]
+        allowed = {SELF_FOLDER} | ({TESTS_FOLDER} if path.name == "common.py" else set())
+        bad += [f"{path.name} puts {v} on sys.path" for v in _sys_path_edits(tree, text) if v not in allowed]
+        bad += [f"{path.name} imports {n} from tests/" for n in _imported(tree)
+                if (n.split(".")[0] == "tests" or n.split(".")[0] in in_tests) and n.split(".")[0] not in SHARED_BUILDERS]
+    shared = [tests / "builders.py", tests / "meshing_reference.py", *sorted((tests / "hostile").glob("*.py"))]
+    assert {p.stem if p.parent == tests else p.parent.name for p in shared} == SHARED_BUILDERS
+    test_modules = {p.stem for p in tests.rglob("*.py")} - {"builders", "meshing_reference"}
+    for path in shared:
+        tree = ast.parse(path.read_text(), str(path))
+        bad += [f"{path.relative_to(REPO)} imports {n}" for n in _imported(tree)
+                if n.split(".")[0] in ({"pytest", "hgca_testdata", "conftest"} | test_modules)]
     assert not bad, bad

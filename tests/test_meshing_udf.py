@@ -1,5 +1,5 @@
 """Unsigned distance -> one surface: analytic fields through the decoder interface, layers, accuracy, orientation,
-cleanup, frames, decimation; the old shell mesher (benchmarks/meshing_reference.py) as the reference it replaces."""
+cleanup, frames, decimation; the old shell mesher (tests/meshing_reference.py) as the reference it replaces."""
 import numpy as np
 import pytest
 import torch

@@ -3,8 +3,8 @@
 Each case builds its files in an empty folder and returns the command line. The expectation is the same for
 all: exit status 2, an `error:` line and no Python traceback on stderr, every file in the folder unchanged
 and nothing new written. tests/test_hostile_inputs.py runs every case in-process (fast); the benchmark
-script benchmarks/hostile_inputs.py runs them as real subprocesses and writes a table of the results. The table
-lives here, beside the benchmark, so both use one copy (tests may import benchmarks' builders, not the reverse).
+benchmarks/hostile_inputs.py runs them as real subprocesses and writes a results page. The cases are test data, so
+they live in tests/ and the benchmark imports them (tests never import benchmarks/, the reverse is allowed).
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from common import tiny_sample, write_las
+from builders import tiny_sample, write_las
 
 
 @dataclass(frozen=True)
@@ -444,5 +444,5 @@ degenerate("UTM point pair", np.array([[500_000.0, 5_000_000.0, 10.0], [500_000.
 
 
 # --- further classes, each in a module of its own that appends to CASES ---------------------------------------
-import hostile_reads  # noqa: E402,F401  (silently wrong reads, georeferenced precision)
-import hostile_cli  # noqa: E402,F401  (flags, outputs, hangs, late checks, disk full, signals)
+# (tests/hostile/__init__.py imports them: reads.py, silently wrong reads and georeferenced precision; cli.py,
+# flags, outputs, hangs, late checks, disk full, signals)

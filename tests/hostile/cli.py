@@ -1,5 +1,5 @@
 """Hostile command lines: flags out of range, outputs that would replace inputs, hangs, checks made too late,
-disk full, signals. Each case appends to hostile_cases.CASES."""
+disk full, signals. Each case appends to cases.CASES."""
 from __future__ import annotations
 
 import json
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hostile_cases import case, complete_cmd, good_npz, special_file_cases
+from .cases import case, complete_cmd, good_npz, special_file_cases
 
 LONG = "a" * 246   # with an extension the name fits NAME_MAX (255), its temp file while writing does not
 NO_WRITE = "nothing was written"
@@ -254,7 +254,7 @@ def _(d):
 
 def train_data(d: Path, splits: tuple[str, ...] = ("train", "val")) -> Path:
     """A dataset folder with one tiny sample per split."""
-    from common import tiny_sample
+    from builders import tiny_sample
 
     root = d / "data"
     for split in splits:

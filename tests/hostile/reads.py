@@ -1,5 +1,5 @@
 """Hostile inputs that a reader could get silently wrong: header counts that lie, named columns, byte-order
-marks, transposed arrays, repeated fields, georeferenced outliers. Each case appends to hostile_cases.CASES."""
+marks, transposed arrays, repeated fields, georeferenced outliers. Each case appends to cases.CASES."""
 from __future__ import annotations
 
 import json
@@ -10,8 +10,8 @@ from typing import Callable
 
 import numpy as np
 
-from hostile_cases import EYE, PCD_HEAD, PLY_HEAD, _laz, case, good_las, good_npz, read_cmd, write
-from common import write_las
+from .cases import EYE, PCD_HEAD, PLY_HEAD, _laz, case, good_las, good_npz, read_cmd, write
+from builders import write_las
 
 UTM = np.array([500_000.0, 5_000_000.0, 100.0])
 POINTS = 2000

@@ -1,7 +1,7 @@
 """Text tables read by the names in their header, wherever the columns stand and however the header is marked.
 
 Each table here used to be read by position (or lost a row to a byte-order mark), giving points that looked
-fine and were wrong; the refusals of the same class are cases in benchmarks/hostile_reads.py.
+fine and were wrong; the refusals of the same class are cases in tests/hostile/reads.py.
 """
 from __future__ import annotations
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from hgca_testdata import REAL_FIXTURES, require_real
-from odometry import simulate_drive   # benchmarks/odometry.py (hgca_testdata puts benchmarks/ on the path)
+from builders import simulate_drive   # tests/builders.py (benchmarks/odometry.py measures the same drive)
 
 from hgca_core.errors import InputError
 from hgca_core.io.odometry import (MAX_SPEED, MIN_CONSTRAINT, MIN_FITNESS, estimate, estimate_poses, frame_times,

@@ -1,11 +1,16 @@
-"""benchmarks/train_scaling.py: the three configurations run the same recipe and the same chains a step in all."""
+"""benchmarks/train_scaling.py: the three configurations run the same recipe and the same chains a step in all. The
+script is run as a subprocess (`--print-commands`, nothing trained): tests never import benchmarks/."""
+import json
+import subprocess
 import sys
 from pathlib import Path
 
-import pytest
+SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "train_scaling.py"
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
-import train_scaling  # noqa: E402
+
+def _run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), "--data", "d", "--steps", "30", "--procs", "2",
+                           "--print-commands", *args], capture_output=True, text=True, timeout=120)
 
 
 def _opt(cmd: list[str], flag: str) -> str:
@@ -17,16 +22,21 @@ def _set(cmd: list[str], key: str) -> str:
 
 
 def test_the_ranks_split_the_batch_and_the_wide_process_gets_the_threads(tmp_path):
-    one, env1 = train_scaling.command("one", "d", tmp_path / "a", 30, 4, 2, 29600)
-    wide, env2 = train_scaling.command("threads", "d", tmp_path / "b", 30, 4, 2, 29601)
-    ranks, env3 = train_scaling.command("ranks", "d", tmp_path / "c", 30, 4, 2, 29602)
-    assert (_set(one, "batch"), _opt(one, "--threads"), env1["OMP_NUM_THREADS"]) == ("4", "1", "1")
-    assert (_set(wide, "batch"), _opt(wide, "--threads"), env2["OMP_NUM_THREADS"]) == ("4", "2", "2")
-    assert (_set(ranks, "batch"), _opt(ranks, "--threads"), env3["OMP_NUM_THREADS"]) == ("2", "1", "1")
+    res = _run("--batch", "4", "--out", str(tmp_path / "t.json"))
+    assert res.returncode == 0, res.stderr
+    shown = json.loads(res.stdout)
+    one, wide, ranks = (shown[k]["cmd"] for k in ("one", "threads", "ranks"))
+    assert (_set(one, "batch"), _opt(one, "--threads"), shown["one"]["omp"]) == ("4", "1", "1")
+    assert (_set(wide, "batch"), _opt(wide, "--threads"), shown["threads"]["omp"]) == ("4", "2", "2")
+    assert (_set(ranks, "batch"), _opt(ranks, "--threads"), shown["ranks"]["omp"]) == ("2", "1", "1")
     assert _opt(ranks, "--nproc_per_node") == "2" and "torch.distributed.run" in ranks
     for cmd in (one, wide, ranks):   # one recipe, the trainer's own step count, no validation inside the timing
         tail = cmd[cmd.index("train"):]
         assert tail[0] == "train" and _opt(tail, "--max-steps") == "30" and _opt(tail, "--recipe") == "coarse-shipped"
         assert float(_set(tail, "val_every")) > 1000
-    with pytest.raises(ValueError, match="does not split over 2 ranks"):
-        train_scaling.command("ranks", "d", tmp_path / "d", 30, 3, 2, 29603)
+    assert not (tmp_path / "t.json").exists()   # nothing ran, nothing written
+
+
+def test_a_batch_the_ranks_cannot_split_is_refused(tmp_path):
+    res = _run("--batch", "3", "--out", str(tmp_path / "t.json"))
+    assert res.returncode == 2 and "does not split over 2 ranks" in res.stderr, res.stderr
