@@ -8,7 +8,7 @@ observed distances), then inserts each in one process of bpy from .venv:
 
 * one go: `mesh_build.build_results`, everything in one call on the main thread (the whole call is one stall);
 * sliced: `result_insert.start_completion` and `step()` called as the job's timer calls it (every
-  `jobs.INSERT_INTERVAL_S`); every call is timed, and the longest is the stall. The files are read and the
+  `completion.INSERT_INTERVAL_S`); every call is timed, and the longest is the stall. The files are read and the
   agreement, colours and edges computed on the worker thread meanwhile.
 
 Cases: a full completion (`--samples` samples of `--faces` triangles, agreement between them) and a drive's merged
@@ -30,7 +30,8 @@ os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="hgca_be
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
 
-from hgca_blender import jobs, mesh_build, result_insert  # noqa: E402
+from hgca_blender.jobs import completion  # noqa: E402
+from hgca_blender.scene import mesh_build, result_insert  # noqa: E402
 
 
 def write_result(path: Path, faces: int, seed: int) -> tuple[int, int]:
@@ -64,7 +65,7 @@ def sliced(paths: list[Path]) -> dict:
     insertion = result_insert.start_completion(bpy.context.scene, paths, "hGCA bench")
     calls.append(time.perf_counter() - t0)
     while True:
-        time.sleep(jobs.INSERT_INTERVAL_S)     # the timer's pause: Blender draws and answers the user here
+        time.sleep(completion.INSERT_INTERVAL_S)     # the timer's pause: Blender draws and answers the user here
         began = time.perf_counter()
         more = insertion.step()
         calls.append(time.perf_counter() - began)
@@ -151,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     work = Path(tempfile.mkdtemp(prefix="hgca_bench_insert_"))
     results: dict = {"bpy": bpy.app.version_string, "python": platform.python_version(), "cpus": os.cpu_count(),
                      "load_avg_start": round(os.getloadavg()[0], 2), "slice_s": result_insert.SLICE_S,
-                     "interval_s": jobs.INSERT_INTERVAL_S, "cases": {}}
+                     "interval_s": completion.INSERT_INTERVAL_S, "cases": {}}
     cases = {"completion": (f"completion, {args.samples} samples", [args.faces] * args.samples),
              "drive": ("drive merge, 1 mesh", [args.drive_faces])}
     for key, (label, sizes) in cases.items():

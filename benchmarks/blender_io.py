@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/blender_io.py [--points 1000000] [--triangles 1000000] [--repeat 3]
 
-Runs in the bpy module with the add-on's own code paths: `operators_import.import_scans` (the import
+Runs in the bpy module with the add-on's own code paths: `import_scans.import_scans` (the import
 operator's body: `hgca read` in a subprocess, .npz load, vertex-only mesh + attributes via foreach_set)
 and `mesh_build.build_results` (the job's "done" step: .npz load and checks, triangle mesh with edges,
 observed_distance attribute, material, collection). Results go to benchmarks/results/blender_io.{json,md}.
@@ -26,7 +26,9 @@ os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="hgca_be
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
 
-from hgca_blender import mesh_build, operators_import, preferences  # noqa: E402
+from hgca_blender import preferences  # noqa: E402
+from hgca_blender.operators import import_scans  # noqa: E402
+from hgca_blender.scene import mesh_build  # noqa: E402
 
 
 def write_scan_ply(path: Path, n: int, seed: int = 0) -> None:
@@ -96,15 +98,15 @@ def main(argv: list[str] | None = None) -> int:
         t_read = []
         for _ in range(args.repeat):
             t0 = time.perf_counter()
-            operators_import.read_scans(python, [scan])
+            import_scans.read_scans(python, [scan])
             t_read.append(time.perf_counter() - t0)
 
         def do_import() -> None:
-            obj, *_ = operators_import.import_scans(python, [scan], bpy.context.scene.collection)
+            obj, *_ = import_scans.import_scans(python, [scan], bpy.context.scene.collection)
             assert len(obj.data.vertices) == args.points
 
         t_import = timed(do_import, args.repeat)
-        pts, attrs, *_ = operators_import.read_scans(python, [scan])
+        pts, attrs, *_ = import_scans.read_scans(python, [scan])
 
         def do_build() -> None:
             mesh_build.build_point_object("scan", pts, attrs, bpy.context.scene.collection)

@@ -64,7 +64,7 @@ def blend_facts(blend: Path) -> dict:
     """What a saved batch .blend holds (for --from-blend): scan points, triangles a sample, MiB a sample."""
     import bpy
 
-    from hgca_blender import mesh_build
+    from hgca_blender.scene import mesh_build
 
     bpy.ops.wm.open_mainfile(filepath=str(blend))
     scans = [o for o in bpy.data.objects if o.get(mesh_build.ROLE_KEY) == "scan"]
@@ -80,7 +80,7 @@ def agreement_and_baked(blend: Path, png: Path, baked: Path) -> dict:
     """Render the saved .blend coloured by agreement; then apply the Decimate modifiers and save a copy."""
     import bpy
 
-    from hgca_blender import mesh_build, preview
+    from hgca_blender.scene import mesh_build, preview
 
     if png.is_file() and baked.is_file():  # --from-blend: both made already, measure the baked copy
         facts = blend_facts(baked)

@@ -1,7 +1,16 @@
 """hGCA Blender extension: import LiDAR scans and complete them into meshes with hgca_core.
 
-The add-on is a thin layer (UI, a job runner, Blender data from arrays); the model runs in a separate
-Python interpreter (`<python> -m hgca_core.cli`), so Blender never imports torch or hgca_core.
+The add-on is a thin layer; the model runs in a separate Python interpreter (`<python> -m hgca_core.cli`), so
+Blender never imports torch or hgca_core. Its modules are grouped by what they are, each group importing only
+those below it:
+
+    ui/             the sidebar panels
+    operators/      import, complete, drive, poses, georeference, results (and the Esc / status bar part they share)
+    properties.py   the panel's settings (`scene.hgca`); preferences.py: the add-on's preferences
+    jobs/           the core's process: one-shot calls, background jobs, Install Core, what a job hands the core
+    scene/          Blender data from arrays: meshes, point clouds, colours, classes, regions, the georeference origin
+    settings.py     the core's settings schema (defaults, bounds, flags) the properties and the jobs are made from
+
 Submodules are imported in `register()` so that bpy-free tools in this package
 (`python -m hgca_blender.build_extension`) do not start Blender.
 """
@@ -11,8 +20,9 @@ import importlib
 from types import ModuleType
 
 # Registration order: properties before the panels that draw them, preferences before operators use them.
-_MODULES = ("properties", "messages", "preferences", "jobs", "operators_import", "operators_complete", "operators_drive",
-            "operators_results", "operators_georef", "operators_poses", "panels")
+_MODULES = ("properties", "jobs.messages", "preferences", "jobs.completion", "operators.import_scans",
+            "operators.complete", "operators.drive", "operators.results", "operators.georef", "operators.poses",
+            "ui.panels")
 
 
 def _modules() -> list[ModuleType]:

@@ -44,8 +44,10 @@ from typing import Callable
 
 import bpy
 
-from . import (core, georef, job_inputs, jobs, mesh_build, operators_import, preferences, preview, region, settings,
-               sources)
+from . import preferences, settings
+from .jobs import completion, core, default_region, job_inputs
+from .operators import import_scans
+from .scene import georef, mesh_build, preview, region, sources
 
 
 def script_args(argv: list[str]) -> list[str]:
@@ -128,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     scene = bpy.context.scene
     t0 = time.perf_counter()
     try:
-        obj, skipped, dropped = operators_import.import_scans(python, [Path(s) for s in args.scans],
+        obj, skipped, dropped = import_scans.import_scans(python, [Path(s) for s in args.scans],
                                                               scene.collection,
                                                               Path(args.poses) if args.poses else None, scene=scene,
                                                               frames=args.frames, topic=args.topic)
@@ -137,26 +139,26 @@ def run(args: argparse.Namespace) -> int:
         return 2
     _log(f"imported {len(obj.data.vertices):,} points as '{obj.name}' in {time.perf_counter() - t0:.1f} s"
          + (f" (skipped attributes: {', '.join(skipped)})" if skipped else "")
-         + (f"; {operators_import.dropped_text(dropped)}" if dropped else ""))
+         + (f"; {import_scans.dropped_text(dropped)}" if dropped else ""))
     if args.drive:
         return _drive(args, python, scene, t0)
     try:
         # a --region goes to the core as typed (world), as `hgca complete --region` takes it
         world_box = (region.parse_region(args.region) if args.region
-                     else region.default_world_region(python, scene, [obj]))
+                     else default_region.default_world_region(python, scene, [obj]))
     except (region.RegionError, core.CoreError) as exc:
         _log(f"error: {exc}")
         return 2
     box = georef.region_to_scene(scene, world_box)   # Blender coordinates: the preview camera frames it
     region.create_region_box(scene.collection, box, world=world_box)
-    params = jobs.CompletionParams(python=python, **job_inputs.source_inputs(scene, [obj]),
+    params = completion.CompletionParams(python=python, **job_inputs.source_inputs(scene, [obj]),
                                    region=world_box, samples=args.samples, seed=args.seed,
                                    stage=args.stage, quality=args.quality, device=args.device, t1=args.t1, t2=args.t2,
                                    max_faces=0 if args.simplify == "modifier" else args.max_faces,
                                    decimate_to=args.max_faces if args.simplify == "modifier" else 0,
                                    scene_name=scene.name,
                                    extra_args=["--weights", args.weights] if args.weights else [])
-    job = _run_job(lambda: jobs.start_job(params), args.timeout, "completion", t0)
+    job = _run_job(lambda: completion.start_job(params), args.timeout, "completion", t0)
     if job is None:
         return 2
     results = sorted(bpy.data.collections[job.collection_name].objects, key=lambda o: int(o["hgca_sample"]))
@@ -188,7 +190,7 @@ def _run_job(start: Callable[[], core.Job], timeout: float | None, what: str, t0
         _log(f"error: {exc}")
         return None
     state = _wait_logged(job, timeout)
-    jobs.poll_all()
+    completion.poll_all()
     if state != "done":
         _log(f"error: {what} {state}: {job.error or job.status}{hint}")
         return None
@@ -218,7 +220,7 @@ def _wait_logged(job: core.Job, timeout: float | None) -> str:
 
 def _drive(args: argparse.Namespace, python: str, scene: bpy.types.Scene, t0: float) -> int:
     """`--drive DIR`: `hgca drive` on the scans, its tiles into one collection, then save."""
-    from . import drive_job
+    from .jobs import drive_job
 
     params = drive_job.DriveParams(
         python=python, scans=list(args.scans), out_dir=args.drive, poses=args.poses, samples=args.samples,

@@ -52,8 +52,10 @@ def read_manifest(path: Path = MANIFEST) -> dict:
 
 
 def package_files(package_dir: Path = PACKAGE_DIR) -> list[Path]:
-    """The add-on's source files: every .py module in the package except development tools."""
-    return sorted(p for p in package_dir.glob("*.py") if p.name not in EXCLUDED)
+    """The add-on's source files: every .py module in the package and its subpackages (`scene/`, `jobs/`,
+    `operators/`, `ui/`) except development tools, as paths relative to `package_dir`."""
+    return sorted(p.relative_to(package_dir) for p in package_dir.rglob("*.py")
+                  if p.name not in EXCLUDED and "__pycache__" not in p.parts)
 
 
 def build_wheel(out_dir: Path, source: Path = REPO_ROOT, python: str = sys.executable) -> Path:
@@ -89,8 +91,9 @@ def stage(dest: Path, manifest: Path = MANIFEST, package_dir: Path = PACKAGE_DIR
         shutil.rmtree(dest)
     dest.mkdir(parents=True)
     shutil.copy2(manifest, dest / "blender_manifest.toml")
-    for src in package_files(package_dir):
-        shutil.copy2(src, dest / src.name)
+    for rel in package_files(package_dir):
+        (dest / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(package_dir / rel, dest / rel)
     if not (dest / "__init__.py").is_file():
         raise BuildError(f"{package_dir} has no __init__.py")
     (dest / SETTINGS_FILE).write_text(json.dumps(core_settings(), indent=1, sort_keys=True) + "\n")

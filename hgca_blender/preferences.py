@@ -16,7 +16,7 @@ from pathlib import Path
 import bpy
 from bpy.props import EnumProperty, FloatProperty, StringProperty
 
-from . import core, installer
+from .jobs import core, installer
 
 ENV_VAR = "HGCA_PYTHON"
 

@@ -5,7 +5,7 @@ from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorPro
                        PointerProperty, StringProperty)
 
 from . import settings as core
-from .region import DEFAULT_SIZE
+from .scene.region import DEFAULT_SIZE
 
 # Every default, bound and choice of a core setting below comes from the core's schema (`settings`, made from
 # `hgca_core.config` by the extension build); only the labels and descriptions are the panel's own.

@@ -308,6 +308,6 @@ def test_region_command_bad_input(scan, args, message):
 
 def test_addon_reads_the_protocol_the_core_writes():
     """hgca_blender.core (bpy-free) stops a job whose records carry another protocol: the two numbers must move together."""
-    from hgca_blender.core import PROGRESS_PROTOCOL
+    from hgca_blender.jobs.core import PROGRESS_PROTOCOL
 
     assert PROGRESS_PROTOCOL == PROTOCOL

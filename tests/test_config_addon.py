@@ -47,7 +47,7 @@ def test_every_setting_the_addon_shows_has_a_cli_flag() -> None:
 
 def test_jobs_build_their_command_lines_through_one_function() -> None:
     """No job types the core's flags itself: completion and drive command lines come from settings.core_args."""
-    for module in ("jobs.py", "drive_job.py"):
+    for module in ("jobs/completion.py", "jobs/drive_job.py"):
         text = (ADDON / module).read_text()
         assert "settings.core_args(" in text
         for flag in ("--samples", "--seed", "--stage", "--quality", "--t1", "--t2", "--max-faces", "--workers"):

@@ -7,7 +7,7 @@ The mesh's per-vertex `observed_distance` travels as a PLY vertex property (and 
 Georeferenced coordinates stay exact (`hgca_core.io.georef`): PLY x, y, z are float32 near the origin and
 float64 (`property double x`) beyond 8192 m: world coordinates, standard PLY, read exactly by trimesh and
 plyfile (Blender's own PLY importer reads them but keeps float32: 0.5 m steps at y = 1e7; the add-on's
-import keeps a float64 scene origin instead, see hgca_blender/georef.py); OBJ writes 8 decimals of the float64 values; NPZ stores float32 relative to a float64
+import keeps a float64 scene origin instead, see hgca_blender/scene/georef.py); OBJ writes 8 decimals of the float64 values; NPZ stores float32 relative to a float64
 `offset` array (always present, zeros near the origin); GLB stores float32 vertices under a node whose matrix
 translation (a JSON number) is the offset. Every writer takes an optional `hgca_core.io.atomic.AtomicBatch`,
 so the k samples of a completion appear together or not at all.

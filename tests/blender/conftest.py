@@ -33,7 +33,7 @@ def empty_file(request: pytest.FixtureRequest):
     bpy.ops.wm.read_homefile(use_empty=True)
     yield
     if "addon" in request.fixturenames:
-        addon_module("jobs").cancel_all()
+        addon_module("jobs.completion").cancel_all()
 
 
 

@@ -127,7 +127,7 @@ def test_batch_uses_the_core_that_install_core_set(addon, tmp_path: Path, monkey
     import importlib
 
     batch = importlib.import_module(f"{addon.__name__}.batch")   # loaded as the installed extension loads it
-    installer = addon_module("installer")
+    installer = addon_module("jobs.installer")
     monkeypatch.delenv("HGCA_PYTHON", raising=False)
     monkeypatch.setenv("PATH", "/usr/bin:/bin")
     prefs().python_path = str(tmp_path / "chosen" / "python")

@@ -36,7 +36,7 @@ def cli_mesh(tmp: Path, inputs: list[str], region: tuple[float, ...]) -> dict[st
 
 def panel_complete(obj: bpy.types.Object, scene_region: tuple[float, ...]):
     """Complete from the panel (numbers region) with the active object as the source; the finished job."""
-    jobs = addon_module("jobs")
+    jobs = addon_module("jobs.completion")
     obj.select_set(True)
     bpy.context.view_layer.objects.active = obj
     props = bpy.context.scene.hgca
@@ -58,7 +58,7 @@ def panel_complete(obj: bpy.types.Object, scene_region: tuple[float, ...]):
 
 def assert_same_mesh(job, want: dict[str, np.ndarray]) -> None:
     """The result object holds exactly the CLI's mesh, placed as the add-on places any result."""
-    georef = addon_module("georef")
+    georef = addon_module("scene.georef")
     (obj,) = bpy.data.collections[job.collection_name].objects
     mesh = obj.data
     vertices, location = georef.place(want["vertices"], want["offset"], georef.scene_origin(bpy.context.scene))
@@ -93,7 +93,7 @@ def test_points_sent_without_the_file_carry_their_rays(addon, tmp_path: Path) ->
     and origin index; on the sensor-frame nuScenes sweep that is still the CLI's mesh."""
     require_fixture(NUSCENES)
     scan = import_scan(filepath=str(NUSCENES))
-    del scan[addon_module("job_inputs").SOURCE_KEY]
+    del scan[addon_module("jobs.job_inputs").SOURCE_KEY]
     job = panel_complete(scan, SMALL_REGION)
     assert str(NUSCENES) not in job.cmd and not job.warnings, job.warnings
     assert_same_mesh(job, cli_mesh(tmp_path, [str(NUSCENES)], SMALL_REGION))
@@ -103,7 +103,7 @@ def test_moved_scan_is_sent_as_its_points(addon) -> None:
     require_fixture(NUSCENES)
     scan = import_scan(filepath=str(NUSCENES))
     scan.location.x += 1.0
-    job_inputs = addon_module("job_inputs")
+    job_inputs = addon_module("jobs.job_inputs")
     assert job_inputs.unchanged_files(bpy.context.scene, [scan]) is None
     scan.location.x -= 1.0
     assert job_inputs.unchanged_files(bpy.context.scene, [scan]).paths == [str(NUSCENES)]
@@ -113,7 +113,7 @@ def test_av2_log_two_frames_panel_mesh_is_the_clis(addon, tmp_path: Path) -> Non
     if not AV2_LOG.is_dir():
         pytest.skip(f"real AV2 log missing: {AV2_LOG}")
     scan = import_scan(directory=str(AV2_LOG) + "/", frames="0:2")
-    georef, sources = addon_module("georef"), addon_module("sources")
+    georef, sources = addon_module("scene.georef"), addon_module("scene.sources")
     first = georef.to_world(bpy.context.scene, sources.world_origins([scan]))[0]  # city frame, km from zero
     # as a user types it: centimetres, in the world frame the CLI takes
     world_region = (*(round(float(v), 2) for v in first[:2]), round(float(first[2]) - 1.0, 2), 9.6, 9.6, 4.0, 30.0)
@@ -127,8 +127,8 @@ def test_core_warnings_reach_blenders_report_list(addon, tmp_path: Path, capfd) 
     """Points with no sensor origins: the core's warning is the job's and goes through `report`."""
     require_fixture(NUSCENES)
     scan = import_scan(filepath=str(NUSCENES))
-    del scan[addon_module("job_inputs").SOURCE_KEY]
-    del scan[addon_module("sources").ORIGINS_KEY]
+    del scan[addon_module("jobs.job_inputs").SOURCE_KEY]
+    del scan[addon_module("scene.sources").ORIGINS_KEY]
     capfd.readouterr()
     job = panel_complete(scan, SMALL_REGION)
     assert any(w.startswith("no sensor origins") for w in job.warnings), job.warnings

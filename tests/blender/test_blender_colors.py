@@ -20,7 +20,7 @@ def import_one(**kwargs) -> bpy.types.Object:
 
 
 def colors_of(obj: bpy.types.Object) -> np.ndarray:
-    attr = obj.data.color_attributes[addon_module("colors").COLOR_ATTRIBUTE]
+    attr = obj.data.color_attributes[addon_module("scene.colors").COLOR_ATTRIBUTE]
     out = np.empty(len(obj.data.vertices) * 4, dtype=np.float32)
     attr.data.foreach_get("color", out)
     return out.reshape(-1, 4)
@@ -31,11 +31,11 @@ def test_rgb_scan_keeps_its_colours_as_the_active_colour_attribute(addon, tmp_pa
     path.write_text(PLY_RGB)
     obj = import_one(filepath=str(path))
     mesh = obj.data
-    assert mesh.color_attributes.active_color.name == addon_module("colors").COLOR_ATTRIBUTE
+    assert mesh.color_attributes.active_color.name == addon_module("scene.colors").COLOR_ATTRIBUTE
     np.testing.assert_allclose(colors_of(obj)[:, :3], [[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0.2]], atol=1e-6)
     material = mesh.materials[0]
     names = [n.attribute_name for n in material.node_tree.nodes if n.bl_idname == "ShaderNodeAttribute"]
-    assert names == [addon_module("colors").COLOR_ATTRIBUTE]
+    assert names == [addon_module("scene.colors").COLOR_ATTRIBUTE]
 
 
 def test_sweep_defaults_to_intensity_grey_and_small_points(addon) -> None:
@@ -43,12 +43,12 @@ def test_sweep_defaults_to_intensity_grey_and_small_points(addon) -> None:
     obj = import_one(filepath=str(NUSCENES))
     rgba = colors_of(obj)
     assert np.array_equal(rgba[:, 0], rgba[:, 1]) and np.array_equal(rgba[:, 1], rgba[:, 2])
-    floor = addon_module("colors").INTENSITY_FLOOR
+    floor = addon_module("scene.colors").INTENSITY_FLOOR
     assert rgba[:, 0].min() >= floor and rgba[:, 0].max() == 1.0
     # readable on the dark viewport: the real sweep's heavy-tailed intensities spread over the grey range (a
     # linear scale between percentiles put its median near black)
     assert 0.4 < np.median(rgba[:, 0]) < 0.75 and np.mean(rgba[:, 0] < 0.2) < 0.2
-    assert addon_module("mesh_build").point_radius(obj) == pytest.approx(0.03)
+    assert addon_module("scene.mesh_build").point_radius(obj) == pytest.approx(0.03)
 
 
 def test_height_ramp_and_chosen_point_size(addon) -> None:
@@ -58,16 +58,16 @@ def test_height_ramp_and_chosen_point_size(addon) -> None:
     z = np.empty(len(obj.data.vertices) * 3, dtype=np.float32)
     obj.data.vertices.foreach_get("co", z)
     z = z.reshape(-1, 3)[:, 2]
-    ramp = addon_module("colors").RAMP
+    ramp = addon_module("scene.colors").RAMP
     np.testing.assert_allclose(rgba[z.argmin(), :3], ramp[0], atol=1e-6)
     np.testing.assert_allclose(rgba[z.argmax(), :3], ramp[-1], atol=1e-6)
-    assert addon_module("mesh_build").point_radius(obj) == pytest.approx(0.05)
+    assert addon_module("scene.mesh_build").point_radius(obj) == pytest.approx(0.05)
 
 
 def test_aerial_scan_gets_points_as_large_as_its_spacing(addon) -> None:
     path = require_fixture(FIXTURES / "autzen_trim.laz")
     obj = import_one(filepath=str(path))
-    radius = addon_module("mesh_build").point_radius(obj)
+    radius = addon_module("scene.mesh_build").point_radius(obj)
     assert 0.1 < radius < 2.0  # aerial spacing is decimetres to metres, not a vehicle scan's 3 cm
 
 
@@ -80,7 +80,7 @@ def test_rgb_asked_of_a_scan_without_colours_adds_nothing(addon) -> None:
 
 
 def test_colour_scaling_is_robust() -> None:
-    colors = pytest.importorskip("hgca_blender.colors")
+    colors = pytest.importorskip("hgca_blender.scene.colors")
     sixteen = colors.rgb_of({"red": np.array([65535, 0]), "green": np.array([0, 32768]), "blue": np.array([0, 0])})
     np.testing.assert_allclose(sixteen, [[1, 0, 0], [0, 32768 / 65535, 0]], atol=1e-6)
     values = np.r_[np.linspace(0, 1, 999), 1e6]  # one wild return does not flatten the rest

@@ -29,7 +29,7 @@ def values(mesh: bpy.types.Mesh, name: str) -> np.ndarray:
 
 
 def test_observed_distance_is_the_active_colour(addon, tmp_path: Path) -> None:
-    mesh_build = addon_module("mesh_build")
+    mesh_build = addon_module("scene.mesh_build")
     verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=np.float32)
     out = write_sample(tmp_path / "out_s0.npz", verts, np.array([0.0, 0.175, 5.0]))
     (obj,) = mesh_build.build_results(bpy.context.scene, [out], "hGCA test").objects
@@ -44,7 +44,7 @@ def test_observed_distance_is_the_active_colour(addon, tmp_path: Path) -> None:
 
 def test_agreement_counts_the_samples_with_surface_there(addon, tmp_path: Path) -> None:
     """Three samples share a wall; one of them adds a far block, another a nearby one (within a cell)."""
-    mesh_build = addon_module("mesh_build")
+    mesh_build = addon_module("scene.mesh_build")
     rng = np.random.default_rng(0)
     wall = np.c_[rng.uniform(0, 4, 300), np.zeros(300), rng.uniform(0, 2, 300)]
     far = wall[:30] + [0, 10, 0]        # only sample 0 has it
@@ -58,14 +58,14 @@ def test_agreement_counts_the_samples_with_surface_there(addon, tmp_path: Path) 
     assert np.all(shares[1] == 1.0)      # the nearby block lies within a cell of everyone's wall
     assert np.all(shares[2] == 1.0)
     rgba = colours(meshes[0], mesh_build.AGREEMENT_COLOR)
-    ramp = addon_module("colors").RAMP
+    ramp = addon_module("scene.colors").RAMP
     np.testing.assert_allclose(rgba[0, :3], ramp[-1], atol=1e-6)
     assert not np.allclose(rgba[-1, :3], ramp[-1])
 
 
 def test_solid_view_draws_the_generated_colour(addon, tmp_path: Path) -> None:
     """Workbench (the Solid view's renderer) with colour = Attribute paints a generated face orange."""
-    mesh_build = addon_module("mesh_build")
+    mesh_build = addon_module("scene.mesh_build")
     verts = np.array([[-1, 0, -1], [1, 0, -1], [0, 0, 1.5]], dtype=np.float32)
     out = write_sample(tmp_path / "out_s0.npz", verts, np.full(3, 5.0))
     mesh_build.build_results(bpy.context.scene, [out], "hGCA test")
@@ -74,7 +74,7 @@ def test_solid_view_draws_the_generated_colour(addon, tmp_path: Path) -> None:
 
 
 def test_step_through_samples_and_colour_by_agreement(addon, tmp_path: Path) -> None:
-    mesh_build = addon_module("mesh_build")
+    mesh_build = addon_module("scene.mesh_build")
     verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=np.float32)
     paths = [write_sample(tmp_path / f"out_s{i}.npz", verts + [0, 0, i], np.zeros(3)) for i in range(3)]
     coll = mesh_build.build_results(bpy.context.scene, paths, "hGCA test")
@@ -94,7 +94,7 @@ def test_step_through_samples_and_colour_by_agreement(addon, tmp_path: Path) -> 
 def test_solid_view_shows_observed_generated_for_several_samples(addon, tmp_path: Path) -> None:
     """With 2 or more samples the agreement attributes are added too; the colour Solid view draws stays the
     observed/generated one on every sample (and renders draw the same one)."""
-    mesh_build = addon_module("mesh_build")
+    mesh_build = addon_module("scene.mesh_build")
     verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=np.float32)
     for k in (2, 3):
         paths = [write_sample(tmp_path / f"k{k}_s{i}.npz", verts + [0, 0, i], np.zeros(3)) for i in range(k)]

@@ -26,7 +26,7 @@ def shown(obj: bpy.types.Object) -> bpy.types.Mesh:
 
 
 def test_modifier_shows_max_faces_and_keeps_every_triangle(addon, tmp_path: Path) -> None:
-    mesh_build = addon_module("mesh_build")
+    mesh_build = addon_module("scene.mesh_build")
     path, total = write_grid(tmp_path / "out_s0.npz")
     (obj,) = mesh_build.build_results(bpy.context.scene, [path], "hGCA test", decimate_to=2000).objects
     mod = obj.modifiers[mesh_build.DECIMATE_MODIFIER]
@@ -41,7 +41,7 @@ def test_modifier_shows_max_faces_and_keeps_every_triangle(addon, tmp_path: Path
 
 
 def test_no_modifier_when_baking_or_already_small(addon, tmp_path: Path) -> None:
-    mesh_build = addon_module("mesh_build")
+    mesh_build = addon_module("scene.mesh_build")
     path, total = write_grid(tmp_path / "out_s0.npz", 20)
     (baked,) = mesh_build.build_results(bpy.context.scene, [path], "hGCA a").objects
     (small,) = mesh_build.build_results(bpy.context.scene, [path], "hGCA b", decimate_to=total).objects
@@ -60,7 +60,7 @@ def test_panel_setting_turns_max_faces_into_the_modifier(addon) -> None:
 
 
 def test_agreement_colours_reach_the_render_material(addon, tmp_path: Path) -> None:
-    mesh_build = addon_module("mesh_build")
+    mesh_build = addon_module("scene.mesh_build")
     paths = [write_grid(tmp_path / f"out_s{i}.npz", 10)[0] for i in range(2)]
     objs = list(mesh_build.build_results(bpy.context.scene, paths, "hGCA test").objects)
     assert mesh_build.color_results_by(objs, mesh_build.AGREEMENT_COLOR) == 2

@@ -71,7 +71,7 @@ def run_to_end(job, until=None) -> list[float]:
 
 
 def world_regions(objects) -> np.ndarray:
-    region, georef = addon_module("region"), addon_module("georef")
+    region, georef = addon_module("scene.region"), addon_module("scene.georef")
     return np.array([georef.region_to_world(bpy.context.scene, region.region_from_object(o)) for o in objects])
 
 
@@ -98,7 +98,7 @@ def test_show_tiles_draws_the_core_plan_as_boxes(addon, small_weights, tmp_path)
 
 
 def test_drive_completes_one_object_per_tile_per_sample_and_resumes(addon, small_weights, tmp_path) -> None:
-    jobs = addon_module("jobs")
+    jobs = addon_module("jobs.completion")
     scan, _, _ = import_drive(tmp_path / "scans", length=16.0)
     folder = tmp_path / "drive"
     use_drive_settings(small_weights, folder, samples=2)
@@ -134,7 +134,7 @@ def test_drive_completes_one_object_per_tile_per_sample_and_resumes(addon, small
 
 
 def test_cancel_keeps_finished_tiles_and_leaves_user_objects(addon, small_weights, tmp_path) -> None:
-    jobs = addon_module("jobs")
+    jobs = addon_module("jobs.completion")
     import_drive(tmp_path / "scans", length=40.0)
     folder = tmp_path / "drive"
     use_drive_settings(small_weights, folder, t1=12)
@@ -158,7 +158,7 @@ def test_cancel_keeps_finished_tiles_and_leaves_user_objects(addon, small_weight
 def test_drive_panel_draws_its_settings(addon) -> None:
     from test_blender_ui import draw
 
-    log = draw(addon_module("panels").HGCA_PT_drive)
+    log = draw(addon_module("ui.panels").HGCA_PT_drive)
     assert {n for k, n in log if k == "prop"} == {"drive_dir", "drive_tile_size", "drive_overlap", "drive_workers"}
     assert {n for k, n in log if k == "operator"} == {"hgca.drive_plan", "hgca.drive"}
 
@@ -167,7 +167,7 @@ def test_drive_panel_shows_the_folder_and_its_size(addon, tmp_path) -> None:
     """The panel names the drive folder and what it holds on disk (its tile cache grows ~100 MiB a tile)."""
     from test_blender_ui import draw
 
-    panels = addon_module("panels")
+    panels = addon_module("ui.panels")
     folder = tmp_path / "drive"
     bpy.context.scene.hgca.drive_dir = str(folder)
     labels = [n for k, n in draw(panels.HGCA_PT_drive) if k == "label"]
@@ -183,16 +183,16 @@ def test_the_panels_steps_reach_the_drive_command(addon) -> None:
     """T1 and T2 set in the panel go to `hgca drive` as they go to `hgca complete` (T2 was once dropped)."""
     props = bpy.context.scene.hgca
     props.t1, props.t2 = 7, 3
-    args = addon_module("drive_job").drive_args(addon_module("operators_drive").drive_params(bpy.context))
+    args = addon_module("jobs.drive_job").drive_args(addon_module("operators.drive").drive_params(bpy.context))
     assert args[args.index("--t1") + 1] == "7" and args[args.index("--t2") + 1] == "3"
     props.t1, props.t2 = 0, 0
-    args = addon_module("drive_job").drive_args(addon_module("operators_drive").drive_params(bpy.context))
+    args = addon_module("jobs.drive_job").drive_args(addon_module("operators.drive").drive_params(bpy.context))
     assert "--t1" not in args and "--t2" not in args
 
 
 def test_the_bar_moves_within_a_tile_on_its_chain_steps(addon) -> None:
     """`tile-step` records (a tile's chain steps) move the drive's bar between two finished tiles."""
-    drive_job = addon_module("drive_job")
+    drive_job = addon_module("jobs.drive_job")
     job = object.__new__(drive_job.DriveJob)
     job.tiles, job.tiles_done, job.progress, job.status = 4, 1, 0.0, ""
     seen = []
@@ -210,7 +210,7 @@ def test_show_tiles_in_the_interface_returns_at_once(addon, small_weights, tmp_p
     later main-thread poll, the same three tiles as the synchronous path."""
     import time as time_
 
-    background, drive_job, ops = addon_module("background"), addon_module("drive_job"), addon_module("operators_drive")
+    background, drive_job, ops = addon_module("jobs.background"), addon_module("jobs.drive_job"), addon_module("operators.drive")
     import_drive(tmp_path / "scans", length=30.0)
     use_drive_settings(small_weights, tmp_path / "drive")
     t = time_.monotonic()

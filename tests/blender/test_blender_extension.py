@@ -90,20 +90,20 @@ def test_check_in_the_interface_returns_at_once_and_reports_when_done(addon) -> 
     loading the weights take 5-10 s), and its answer reaches the preferences and the report list."""
     import time
 
-    installer = addon_module("installer")
+    installer = addon_module("jobs.installer")
     from bl_helpers import CORE_PYTHON
 
     t = time.monotonic()
     installer.start_check(CORE_PYTHON)
     started = time.monotonic() - t
     assert started < 1.0, started
-    background = addon_module("background")
+    background = addon_module("jobs.background")
     deadline = time.monotonic() + 300
     while (result := background.poll("check")) is None:
         assert time.monotonic() < deadline
         time.sleep(0.2)
     assert not result.startswith("hGCA check failed") and prefs().check_result.startswith("hgca ")
-    with pytest.raises(addon_module("core").CoreError, match="not found"):
+    with pytest.raises(addon_module("jobs.core").CoreError, match="not found"):
         installer.start_check("/nonexistent/python")
 
 

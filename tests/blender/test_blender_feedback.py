@@ -24,14 +24,16 @@ def start_completion(t1: int = 30):
     props.region_center, props.region_size = SMALL_REGION[:3], SMALL_REGION[3:6]
     props.samples, props.stage, props.t1 = 1, "coarse", t1
     assert bpy.ops.hgca.complete() == {"FINISHED"}
-    return addon_module("jobs").active_job(bpy.context.scene.name)
+    return addon_module("jobs.completion").active_job(bpy.context.scene.name)
 
 
 def test_escape_in_the_modal_cancels_the_running_job(addon) -> None:
     job = start_completion()
-    ops = addon_module("operators_complete")
+    ops = addon_module("operators.complete")
     reports = []
     watcher = SimpleNamespace(_timer=None, report=lambda kind, text: reports.append((kind, text)),
+                              cancel_message=ops.HGCA_OT_complete.cancel_message,
+                              status_text=ops.HGCA_OT_complete.status_text,
                               _finish=lambda context: ops.HGCA_OT_complete._finish(watcher, context))
     other = SimpleNamespace(type="MOUSEMOVE", value="NOTHING")
     assert ops.HGCA_OT_complete.modal(watcher, bpy.context, other) == {"PASS_THROUGH"}
@@ -45,14 +47,14 @@ def test_escape_in_the_modal_cancels_the_running_job(addon) -> None:
 
 def test_modal_ends_with_the_job(addon) -> None:
     job = start_completion(t1=2)
-    ops = addon_module("operators_complete")
-    watcher = SimpleNamespace(_timer=None, report=lambda *a: None,
+    ops = addon_module("operators.complete")
+    watcher = SimpleNamespace(_timer=None, report=lambda *a: None, status_text=ops.HGCA_OT_complete.status_text,
                               _finish=lambda context: ops.HGCA_OT_complete._finish(watcher, context))
     deadline = time.monotonic() + 240
     while job.poll_once():
         assert time.monotonic() < deadline
         time.sleep(0.05)
-    addon_module("jobs").poll_all()
+    addon_module("jobs.completion").poll_all()
     tick = SimpleNamespace(type="TIMER", value="NOTHING")
     assert ops.HGCA_OT_complete.modal(watcher, bpy.context, tick) == {"FINISHED"}
 
@@ -105,7 +107,7 @@ def test_region_numbers_reach_the_core_as_typed(addon) -> None:
     props = bpy.context.scene.hgca
     props.region_mode = "NUMBERS"
     props.region_center, props.region_size, props.region_yaw = (1.1, -2.3, 0.7), (9.6, 12.8, 4.4), np.radians(30)
-    got = addon_module("operators_complete").panel_region(bpy.context)
+    got = addon_module("operators.complete").panel_region(bpy.context)
     assert got == (1.1, -2.3, 0.7, 9.6, 12.8, 4.4, 30.0)
 
 
@@ -122,7 +124,7 @@ def test_operators_are_callable_from_scripts_under_hgca(addon, tmp_path: Path) -
 
 
 def test_time_left_follows_the_rate_so_far(addon) -> None:
-    jobs = addon_module("jobs")
+    jobs = addon_module("jobs.completion")
     job = SimpleNamespace(progress=0.25, started=time.monotonic() - 30.0)
     assert jobs.time_left(job) == ", about 1 min 30 s left"
     job.progress = 0.01

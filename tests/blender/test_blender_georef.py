@@ -60,8 +60,8 @@ def test_import_of_utm_las_is_exact_and_small_in_blender(addon, tmp_path: Path, 
 def test_completion_of_a_utm_scan_round_trips_to_the_mm(addon, tmp_path: Path) -> None:
     """Points and region reach the core in world coordinates to the mm, and the result is placed back under
     the scene origin with its vertices on the region's 20 cm grid (coarse stage: cell corners) to the mm."""
-    jobs = addon_module("jobs")
-    operators = addon_module("operators_complete")
+    jobs = addon_module("jobs.completion")
+    operators = addon_module("operators.complete")
     prefs().weights_path = ""  # the shipped weights
     base = np.array(UTM_OFFSETS["utm_1e7"])
     points = core_arrays("from hgca_testdata import tiny_sample", p='tiny_sample(3)["input_points"]')["p"]

@@ -52,7 +52,7 @@ def test_import_nuscenes_sweep(addon) -> None:
     np.testing.assert_allclose(intensity, raw[:, 3], rtol=1e-6)
     assert obj.modifiers["hGCA Points"].node_group.name.startswith("hGCA Points")
     # what the import reports: the rows the reader left out, counted against the file's own rows (20 bytes each)
-    ops = addon_module("operators_import")
+    ops = addon_module("operators.import_scans")
     *_, dropped = ops.read_scans(addon_module("preferences").core_python(), [path])
     left = path.stat().st_size // 20 - len(raw)
     assert left > 0 and dropped == {"returns off the recording vehicle": left}
@@ -131,7 +131,7 @@ def test_interpreter_without_core_reports_error(addon, tmp_path: Path) -> None:
 
 
 def test_attribute_conversion_keeps_types(addon) -> None:
-    mesh_build = addon_module("mesh_build")
+    mesh_build = addon_module("scene.mesh_build")
     coll = bpy.context.scene.collection
     pts = np.random.default_rng(0).normal(size=(100, 3))
     attrs = {"intensity": np.linspace(0, 1, 100), "scan_index": np.arange(100, dtype=np.uint8) % 3,

@@ -47,7 +47,7 @@ def wheels_folder(tmp_path_factory: pytest.TempPathFactory, core_wheel: Path) ->
 @pytest.fixture
 def shipped(addon, core_wheel: Path):
     """The staged extension carrying hgca's wheel in core/, as the built zip does."""
-    installer = addon_module("installer")
+    installer = addon_module("jobs.installer")
     folder = installer.WHEEL_DIR
     folder.mkdir(exist_ok=True)
     shutil.copy2(core_wheel, folder / core_wheel.name)
@@ -66,13 +66,13 @@ def drive(job, timeout: float = INSTALL_TIMEOUT_S) -> list[float]:
 
 
 def test_core_environment_lives_in_the_extensions_user_folder(addon) -> None:
-    env = addon_module("installer").env_dir()
+    env = addon_module("jobs.installer").env_dir()
     assert Path(os.environ["BLENDER_USER_RESOURCES"]) in env.parents
-    assert env.parent == Path(bpy.utils.extension_path_user(addon_module("installer").PACKAGE))
+    assert env.parent == Path(bpy.utils.extension_path_user(addon_module("jobs.installer").PACKAGE))
 
 
 def test_offline_without_wheels_is_refused_before_anything_starts(shipped) -> None:
-    core = addon_module("core")
+    core = addon_module("jobs.core")
     with pytest.raises(core.CoreError, match="online access is off"):
         shipped.start_install(sys.executable, wheels="", online=False)
     assert not shipped.env_dir().exists() and shipped.running_install() is None
@@ -81,9 +81,9 @@ def test_offline_without_wheels_is_refused_before_anything_starts(shipped) -> No
 
 
 def test_install_without_a_shipped_wheel_says_so(addon) -> None:
-    core = addon_module("core")
+    core = addon_module("jobs.core")
     with pytest.raises(core.CoreError, match="carries no hgca wheel"):
-        addon_module("installer").start_install(sys.executable, wheels=str(NUSCENES.parent))
+        addon_module("jobs.installer").start_install(sys.executable, wheels=str(NUSCENES.parent))
 
 
 def test_check_fails_on_a_python_without_torch(addon, tmp_path: Path) -> None:
@@ -147,7 +147,7 @@ def test_install_core_offline_then_complete_a_scan_with_it(shipped, wheels_folde
     props.region_center, props.region_size = SMALL_REGION[:3], SMALL_REGION[3:6]
     props.samples, props.stage, props.t1 = 1, "coarse", 2
     assert bpy.ops.hgca.complete() == {"FINISHED"}
-    jobs = addon_module("jobs")
+    jobs = addon_module("jobs.completion")
     completion = jobs.active_job(bpy.context.scene.name)
     assert completion.cmd[0] == str(python)
     drive(completion, 300)
@@ -162,7 +162,7 @@ def test_install_progress_moves_while_pip_is_silent_and_speaks_plainly(monkeypat
     import io
     import json as json_
 
-    from hgca_blender import install_core
+    from hgca_blender.jobs import install_core
 
     monkeypatch.setattr(install_core, "HEARTBEAT_S", 0.2)
     script = ("import time\nprint('Collecting numpy<2', flush=True)\n"

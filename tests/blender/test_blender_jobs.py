@@ -49,7 +49,7 @@ def drive(job, timeout: float = JOB_TIMEOUT_S) -> list[float]:
 
 
 def test_completion_adds_one_mesh_per_sample_and_leaves_inputs_alone(addon) -> None:
-    jobs = addon_module("jobs")
+    jobs = addon_module("jobs.completion")
     scan = import_nuscenes()
     use_numbers(SMALL_REGION, samples=2)
     before = snapshot()
@@ -101,7 +101,7 @@ def test_completion_adds_one_mesh_per_sample_and_leaves_inputs_alone(addon) -> N
 
 
 def test_cancel_leaves_the_scene_unchanged(addon) -> None:
-    jobs = addon_module("jobs")
+    jobs = addon_module("jobs.completion")
     import_nuscenes()
     use_numbers(SMALL_REGION, samples=1, t1=30)
     before = snapshot()
@@ -121,7 +121,7 @@ def test_cancel_leaves_the_scene_unchanged(addon) -> None:
 
 
 def test_core_error_is_reported_and_nothing_is_added(addon) -> None:
-    jobs = addon_module("jobs")
+    jobs = addon_module("jobs.completion")
     import_nuscenes()
     use_numbers((5000.0, 5000.0, 0.0, 9.6, 9.6, 4.0, 0.0), samples=1)  # no scan points inside
     before = snapshot()
@@ -137,7 +137,7 @@ def test_core_error_is_reported_and_nothing_is_added(addon) -> None:
 
 
 def test_missing_interpreter_fails_before_starting(addon) -> None:
-    jobs = addon_module("jobs")
+    jobs = addon_module("jobs.completion")
     import_nuscenes()
     use_numbers(SMALL_REGION)
     prefs().python_path = "/nonexistent/bin/python"
@@ -165,7 +165,7 @@ def core_region(*args: str) -> list[float]:
 def test_add_region_box_places_the_box_hgca_region_gives(addon, tmp_path: Path) -> None:
     """One default region: the box the add-on adds around imported scans is the one `hgca region` (and so
     `hgca complete` without --region) gives for the same files, centred on the sensor, not on the points."""
-    region = addon_module("region")
+    region = addon_module("scene.region")
     path = require_fixture(NUSCENES)
     pose = np.eye(4)
     pose[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
@@ -198,7 +198,7 @@ def test_add_region_box_places_the_box_hgca_region_gives(addon, tmp_path: Path) 
     after = snapshot()
     assert {k: after["objects"][k] for k in before["objects"]} == before["objects"]
     # the box is not a source: the scan alone is
-    assert addon_module("operators_complete").source_objects(bpy.context) == [scan]
+    assert addon_module("operators.complete").source_objects(bpy.context) == [scan]
 
     # the panel's size goes to `hgca region --size`; moving the scan object moves its sensor with it
     scan.location = (5.0, 0.0, 0.0)
@@ -229,7 +229,7 @@ def test_add_region_box_without_the_core_adds_nothing(addon, tmp_path: Path) -> 
 
 def test_panel_steps_default_to_the_weights(addon) -> None:
     """T1 = T2 = 0 in the panel means "the weights' own step counts": no --t1/--t2 goes to `hgca complete`."""
-    jobs = addon_module("jobs")
+    jobs = addon_module("jobs.completion")
     props = bpy.context.scene.hgca
     assert (props.t1, props.t2) == (0, 0)
     params = jobs.CompletionParams(python=CORE_PYTHON, points=np.zeros((1, 3)), region=SMALL_REGION)
@@ -241,7 +241,7 @@ def test_panel_steps_default_to_the_weights(addon) -> None:
 
 
 def test_region_from_a_rotated_scaled_box(addon) -> None:
-    region = addon_module("region")
+    region = addon_module("scene.region")
     box = region.create_region_box(bpy.context.scene.collection, (10.0, -4.0, 2.0, 20.0, 30.0, 6.0, 30.0))
     got = region.region_from_object(box)
     np.testing.assert_allclose(got, (10.0, -4.0, 2.0, 20.0, 30.0, 6.0, 30.0), atol=1e-4)
@@ -254,7 +254,7 @@ def test_region_from_a_rotated_scaled_box(addon) -> None:
 
 
 def test_failed_result_build_rolls_back(addon, tmp_path: Path) -> None:
-    mesh_build = addon_module("mesh_build")
+    mesh_build = addon_module("scene.mesh_build")
     good = tmp_path / "out_s0.npz"
     bad = tmp_path / "out_s1.npz"
     np.savez(good, vertices=np.eye(3, dtype=np.float32), faces=np.array([[0, 1, 2]], np.int32),
@@ -271,7 +271,7 @@ def test_failed_result_build_rolls_back(addon, tmp_path: Path) -> None:
 
 def test_progress_follows_the_records_sample_index(addon) -> None:
     """The whole-job fraction comes from each record's own `sample`/`samples`, not from guessing."""
-    jobs, core = addon_module("jobs"), addon_module("core")
+    jobs, core = addon_module("jobs.completion"), addon_module("jobs.core")
 
     def fresh():
         job = jobs.CompletionJob.__new__(jobs.CompletionJob)  # the record handling, without a process
@@ -303,7 +303,7 @@ def test_progress_follows_the_records_sample_index(addon) -> None:
 ])
 def test_core_with_another_protocol_stops_with_a_clear_message(addon, tmp_path: Path, record: dict,
                                                               message: str) -> None:
-    core = addon_module("core")
+    core = addon_module("jobs.core")
     workdir = tmp_path / "job"
     workdir.mkdir()
     script = f"import json, time; print(json.dumps({record!r}), flush=True); time.sleep(60)"
@@ -318,7 +318,7 @@ def test_core_with_another_protocol_stops_with_a_clear_message(addon, tmp_path: 
 def test_full_stage_with_shipped_weights_inserts_the_implicit_mesh(addon) -> None:
     """The default stage (full) on the shipped coarse and fine weights: one 10 cm implicit mesh, simplified to
     the panel's face limit, with the fine progress stage seen; the coarse stage passes no limit."""
-    jobs = addon_module("jobs")
+    jobs = addon_module("jobs.completion")
     prefs().weights_path = ""                       # the shipped weights
     import_nuscenes()
     counts = {}
@@ -358,7 +358,7 @@ def test_the_startup_cube_is_never_a_region_source(addon) -> None:
     assert bpy.ops.import_scene.hgca_lidar(filepath=str(NUSCENES)) == {"FINISHED"}
     (scan,) = [o for o in bpy.data.objects if o.type == "MESH" and o.name not in ("Cube",)]
     assert bpy.context.view_layer.objects.active is scan and scan.select_get() and not cube.select_get()
-    assert addon_module("operators_complete").source_objects(bpy.context) == [scan]
+    assert addon_module("operators.complete").source_objects(bpy.context) == [scan]
 
     scan.select_set(False)
     cube.select_set(True)
@@ -376,7 +376,7 @@ def test_a_core_killed_from_outside_says_so_and_what_to_try(addon, tmp_path: Pat
     not the core's last progress line; a job that ends reports to the Info log either way."""
     import signal as signal_
 
-    jobs, messages = addon_module("jobs"), addon_module("messages")
+    jobs, messages = addon_module("jobs.completion"), addon_module("jobs.messages")
     fake = tmp_path / "python"
     fake.write_text("#!/bin/sh\necho '{\"protocol\": 1, \"stage\": \"coarse\", \"step\": 1, \"total\": 30, "
                     "\"message\": \"hgca complete: working\"}'\necho 'hgca complete: working' >&2\n"
@@ -394,7 +394,7 @@ def test_a_core_killed_from_outside_says_so_and_what_to_try(addon, tmp_path: Pat
 
 
 def test_a_finished_job_reports_in_the_info_log(addon) -> None:
-    messages = addon_module("messages")
+    messages = addon_module("jobs.messages")
 
     class Ended:
         warnings: list = []
@@ -409,7 +409,7 @@ def test_a_finished_job_reports_in_the_info_log(addon) -> None:
 def test_preview_button_asks_the_core_for_one_fast_smooth_sample(addon, tmp_path: Path) -> None:
     """*Preview* is *Complete* with the preview stage, one sample, the fast students; the panel's own settings
     (quality, stage, samples) go to the core as `hgca complete` takes them."""
-    jobs, ops = addon_module("jobs"), addon_module("operators_complete")
+    jobs, ops = addon_module("jobs.completion"), addon_module("operators.complete")
     import_nuscenes()
     use_numbers(SMALL_REGION, samples=3)
     props = bpy.context.scene.hgca
@@ -426,16 +426,16 @@ def test_preview_button_asks_the_core_for_one_fast_smooth_sample(addon, tmp_path
 def test_add_region_box_in_the_interface_returns_at_once_and_adds_the_box_later(addon) -> None:
     """The interface's Add Region Box asks `hgca region` on a thread: starting takes well under a second, and the
     box (the same exact region as the synchronous path) arrives on a later main-thread poll."""
-    ops = addon_module("operators_complete")
+    ops = addon_module("operators.complete")
     scan = import_nuscenes()
     t = time.monotonic()
     ops.start_region_box(bpy.context)
     assert time.monotonic() - t < 1.0
     assert bpy.context.scene.hgca.region_object is None
     deadline = time.monotonic() + 120
-    while (text := addon_module("background").poll("region_box")) is None:
+    while (text := addon_module("jobs.background").poll("region_box")) is None:
         assert time.monotonic() < deadline
         time.sleep(0.1)
     box = bpy.context.scene.hgca.region_object
     assert text.startswith("Added") and f"'{scan.name}'" in text and box is not None
-    assert list(addon_module("region").world_region_of(bpy.context.scene, box)) == core_region(str(NUSCENES))
+    assert list(addon_module("scene.region").world_region_of(bpy.context.scene, box)) == core_region(str(NUSCENES))

@@ -12,7 +12,7 @@ TEXTS = ["1,2,3,4,5,6", "1.5,-2,3e2,38.4,38.4,8,30", "0,0,0,1,1,1,-90", "1,2,3,4
 
 
 def test_the_addon_reads_a_region_text_as_the_core_does(addon) -> None:
-    region = addon_module("region")
+    region = addon_module("scene.region")
     core = core_arrays(
         "from hgca_core.errors import InputError\nfrom hgca_core.geometry.region import Region\n"
         f"rows, ok = [], []\nfor t in {TEXTS!r}:\n"

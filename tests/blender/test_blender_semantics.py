@@ -30,7 +30,7 @@ def face_materials(obj: bpy.types.Object) -> list[str]:
 
 
 def test_each_face_gets_its_class_material(addon, tmp_path: Path) -> None:
-    mesh_build = addon_module("mesh_build")
+    mesh_build = addon_module("scene.mesh_build")
     labels = np.array([0, 2, 2, 4, 0, 5])
     out = write_labelled(tmp_path / "out_s0.npz", labels, np.linspace(0.5, 1, 6))
     (obj,) = mesh_build.build_results(bpy.context.scene, [out], "hGCA test").objects
@@ -47,8 +47,8 @@ def test_each_face_gets_its_class_material(addon, tmp_path: Path) -> None:
 
 
 def test_palette_is_shared_and_kept(addon, tmp_path: Path) -> None:
-    mesh_build = addon_module("mesh_build")
-    semantics = addon_module("semantics")
+    mesh_build = addon_module("scene.mesh_build")
+    semantics = addon_module("scene.semantics")
     a = write_labelled(tmp_path / "a_s0.npz", np.array([0, 2]))
     mesh_build.build_results(bpy.context.scene, [a], "run A")
     assert semantics.set_palette({"road": (1.0, 0.0, 0.0, 1.0)}) == 1
@@ -61,7 +61,7 @@ def test_palette_is_shared_and_kept(addon, tmp_path: Path) -> None:
 
 
 def test_collection_per_class(addon, tmp_path: Path) -> None:
-    mesh_build = addon_module("mesh_build")
+    mesh_build = addon_module("scene.mesh_build")
     labels = np.array([0, 2, 2, 4])
     out = write_labelled(tmp_path / "out_s0.npz", labels)
     coll = mesh_build.build_results(bpy.context.scene, [out], "hGCA test", class_collections=True)
@@ -72,7 +72,7 @@ def test_collection_per_class(addon, tmp_path: Path) -> None:
 
 
 def test_results_without_labels_are_unchanged(addon, tmp_path: Path) -> None:
-    mesh_build = addon_module("mesh_build")
+    mesh_build = addon_module("scene.mesh_build")
     path = tmp_path / "out_s0.npz"
     np.savez(path, vertices=np.eye(3, dtype=np.float32), faces=np.array([[0, 1, 2]], np.int32),
              observed_distance=np.zeros(3, np.float32))
@@ -82,7 +82,7 @@ def test_results_without_labels_are_unchanged(addon, tmp_path: Path) -> None:
 
 
 def test_bad_labels_leave_the_file_as_it_was(addon, tmp_path: Path) -> None:
-    mesh_build = addon_module("mesh_build")
+    mesh_build = addon_module("scene.mesh_build")
     path = write_labelled(tmp_path / "out_s0.npz", np.array([0, 1]))
     with np.load(path) as z:
         arrays = dict(z)
@@ -96,7 +96,7 @@ def test_bad_labels_leave_the_file_as_it_was(addon, tmp_path: Path) -> None:
 
 def test_panel_classes_reach_the_core_command_line(addon) -> None:
     """The panel's Classes box asks the core for `--semantics`; off, the command is the plain completion."""
-    jobs = addon_module("jobs")
+    jobs = addon_module("jobs.completion")
     props = bpy.context.scene.hgca
     assert props.semantics is False and props.class_collections is False
     base = dict(python="python", points=np.zeros((1, 3)), region=(0.0, 0.0, 0.0, 9.6, 9.6, 8.0, 0.0))

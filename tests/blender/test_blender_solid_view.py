@@ -33,13 +33,13 @@ def test_scan_shows_as_a_mesh_with_its_colour_attribute_in_the_viewport(addon, t
     obj = import_red_point(tmp_path)
     shown = obj.evaluated_get(bpy.context.evaluated_depsgraph_get()).data
     assert len(shown.polygons) > 0  # a mesh with faces, not a point cloud
-    assert shown.color_attributes.active_color_name == addon_module("colors").COLOR_ATTRIBUTE
+    assert shown.color_attributes.active_color_name == addon_module("scene.colors").COLOR_ATTRIBUTE
 
 
 def test_solid_view_paints_a_scan_in_its_colour(addon, tmp_path: Path) -> None:
     """The viewport shapes, rendered by Workbench ("Render as Points" off), are red, not the material's grey."""
     obj = import_red_point(tmp_path)
-    assert addon_module("mesh_build").set_render_points(obj, False)
+    assert addon_module("scene.mesh_build").set_render_points(obj, False)
     rgb = covered(workbench_pixels(tmp_path, SIZE))
     assert len(rgb) >= 4, "the scan's shapes cover no pixel"
     r, g, b = np.median(rgb, axis=0)

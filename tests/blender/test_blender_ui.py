@@ -55,7 +55,7 @@ def draw(panel_cls, context=None) -> list[tuple[str, str]]:
 
 
 def test_panels_draw_every_setting(addon) -> None:
-    panels = addon_module("panels")
+    panels = addon_module("ui.panels")
     props = bpy.context.scene.hgca
     main = draw(panels.HGCA_PT_main)
     shown = {name for kind, name in main if kind == "prop"}
@@ -72,7 +72,7 @@ def test_panels_draw_every_setting(addon) -> None:
 def test_main_panel_shows_the_active_scans_point_size_and_a_results_samples(addon, tmp_path) -> None:
     import numpy as np
 
-    panels, mesh_build = addon_module("panels"), addon_module("mesh_build")
+    panels, mesh_build = addon_module("ui.panels"), addon_module("scene.mesh_build")
     pts = np.random.default_rng(0).uniform(0, 1, (50, 3)).astype(np.float32)
     scan, _ = mesh_build.build_point_object("scan", pts, {}, bpy.context.scene.collection)
     bpy.context.view_layer.objects.active = scan
@@ -90,7 +90,7 @@ def test_main_panel_shows_the_active_scans_point_size_and_a_results_samples(addo
 
 
 def test_job_panel_shows_progress_and_cancel_while_running(addon) -> None:
-    panels, jobs = addon_module("panels"), addon_module("jobs")
+    panels, jobs = addon_module("ui.panels"), addon_module("jobs.completion")
     job_panel = draw(panels.HGCA_PT_job)
     assert ("operator", "hgca.complete") in job_panel
     assert sum(1 for item in job_panel if item == ("operator", "hgca.complete")) == 2   # Complete and Preview
@@ -141,7 +141,7 @@ def _op_registered(idname: str) -> bool:
 
 
 def test_timer_is_registered_by_complete(addon) -> None:
-    jobs = addon_module("jobs")
+    jobs = addon_module("jobs.completion")
     from bl_helpers import NUSCENES, SMALL_REGION, prefs, require_fixture
 
     require_fixture(NUSCENES)

@@ -99,7 +99,7 @@ def test_ros2_bag_imports_as_the_cli_reads_it(addon, recordings) -> None:
     assert np.abs(world_vertices(obj) - want).max() < 2e-3   # city coordinates, float32 about the scene origin
     # its completion hands the core the bag itself, with the topic and frames it was read with
     scene = bpy.context.scene
-    jobs, job_inputs = addon_module("jobs"), addon_module("job_inputs")
+    jobs, job_inputs = addon_module("jobs.completion"), addon_module("jobs.job_inputs")
     inputs = job_inputs.source_inputs(scene, [obj])
     assert inputs["files"].args() == [str(bag), "--frames", "0:2", "--topic", "/points"]
     params = jobs.CompletionParams(python=CORE_PYTHON, region=(0, 0, 0, 9.6, 9.6, 4.0, 0), **inputs)
@@ -119,7 +119,7 @@ def test_the_other_topic_reads_its_own_cloud(addon, recordings) -> None:
 
 
 def test_topic_option_lists_the_bags_cloud_topics(addon, recordings) -> None:
-    rec = addon_module("recordings")
+    rec = addon_module("operators.recordings")
     two = SimpleNamespace(files=[], directory=str(recordings["ros2"]), filepath="")
     items = rec.topic_items(two, bpy.context)
     assert [i[0] for i in items] == [rec.NO_TOPIC, "/points", "/points_half"]   # several: none chosen for you
@@ -157,7 +157,7 @@ def test_e57_imports_as_the_cli_reads_it(addon, recordings) -> None:
 def test_interface_import_reads_on_a_thread(addon, recordings) -> None:
     """The path the interface takes: `start_import` returns at once, the core reads on a thread, and the object is
     added on the main thread by the poll (a timer in Blender; called here, as timers never fire in bpy)."""
-    ops, background = addon_module("operators_import"), addon_module("background")
+    ops, background = addon_module("operators.import_scans"), addon_module("jobs.background")
     e57 = recordings["e57"]
     before = snapshot()
     started = time.monotonic()
@@ -207,11 +207,11 @@ def test_estimate_poses_then_the_folder_imports(addon, tmp_path: Path) -> None:
         bpy.ops.hgca.import_scan(directory=str(folder), frames="0:2")
     assert snapshot() == before
     assert scene.hgca_poses_folder == str(folder)               # the panel now offers it
-    panels = addon_module("panels")
+    panels = addon_module("ui.panels")
     assert ("operator", "hgca.estimate_poses") in draw(panels.HGCA_PT_main)
 
     assert bpy.ops.hgca.estimate_poses() == {"FINISHED"}
-    job = addon_module("jobs").ACTIVE[scene.name]
+    job = addon_module("jobs.completion").ACTIVE[scene.name]
     assert job.wait(timeout=300) == "done", job.error
     steps = [(r.get("step"), r.get("total")) for r in job.records if "total" in r]
     assert steps and steps[-1][0] == steps[-1][1] == 2        # progress per frame, up to both frames
@@ -219,7 +219,7 @@ def test_estimate_poses_then_the_folder_imports(addon, tmp_path: Path) -> None:
     from test_blender_ui import Recorder
 
     shown: list = []   # the status bar's header while the job runs: a progress bar with the job's status
-    addon_module("operators_poses")._status_drawer(job)(SimpleNamespace(layout=Recorder(shown)), bpy.context)
+    addon_module("operators.poses")._status_drawer(job)(SimpleNamespace(layout=Recorder(shown)), bpy.context)
     assert ("progress", f"{job.status} (100%)") in shown
     doc = json.loads((folder / "poses.json").read_text())
     assert len(doc["scans"]) == 2
@@ -238,7 +238,7 @@ def test_cancelled_estimate_leaves_the_folder_as_it_was(addon, tmp_path: Path) -
     was = listing(folder)
     scene = bpy.context.scene
     assert bpy.ops.hgca.estimate_poses(folder=str(folder)) == {"FINISHED"}
-    jobs = addon_module("jobs")
+    jobs = addon_module("jobs.completion")
     job = jobs.ACTIVE[scene.name]
     deadline = time.monotonic() + 120
     while job.poll_once() and not job.records and time.monotonic() < deadline:
@@ -261,7 +261,7 @@ def test_layout_folder_without_its_pose_table(addon, tmp_path: Path) -> None:
     with pytest.raises(RuntimeError, match="has no city_SE3_egovehicle.feather: press Estimate Poses"):
         bpy.ops.hgca.import_scan(directory=str(log), frames="0:2")
     assert bpy.ops.hgca.estimate_poses(folder=str(log)) == {"FINISHED"}
-    job = addon_module("jobs").ACTIVE[bpy.context.scene.name]
+    job = addon_module("jobs.completion").ACTIVE[bpy.context.scene.name]
     assert job.wait(timeout=300) == "done", job.error
     before = snapshot()
     assert bpy.ops.hgca.import_scan(directory=str(log), frames="0:2") == {"FINISHED"}
@@ -276,7 +276,7 @@ def test_estimate_error_is_the_cores_line(addon, tmp_path: Path) -> None:
     folder.mkdir()
     (folder / "notes.md").write_text("no scans here\n")
     assert bpy.ops.hgca.estimate_poses(folder=str(folder)) == {"FINISHED"}
-    job = addon_module("jobs").ACTIVE[bpy.context.scene.name]
+    job = addon_module("jobs.completion").ACTIVE[bpy.context.scene.name]
     assert job.wait(timeout=300) == "error"
     assert str(folder) in job.error and "\n" not in job.error
     assert bpy.context.scene.hgca.status_is_error and sorted(p.name for p in folder.iterdir()) == ["notes.md"]

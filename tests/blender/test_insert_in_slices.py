@@ -99,7 +99,7 @@ def scene_data(coll: bpy.types.Collection, run: str) -> dict:
 
 
 def test_sliced_insertion_is_the_one_go_mesh_byte_for_byte(addon, results: list[Path]) -> None:
-    mesh_build, result_insert = addon_module("mesh_build"), addon_module("result_insert")
+    mesh_build, result_insert = addon_module("scene.mesh_build"), addon_module("scene.result_insert")
     scene = bpy.context.scene
     scene["hgca_origin"] = (1000.0, -1000.0, 0.0)
     one_go = mesh_build.build_results(scene, results, "run A", decimate_to=20_000, class_collections=True)
@@ -123,7 +123,7 @@ def test_sliced_insertion_is_the_one_go_mesh_byte_for_byte(addon, results: list[
 
 def test_empty_and_degenerate_results_match_the_one_go_build_too(addon, tmp_path: Path) -> None:
     """No faces at all, and a face that repeats a vertex (Blender then computes the edges itself)."""
-    mesh_build, result_insert = addon_module("mesh_build"), addon_module("result_insert")
+    mesh_build, result_insert = addon_module("scene.mesh_build"), addon_module("scene.result_insert")
     verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32)
     empty, degenerate = tmp_path / "empty.npz", tmp_path / "degenerate.npz"
     np.savez(empty, vertices=verts, faces=np.zeros((0, 3), np.int32))
@@ -139,7 +139,7 @@ def test_empty_and_degenerate_results_match_the_one_go_build_too(addon, tmp_path
 def test_every_slice_stays_within_its_budget(addon, tmp_path: Path) -> None:
     """A slice ends after the step that spends its budget: never longer than budget + the longest step, which is
     one copy into one mesh (the face starts: ~85 ns a face), so the bound holds on any CPU."""
-    result_insert = addon_module("result_insert")
+    result_insert = addon_module("scene.result_insert")
     paths = [grid_result(tmp_path / f"out_s{i}.npz", 60_000, i) for i in range(3)]
     insertion = result_insert.start_completion(bpy.context.scene, paths, "hGCA slices")
     budget = 0.01
@@ -153,7 +153,7 @@ def test_every_slice_stays_within_its_budget(addon, tmp_path: Path) -> None:
 
 
 def test_cancel_mid_insertion_leaves_the_scene_as_it_was(addon, results: list[Path]) -> None:
-    result_insert, semantics = addon_module("result_insert"), addon_module("semantics")
+    result_insert, semantics = addon_module("scene.result_insert"), addon_module("scene.semantics")
     bpy.ops.mesh.primitive_cube_add()                       # the user's own data, which must stay as it is
     semantics.class_material("road")["hgca_mine"] = 1       # a class material already in the file is reused
     before = snapshot()
@@ -168,7 +168,7 @@ def test_cancel_mid_insertion_leaves_the_scene_as_it_was(addon, results: list[Pa
 
 
 def test_progress_rises_to_100_percent_sample_by_sample(addon, results: list[Path]) -> None:
-    result_insert = addon_module("result_insert")
+    result_insert = addon_module("scene.result_insert")
     insertion = result_insert.start_completion(bpy.context.scene, results, "hGCA progress")
     seen = slices(insertion, budget=0.002)
     values = [p for p, _ in seen]
@@ -200,8 +200,8 @@ def fake_job(jobs, results: list[Path], workdir: Path, scene: bpy.types.Scene):
 
 def test_a_job_runs_on_while_its_results_go_in_and_cancel_removes_them(addon, results: list[Path],
                                                                           tmp_path: Path, monkeypatch) -> None:
-    jobs = addon_module("jobs")
-    monkeypatch.setattr(addon_module("result_insert"), "SLICE_S", 0.002)   # many slices of these small meshes
+    jobs = addon_module("jobs.completion")
+    monkeypatch.setattr(addon_module("scene.result_insert"), "SLICE_S", 0.002)   # many slices of these small meshes
     job = fake_job(jobs, results, tmp_path / "one", bpy.context.scene)
     statuses = []
     while job.poll_once():
@@ -225,7 +225,7 @@ def test_a_job_runs_on_while_its_results_go_in_and_cancel_removes_them(addon, re
 
 
 def test_drive_tiles_go_in_slice_by_slice_and_cancel_removes_only_the_half_added_one(addon, tmp_path: Path) -> None:
-    drive_results = addon_module("drive_results")
+    drive_results = addon_module("jobs.drive_results")
     tiles = {i: [grid_result(tmp_path / f"{i}_s{k}.npz", 20_000, 10 * i + k) for k in range(2)] for i in range(3)}
     before = snapshot()
     results = drive_results.DriveResults(bpy.context.scene, "hGCA drive")
@@ -253,7 +253,7 @@ def test_drive_tiles_go_in_slice_by_slice_and_cancel_removes_only_the_half_added
 
 
 def test_a_damaged_result_fails_the_job_and_adds_nothing(addon, results: list[Path], tmp_path: Path) -> None:
-    jobs = addon_module("jobs")
+    jobs = addon_module("jobs.completion")
     bad = tmp_path / "out_s2.npz"
     np.savez(bad, vertices=np.zeros((3, 3), np.float32), faces=np.array([[0, 1, 7]], np.int32))
     before = snapshot()

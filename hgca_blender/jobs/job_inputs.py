@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
-from . import georef, sources
+from ..scene import georef, sources
 
 SOURCE_KEY = "hgca_source"  # custom property of an imported scan: JSON of `ScanFiles` plus its digests
 INDEX_ATTRIBUTES = ("origin_index", "scan_index")

@@ -14,7 +14,8 @@ from pathlib import Path
 
 import bpy
 
-from . import background, core, preferences
+from .. import preferences
+from ..jobs import background, core
 
 BAG_EXTENSIONS = (".bag", ".mcap", ".db3")
 E57_EXTENSIONS = (".e57",)

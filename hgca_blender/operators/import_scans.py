@@ -16,7 +16,10 @@ import numpy as np
 from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from . import background, colors, core, georef, job_inputs, mesh_build, preferences, recordings, sources
+from .. import preferences
+from ..jobs import background, core, job_inputs
+from ..scene import colors, georef, mesh_build, sources
+from . import recordings
 from .recordings import NO_TOPIC, bag_of, input_paths, topic_items
 
 EXTENSIONS = (".ply", ".las", ".laz", ".pcd", ".xyz", ".csv", ".txt", ".npy", ".npz", ".bin", ".feather",
@@ -281,7 +284,7 @@ def start_import(context: bpy.types.Context, python: str, paths: list[Path], pos
                  collection: bpy.types.Collection, options: dict) -> None:
     """Begin an import in the interface (returns at once): `hgca read` runs on a thread, the object is added by a
     timer on the main thread (`background`), and the outcome lands in the Info log."""
-    from . import messages
+    from ..jobs import messages
 
     paths, poses = check_inputs(paths, poses, options["frames"], options["topic"])
     scene_name, collection_name = context.scene.name, collection.name

@@ -1,30 +1,25 @@
-"""Completion regions in the add-on: the default box from the core, boxes read from objects, drawn and parsed.
+"""Completion regions in the scene: boxes read from objects, drawn and parsed.
 
 A region is the CLI's 7-tuple (cx, cy, cz, sx, sy, sz, yaw_deg) in world metres (CONTRACTS.md). The add-on
-does not estimate regions itself: "Add Region Box" asks `hgca region --json` (the estimator `hgca complete`
-uses), so the CLI and the add-on put the same box around the same scans. The region box the add-on creates is
+does not estimate regions itself: "Add Region Box" asks the core (`jobs.default_region`) and draws its answer
+here, so the CLI and the add-on put the same box around the same scans. The region box the add-on creates is
 an ordinary wireframe mesh cube of unit size whose object scale is the box size, so users move, rotate (about z)
 and scale it with the usual tools; any object's bounding box (or an empty's cube) works as a region too.
 """
 from __future__ import annotations
 
 import math
-import shutil
-import tempfile
-from pathlib import Path
 
 import bpy
 import numpy as np
 
-from . import georef, job_inputs, sources
-from .core import CoreError, run_core_json
+from . import georef
 from .mesh_build import ROLE_KEY
 from .sources import update_transforms
 
 DEFAULT_SIZE = (38.4, 38.4, 8.0)  # the panel's default box size (the core's default region size)
 MAX_TILT_DEG = 1.0
 REGION_TYPES = ("MESH", "EMPTY")  # objects whose box can be a region
-REGION_TIMEOUT_S = 600
 EXACT_KEY = "hgca_exact_region"   # custom property of a box the add-on made: its region in float64 world metres
 
 
@@ -44,50 +39,6 @@ class RegionError(ValueError):
 
 
 Region = tuple[float, float, float, float, float, float, float]
-
-
-def region_request(scene: bpy.types.Scene, objects: list[bpy.types.Object], size: tuple[float, float, float],
-                   folder: Path) -> list[str]:
-    """The `hgca region` arguments for the default region around source objects (main thread: reads Blender
-    data): the scan files themselves when the objects are one unchanged import (float64, so the box is the one
-    `hgca complete FILE` uses, bit for bit), else their world points and sensor origins written to `folder`."""
-    size = clean(tuple(size))   # the panel's float32 size as the user typed it
-    if min(size) <= 0:
-        raise RegionError(f"region size must be positive, got {tuple(size)}")
-    size_arg = "--size=" + ",".join(repr(float(v)) for v in size)
-    files = job_inputs.unchanged_files(scene, objects)
-    if files is not None:
-        return ["region", *files.args(), size_arg, "--json"]
-    pts = np.concatenate([job_inputs.object_world_points(scene, o) for o in objects])
-    if len(pts) == 0:
-        raise RegionError("cannot place a region: the source objects have no points")
-    arrays = {"points": pts}
-    origins = sources.world_origins(objects)
-    if origins is not None and len(origins):
-        arrays["origins"] = georef.to_world(scene, origins)
-    np.savez(folder / "points.npz", **arrays)
-    return ["region", str(folder / "points.npz"), size_arg, "--json"]
-
-
-def ask_core(python: str, args: list[str], folder: Path) -> Region:
-    """`hgca region ... --json` answered (any thread: no Blender data): the world region. CoreError when the core
-    cannot be run or refuses the points."""
-    answer = run_core_json(python, args, timeout=REGION_TIMEOUT_S, cwd=folder)
-    values = answer.get("region")
-    if not isinstance(values, list) or len(values) != 7:
-        raise CoreError(f"hgca region answered without a 7-number region: {answer!r}")
-    return tuple(float(v) for v in values)  # type: ignore[return-value]
-
-
-def default_world_region(python: str, scene: bpy.types.Scene, objects: list[bpy.types.Object],
-                         size: tuple[float, float, float] = DEFAULT_SIZE) -> Region:
-    """The core's default region around source objects, in world coordinates (`region_request` + `ask_core`, in
-    this thread: batch runs and scripts)."""
-    folder = Path(tempfile.mkdtemp(prefix="hgca_region_"))
-    try:
-        return ask_core(python, region_request(scene, objects, size, folder), folder)
-    finally:
-        shutil.rmtree(folder, ignore_errors=True)
 
 
 def _local_bounds(obj: bpy.types.Object) -> tuple[np.ndarray, np.ndarray]:

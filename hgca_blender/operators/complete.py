@@ -1,6 +1,6 @@
 """hGCA panel operators: add a region box, start a completion job, cancel it.
 
-"Complete" only gathers inputs and starts a `jobs.CompletionJob`; the meshes are built later on the
+"Complete" only gathers inputs and starts a `completion.CompletionJob`; the meshes are built later on the
 main thread by `poll_once()` (driven by a timer in the UI), in slices of at most `result_insert.SLICE_S`; Esc or
 Cancel then removes what was added so far.
 """
@@ -10,7 +10,10 @@ import math
 
 import bpy
 
-from . import background, core, georef, job_inputs, jobs, preferences, properties, region, sources
+from .. import preferences, properties
+from ..jobs import background, completion, core, default_region, job_inputs
+from ..scene import georef, region, sources
+from .watch import JobWatching
 
 
 def _scene_props(context: bpy.types.Context):
@@ -49,7 +52,7 @@ def panel_region(context: bpy.types.Context) -> region.Region:
         tuple(props.region_center), tuple(props.region_size), props.region_yaw))
 
 
-def gather_params(context: bpy.types.Context, preview: bool = False) -> jobs.CompletionParams:
+def gather_params(context: bpy.types.Context, preview: bool = False) -> completion.CompletionParams:
     """Everything the panel says, turned into job parameters (raises with a user-facing message). Points and
     region go to the core in world coordinates: Blender's plus the scene's georeference origin (float64), the
     points with their sensor origins; an unchanged imported scan goes as its files (`job_inputs`)."""
@@ -57,7 +60,7 @@ def gather_params(context: bpy.types.Context, preview: bool = False) -> jobs.Com
     scene = context.scene
     objects = source_objects(context)
     sources.world_points(objects)  # refuses an empty selection or objects without points, with the reason
-    return jobs.CompletionParams(
+    return completion.CompletionParams(
         python=preferences.core_python(context), **job_inputs.source_inputs(scene, objects),
         region=panel_region(context),
         # Preview: one sample of the fast coarse chain as a smooth surface, whatever the panel's stage says
@@ -100,7 +103,7 @@ def start_region_box(context: bpy.types.Context) -> None:
     core.check_python(python)
     folder = Path(tempfile.mkdtemp(prefix="hgca_region_"))
     try:
-        args = region.region_request(context.scene, objs, tuple(context.scene.hgca.region_size), folder)
+        args = default_region.region_request(context.scene, objs, tuple(context.scene.hgca.region_size), folder)
     except Exception:
         shutil.rmtree(folder, ignore_errors=True)
         raise
@@ -109,7 +112,7 @@ def start_region_box(context: bpy.types.Context) -> None:
 
     def work() -> region.Region:
         try:
-            return region.ask_core(python, args, folder)
+            return default_region.ask_core(python, args, folder)
         finally:
             shutil.rmtree(folder, ignore_errors=True)
 
@@ -136,8 +139,8 @@ class HGCA_OT_add_region_box(bpy.types.Operator):
                 return {"FINISHED"}
             objs = source_objects(context)
             sources.world_points(objs)   # refuses an empty selection or objects without points, with the reason
-            world = region.default_world_region(preferences.core_python(context), context.scene, objs,
-                                                tuple(props.region_size))
+            world = default_region.default_world_region(preferences.core_python(context), context.scene, objs,
+                                                        tuple(props.region_size))
         except (core.CoreError, sources.SourceError, region.RegionError, RuntimeError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -147,7 +150,7 @@ class HGCA_OT_add_region_box(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class HGCA_OT_complete(bpy.types.Operator):
+class HGCA_OT_complete(JobWatching, bpy.types.Operator):
     """Complete the source scans inside the region with hGCA (runs in the background; Esc cancels)"""
 
     bl_idname = "hgca.complete"
@@ -157,7 +160,7 @@ class HGCA_OT_complete(bpy.types.Operator):
         name="Preview", default=False, options={"SKIP_SAVE"},
         description="One sample of the fast coarse chain as a smooth surface, in seconds: to decide where the "
                     "region goes before a full completion")
-    _timer = None
+    cancel_message = "hGCA completion cancelled (Esc)"
 
     @classmethod
     def description(cls, context: bpy.types.Context, properties) -> str:
@@ -168,49 +171,16 @@ class HGCA_OT_complete(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
-        return context.scene is not None and jobs.active_job(context.scene.name) is None
+        return context.scene is not None and completion.active_job(context.scene.name) is None
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         try:
             params = gather_params(context, preview=self.preview)
-            job = jobs.start_job(params)
+            job = completion.start_job(params)
         except (core.CoreError, sources.SourceError, region.RegionError) as exc:
             return refuse_start(self, context, exc)
-        jobs.ensure_timer()
+        completion.ensure_timer()
         self.report({"INFO"}, f"hGCA started on {len(params.points):,} points (process {job.pid})")
-        return {"FINISHED"}
-
-    def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
-        """From the panel: start the job, then watch it so Esc cancels it and the status bar shows it."""
-        if self.execute(context) != {"FINISHED"}:
-            return {"CANCELLED"}
-        if context.window is None:
-            return {"FINISHED"}
-        self._timer = context.window_manager.event_timer_add(jobs.POLL_INTERVAL_S, window=context.window)
-        context.window_manager.modal_handler_add(self)
-        return {"RUNNING_MODAL"}
-
-    def modal(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
-        job = jobs.ACTIVE.get(context.scene.name)
-        if job is not None and job.running and event.type == "ESC" and event.value == "PRESS":
-            job.cancel()
-            jobs.poll_all()
-            self.report({"INFO"}, "hGCA completion cancelled (Esc)")
-            return self._finish(context)
-        if job is None or not job.running:
-            return self._finish(context)
-        if job.finishing is not None:   # the results going in, slice by slice: "Adding sample 2 of 3: 45 %"
-            jobs.status_bar(context, f"hGCA: {job.status}  Esc: cancel")
-        else:
-            jobs.status_bar(context, f"hGCA: {job.status} ({job.progress * 100:.0f}%{jobs.time_left(job)})  "
-                                     "Esc: cancel")
-        return {"PASS_THROUGH"}
-
-    def _finish(self, context: bpy.types.Context) -> set[str]:
-        if self._timer is not None:
-            context.window_manager.event_timer_remove(self._timer)
-            self._timer = None
-        jobs.status_bar(context, None)
         return {"FINISHED"}
 
 
@@ -222,14 +192,14 @@ class HGCA_OT_cancel(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
-        return context.scene is not None and jobs.active_job(context.scene.name) is not None
+        return context.scene is not None and completion.active_job(context.scene.name) is not None
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        job = jobs.active_job(context.scene.name)
+        job = completion.active_job(context.scene.name)
         if job is None:
             return {"CANCELLED"}
         job.cancel()
-        jobs.poll_all()
+        completion.poll_all()
         self.report({"INFO"}, "hGCA completion cancelled")
         return {"FINISHED"}
 

@@ -19,7 +19,9 @@ from typing import Any
 import bpy
 import numpy as np
 
-from . import messages, result_insert, settings
+from .. import settings
+from ..scene import result_insert
+from . import messages
 from .core import CoreError, Job, check_python, core_command
 from .job_inputs import ScanFiles
 
@@ -229,8 +231,8 @@ def time_left(job: Job) -> str:
     return f", about {int(left // 60)} min {int(left % 60)} s left" if left >= 60 else f", about {int(left)} s left"
 
 
-def status_bar(context: bpy.types.Context, text: str | None) -> None:
-    """Text in the status bar while a job runs (None gives the bar back to Blender)."""
+def status_bar(context: bpy.types.Context, text: Any) -> None:
+    """Text in the status bar while a job runs, or a header draw function (None gives the bar back to Blender)."""
     workspace = getattr(context, "workspace", None)
     if workspace is not None and not bpy.app.background:
         workspace.status_text_set(text)

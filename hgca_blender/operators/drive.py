@@ -1,8 +1,8 @@
 """hGCA panel operators for whole drives: show the planned tiles, complete along the drive.
 
 The scans are the panel's source objects (selected, or a collection), each with the sensor origins its import
-stored; the core plans the tiles and runs them (`drive_job`). Cancel is the panel's Cancel (`hgca.cancel`):
-finished tiles stay.
+stored; the core plans the tiles and runs them (`drive_job`). Cancel is the panel's Cancel (`hgca.cancel`) or Esc
+(`watch.JobWatching`, as for a completion): finished tiles stay.
 """
 from __future__ import annotations
 
@@ -11,7 +11,11 @@ from pathlib import Path
 
 import bpy
 
-from . import core, drive_job, jobs, operators_complete, preferences, properties, sources
+from .. import preferences, properties
+from ..jobs import completion, core, drive_job
+from ..scene import sources
+from . import complete
+from .watch import JobWatching
 
 
 def drive_folder(context: bpy.types.Context) -> str:
@@ -36,7 +40,7 @@ def drive_params(context: bpy.types.Context) -> drive_job.DriveParams:
 
 
 def drive_sources(context: bpy.types.Context) -> list[bpy.types.Object]:
-    objs = operators_complete.source_objects(context)
+    objs = complete.source_objects(context)
     if not objs:
         raise sources.SourceError("no source objects: select imported scans (or pick a collection) first")
     return objs
@@ -63,23 +67,24 @@ class HGCA_OT_drive_plan(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class HGCA_OT_drive(bpy.types.Operator):
+class HGCA_OT_drive(JobWatching, bpy.types.Operator):
     """Complete the whole drive through the source scans, tile by tile (runs in the background; finished tiles
-    appear as they are done and stay when cancelled)"""
+    appear as they are done and stay when cancelled; Esc cancels)"""
 
     bl_idname = "hgca.drive"
     bl_label = "Complete Along Drive"
+    cancel_message = "hGCA drive cancelled (Esc): finished tiles stay"
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
-        return context.scene is not None and jobs.active_job(context.scene.name) is None
+        return context.scene is not None and completion.active_job(context.scene.name) is None
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         try:
             job = drive_job.start_drive_job(drive_params(context), drive_sources(context))
         except (core.CoreError, sources.SourceError) as exc:
-            return operators_complete.refuse_start(self, context, exc)
-        jobs.ensure_timer()
+            return complete.refuse_start(self, context, exc)
+        completion.ensure_timer()
         self.report({"INFO"}, f"hGCA drive started into {job.params.out_dir} (process {job.pid})")
         return {"FINISHED"}
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import bpy
 from bpy.props import EnumProperty, IntProperty
 
-from . import mesh_build
+from ..scene import mesh_build
 
 SAMPLE_KEY = "hgca_sample"
 

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import bpy
 
-from . import georef, jobs, mesh_build, operators_poses, operators_results, recordings
+from ..jobs import completion
+from ..operators import poses, recordings, results
+from ..scene import georef, mesh_build
 
 
 class _SidebarTab:
@@ -61,13 +63,13 @@ def draw_georef(layout: bpy.types.UILayout, scene: bpy.types.Scene) -> None:
 
 def draw_results(layout: bpy.types.UILayout, obj: bpy.types.Object | None) -> None:
     """For an active completion result: which sample it is, stepping through them, and its colours."""
-    objects = operators_results.run_objects(obj)
+    objects = results.run_objects(obj)
     if not objects:
         return
     col = layout.column(heading="Result")
     row = col.row(align=True)
     row.operator("hgca.step_sample", text="", icon="TRIA_LEFT").step = -1
-    row.label(text=f"Sample {int(obj[operators_results.SAMPLE_KEY])} of {len(objects)}")
+    row.label(text=f"Sample {int(obj[results.SAMPLE_KEY])} of {len(objects)}")
     row.operator("hgca.step_sample", text="", icon="TRIA_RIGHT").step = 1
     row = col.row(align=True)
     row.operator("hgca.result_colors", text="Generated").mode = "OBSERVED"
@@ -96,9 +98,9 @@ class HGCA_PT_main(_SidebarTab, bpy.types.Panel):
             n = sum(1 for o in context.selected_objects if o.type in {"MESH", "POINTCLOUD"})
             col.label(text=f"{n} selected object(s)")
 
-        folder = getattr(context.scene, operators_poses.FOLDER_PROPERTY, "")
+        folder = getattr(context.scene, poses.FOLDER_PROPERTY, "")
         if folder.strip() and recordings.missing_poses(bpy.path.abspath(folder)):   # an import found no poses
-            operators_poses.draw_poses(layout, context)
+            poses.draw_poses(layout, context)
         draw_point_size(layout, context.active_object)
         draw_results(layout, context.active_object)
 
@@ -182,7 +184,7 @@ class HGCA_PT_drive(_Section, bpy.types.Panel):
         layout.use_property_decorate = False
         props = context.scene.hgca
         layout.prop(props, "drive_dir")
-        from .operators_drive import drive_folder
+        from ..operators.drive import drive_folder
 
         folder = drive_folder(context)
         used = folder_size(folder)
@@ -191,7 +193,7 @@ class HGCA_PT_drive(_Section, bpy.types.Panel):
         layout.prop(props, "drive_tile_size")
         layout.prop(props, "drive_overlap")
         layout.prop(props, "drive_workers")
-        job = jobs.active_job(context.scene.name)
+        job = completion.active_job(context.scene.name)
         row = layout.row(align=True)
         row.enabled = job is None
         row.operator("hgca.drive_plan", icon="CUBE")
@@ -209,7 +211,7 @@ class HGCA_PT_poses(_Section, bpy.types.Panel):
     bl_label = "Estimate Poses"
 
     def draw(self, context: bpy.types.Context) -> None:
-        operators_poses.draw_poses(self.layout, context)
+        poses.draw_poses(self.layout, context)
 
 
 class HGCA_PT_job(_SidebarTab, bpy.types.Panel):
@@ -220,7 +222,7 @@ class HGCA_PT_job(_SidebarTab, bpy.types.Panel):
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.layout
         props = context.scene.hgca
-        running = jobs.active_job(context.scene.name) is not None
+        running = completion.active_job(context.scene.name) is not None
         row = layout.row(align=True)
         row.scale_y = 1.4
         if running:

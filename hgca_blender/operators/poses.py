@@ -17,7 +17,10 @@ from typing import Any
 import bpy
 from bpy.props import StringProperty
 
-from . import core, jobs, messages, preferences, recordings
+from .. import preferences
+from ..jobs import completion, core, messages
+from . import recordings
+from .watch import JobWatching
 
 FOLDER_PROPERTY = "hgca_poses_folder"   # Scene property: the folder the panel offers to estimate poses for
 # The progress bar's share of each stage the core reports (reading the frames, then registering them one by one)
@@ -88,7 +91,7 @@ class PosesJob(core.Job):
             self.out.write_bytes(self._before)
 
     def publish(self) -> None:
-        jobs.publish_state(self)
+        completion.publish_state(self)
 
     def on_end(self) -> None:
         messages.report_job(self)
@@ -101,13 +104,13 @@ def start_estimate(python: str, folder: Path, scene_name: str, topic: str = "") 
         raise core.CoreError(f"folder not found: {folder}")
     if bpy.data.scenes.get(scene_name) is None:
         raise core.CoreError(f"no scene named {scene_name!r}")
-    if jobs.active_job(scene_name) is not None:
+    if completion.active_job(scene_name) is not None:
         raise core.CoreError(f"a job is already running in scene {scene_name!r}")
     core.check_python(python)
     out = (folder if folder.is_dir() else folder.parent) / recordings.POSES_FILE
     workdir = Path(tempfile.mkdtemp(prefix="hgca_poses_"))
     job = PosesJob(folder, out, scene_name, core.core_command(python, estimate_args(folder, out, topic)), workdir)
-    jobs.ACTIVE[scene_name] = job
+    completion.ACTIVE[scene_name] = job
     job.publish()
     return job
 
@@ -122,7 +125,7 @@ def _status_drawer(job: PosesJob):
     return draw
 
 
-class HGCA_OT_estimate_poses(bpy.types.Operator):
+class HGCA_OT_estimate_poses(JobWatching, bpy.types.Operator):
     """Estimate the sensor poses of a folder of sweeps with LiDAR odometry (KISS-ICP), written to poses.json in
     the folder, so the folder imports as one posed sequence (runs in the background; Esc cancels)"""
 
@@ -132,11 +135,12 @@ class HGCA_OT_estimate_poses(bpy.types.Operator):
     folder: StringProperty(name="Folder", subtype="DIR_PATH", options={"SKIP_SAVE"},
                            description="Folder of sweeps without poses (default: the panel's)")
     topic: StringProperty(name="Topic", options={"SKIP_SAVE"}, description="A ROS bag's point cloud topic")
-    _timer = None
+    cancel_message = "Estimate Poses cancelled (Esc): the folder is as it was"
+    status_text = staticmethod(_status_drawer)   # a progress bar in the status bar
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
-        return context.scene is not None and jobs.active_job(context.scene.name) is None
+        return context.scene is not None and completion.active_job(context.scene.name) is None
 
     def _folder(self, context: bpy.types.Context) -> str:
         chosen = self.folder.strip() or getattr(context.scene, FOLDER_PROPERTY, "").strip()
@@ -150,47 +154,11 @@ class HGCA_OT_estimate_poses(bpy.types.Operator):
             job = start_estimate(preferences.core_python(context), Path(folder), context.scene.name,
                                  self.topic.strip())
         except core.CoreError as exc:
-            from .operators_complete import refuse_start
+            from .complete import refuse_start
 
             return refuse_start(self, context, exc)
-        jobs.ensure_timer()
+        completion.ensure_timer()
         self.report({"INFO"}, f"Estimating the poses of {job.folder.name} (process {job.pid})")
-        return {"FINISHED"}
-
-    def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
-        """From the panel: start the job, then watch it so Esc cancels it and the status bar shows its progress."""
-        if self.execute(context) != {"FINISHED"}:
-            return {"CANCELLED"}
-        if context.window is None:
-            return {"FINISHED"}
-        job = jobs.ACTIVE.get(context.scene.name)
-        if isinstance(job, PosesJob):
-            jobs.status_bar(context, _status_drawer(job))
-        self._timer = context.window_manager.event_timer_add(jobs.POLL_INTERVAL_S, window=context.window)
-        context.window_manager.modal_handler_add(self)
-        return {"RUNNING_MODAL"}
-
-    def modal(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
-        job = jobs.ACTIVE.get(context.scene.name)
-        if job is not None and job.running and event.type == "ESC" and event.value == "PRESS":
-            job.cancel()
-            jobs.poll_all()
-            self.report({"INFO"}, "Estimate Poses cancelled (Esc): the folder is as it was")
-            return self._finish(context)
-        if job is None or not job.running:
-            return self._finish(context)
-        if context.area is not None:
-            context.area.tag_redraw()
-        for area in context.screen.areas if context.screen is not None else []:
-            if area.type == "STATUSBAR":
-                area.tag_redraw()
-        return {"PASS_THROUGH"}
-
-    def _finish(self, context: bpy.types.Context) -> set[str]:
-        if self._timer is not None:
-            context.window_manager.event_timer_remove(self._timer)
-            self._timer = None
-        jobs.status_bar(context, None)
         return {"FINISHED"}
 
 
@@ -207,7 +175,7 @@ def draw_poses(layout: bpy.types.UILayout, context: bpy.types.Context) -> None:
         box.label(text="The folder has its poses.json", icon="CHECKMARK")
         box.operator("hgca.import_scan", text="Import Folder", icon="IMPORT").directory = bpy.path.abspath(folder)
     row = box.row()
-    row.enabled = jobs.active_job(scene.name) is None and bool(folder.strip())
+    row.enabled = completion.active_job(scene.name) is None and bool(folder.strip())
     row.operator(HGCA_OT_estimate_poses.bl_idname, icon="TRACKING")
 
 

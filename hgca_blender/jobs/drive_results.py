@@ -13,9 +13,9 @@ from pathlib import Path
 
 import bpy
 
-from . import georef, mesh_build, result_insert
+from ..scene import georef, mesh_build, result_insert
+from ..scene.result_prepare import SampleArrays, prepare_tile
 from .core import CoreError
-from .result_prepare import SampleArrays, prepare_tile
 
 
 class DriveResults:

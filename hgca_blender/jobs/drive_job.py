@@ -26,9 +26,11 @@ from typing import Any
 import bpy
 import numpy as np
 
-from . import georef, jobs, mesh_build, messages, region, settings, sources
-from .drive_results import DriveResults
+from .. import settings
+from ..scene import georef, mesh_build, region, sources
+from . import completion, messages
 from .core import CoreError, Job, check_python, core_command, run_core_json
+from .drive_results import DriveResults
 
 # Share of the progress bar: reading the scans, the tiles, merging the samples.
 WEIGHTS = {"read": 0.05, "tile": 0.9, "merge": 0.05}
@@ -64,7 +66,7 @@ class DriveParams:
 
 def drive_args(params: DriveParams) -> list[str]:
     """The `hgca drive` command line (docs/CONTRACTS.md, "Drive CLI"), meshes as .npz for the add-on."""
-    values = {**jobs.setting_values(params), "drive_workers": int(params.workers)}
+    values = {**completion.setting_values(params), "drive_workers": int(params.workers)}
     if not int(params.max_faces):
         values.pop("max_faces")          # a drive's tiles keep every triangle by default
     args = ["drive", *params.scans, "--out", params.out_dir, *settings.core_args(values), *_plan_args(params),
@@ -270,7 +272,7 @@ class DriveJob(Job):
     def on_inserted(self, results: DriveResults) -> None:
         if not self.results.collection_name:
             raise CoreError("the drive finished without tiles")
-        jobs.undo_push(f"hGCA: {self.run_name}")
+        completion.undo_push(f"hGCA: {self.run_name}")
 
     def success_status(self) -> str:
         return f"Done: {self.tiles} tiles x {self.params.samples} sample(s) in '{self.collection_name}'"
@@ -293,7 +295,7 @@ class DriveJob(Job):
         self.publish()
 
     def publish(self) -> None:
-        jobs.publish_state(self)
+        completion.publish_state(self)
 
     def on_end(self) -> None:
         messages.report_job(self)
@@ -309,7 +311,7 @@ def start_drive_job(params: DriveParams, objects: list[bpy.types.Object] | None 
     scene = bpy.data.scenes.get(params.scene_name)
     if scene is None:
         raise CoreError(f"no scene named {params.scene_name!r}")
-    if jobs.active_job(params.scene_name) is not None:
+    if completion.active_job(params.scene_name) is not None:
         raise CoreError(f"a job is already running in scene {params.scene_name!r}")
     check_python(params.python)
     if not 1 <= int(params.samples) <= 8:
@@ -330,7 +332,7 @@ def start_drive_job(params: DriveParams, objects: list[bpy.types.Object] | None 
     except Exception:
         shutil.rmtree(workdir, ignore_errors=True)
         raise
-    jobs.ACTIVE[params.scene_name] = job
+    completion.ACTIVE[params.scene_name] = job
     job.publish()
     return job
 

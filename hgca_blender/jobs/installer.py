@@ -27,9 +27,9 @@ import bpy
 
 from . import core, messages
 
-PACKAGE = __package__ or "hgca_blender"
+PACKAGE = (__package__ or "hgca_blender.jobs").rpartition(".")[0]   # the add-on itself (its preferences, its folder)
 INSTALLER = Path(__file__).resolve().parent / "install_core.py"
-WHEEL_DIR = Path(__file__).resolve().parent / "core"
+WHEEL_DIR = Path(__file__).resolve().parents[1] / "core"             # the extension's core/ (build_extension)
 ENV_NAME = "core_env"
 # the installer's stages and their share of the bar (measured: venv 5 s, collecting 15 s, unpacking 60 s, check 10 s)
 STAGE_SHARE = {"venv": (0.0, 0.05), "pip": (0.05, 0.3), "install": (0.3, 0.9), "check": (0.9, 1.0)}

@@ -11,7 +11,7 @@ from decimal import Decimal, InvalidOperation
 import bpy
 from bpy.props import StringProperty
 
-from . import georef, mesh_build
+from ..scene import georef, mesh_build
 
 
 def placed_objects(scene: bpy.types.Scene) -> list[str]:
