@@ -230,6 +230,7 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
     """
     from hgca_core.models.gca import sample as gca_sample
     from hgca_core.nn.conv import gemm_precision, resolve_precision
+    from hgca_core.nn.sparse import CellState
 
     if stage is None:
         stage = "full" if models.fine is not None else "coarse"
@@ -278,7 +279,8 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
         tag = f"sample {i + 1}/{samples}"
         gen = torch.Generator().manual_seed(seed + i)   # on the CPU on any device: one seed, one mesh
         with gemm_precision(gemm_dtype):
-            occ = gca_sample(models.coarse, cs.with_batch(torch.from_numpy(s0).to(device)), grid, steps, gen,
+            start = CellState(cs.with_batch(torch.from_numpy(s0).to(device)), grid)
+            occ = gca_sample(models.coarse, start, steps, gen,
                              lambda t, n: report("planner" if t == 0 else "coarse", t, n, tag, i), free, forbid)
         cells, cells10, latents10 = occ[:, 1:].cpu().numpy(), None, None
         if stage == "full":

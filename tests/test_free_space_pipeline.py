@@ -60,7 +60,7 @@ def test_free_space_is_computed_once_from_every_ray_and_reaches_both_stages(scen
     monkeypatch.setattr(freespace, "observed_empty", lambda *a, **k: calls.append(1) or real_walk(*a, **k))
 
     def spy_gca(*a, **k):
-        seen["coarse"].append(a[6])                                  # free
+        seen["coarse"].append(a[5])                                  # free
         return real_gca(*a, **k)
 
     def spy_up(*a, **k):

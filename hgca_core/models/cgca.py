@@ -41,7 +41,7 @@ from hgca_core.models import free as fs
 from hgca_core.models.config import Config
 from hgca_core.nn.encoding import sinusoidal
 from hgca_core.nn.row_grid import member_rows
-from hgca_core.nn.sparse import SparseConv3d, SparseConvTranspose3d, SparseTensor
+from hgca_core.nn.sparse import CellState, SparseConv3d, SparseConvTranspose3d, SparseTensor
 from hgca_core.nn.unet import SparseUNet
 
 
@@ -116,28 +116,28 @@ class CGCAKernel(nn.Module):
         else:
             raise ValueError(f"unet_stride must be 1 or 2, got {cfg.unet_stride}")
 
-    def neighbourhood(self, state: torch.Tensor, grid: tuple[int, int, int]) -> torch.Tensor:
-        return cs.dilate(state, self.cfg.radius, self.cfg.metric, grid)
+    def neighbourhood(self, state: CellState) -> CellState:
+        return state.with_coords(cs.dilate(state.coords, self.cfg.radius, self.cfg.metric, state.grid))
 
     def free_columns(self) -> dict[str, tuple[int, list[int]]]:
         """{parameter name: (dim, indices)} where the free-space input enters (see GCAKernel.free_columns)."""
         return {"proj.0.weight": (1, [self.proj[0].in_features - 1])} if self.cfg.free_space else {}
 
-    def forward(self, nbhd: torch.Tensor, state: torch.Tensor, z_state: torch.Tensor, x0: torch.Tensor,
-                z0: torch.Tensor, grid: tuple[int, int, int],
-                free: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """nbhd (M, 4) sorted unique cells; state / x0 (N, 4) cells with latents (N, K); grid bounds x, y, z;
+    def forward(self, nbhd: CellState, state: torch.Tensor, z_state: torch.Tensor, x0: torch.Tensor,
+                z0: torch.Tensor, free: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """nbhd: (M, 4) sorted unique cells in their grid; state / x0 (N, 4) cells with latents (N, K);
         free (B, *grid) bool seen-empty 10 cm cells (read only with cfg.free_space; None: all unknown)."""
-        feats = self.project(nbhd, state, z_state, x0, z0, grid, free)
-        x = SparseTensor(nbhd, feats, check=False)
+        feats = self.project(nbhd, state, z_state, x0, z0, free)
+        x = SparseTensor(nbhd.coords, feats, check=False, grid=nbhd.grid)
         if self.cfg.unet_stride == 1:
             out = self.unet(x).feats
         else:
             p = self.down(x)                                   # parents, coords multiples of 2, stride 2
             pc = p.coords.clone()
             pc[:, 1:] = torch.div(pc[:, 1:], 2, rounding_mode="floor")    # the same cells in 20 cm units
-            h = self.unet(SparseTensor(pc, p.feats, check=False)).feats
-            u = self.up(SparseTensor(p.coords, h, 2, p.cache, check=False), x)  # reuses the down map
+            grid20 = tuple(-(-g // 2) for g in nbhd.grid)
+            h = self.unet(SparseTensor(pc, p.feats, check=False, grid=grid20)).feats
+            u = self.up(SparseTensor(p.coords, h, 2, p.cache, check=False, grid=p.grid), x)  # reuses the down map
             # head(cat([feats, relu(u)])) with its first layer split by input block: no (M, 40) concatenation
             first, c = self.head[0], feats.shape[1]
             hid = torch.addmm(first.bias, feats, first.weight[:, :c].T)
@@ -145,8 +145,8 @@ class CGCAKernel(nn.Module):
             out = self.head[2](torch.relu_(hid))
         return out[:, 0], out[:, 1:]
 
-    def project(self, nbhd: torch.Tensor, state: torch.Tensor, z_state: torch.Tensor, x0: torch.Tensor,
-                z0: torch.Tensor, grid: tuple[int, int, int], free: torch.Tensor | None = None) -> torch.Tensor:
+    def project(self, nbhd: CellState, state: torch.Tensor, z_state: torch.Tensor, x0: torch.Tensor,
+                z0: torch.Tensor, free: torch.Tensor | None = None) -> torch.Tensor:
         """relu(proj([in x^t, in x^0, z^t, z^0, PE (, in free)])) per neighbourhood cell, computed block by block.
 
         The same linear map as on the concatenated (M, 2 + 2K + PE) input, but the latent blocks are multiplied
@@ -154,6 +154,7 @@ class CGCAKernel(nn.Module):
         encoding is a per-z table: on the default region this drops a 1.2 M x 78 concatenation and most of the
         projection's multiply-adds, every step.
         """
+        grid, nbhd = nbhd.grid, nbhd.coords                             # (M, 4) cells from here on
         lin, k = self.proj[0], self.cfg.latent
         w = lin.weight                                                  # (P, 2 + 2K + PE (+ 1))
         w_pe = w[:, 2 + 2 * k: 2 + 2 * k + self.pe_dim]
@@ -182,21 +183,21 @@ class CGCAKernel(nn.Module):
 
 
 @torch.no_grad()
-def sample(model: CGCAKernel, x0: torch.Tensor, z0: torch.Tensor, grid: tuple[int, int, int], steps: int,
+def sample(model: CGCAKernel, x0: CellState, z0: torch.Tensor, steps: int,
            generator: torch.Generator, progress: Callable[[int, int], None] | None = None,
            free: torch.Tensor | None = None, forbid: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Run the chain from x^0 for `steps` transitions; the last one by maximum likelihood.
 
-    x0: (N, 4) batched cells, z0: (N, K). Returns the final (cells (M, 4), latents (M, K)). All randomness comes
-    from `generator`, so a seed names one result. free: (B, *grid) bool seen-empty 10 cm cells (the model's input
-    when it has free_space); forbid: (B, *grid) bool 10 cm cells dropped from every sampled state (the same random
-    draws either way).
+    x0: (N, 4) batched cells in their grid, z0: (N, K). Returns the final (cells (M, 4), latents (M, K)). All
+    randomness comes from `generator`, so a seed names one result. free: (B, *grid) bool seen-empty 10 cm cells (the
+    model's input when it has free_space); forbid: (B, *grid) bool 10 cm cells dropped from every sampled state (the
+    same random draws either way).
     """
     model.eval()
     state, z = x0, z0
     for t in range(steps):
-        nbhd = model.neighbourhood(state, grid)
-        logits, mu = model(nbhd, state, z, x0, z0, grid, free)
+        nbhd = model.neighbourhood(state)
+        logits, mu = model(nbhd, state.coords, z, x0.coords, z0, free)
         last = t == steps - 1
         if last:
             keep = logits > 0
@@ -205,7 +206,7 @@ def sample(model: CGCAKernel, x0: torch.Tensor, z0: torch.Tensor, grid: tuple[in
             keep = (torch.rand(logits.shape, generator=generator, device=generator.device).to(logits.device)
                     < torch.sigmoid(logits))
         if forbid is not None:
-            keep &= ~fs.at(forbid, nbhd)
+            keep &= ~fs.at(forbid, nbhd.coords)
         state, z = nbhd[keep], mu[keep]
         if not last:   # latent noise only for the cells kept (~1/5 of N(x))
             z = z + model.cfg.sigma * torch.randn(z.shape, generator=generator, device=generator.device).to(z.device)
@@ -213,7 +214,7 @@ def sample(model: CGCAKernel, x0: torch.Tensor, z0: torch.Tensor, grid: tuple[in
             progress(t + 1, steps)
         if len(state) == 0:  # the chain died out: nothing left to grow from
             break
-    return state, z
+    return state.coords, z
 
 
 def input_cells(autoencoder: Autoencoder, points_local: np.ndarray | torch.Tensor,
@@ -232,8 +233,9 @@ def input_cells(autoencoder: Autoencoder, points_local: np.ndarray | torch.Tenso
 
 def initial_state(autoencoder: Autoencoder, points_local: np.ndarray | torch.Tensor,
                   coarse_cells: np.ndarray | torch.Tensor, grid: tuple[int, int, int]
-                  ) -> tuple[torch.Tensor, torch.Tensor]:
-    """x^0 = union(input cells with encoder latents, upsample2(coarse 20 cm cells) with zero latents)."""
+                  ) -> tuple[CellState, torch.Tensor]:
+    """x^0 = union(input cells with encoder latents, upsample2(coarse 20 cm cells) with zero latents), in `grid`
+    (the 10 cm grid, where the chain's state is made), and its latents."""
     dev = next(autoencoder.parameters()).device
     in_cells, z_in = input_cells(autoencoder, points_local, grid)
     coarse = torch.as_tensor(np.asarray(coarse_cells) if not isinstance(coarse_cells, torch.Tensor) else coarse_cells)
@@ -242,7 +244,7 @@ def initial_state(autoencoder: Autoencoder, points_local: np.ndarray | torch.Ten
     x0 = cs.union(in_cells, up)
     z0 = z_in.new_zeros((len(x0), z_in.shape[1]))
     z0[cs.lookup(in_cells, cs.pack(x0))] = z_in
-    return x0, z0
+    return CellState(x0, grid), z0
 
 
 def upsample(model: CGCAKernel, autoencoder: Autoencoder, input_points_local: np.ndarray | torch.Tensor,
@@ -261,5 +263,5 @@ def upsample(model: CGCAKernel, autoencoder: Autoencoder, input_points_local: np
     x0, z0 = initial_state(autoencoder, input_points_local, coarse_cells, grid10)
     free = fs.upsample(free20, tuple(grid10)) if free20 is not None and model.cfg.free_space else None
     forbid = fs.upsample(forbid20, tuple(grid10)) if forbid20 is not None else None
-    cells, z = sample(model, x0, z0, tuple(grid10), steps or model.cfg.steps, generator, progress, free, forbid)
+    cells, z = sample(model, x0, z0, steps or model.cfg.steps, generator, progress, free, forbid)
     return cells[:, 1:], z

@@ -28,7 +28,7 @@ from hgca_core.models.config import Config
 from hgca_core.models.planner import BevOutput, Planner, pillar_index
 from hgca_core.nn.encoding import sinusoidal
 from hgca_core.nn.row_grid import member_rows
-from hgca_core.nn.sparse import SparseTensor
+from hgca_core.nn.sparse import CellState, SparseTensor
 from hgca_core.nn.unet import SparseUNet
 
 
@@ -69,11 +69,10 @@ class GCAKernel(nn.Module):
         self.planner = Planner(list(self.unet.channels[: self.unet.num_levels]), z_r=cfg.z_r,
                                free_bins=cfg.z_r if cfg.free_space else 0) if cfg.use_planner else None
 
-    def bev(self, s0: torch.Tensor, batch: int, grid: tuple[int, int, int],
-            free: torch.Tensor | None = None) -> BevOutput | None:
+    def bev(self, s0: CellState, batch: int, free: torch.Tensor | None = None) -> BevOutput | None:
         if self.planner is None:
             return None
-        return self.planner(s0, batch, grid, free if self.cfg.free_space else None)
+        return self.planner(s0, batch, free if self.cfg.free_space else None)
 
     def free_columns(self) -> dict[str, tuple[int, list[int]]]:
         """{parameter name: (dim, indices)}: where the free-space inputs enter the weights (empty without them).
@@ -85,30 +84,32 @@ class GCAKernel(nn.Module):
             cols.update(self.planner.free_columns("planner."))
         return cols
 
-    def neighbourhood(self, state: torch.Tensor, grid: tuple[int, int, int]) -> torch.Tensor:
-        return cs.dilate(state, self.cfg.radius, bounds=grid)
+    def neighbourhood(self, state: CellState) -> CellState:
+        return state.with_coords(cs.dilate(state.coords, self.cfg.radius, bounds=state.grid))
 
-    def forward(self, nbhd: torch.Tensor, state: torch.Tensor, s0: torch.Tensor,
-                grid: tuple[int, int, int], bev: BevOutput | None, free: torch.Tensor | None = None) -> torch.Tensor:
-        """`free`: (B, *grid) bool seen-empty cells (`hgca_core.models.free`); read only with cfg.free_space,
-        where None means all unknown."""
-        cols = [_isin(nbhd, state).float()[:, None], _isin(nbhd, s0).float()[:, None]]
+    def forward(self, nbhd: CellState, state: torch.Tensor, s0: torch.Tensor, bev: BevOutput | None,
+                free: torch.Tensor | None = None) -> torch.Tensor:
+        """Logits on the cells of `nbhd` (in its grid) given the (N, 4) cells of s^t and s^0, whose membership alone
+        is read. `free`: (B, *grid) bool seen-empty cells (`hgca_core.models.free`); read only with
+        cfg.free_space, where None means all unknown."""
+        cells = nbhd.coords
+        cols = [_isin(cells, state).float()[:, None], _isin(cells, s0).float()[:, None]]
         if self.cfg.free_space:
-            cols.append(fs.at(free, nbhd).float()[:, None])
-        g = torch.tensor(grid, dtype=torch.float32, device=nbhd.device)[self.pe_axes]
-        pe = sinusoidal((nbhd[:, 1:][:, self.pe_axes].float() + 0.5) / g, self.cfg.pe_freq)
-        x = SparseTensor(nbhd, torch.cat([*cols, pe], dim=1))
-        out = self.unet(x, modulate=self._spade(bev, grid) if bev is not None else None)
+            cols.append(fs.at(free, cells).float()[:, None])
+        g = torch.tensor(nbhd.grid, dtype=torch.float32, device=cells.device)[self.pe_axes]
+        pe = sinusoidal((cells[:, 1:][:, self.pe_axes].float() + 0.5) / g, self.cfg.pe_freq)
+        x = SparseTensor(cells, torch.cat([*cols, pe], dim=1), grid=nbhd.grid)
+        out = self.unet(x, modulate=self._spade(bev) if bev is not None else None)
         return out.feats[:, 0]
 
     @staticmethod
-    def _spade(bev: BevOutput, grid: tuple[int, int, int]) -> Callable[[int, SparseTensor], SparseTensor]:
-        hw = Planner.bev_shape(grid)
+    def _spade(bev: BevOutput) -> Callable[[int, SparseTensor], SparseTensor]:
+        """SPADE by the BEV maps, each level's cells finding their pillar in the grid their tensor carries."""
 
         def modulate(level: int, x: SparseTensor) -> SparseTensor:
             gamma, beta = bev.spade[level]
             c = gamma.shape[1]
-            idx = pillar_index(x.coords, x.stride, hw)
+            idx = pillar_index(x.coords, x.stride, Planner.bev_shape(x.grid))
             g = gamma.permute(0, 2, 3, 1).reshape(-1, c)[idx]
             b = beta.permute(0, 2, 3, 1).reshape(-1, c)[idx]
             if torch.is_grad_enabled():
@@ -124,16 +125,16 @@ def _isin(query: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
     return cs.isin(query, cells) if rows is None else rows >= 0
 
 
-def transition(model: GCAKernel, state: torch.Tensor, s0: torch.Tensor, grid: tuple[int, int, int],
-               bev: BevOutput | None, free: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+def transition(model: GCAKernel, state: CellState, s0: CellState, bev: BevOutput | None,
+               free: torch.Tensor | None) -> tuple[CellState, torch.Tensor]:
     """One step of the chain: the candidate cells (the neighbourhood of `state`) and their occupancy
     probabilities, with cfg.bias added to the logits. Shared by sampling and BatchNorm re-estimation."""
-    nbhd = model.neighbourhood(state, grid)
-    return nbhd, torch.sigmoid(model(nbhd, state, s0, grid, bev, free) + model.cfg.bias)
+    nbhd = model.neighbourhood(state)
+    return nbhd, torch.sigmoid(model(nbhd, state.coords, s0.coords, bev, free) + model.cfg.bias)
 
 
 @torch.no_grad()
-def sample(model: GCAKernel, s0: torch.Tensor, grid: tuple[int, int, int], steps: int,
+def sample(model: GCAKernel, s0: CellState, steps: int,
            generator: torch.Generator, progress: Callable[[int, int], None] | None = None,
            free: torch.Tensor | None = None, forbid: torch.Tensor | None = None) -> torch.Tensor:
     """Run the Markov chain from s^0 for `steps` transitions (Eq. 1); the last one keeps the cells with p > cfg.keep
@@ -142,28 +143,29 @@ def sample(model: GCAKernel, s0: torch.Tensor, grid: tuple[int, int, int], steps
     cfg.bias (0 as the paper) shifts every step's logits: growth compounds over the T steps, so a small negative
     shift curbs long excursions more than the cells next to the input.
 
-    s0: (N, 4) coordinates of one or more samples (batch column). Returns the final occupied set.
+    s0: the (N, 4) cells of one or more samples (batch column) in their grid. Returns the final occupied set's
+    (M, 4) cells.
     free: (B, *grid) bool seen-empty cells, the model's input when it has free_space; forbid: (B, *grid) bool cells
     dropped from every sampled state (`--free-space mask`; the random draws are the same with or without it).
     """
     model.eval()
-    batch = int(s0[:, 0].max().item()) + 1 if len(s0) else 1
-    bev = model.bev(s0, batch, grid, free)
+    batch = int(s0.coords[:, 0].max().item()) + 1 if len(s0) else 1
+    bev = model.bev(s0, batch, free)
     if progress is not None:  # the planner's share of the time ends here
         progress(0, steps)
     state = s0
     for t in range(steps):
-        nbhd, prob = transition(model, state, s0, grid, bev, free)
+        nbhd, prob = transition(model, state, s0, bev, free)
         if t == steps - 1:
             keep = prob > model.cfg.keep
         else:
             # drawn where the generator is (the CPU's: `pipeline`), so a seed gives one chain on any device
             keep = torch.rand(prob.shape, generator=generator, device=generator.device).to(prob.device) < prob
         if forbid is not None:
-            keep &= ~fs.at(forbid, nbhd)
+            keep &= ~fs.at(forbid, nbhd.coords)
         state = nbhd[keep]
         if progress is not None:
             progress(t + 1, steps)
         if len(state) == 0:  # the chain died: nothing left to grow from
             break
-    return state
+    return state.coords

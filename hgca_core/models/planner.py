@@ -20,6 +20,7 @@ import torch.nn.functional as F
 
 from hgca_core.models import free as fs
 from hgca_core.nn.encoding import grid_encoding_2d
+from hgca_core.nn.sparse import CellState
 
 PILLAR = 3  # voxels per pillar side (paper: h_r = h_max / 3)
 
@@ -124,11 +125,11 @@ class Planner(nn.Module):
     def bev_shape(grid: tuple[int, int, int]) -> tuple[int, int]:
         return -(-grid[0] // PILLAR), -(-grid[1] // PILLAR)
 
-    def forward(self, s0: torch.Tensor, batch: int, grid: tuple[int, int, int],
-                free: torch.Tensor | None = None) -> BevOutput:
-        """`free`: (batch, *grid) bool seen-empty cells, used when the planner has free_bins (None: all unknown)."""
-        hw = self.bev_shape(grid)
-        x = self.pointnet(s0, batch, hw, grid[2])
+    def forward(self, s0: CellState, batch: int, free: torch.Tensor | None = None) -> BevOutput:
+        """The BEV maps of s^0's grid. `free`: (batch, *grid) bool seen-empty cells, used when the planner has
+        free_bins (None: all unknown)."""
+        hw = self.bev_shape(s0.grid)
+        x = self.pointnet(s0.coords, batch, hw, s0.grid[2])
         x = x + grid_encoding_2d(hw[0], hw[1], x.shape[1], x.device)[None]
         if self.free_bins:
             frac = (fs.pillar_fractions(free, PILLAR, self.free_bins).to(x.dtype) if free is not None

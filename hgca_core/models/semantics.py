@@ -148,15 +148,17 @@ def coarse_features(kernel: nn.Module, cells: np.ndarray, s0: np.ndarray, grid: 
     dev = next(kernel.parameters()).device
     state = cs.with_batch(torch.from_numpy(c)).to(dev)
     x0 = cs.with_batch(torch.from_numpy(np.asarray(s0, dtype=np.int64).reshape(-1, 3))).to(dev)
+    from hgca_core.nn.sparse import CellState
+
     grid = tuple(int(v) for v in grid)
     seen: list[torch.Tensor] = []
     hook = kernel.unet.head.register_forward_hook(lambda _m, inp, _out: seen.append(inp[0].feats.detach().clone()))
     try:
-        nbhd = kernel.neighbourhood(state, grid)
-        kernel(nbhd, state, x0, grid, kernel.bev(x0, 1, grid, None), None)
+        nbhd = kernel.neighbourhood(CellState(state, grid))
+        kernel(nbhd, state, x0, kernel.bev(CellState(x0, grid), 1, None), None)
     finally:
         hook.remove()
-    rows = cs.lookup(state, cs.pack(nbhd))        # nbhd is sorted by key and holds every state cell
+    rows = cs.lookup(state, cs.pack(nbhd.coords))        # nbhd is sorted by key and holds every state cell
     return seen[0][rows].float().cpu().numpy()
 
 

@@ -8,10 +8,16 @@ Conventions (see also `hgca_core.nn.kernel_map`):
 - `cache` is one dict shared by every tensor derived from the same input (feature replacement,
   strided conv outputs, decoder outputs), so each level's kernel maps are built once per forward.
   Entries remember the coords objects they were built from and are rebuilt if those differ.
+- `grid`: the (x, y, z) shape, in finest cells, of the box the cells live in (spconv's `spatial_shape`), or
+  None where nothing reads it. Set where a tensor is made and kept by every op that derives one from another,
+  so what depends on the box (the planner's BEV map under SPADE, the height encoding) reads it from the
+  tensor instead of a `grid` argument passed beside it.
+- `CellState`: a chain's state (N, 4) cells without features and its grid, what the GCA / cGCA chains pass.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import torch
@@ -23,7 +29,7 @@ from hgca_core.nn.kernel_map import (COORD_LIMIT, KernelMap, downsample_map, ide
                                      upsample_map)
 
 __all__ = [
-    "SparseTensor", "sparse_cat", "KernelMap", "SubMConv3d", "SparseConv3d", "SparseConvTranspose3d",
+    "CellState", "SparseTensor", "sparse_cat", "KernelMap", "SubMConv3d", "SparseConv3d", "SparseConvTranspose3d",
     "SparseLinear", "SparseBatchNorm", "SparseReLU", "conv_gemm",
 ]
 
@@ -38,6 +44,43 @@ def _cached(cache: dict, key: tuple, refs: tuple[torch.Tensor, ...], build: Call
     return value
 
 
+Grid = tuple[int, int, int]
+
+
+@dataclass(frozen=True, eq=False)
+class CellState:
+    """(N, 4) int64 cells [b, x, y, z] of a GCA / cGCA chain and the grid (x, y, z cells) they live in.
+
+    Why a type and not a `SparseTensor`: a chain's state has no features, and every step masks it (`state[keep]`),
+    renumbers its batches and hands its coords to the `geometry.coords` set operations; a plain tensor there plus
+    a `grid` argument beside it went through every signature of both chains (neighbourhood, forward, planner,
+    transition, sample). The state that knows its box lets those read it, while the set operations take
+    `.coords` as before. Where only membership is read (the kernels' `state` / `s0` inputs) plain tensors stay."""
+
+    coords: torch.Tensor
+    grid: Grid
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "grid", tuple(int(v) for v in self.grid))
+        if len(self.grid) != 3:
+            raise ValueError(f"grid must be (x, y, z) cells, got {self.grid!r}")
+
+    def __len__(self) -> int:
+        return self.coords.shape[0]
+
+    def __getitem__(self, rows: torch.Tensor) -> "CellState":
+        """The cells selected by a mask or index, in the same grid."""
+        return CellState(self.coords[rows], self.grid)
+
+    def with_coords(self, coords: torch.Tensor) -> "CellState":
+        """Other cells (a neighbourhood, a renumbered subset) in the same grid."""
+        return CellState(coords, self.grid)
+
+    @property
+    def device(self) -> torch.device:
+        return self.coords.device
+
+
 class SparseTensor:
     """Active cells (coords) with features; see the module docstring for the conventions.
 
@@ -45,14 +88,15 @@ class SparseTensor:
     alignment and the coordinate range; layers build their outputs with check=False.
     """
 
-    __slots__ = ("coords", "feats", "stride", "cache")
+    __slots__ = ("coords", "feats", "stride", "cache", "grid")
 
     def __init__(self, coords: torch.Tensor, feats: torch.Tensor, stride: int = 1,
-                 cache: dict | None = None, check: bool = True) -> None:
+                 cache: dict | None = None, check: bool = True, grid: Grid | None = None) -> None:
         self.coords = coords
         self.feats = feats
         self.stride = int(stride)
         self.cache = {} if cache is None else cache
+        self.grid = None if grid is None else tuple(int(v) for v in grid)
         if check:
             self._check()
 
@@ -66,6 +110,8 @@ class SparseTensor:
             raise ValueError(f"coords on {c.device} but feats on {f.device}")
         if self.stride < 1:
             raise ValueError(f"stride must be >= 1, got {self.stride}")
+        if self.grid is not None and (len(self.grid) != 3 or min(self.grid) < 1):
+            raise ValueError(f"grid must be three positive cell counts, got {self.grid!r}")
         if c.shape[0]:
             if int(c[:, 1:].abs().max()) >= COORD_LIMIT or int(c[:, 0].min()) < 0:
                 raise ValueError(f"coords out of range: |x|,|y|,|z| must be < {COORD_LIMIT}, batch >= 0")
@@ -77,7 +123,7 @@ class SparseTensor:
 
     @classmethod
     def from_points(cls, coords: torch.Tensor, feats: torch.Tensor, stride: int = 1,
-                    reduce: str = "mean") -> "SparseTensor":
+                    reduce: str = "mean", grid: Grid | None = None) -> "SparseTensor":
         """Sort and deduplicate arbitrary cell rows; features of duplicates are averaged or summed."""
         keys, inv = torch.unique(pack(coords.long()), return_inverse=True)
         out = feats.new_zeros((keys.numel(), feats.shape[1])).index_add_(0, inv, feats)
@@ -86,14 +132,14 @@ class SparseTensor:
             out = out / cnt[:, None]
         elif reduce != "sum":
             raise ValueError(f"reduce must be 'mean' or 'sum', got {reduce!r}")
-        return cls(unpack(keys), out, stride)
+        return cls(unpack(keys), out, stride, grid=grid)
 
     # -- basic properties -------------------------------------------------------------------------
     def __len__(self) -> int:
         return self.coords.shape[0]
 
     def __repr__(self) -> str:
-        return (f"SparseTensor(N={len(self)}, C={self.num_channels}, stride={self.stride}, "
+        return (f"SparseTensor(N={len(self)}, C={self.num_channels}, stride={self.stride}, grid={self.grid}, "
                 f"dtype={self.feats.dtype}, device={self.device})")
 
     @property
@@ -122,14 +168,14 @@ class SparseTensor:
         """Same coords, stride and map cache, new features (what every pointwise op returns)."""
         if feats.shape[0] != self.coords.shape[0]:
             raise ValueError(f"replace_feats: expected {self.coords.shape[0]} rows, got {feats.shape[0]}")
-        return SparseTensor(self.coords, feats, self.stride, self.cache, check=False)
+        return SparseTensor(self.coords, feats, self.stride, self.cache, check=False, grid=self.grid)
 
     def to(self, *args: Any, **kwargs: Any) -> "SparseTensor":
         """Move / cast features (dtype casts keep coords int64); a device move starts a new cache."""
         feats = self.feats.to(*args, **kwargs)
         if feats.device == self.coords.device:
-            return SparseTensor(self.coords, feats, self.stride, self.cache, check=False)
-        return SparseTensor(self.coords.to(feats.device), feats, self.stride, None, check=False)
+            return SparseTensor(self.coords, feats, self.stride, self.cache, check=False, grid=self.grid)
+        return SparseTensor(self.coords.to(feats.device), feats, self.stride, None, check=False, grid=self.grid)
 
     def cpu(self) -> "SparseTensor":
         return self.to("cpu")
@@ -215,7 +261,7 @@ class SparseConv3d(_ConvBase):
         coords, kmap = _cached(x.cache, ("down", x.stride, self.factor), (x.coords,),
                                lambda: downsample_map(x.coords, x.stride, self.factor))
         feats = self._apply_conv(x.feats, kmap)
-        return SparseTensor(coords, feats, x.stride * self.factor, x.cache, check=False)
+        return SparseTensor(coords, feats, x.stride * self.factor, x.cache, check=False, grid=x.grid)
 
     def extra_repr(self) -> str:
         return f"{self.in_channels}, {self.out_channels}, kernel_size={self.factor}, stride={self.factor}"
@@ -252,7 +298,8 @@ class SparseConvTranspose3d(_ConvBase):
 
         kmap = _cached(x.cache, ("up", x.stride, f), (x.coords, target.coords), build)
         feats = self._apply_conv(x.feats, kmap)
-        return SparseTensor(target.coords, feats, target.stride, target.cache, check=False)
+        return SparseTensor(target.coords, feats, target.stride, target.cache, check=False,
+                            grid=target.grid if target.grid is not None else x.grid)
 
     def extra_repr(self) -> str:
         return f"{self.in_channels}, {self.out_channels}, kernel_size={self.factor}, stride={self.factor}"

@@ -20,6 +20,7 @@ from hgca_core.models import free as fs
 from hgca_core.models.gca import GCAConfig, GCAKernel, sample
 from hgca_core.models.infusion import alpha
 from hgca_core.models.planner import rough_target
+from hgca_core.nn.sparse import CellState
 from hgca_core.training.buffer import Chain
 from hgca_core.training.data import (coarse_pair, crop_flip, focus_cells, free_cells, split_files, turn_cells,
                                      visible_cells)
@@ -68,15 +69,16 @@ class CoarseLoss(nn.Module):
         cfg, grid, b = self.cfg, chains[0].grid, len(chains)
         s0, st, gt = (batched([getattr(c, k) for c in chains]) for k in ("s0", "state", "gt"))
         free = torch.stack([c.extra["free"] for c in chains]) if cfg.free_space else None
-        nbhd = self.model.neighbourhood(st, grid)
-        bev = self.model.bev(s0, b, grid, free)
-        logits = self.model(nbhd, st, s0, grid, bev, free)
+        hood = self.model.neighbourhood(CellState(st, grid))
+        bev = self.model.bev(CellState(s0, grid), b, free)
+        logits = self.model(hood, st, s0, bev, free)
+        nbhd = hood.coords
         target = cs.isin(nbhd, gt).float()
         weight = None
         stats = {}
         hard = target
         if self._teacher:
-            target, stats["distilled"] = self._distilled(chains, nbhd, st, s0, grid, free, target)
+            target, stats["distilled"] = self._distilled(chains, hood, st, s0, free, target)
         if self.free_weight and free is not None:
             # growth into what the rays saw through is the error real scans punish most (10-15 % of generated
             # cells): its negatives weigh 1 + free_weight; a seen-empty cell that the ground truth fills keeps 1.
@@ -104,9 +106,8 @@ class CoarseLoss(nn.Module):
         return loss, stats, new_states
 
     @torch.no_grad()
-    def _distilled(self, chains: list[Chain], nbhd: torch.Tensor, st: torch.Tensor, s0: torch.Tensor,
-                   grid: tuple[int, int, int], free: torch.Tensor | None, target: torch.Tensor
-                   ) -> tuple[torch.Tensor, float]:
+    def _distilled(self, chains: list[Chain], hood: CellState, st: torch.Tensor, s0: torch.Tensor,
+                   free: torch.Tensor | None, target: torch.Tensor) -> tuple[torch.Tensor, float]:
         """(the target with cut inputs' cells moved `distill` of the way to the teacher's probability, the share
         of the step's cells so moved).
 
@@ -114,7 +115,7 @@ class CoarseLoss(nn.Module):
         and on real scans more of that growth lands where the rays saw empty: synthetic streets reward growth
         there that real ones do not hold. On cut inputs the teacher's (the starting weights') restraint is kept
         instead, while whole inputs train on the ground truth."""
-        teacher = self._teacher[0]
+        teacher, nbhd = self._teacher[0], hood.coords
         if next(teacher.parameters()).device != nbhd.device:
             teacher.to(nbhd.device)
         # each chain's lowest distilled layer: every cell of a cut chain, none of an uncut chain's
@@ -134,9 +135,9 @@ class CoarseLoss(nn.Module):
 
         rows = chosen[nbhd[:, 0]]
         sub_s0, sub_free = only(s0), None if free is None else free[chosen]
-        bev = teacher.bev(sub_s0, int(chosen.sum()), grid, sub_free)
+        bev = teacher.bev(hood.with_coords(sub_s0), int(chosen.sum()), sub_free)
         p = torch.zeros_like(target)
-        p[rows] = torch.sigmoid(teacher(only(nbhd), only(st), sub_s0, grid, bev, sub_free).float())
+        p[rows] = torch.sigmoid(teacher(hood.with_coords(only(nbhd)), only(st), sub_s0, bev, sub_free).float())
         mixed = (1.0 - self.distill) * target + self.distill * p
         return torch.where(cut, mixed, target), float(cut.float().mean())
 
@@ -235,7 +236,8 @@ class CoarseTask:
             (s0_t, gt_t, vis_t), grid, extra = self.example(path, [vis], rng)
             free = extra["free"][None].to(dev) if extra else None
             gen = torch.Generator(dev).manual_seed(seed + k)
-            out = sample(loss_module.model, cs.with_batch(s0_t.to(dev)), grid, self.cfg.steps, gen, free=free)
+            out = sample(loss_module.model, CellState(cs.with_batch(s0_t.to(dev)), grid), self.cfg.steps, gen,
+                         free=free)
             scores.append(iou(out[:, 1:].cpu().numpy(), gt_t.numpy(), vis_t.numpy()))
         loss_module.train()
         return {"val_iou": float(np.nanmean(scores)) if np.any(np.isfinite(scores)) else float("nan")}

@@ -39,6 +39,7 @@ from hgca_core.models.cgca import CGCAConfig, CGCAKernel, _gather, _table, sampl
 from hgca_core.models import free as fs
 from hgca_core.models.infusion import alpha
 from hgca_core.models.weights import load_autoencoder, save_weights, shipped, shown_path, trained_weights
+from hgca_core.nn.sparse import CellState
 from hgca_core.training.buffer import Chain
 from hgca_core.training.data import draw_crop, free_cells, grids, load_arrays, split_files
 from hgca_core.training.packed import refuse_packed
@@ -236,8 +237,9 @@ class FineLoss(nn.Module):
         x0, st, gt = (_batched([getattr(c, k) for c in chains]) for k in ("s0", "state", "gt"))
         z0, zt, zgt = (torch.cat([c.extra[k] for c in chains]) for k in ("z0", "zt", "zgt"))
         free = torch.stack([c.extra["free"] for c in chains]) if cfg.free_space else None
-        nbhd = self.model.neighbourhood(st, grid)
-        logits, mu = self.model(nbhd, st, zt, x0, z0, grid, free)
+        hood = self.model.neighbourhood(CellState(st, grid))
+        logits, mu = self.model(hood, st, zt, x0, z0, free)
+        nbhd = hood.coords
         in_gt, z_target = _gather(cs.pack(nbhd), *_table(gt, zgt))
         target = in_gt[:, 0]
         on = target > 0
@@ -316,8 +318,8 @@ class FineTask:
             ch, ex = self.example(path, np.random.default_rng(1000 + k))
             gen = torch.Generator().manual_seed(seed + k)
             free = ch.extra["free"][None] if self.cfg.free_space else None
-            cells, z = sample(loss_module.model, cs.with_batch(ch.s0), ch.extra["z0"], ch.grid, self.cfg.steps, gen,
-                              free=free)
+            cells, z = sample(loss_module.model, CellState(cs.with_batch(ch.s0), ch.grid), ch.extra["z0"],
+                              self.cfg.steps, gen, free=free)
             pred, gt = cs.pack(cells), cs.pack(cs.with_batch(ch.gt))
             inter = int(torch.isin(pred, gt).sum())
             union = len(pred) + len(gt) - inter

@@ -12,6 +12,7 @@ from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.meshing import udf_mesh
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel, initial_state, sample, upsample
 from hgca_core.models.weights import load_file, load_fine, save_weights
+from hgca_core.nn.sparse import CellState
 from hgca_core.training.buffer import Chain, ChainBuffer
 from hgca_core.training.fine import FineLoss, FineTask, export_fine
 from hgca_core.training.trainer import train
@@ -52,8 +53,8 @@ def test_kernel_shapes_and_gradients(layout):
     torch.manual_seed(0)
     model = CGCAKernel(CGCAConfig(**{**TINY.to_dict(), **layout}))
     x0, z0, st, zt, grid = _state()
-    nbhd = model.neighbourhood(st, grid)
-    logits, mu = model(nbhd, st, zt, x0, z0, grid)
+    nbhd = model.neighbourhood(CellState(st, grid))
+    logits, mu = model(nbhd, st, zt, x0, z0)
     assert logits.shape == (len(nbhd),) and mu.shape == (len(nbhd), K)
     (logits.sum() + mu.square().sum()).backward()
     for name, p in model.named_parameters():
@@ -62,8 +63,8 @@ def test_kernel_shapes_and_gradients(layout):
     assert model.proj[0].weight.grad.abs().sum() > 0 and head.weight.grad.abs().sum() > 0
     # the latent inputs matter: changing z^t changes the output
     with torch.no_grad():
-        _, mu2 = model.eval()(nbhd, st, zt + 1.0, x0, z0, grid)
-        _, mu1 = model(nbhd, st, zt, x0, z0, grid)
+        _, mu2 = model.eval()(nbhd, st, zt + 1.0, x0, z0)
+        _, mu1 = model(nbhd, st, zt, x0, z0)
     assert (mu2 - mu1).abs().max() > 1e-4
 
 
@@ -97,7 +98,7 @@ def test_sampling_is_seeded():
     torch.manual_seed(0)
     model = CGCAKernel(TINY)
     x0, z0, _, _, grid = _state()
-    runs = [sample(model, x0, z0, grid, 4, torch.Generator().manual_seed(s)) for s in (3, 3, 4)]
+    runs = [sample(model, CellState(x0, grid), z0, 4, torch.Generator().manual_seed(s)) for s in (3, 3, 4)]
     assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
     assert not (torch.equal(runs[0][0], runs[2][0]) and torch.equal(runs[0][1], runs[2][1]))
     assert runs[0][1].shape == (len(runs[0][0]), K)
@@ -109,7 +110,9 @@ def test_initial_state_holds_input_cells_with_latents_and_upsampled_coarse_cells
     pts = np.array([[0.31, 0.42, 0.18], [0.29, 0.38, 0.22], [1.02, 0.5, 0.5], [-0.4, 0.2, 0.2]])  # last: outside
     coarse = np.array([[0, 0, 0], [3, 3, 1]])
     grid = (10, 10, 4)
-    x0, z0 = initial_state(ae, pts, coarse, grid)
+    state, z0 = initial_state(ae, pts, coarse, grid)
+    x0 = state.coords
+    assert state.grid == grid                                                  # the state knows its grid
     inp = torch.tensor([[0, 3, 4, 2], [0, 10, 5, 5]])
     kids = cs.upsample2(cs.with_batch(torch.from_numpy(coarse)))
     kids = kids[(kids[:, 1:] < torch.tensor(grid)).all(1)]                     # children above z = 4 dropped
@@ -152,7 +155,8 @@ def test_tiny_cgca_learns_to_fill_an_upsampled_block(unet_stride):
             buf.advance(i, s)
         losses.append(float(loss.detach()))
     assert np.mean(losses[-10:]) < 0.3 * np.mean(losses[:10])
-    cells, z = sample(module.model, cs.with_batch(x0), z0, grid, cfg.steps, torch.Generator().manual_seed(0))
+    cells, z = sample(module.model, CellState(cs.with_batch(x0), grid), z0, cfg.steps,
+                      torch.Generator().manual_seed(0))
     hit = cs.isin(cells, cs.with_batch(gt))
     iou = int(hit.sum()) / (len(cells) + len(gt) - int(hit.sum()))
     assert iou > 0.9, iou
@@ -241,11 +245,11 @@ def test_blockwise_projection_equals_concatenation(pe_axes):
     torch.manual_seed(0)
     model = CGCAKernel(CGCAConfig(latent=K, channels=(8, 8, 8, 8, 8), pe_axes=pe_axes)).eval()
     x0, z0, st, zs, grid = _state()
-    nbhd = model.neighbourhood(st, grid)
+    nbhd = model.neighbourhood(CellState(st, grid))
     for grad in (False, True):
         with torch.set_grad_enabled(grad):
-            got = model(nbhd, st, zs, x0, z0, grid)
-            ref = _reference_forward(model, nbhd, st, zs, x0, z0, grid)
+            got = model(nbhd, st, zs, x0, z0)
+            ref = _reference_forward(model, nbhd.coords, st, zs, x0, z0, grid)
         for a, b in zip(got, ref):
             torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
     (got[0].sum() + got[1].square().sum()).backward()           # gradients flow through the block form

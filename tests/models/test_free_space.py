@@ -16,6 +16,7 @@ from hgca_core.models.gca import GCAConfig, GCAKernel
 from hgca_core.models.planner import PILLAR, Planner
 from hgca_core.models.weights import load_coarse, load_file, load_fine, load_into, save_file, save_weights, shipped
 from hgca_core.nn.encoding import sinusoidal
+from hgca_core.nn.sparse import CellState
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 SMALL = dict(channels=(8, 8, 16, 16, 16), steps=3)
@@ -70,13 +71,14 @@ def test_coarse_kernel_feature_is_exactly_the_free_set():
     model = GCAKernel(GCAConfig(**SMALL, use_planner=False, free_space=True)).eval()
     s0 = cs.with_batch(torch.tensor([[25, 2, 2], [1, 2, 2], [12, 2, 3]]))
     state = cs.dilate(s0, 2, bounds=grid)                 # a neighbourhood that covers the ray and its sides
-    nbhd = model.neighbourhood(state, grid)
-    x = _stem_input(model, nbhd, state, s0, grid, None, free)
+    hood = model.neighbourhood(CellState(state, grid))
+    x = _stem_input(model, hood, state, s0, None, free)
+    nbhd = hood.coords
     want = torch.from_numpy(expected)[nbhd[:, 1], nbhd[:, 2], nbhd[:, 3]]
     assert want.sum() > 10 and (~want).sum() > 10
     assert torch.equal(x.feats[:, 2], want.float())
     assert torch.equal(x.feats[:, 0], cs.isin(nbhd, state).float()) and torch.equal(x.feats[:, 1], cs.isin(nbhd, s0).float())
-    assert torch.equal(_stem_input(model, nbhd, state, s0, grid, None, None).feats[:, 2], torch.zeros(len(nbhd)))
+    assert torch.equal(_stem_input(model, hood, state, s0, None, None).feats[:, 2], torch.zeros(len(nbhd)))
 
 
 def test_planner_sees_the_share_of_each_pillars_cells_seen_empty_per_height_bin():
@@ -98,7 +100,7 @@ def test_planner_sees_the_share_of_each_pillars_cells_seen_empty_per_height_bin(
     planner = Planner([8, 8], z_r=4, free_bins=4)
     seen = {}
     planner.unet.downs[0][0].register_forward_pre_hook(lambda m, inp: seen.update(x=inp[0]))
-    planner(cs.with_batch(torch.tensor([[1, 1, 1]])), 2, grid, free)
+    planner(CellState(cs.with_batch(torch.tensor([[1, 1, 1]])), grid), 2, free)
     assert seen["x"].shape[1] == 32 + 4 and torch.equal(seen["x"][:, 32:], got)
 
 
@@ -125,9 +127,10 @@ def test_fine_kernel_feature_is_the_children_of_the_free_20cm_cells():
     model = CGCAKernel(CGCAConfig(latent=4, channels=(8, 8, 8), in_proj=8, pe_freq=1, free_space=True)).eval()
     x0 = cs.with_batch(torch.tensor([[50, 4, 4], [4, 4, 4], [30, 4, 6]]))
     z0 = torch.randn(len(x0), 4)
-    nbhd = model.neighbourhood(x0, grid10)
+    hood = model.neighbourhood(CellState(x0, grid10))
+    nbhd = hood.coords
     with torch.no_grad():
-        got = model.project(nbhd, x0, z0, x0, z0, grid10, free10)
+        got = model.project(hood, x0, z0, x0, z0, free10)
         ref = torch.relu(_cgca_reference(model, nbhd, x0, z0, x0, z0, grid10, free10))
     assert free10[0][nbhd[:, 1], nbhd[:, 2], nbhd[:, 3]].sum() > 10
     torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-5)
@@ -191,11 +194,11 @@ def test_warm_start_from_coarse_weights_without_the_feature(tmp_path):
     new.eval()
     assert torch.count_nonzero(new.unet.stem[0].weight[:, 2]) == 0
     s0, free, grid = _coarse_inputs()
-    nbhd = old.neighbourhood(s0, grid)
+    nbhd = old.neighbourhood(CellState(s0, grid))
 
     def logits(model, f):
         with torch.no_grad():
-            return model(nbhd, s0, s0, grid, model.bev(s0, 1, grid, f), f)
+            return model(nbhd, s0, s0, model.bev(CellState(s0, grid), 1, f), f)
 
     ref = logits(old, None)
     torch.testing.assert_close(logits(new, free), ref, rtol=0, atol=1e-4)     # zero columns: the old model
@@ -221,13 +224,13 @@ def test_warm_start_of_fine_weights_without_the_feature(tmp_path):
                               torch.randint(0, 10, (400, 1), generator=g)], 1))
     z0 = torch.randn(len(x0), old.cfg.latent, generator=g)
     free = torch.rand((1, *grid), generator=g) < 0.5
-    nbhd = old.neighbourhood(x0, grid)
+    nbhd = old.neighbourhood(CellState(x0, grid))
     with torch.no_grad():
-        ref = old(nbhd, x0, z0, x0, z0, grid)
-        for a, b in zip(new(nbhd, x0, z0, x0, z0, grid, free), ref):
+        ref = old(nbhd, x0, z0, x0, z0)
+        for a, b in zip(new(nbhd, x0, z0, x0, z0, free), ref):
             torch.testing.assert_close(a, b, rtol=0, atol=1e-4)
         new.proj[0].weight[:, -1] = 0.5
-        assert (new(nbhd, x0, z0, x0, z0, grid, free)[0] - ref[0]).abs().max() > 0.01
+        assert (new(nbhd, x0, z0, x0, z0, free)[0] - ref[0]).abs().max() > 0.01
 
 
 def test_warm_start_refuses_what_does_not_fit(tmp_path):

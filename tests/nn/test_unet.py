@@ -1,11 +1,13 @@
-"""Sparse U-Net: shapes, cells, the modulate hook, gradients, and a tiny overfitting sanity check."""
+"""Sparse U-Net: shapes, cells, the modulate hook, gradients, a tiny overfitting sanity check, and the grid that
+every derived tensor keeps."""
 from __future__ import annotations
 
 import pytest
 import torch
 
 from hgca_core.geometry.coords import unique
-from hgca_core.nn.sparse import SparseTensor
+from hgca_core.nn.sparse import (CellState, SparseBatchNorm, SparseConv3d, SparseConvTranspose3d, SparseLinear,
+                                 SparseReLU, SparseTensor, SubMConv3d, sparse_cat)
 from hgca_core.nn.unet import SparseUNet
 
 
@@ -132,3 +134,32 @@ def test_inference_in_place_matches_autograd_path_and_leaves_the_input_alone(gen
     with torch.no_grad():
         block(h)
     assert torch.equal(h.feats, kept)
+
+
+def test_the_grid_travels_with_every_tensor_made_from_another() -> None:
+    """The box a tensor lives in is set where it is made and kept by each op and every U-Net level (what SPADE
+    reads), so nothing downstream is handed it beside the tensor; a tensor made without one has none."""
+    gen = torch.Generator().manual_seed(0)
+    coords = scene(gen, batch=1, size=16)
+    x = SparseTensor.from_points(coords, torch.randn(len(coords), 4, generator=gen), grid=(16, 16, 20))
+    assert x.grid == (16, 16, 20)
+    down = SparseConv3d(4, 4)(x)
+    made = [x.replace_feats(x.feats * 2), x.to(torch.float64), x.detach(), SubMConv3d(4, 4)(x), down,
+            SparseConvTranspose3d(4, 4)(down, x), SparseLinear(4, 4)(x), SparseBatchNorm(4)(x), SparseReLU()(x),
+            sparse_cat(x, x)]
+    assert [t.grid for t in made] == [(16, 16, 20)] * len(made)
+    seen = []
+
+    def modulate(level: int, t: SparseTensor) -> SparseTensor:
+        seen.append(t.grid)
+        return t
+
+    net = SparseUNet(4, 2, channels=(8, 8, 8))
+    assert net(x, modulate=modulate).grid == (16, 16, 20) and seen == [(16, 16, 20)] * 2
+    assert SparseTensor(coords, torch.zeros(len(coords), 1)).grid is None
+    with pytest.raises(ValueError, match="grid"):
+        SparseTensor(coords, torch.zeros(len(coords), 1), grid=(16, 0, 20))
+    state = CellState(coords, (16, 16, 20))
+    assert state[coords[:, 3] > 3].grid == state.with_coords(coords[:2]).grid == (16, 16, 20)
+    with pytest.raises(ValueError, match="grid"):
+        CellState(coords, (16, 16))

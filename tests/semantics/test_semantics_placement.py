@@ -13,6 +13,7 @@ from hgca_core.models.gca import GCAConfig, GCAKernel
 from hgca_core.models.semantics import (SemanticHead, SemanticsConfig, coarse_features, fine_features, head_input,
                                         observed_mask, predict)
 from hgca_core.models.weights import load_file, load_semantics
+from hgca_core.nn.sparse import CellState
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -32,8 +33,8 @@ def test_coarse_features_are_the_kernels_last_layer_and_leave_it_unchanged():
 
     def logits() -> tuple[torch.Tensor, torch.Tensor]:
         with torch.no_grad():
-            nbhd = kernel.neighbourhood(state, grid)
-            return nbhd, kernel(nbhd, state, x0, grid, kernel.bev(x0, 1, grid, None), None)
+            nbhd = kernel.neighbourhood(CellState(state, grid))
+            return nbhd.coords, kernel(nbhd, state, x0, kernel.bev(CellState(x0, grid), 1, None), None)
 
     nbhd, first = logits()
     feats = coarse_features(kernel, cells, s0, grid)

@@ -9,6 +9,7 @@ from hgca_core.cli import main
 from hgca_core.io.digest import file_digest
 from hgca_core.models.gca import GCAConfig, GCAKernel
 from hgca_core.models.weights import load_file, save_weights
+from hgca_core.nn.sparse import CellState
 from hgca_core.training import coarse
 from hgca_core.training.card import write_model_card
 from hgca_core.training.coarse import CoarseLoss, CoarseTask
@@ -40,7 +41,7 @@ def _record_forwards(monkeypatch) -> list:
 
     def recording(self, nbhd, *a, **k):
         out = real_forward(self, nbhd, *a, **k)
-        calls.append((self, nbhd, out.detach()))
+        calls.append((self, nbhd.coords, out.detach()))
         return out
 
     monkeypatch.setattr(GCAKernel, "forward", recording)
@@ -99,9 +100,10 @@ def test_the_teacher_runs_on_the_cut_chains_alone_and_gives_them_what_it_gives_i
     grid = chains[0].grid
     s0, st = (coarse.batched([getattr(c, k) for c in chains]) for k in ("s0", "state"))
     free = torch.stack([c.extra["free"] for c in chains])
-    nbhd = teacher.neighbourhood(st, grid)
+    hood = teacher.neighbourhood(CellState(st, grid))
     with torch.no_grad():
-        ref = teacher(nbhd, st, s0, grid, teacher.bev(s0, 3, grid, free), free)
+        ref = teacher(hood, st, s0, teacher.bev(CellState(s0, grid), 3, free), free)
+    nbhd = hood.coords
     mine = nbhd[:, 0] == 1
     assert len(t_nbhd) == int(mine.sum()) < len(nbhd) and (t_nbhd[:, 0] == 0).all()
     assert torch.equal(t_nbhd[:, 1:], nbhd[mine, 1:])

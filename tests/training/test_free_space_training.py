@@ -148,7 +148,7 @@ def test_free_weight_weighs_the_loss_on_seen_empty_negatives(dataset, capsys, mo
 
     def recording(self, nbhd, *a, **k):
         out = real_forward(self, nbhd, *a, **k)
-        seen_logits.append((nbhd, out.detach()))
+        seen_logits.append((nbhd.coords, out.detach()))
         return out
 
     monkeypatch.setattr(GCAKernel, "forward", recording)
@@ -236,9 +236,9 @@ def test_cut_free_loss_weighs_what_the_uncut_scan_saw_empty(dataset, monkeypatch
     model_free = []
     real_forward = GCAKernel.forward
 
-    def recording(self, nbhd, st, s0, grid, bev, free):
+    def recording(self, nbhd, st, s0, bev, free):
         model_free.append(free)
-        return real_forward(self, nbhd, st, s0, grid, bev, free)
+        return real_forward(self, nbhd, st, s0, bev, free)
 
     monkeypatch.setattr(GCAKernel, "forward", recording)
     torch.manual_seed(0)
