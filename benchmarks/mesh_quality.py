@@ -1,7 +1,7 @@
 """Mesh-quality benchmark of the fine stage (run by hand): `python benchmarks/mesh_quality.py [options]`.
 
 Before = the earlier mesher (marching cubes of {d < 3 cm}, a two-sheet shell; tests/meshing_reference.py), after =
-the single-layer surface of `hgca_core.meshing.udf_mesh`, both from the same fine-stage cells and latents. Per
+the single-layer surface of `hgca_core.meshing.fine.udf_mesh`, both from the same fine-stage cells and latents. Per
 synthetic test scene (and the real nuScenes / Argoverse 2 fixtures): layers per vertical ray on flat road and
 sidewalk patches, RMS height residual to a plane per 2 x 2 m patch (mesh, input points, ground truth), triangles,
 non-manifold edges, boundary length, connected pieces, meshing time, and the decimated mesh's Chamfer distance
@@ -23,9 +23,11 @@ import torch
 import trimesh
 
 from common import REPO
-from hgca_core.geometry import mesh_clean as mc
 from hgca_core.geometry.region import Region
-from hgca_core.meshing import DEFAULT_MAX_FACES, decimate, udf_grid, udf_mesh
+from hgca_core.meshing import mesh_clean as mc
+from hgca_core.meshing.decimation import DEFAULT_MAX_FACES, decimate
+from hgca_core.meshing.field import udf_grid
+from hgca_core.meshing.fine import udf_mesh
 from hgca_core.metrics import flatness
 from hgca_core.metrics.surface import mesh_chamfer
 from hgca_core.pipeline import Models, complete_local, load_models
@@ -243,7 +245,7 @@ def report(result: dict, format_table) -> str:
     import platform
 
     lines = [f"Mesh quality of the fine stage: before (marching cubes of d < 3 cm: a two-sheet shell) and after "
-             f"(the zero level as one surface, `hgca_core.meshing.udf_mesh`), from the same fine-stage results.",
+             f"(the zero level as one surface, `hgca_core.meshing.fine.udf_mesh`), from the same fine-stage results.",
              f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch "
              f"{torch.__version__} ({result['threads']} threads); load average (1 min) at each timing in the "
              f"last column: other jobs shared the cores, so times are upper bounds.", "",

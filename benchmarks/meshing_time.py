@@ -14,7 +14,7 @@ step, wall and CPU, whether every run made the same meshes, peak RSS) and a bar 
 
 The fine-stage result (10 cm cells and latents) of the bench's default region (38.4 x 38.4 x 8 m, synthetic
 drive, 5 scans) is made once by the product's `pipeline.complete_local` (cached with --cache); then the product's
-mesh stage (`meshing.udf_mesh` with the fairing, `decimate` to the default 1 M faces, the vertices' observed
+mesh stage (`meshing.fine.udf_mesh` with the fairing, `decimate` to the default 1 M faces, the vertices' observed
 distances) runs `--reps` times for each thread count, interleaved, so a change in the machine's speed during the
 run touches every configuration alike. Reported: min and median of each step, and the load average. This VM's
 speed drifts by up to ~35 % within an hour, so compare rows of one run, not runs of different days.
@@ -41,7 +41,8 @@ from mesh_quality import fine_state  # noqa: E402
 from hgca_core.bench import scene_inputs  # noqa: E402
 from hgca_core.geometry.nearest import PointIndex  # noqa: E402
 from hgca_core.hardware import machine  # noqa: E402
-from hgca_core.meshing import DEFAULT_MAX_FACES, decimate, udf_mesh  # noqa: E402
+from hgca_core.meshing.decimation import DEFAULT_MAX_FACES, decimate  # noqa: E402
+from hgca_core.meshing.fine import udf_mesh  # noqa: E402
 from hgca_core.pipeline import load_models  # noqa: E402
 
 STEPS = ("decode", "extract", "clean", "meshing", "fair", "decimate", "distances", "total")
@@ -51,19 +52,19 @@ NOTES = """
 ## What the mesh stage does differently
 
 Every change keeps the mesh byte for byte (the digests above); each has a test against the plain version it
-replaces (tests/test_meshing_udf.py, tests/geometry/test_fairing.py).
+replaces (tests/test_meshing_udf.py, tests/meshing/test_fairing.py).
 
-- Extraction (`geometry/udf_surface.py`): the grid index keeps its column table, run starts and neighbour
+- Extraction (`meshing/udf_surface.py`): the grid index keeps its column table, run starts and neighbour
   indices in int32 (half the memory traffic of int64), with one empty column on every side of the points, so the
   x and y neighbours of a grid point are found without bounds tests (one unsigned comparison tells whether a z
   lies in a column's run); an absent neighbour is -1, which reads the fill value appended to the distances, so
   the upwind gradients need no masking pass; the crossing test reads the distance sum before compacting the
   edges; the quad split writes the two triangles' columns instead of gathering through an index table.
-- Cleanup (`geometry/mesh_clean.py`): run lengths of sorted keys from the run starts (no cumulative sum and
+- Cleanup (`meshing/mesh_clean.py`): run lengths of sorted keys from the run starts (no cumulative sum and
   bincount over the 4.9 M half-edges), the edge keys built in place, the compaction's renumbering by a scatter
   of the kept vertices' ranks, the per-vertex sums with one contiguous copy per face corner instead of one per
   channel and corner.
-- Fairing (`geometry/fairing.py`): the anchors' nearest input points are looked up for the ground-like
+- Fairing (`meshing/fairing.py`): the anchors' nearest input points are looked up for the ground-like
   vertices only (the only ones that read them; about half); the membrane's matrix and the ground regions come
   from the adjacency by relabelling the selected rows' columns instead of scipy's column indexing; the
   adjacency itself is the upper triangle read off the sorted edge keys plus its transpose (scipy's linear-time

@@ -28,8 +28,10 @@ from hgca_core.geometry.nearest import PointIndex
 from hgca_core.geometry.points import check_points
 from hgca_core.geometry.region import Region, default_region
 from hgca_core.geometry.voxel import COARSE, FINE, voxelize
-from hgca_core.geometry.voxel_mesh import voxel_mesh
 from hgca_core.hardware import release_free_memory
+from hgca_core.meshing.decimation import limit_faces
+from hgca_core.meshing.finish import observed_distances
+from hgca_core.meshing.voxel_mesh import voxel_mesh
 
 if TYPE_CHECKING:
     from hgca_core.models.autoencoder import Autoencoder
@@ -218,7 +220,7 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
     `geometry.freespace.ray_origins`); `free_space` is one of FREE_SPACE_MODES. The free space is computed
     once and given to both stages. The coarse stage's mesh is the 20 cm cells' `voxel_mesh`; the full stage's
     is the zero level of the decoded unsigned distance as one surface, its observed parts facing `origins`
-    (`hgca_core.meshing.udf_mesh`). Runs on the models' device. See `complete` for `precision`; `max_faces`
+    (`hgca_core.meshing.fine.udf_mesh`). Runs on the models' device. See `complete` for `precision`; `max_faces`
     None or 0 keeps every triangle here.
 
     `stage` None is the stage `models` were loaded for (`load_models(config.stage)`): full when they hold the fine
@@ -284,7 +286,7 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
                              lambda t, n: report("planner" if t == 0 else "coarse", t, n, tag, i), free, forbid)
         cells, cells10, latents10 = occ[:, 1:].cpu().numpy(), None, None
         if stage == "full":
-            from hgca_core.meshing import udf_mesh
+            from hgca_core.meshing.fine import udf_mesh
             from hgca_core.models.cgca import upsample
 
             release_free_memory()   # the coarse chain's holes in the heap, before the fine stage's larger maps
@@ -297,25 +299,21 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
                             sensors=sensors, tree=tree)
             cells10, latents10 = c10.cpu().numpy(), latents.float().cpu().numpy()
         elif stage == "preview":
-            from hgca_core.geometry.voxel_mesh import smooth_cells_mesh
+            from hgca_core.meshing.voxel_mesh import smooth_cells_mesh
 
             report("mesh", 0, 1, tag, i)
             mesh = smooth_cells_mesh(cells, COARSE, grid)
         else:
             report("mesh", 0, 1, tag, i)
             mesh = voxel_mesh(cells, COARSE)
-        if max_faces and len(mesh.faces) > max_faces:
-            from hgca_core.meshing import decimate
-
-            report("mesh", 0, 1, f"{tag}: simplifying {len(mesh.faces)} faces", i)
-            mesh = decimate(mesh, max_faces)
+        mesh = limit_faces(mesh, max_faces, lambda note: report("mesh", 0, 1, f"{tag}: {note}", i))
         if len(mesh.faces) == 0:  # inputs too small to complete were refused above: this is the model's doing
             warnings.warn(HgcaWarning(f"{tag} is an empty mesh: the model made no surface from {len(s0)} input "
                                       "cells (untrained or mismatched weights?)"), stacklevel=2)
-        dist = tree.distances(mesh.vertices)
+        dist = observed_distances(mesh.vertices, tree)
         results.append(LocalCompletion(mesh=mesh, coarse_cells=cells, fine_cells=cells10, seed=seed + i,
                                        free_cells=None if free_np is None else int(free_np.sum()),
-                                       fine_latents=latents10, observed_distance=dist.astype(np.float32)))
+                                       fine_latents=latents10, observed_distance=dist))
         report("mesh", 1, 1, tag, i)
     return results
 
@@ -332,7 +330,7 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
     see `geometry.freespace.ray_origins`; None: the nearest origin). With them the observed free space is
     computed and used as `config.free_space` says. Each mesh is simplified to at most `config.max_faces`
     triangles (0: every one) and carries per-vertex normals, `observed_distance` and an observed / generated
-    face `material` (`hgca_core.meshing.finish_mesh`). The work itself is `complete_local`'s, in the region
+    face `material` (`hgca_core.meshing.finish.finish_mesh`). The work itself is `complete_local`'s, in the region
     frame; this wrapper moves points in and meshes out."""
     cfg = (config or DEFAULTS).with_(**settings) if settings else (config or DEFAULTS)
     check_device(cfg.device)
@@ -342,7 +340,7 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
         from hgca_core.models.weights import load_semantics
 
         head = load_semantics(cfg.semantics_weights, cfg.device)
-    from hgca_core.meshing import finish_mesh
+    from hgca_core.meshing.finish import finish_mesh
 
     pts = check_points(points)
     if region is None:

@@ -117,7 +117,7 @@ def test_eval_scores_what_complete_ships(small_split):
     import hgca_core
     from hgca_core.geometry.region import Region
     from hgca_core.geometry.voxel import voxelize
-    from hgca_core.geometry.voxel_mesh import voxel_mesh
+    from hgca_core.meshing.voxel_mesh import voxel_mesh
     from hgca_core.metrics.evaluate import evaluate_sample
     from hgca_core.metrics.settings import EvalSettings
     from hgca_core.metrics.synthetic import evaluate_methods, load_method_models

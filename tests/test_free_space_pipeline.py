@@ -12,7 +12,7 @@ from hgca_core.errors import InputError
 from hgca_core.geometry import freespace
 from hgca_core.geometry.region import Region
 from hgca_core.geometry.voxel import COARSE
-from hgca_core.meshing import udf_mesh
+from hgca_core.meshing.fine import udf_mesh
 from hgca_core.models import cgca, gca
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel

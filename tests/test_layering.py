@@ -5,6 +5,8 @@ functions). The architecture's layers (docs/architecture.md): `commands` -> `pip
 Only hgca_core/models/weights.py calls torch.load / torch.save, and only with weights_only=True.
 Tests never import benchmarks/; benchmarks import of tests/ only the shared builders (tests/builders.py and co)."""
 import ast
+import importlib
+import re
 from pathlib import Path
 
 import pytest
@@ -92,6 +94,69 @@ def test_no_layer_imports_the_front_ends():
 def test_meshing_is_called_by_the_pipeline_not_by_models():
     users = {layer(m) for m, f in MODULES.items() for d in imported_modules(f) if layer(d) == "meshing"}
     assert "pipeline" in users and "models" not in users
+
+
+# The mesh step is one package, hgca_core/meshing/ (docs/architecture.md, step 6): these modules moved there from
+# geometry/, and the old hgca_core/meshing.py's names live in its submodules; no alias keeps an old name alive.
+MESH_MODULES = ("voxel_mesh", "udf_surface", "fairing", "mesh_clean", "parallel")
+OLD_MESHING_NAMES = ("udf_grid", "udf_grid_points", "udf_surface_points", "project_to_zero", "UdfFn", "udf_mesh",
+                     "observed_vertices", "MIN_AREA", "PINHOLE_EDGES", "finish_mesh", "OBSERVED_SPLIT", "decimate",
+                     "interruptible", "DEFAULT_MAX_FACES")
+OLD_MESH_TEXT = re.compile(r"(?<![\w.])(?:hgca_core\.)?geometry[./](?:" + "|".join(MESH_MODULES) + r")\b"
+                           r"|hgca_core/meshing\.py"
+                           r"|(?<![\w.])(?:hgca_core\.)?meshing\.(?:" + "|".join(OLD_MESHING_NAMES) + r")\b")
+
+
+def test_the_mesh_modules_live_in_meshing_only():
+    assert not (CORE / "meshing.py").exists()
+    assert sorted(m for m in MESH_MODULES if (CORE / "geometry" / f"{m}.py").exists()) == []
+    assert sorted(m for m in MESH_MODULES if not (CORE / "meshing" / f"{m}.py").is_file()) == []
+    assert not set(OLD_MESHING_NAMES) & set(vars(importlib.import_module("hgca_core.meshing")))
+
+
+def _old_mesh_imports(path: Path) -> list[str]:
+    """The imports in a file of a moved module at its old place or of an old hgca_core.meshing name."""
+    old_modules = {f"hgca_core.geometry.{m}" for m in MESH_MODULES}
+    bad = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            bad += [a.name for a in node.names if a.name in old_modules]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            if node.module in old_modules:
+                bad.append(node.module)
+            elif node.module == "hgca_core.geometry":
+                bad += [f"hgca_core.geometry.{a.name}" for a in node.names if a.name in MESH_MODULES]
+            elif node.module == "hgca_core.meshing":
+                bad += [f"hgca_core.meshing.{a.name}" for a in node.names if a.name in OLD_MESHING_NAMES]
+    return bad
+
+
+def test_nothing_imports_the_old_mesh_paths():
+    """Every Python file of the repository (core, add-on, tests, benchmarks, scripts) imports the mesh step from
+    hgca_core.meshing's submodules, and the core's source and the docs name it there."""
+    files = [p for top in ("hgca_core", "hgca_blender", "tests", "benchmarks", "scripts")
+             for p in sorted((REPO / top).rglob("*.py"))]
+    assert len(files) > 100
+    bad = [f"{p.relative_to(REPO)} imports {b}" for p in files for b in _old_mesh_imports(p)]
+    texts = sorted(CORE.rglob("*.py")) + sorted((REPO / "docs").rglob("*.md")) + [REPO / "README.md"]
+    bad += [f"{p.relative_to(REPO)}:{i} names {m.group(0)}" for p in texts
+            for i, line in enumerate(p.read_text().splitlines(), 1) for m in OLD_MESH_TEXT.finditer(line)]
+    assert not bad, bad
+
+
+def test_the_old_mesh_names_are_caught():
+    """The two checks above see each way of naming the old places."""
+    assert OLD_MESH_TEXT.search("see `hgca_core.geometry.voxel_mesh`") and OLD_MESH_TEXT.search("geometry/fairing.py")
+    assert OLD_MESH_TEXT.search("(`meshing.udf_mesh`)") and OLD_MESH_TEXT.search("hgca_core/meshing.py")
+    assert not OLD_MESH_TEXT.search("`hgca_core.meshing.fine.udf_mesh` and meshing/voxel_mesh.py")
+
+
+def test_old_mesh_imports_are_caught(tmp_path):
+    f = tmp_path / "old.py"
+    f.write_text("import hgca_core.geometry.udf_surface\nfrom hgca_core.geometry import fairing\n"
+                 "from hgca_core.meshing import udf_mesh, mesh_clean\nfrom hgca_core.meshing.fine import udf_mesh\n")
+    assert _old_mesh_imports(f) == ["hgca_core.geometry.udf_surface", "hgca_core.geometry.fairing",
+                                    "hgca_core.meshing.udf_mesh"]
 
 
 def test_no_import_cycles_between_modules():

@@ -6,8 +6,9 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from hgca_core.geometry.mesh_clean import boundary_length, edge_faces, edge_stats, face_normals
-from hgca_core.meshing import udf_grid, udf_grid_points, udf_mesh, udf_surface_points
+from hgca_core.meshing.field import udf_grid, udf_grid_points, udf_surface_points
+from hgca_core.meshing.fine import udf_mesh
+from hgca_core.meshing.mesh_clean import boundary_length, edge_faces, edge_stats, face_normals
 from meshing_reference import shell_mesh
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -96,7 +97,7 @@ def test_a_shallow_wide_valley_still_gives_one_sheet(monkeypatch):
     """Where the decoder is unsure its distances bottom out 3-4 cm above zero over a wide valley (generated ground
     far between scan rings): both ends of the crossing edge exceed half the old d_i + d_j bound. The surface must
     still be there, once, on the valley's floor; with the plane-only bound (WIDE_SUM = MAX_SUM) it is a hole."""
-    from hgca_core.geometry import udf_surface
+    from hgca_core.meshing import udf_surface
 
     off, floor = 0.537, 0.035
 
@@ -149,7 +150,7 @@ def test_concave_and_convex_corners_of_a_kerb_close():
 def test_ground_between_rings_is_faired_onto_the_rings():
     """What the fine stage does on real roads, analytically: the field's ground is exact at three scan rings and
     sits on terraces 3 cm above / below between them. udf_mesh with the input points flattens the terraces onto
-    the rings' height (hgca_core.geometry.fairing); fair=False keeps them."""
+    the rings' height (hgca_core.meshing.fairing); fair=False keeps them."""
     z0, rings = 0.512, np.array([0.55, 2.55, 4.55])
 
     def height(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -172,10 +173,10 @@ def test_ground_between_rings_is_faired_onto_the_rings():
 
 
 def test_threads_do_not_change_the_mesh(monkeypatch):
-    """The numpy steps split their points, edges and faces into slices run in threads (geometry.parallel); with
+    """The numpy steps split their points, edges and faces into slices run in threads (meshing.parallel); with
     slices of 64 elements even these small meshes are cut many times, and every cut must leave the mesh as the
     one-thread run makes it (extraction, cleanup with seeds and pinholes, fairing)."""
-    from hgca_core.geometry import parallel
+    from hgca_core.meshing import parallel
 
     monkeypatch.setattr(parallel, "MIN_SLICE", 64)
     cells = band_cells(sphere_udf)
@@ -224,7 +225,7 @@ def test_orientation_faces_the_sensor():
 
 
 def test_orient_follows_sparse_seeds_on_random_windings():
-    from hgca_core.geometry.mesh_clean import orient
+    from hgca_core.meshing.mesh_clean import orient
 
     k = 30
     xs, ys = np.meshgrid(np.arange(k), np.arange(k), indexing="ij")
@@ -242,7 +243,7 @@ def test_orient_follows_sparse_seeds_on_random_windings():
 
 
 def test_fragments_dropped_and_pinholes_closed():
-    from hgca_core.geometry.mesh_clean import clean_surface, fill_pinholes
+    from hgca_core.meshing.mesh_clean import clean_surface, fill_pinholes
 
     small_c = np.array([0.35, 0.35, 0.35])
 
@@ -295,7 +296,7 @@ def test_empty():
 
 
 def test_decimate_keeps_the_surface_with_fewer_faces():
-    from hgca_core.meshing import decimate
+    from hgca_core.meshing.decimation import decimate
     from hgca_core.metrics.chamfer import chamfer
     from hgca_core.metrics.surface import sample_surface
 
@@ -314,7 +315,7 @@ def test_decimate_keeps_the_surface_with_fewer_faces():
 
 
 def test_finish_mesh_normals_and_material_split():
-    from hgca_core.meshing import OBSERVED_SPLIT, finish_mesh
+    from hgca_core.meshing.finish import OBSERVED_SPLIT, finish_mesh
 
     m = udf_mesh(sphere_udf, band_cells(sphere_udf))
     d = np.where(m.vertices[:, 0] > CENTRE[0], 0.0, 1.0).astype(np.float32)
@@ -334,7 +335,7 @@ def test_finish_mesh_normals_and_material_split():
 
 
 def test_grid_index_finds_exactly_the_indexed_points():
-    from hgca_core.geometry.udf_surface import GridIndex
+    from hgca_core.meshing.udf_surface import GridIndex
 
     rng = np.random.default_rng(3)
     g = np.unique(rng.integers(-20, 20, size=(3000, 3)), axis=0)
@@ -357,7 +358,7 @@ def test_grid_index_finds_exactly_the_indexed_points():
 def test_speck_hanging_on_a_zero_area_face_is_dropped():
     """A small piece joined to a large one only through a zero-area face (a collapsed quad half) floats free once
     that face goes: it is a fragment and must go too (it used to survive, counted as part of the large piece)."""
-    from hgca_core.geometry.mesh_clean import clean_surface
+    from hgca_core.meshing.mesh_clean import clean_surface
 
     v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0],     # a 1 m^2 square
                   [1, 0.5, 0],                                    # on the square's edge 1-2: (1, 2, 4) is flat
@@ -371,7 +372,7 @@ def test_speck_hanging_on_a_zero_area_face_is_dropped():
 def test_sorted_points_own_neighbours_match_the_table_lookup():
     """The z neighbours of the indexed points' own slices come from their sorted order (no table lookup): the
     same indices as a lookup of g +- e_z, for every slice start, runs of one point and gaps in a column."""
-    from hgca_core.geometry.udf_surface import GridIndex
+    from hgca_core.meshing.udf_surface import GridIndex
 
     rng = np.random.default_rng(5)
     tall = np.unique(rng.integers(-6, 6, size=(900, 3)), axis=0)    # sorted (x, y, z), gappy columns
@@ -396,7 +397,7 @@ def test_dual_surface_quads_join_the_four_cubes_around_each_edge():
     """Each quad's four vertices are the cubes (by min corner) around its crossing edge, in the order of
     `_CUBES`, found here by a plain lookup of the corners; a ragged field (missing points, odd holes) exercises
     the cubes whose diagonal corner is only reachable by lookup and the cubes without a grid point."""
-    from hgca_core.geometry.udf_surface import _CUBES, GridIndex, crossing_edges, dual_surface
+    from hgca_core.meshing.udf_surface import _CUBES, GridIndex, crossing_edges, dual_surface
 
     rng = np.random.default_rng(11)
     n = 14
@@ -449,7 +450,7 @@ def test_adjacency_matches_scipy_coo_build():
     degenerate faces (i, i, j), which give an entry (i, i)."""
     from scipy.sparse import csr_matrix
 
-    from hgca_core.geometry.mesh_clean import adjacency
+    from hgca_core.meshing.mesh_clean import adjacency
 
     def scipys(faces: np.ndarray, nv: int) -> csr_matrix:
         a, b = faces.reshape(-1), faces[:, [1, 2, 0]].reshape(-1)
@@ -473,7 +474,7 @@ def test_adjacency_matches_scipy_coo_build():
 
 
 def test_run_lengths_match_a_naive_count():
-    from hgca_core.geometry.mesh_clean import run_lengths
+    from hgca_core.meshing.mesh_clean import run_lengths
 
     rng = np.random.default_rng(8)
     for n in (1, 2, 50, 3000):
@@ -488,7 +489,7 @@ def test_run_lengths_match_a_naive_count():
 def test_grid_index_at_the_borders_and_in_any_order():
     """Points on the grid's outer columns and rows (the padded column grid's neighbours of them are empty), and
     the lookup path of unsorted points, give the neighbours a dict of the points gives."""
-    from hgca_core.geometry.udf_surface import GridIndex
+    from hgca_core.meshing.udf_surface import GridIndex
 
     rng = np.random.default_rng(9)
     g = np.unique(np.r_[rng.integers(0, 4, size=(60, 3)), [[0, 0, 0], [3, 3, 3], [0, 3, 1], [3, 0, 2]]], axis=0)

@@ -13,7 +13,7 @@ import trimesh
 import hgca_core
 from hgca_core.config import QUALITY_FILES, CompletionConfig, DriveConfig
 from hgca_core.errors import InputError
-from hgca_core.geometry.voxel_mesh import smooth_cells_mesh, voxel_mesh
+from hgca_core.meshing.voxel_mesh import smooth_cells_mesh, voxel_mesh
 
 EXAMPLE = Path(hgca_core.__file__).parent / "examples"
 

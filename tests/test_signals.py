@@ -145,7 +145,7 @@ DECIMATE = textwrap.dedent("""
     from hgca_core import interrupt
     interrupt.install("test")
     import trimesh
-    from hgca_core.meshing import decimate
+    from hgca_core.meshing.decimation import decimate
     mesh = trimesh.creation.icosphere(subdivisions=8)   # 1.3 M faces: seconds of quadric collapse
     print("ready", flush=True)
     decimate(mesh, 1000)
@@ -182,7 +182,7 @@ def test_decimation_gives_the_same_mesh_in_the_interruptible_child():
     import trimesh
 
     from hgca_core import interrupt
-    from hgca_core.meshing import decimate
+    from hgca_core.meshing.decimation import decimate
 
     mesh = trimesh.creation.icosphere(subdivisions=5)
     plain = decimate(mesh, 2000)

@@ -1,6 +1,6 @@
 """Least-squares planes z = a x + b y + c of many groups of points at once (vectorised normal equations).
 
-One fit serves the ground fairing's local slopes (`hgca_core.geometry.fairing`) and the flatness benchmark's
+One fit serves the ground fairing's local slopes (`hgca_core.meshing.fairing`) and the flatness benchmark's
 per-patch residuals and reference planes (`hgca_core.metrics.flatness`). Sums are taken about each group's
 (weighted) centroid, so heights of hundreds of metres (georeferenced frames) lose no precision.
 """

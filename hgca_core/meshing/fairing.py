@@ -24,7 +24,7 @@ follows the evidence around it. Without input (`distances` None) it is a plain l
 s is the local slope (`slopes`: planes per region and 8 m square, fitted mostly to the vertices at input points).
 A membrane on raw heights prefers level ground: where the neighbours lie on one side (the region's edge, holes) it
 would bend a sloped road by 10 cm on a 5 % slope; against the local slope, every plane is a fixed point and a
-crest of 200 m radius scanned every metre moves by < 5 mm (tests/geometry/test_fairing.py). No vertex moves
+crest of 200 m radius scanned every metre moves by < 5 mm (tests/meshing/test_fairing.py). No vertex moves
 more than `max_move` (one fine cell; on the AV2 log 7fab 0.2 % of the vertices reach it, on hole rims far from
 any point).
 
@@ -45,9 +45,9 @@ from scipy.sparse import csr_matrix, diags
 from scipy.sparse.csgraph import connected_components
 
 from hgca_core.geometry.keys import pack
-from hgca_core.geometry.mesh_clean import adjacency, face_normals, vertex_sums
+from hgca_core.meshing.mesh_clean import adjacency, face_normals, vertex_sums
 from hgca_core.geometry.nearest import PointIndex
-from hgca_core.geometry.parallel import map_slices, run_all
+from hgca_core.meshing.parallel import map_slices, run_all
 from hgca_core.geometry.planes import fit_planes
 
 TILT = 30.0            # degrees: surfaces flatter than this are ground-like
@@ -251,7 +251,7 @@ def _cg(a: csr_matrix, b: np.ndarray, inv_diag: np.ndarray, tol: float, max_iter
     """Jacobi-preconditioned CG; returns (solution, iterations).
 
     The steps of scipy's `cg` (1.17) in its order and float types, so the same solution bit for bit
-    (tests/geometry/test_fairing.py checks), without its operator wrappers and per-step temporaries; the
+    (tests/meshing/test_fairing.py checks), without its operator wrappers and per-step temporaries; the
     preconditioner is an elementwise product where scipy multiplies by a diagonal matrix (0 + d r: the same)."""
     b = np.asarray(b)
     bnrm2 = np.linalg.norm(b)

@@ -1,22 +1,15 @@
-"""Meshes from the fine stage's output (the coarse stage's blocky mesh is `hgca_core.geometry.voxel_mesh`).
-
-Unsigned distance decoded on a 5 cm grid (`udf_grid`) -> one open surface at its zero level
-(`hgca_core.geometry.udf_surface`) -> cleanup (`hgca_core.geometry.mesh_clean`): floating fragments, consistent
-orientation towards the sensors, pinholes. `finish_mesh` adds per-vertex normals and the observed / generated face
-split every output carries; `decimate` makes a mesh light.
+"""The fine stage's implicit field on the meshing grid: the decoder's unsigned distance evaluated on a 5 cm grid
+around the occupied 10 cm cells (`udf_grid`), which `hgca_core.meshing.fine.udf_mesh` turns into a surface, and
+the grid points near its zero level (`udf_surface_points`), which training's validation scores as samples.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import numpy as np
 import torch
-import trimesh
 
 from hgca_core.geometry.keys import pack, unpack
-
-if TYPE_CHECKING:
-    from hgca_core.geometry.nearest import PointIndex
 
 # ---------------------------------------------------------------------------------------------------------------
 # Unsigned distance -> mesh (the fine stage, paper App. "Other Implementation Details")
@@ -28,14 +21,6 @@ if TYPE_CHECKING:
 # there anyway (no occupied cell among their 8 nearest cell centres).
 # ---------------------------------------------------------------------------------------------------------------
 UdfFn = Callable[[torch.Tensor], torch.Tensor]
-
-
-# Defaults of the fine stage's cleanup (see `udf_mesh`)
-MIN_AREA = 0.05          # m^2: connected pieces smaller than a 22 x 22 cm square are specks, not objects
-PINHOLE_EDGES = 12       # boundary loops of at most this many edges (~0.5 m around at 5 cm) are closed
-# Defaults of `finish_mesh`
-DEFAULT_MAX_FACES = 1_000_000
-OBSERVED_SPLIT = 0.15    # m: faces whose vertices are on average farther from the input are "generated"
 
 
 def _as_field(decoder: object, cells: torch.Tensor, latents: torch.Tensor | None) -> UdfFn:
@@ -124,165 +109,6 @@ def project_to_zero(field: UdfFn, points: np.ndarray, steps: int = 1, max_dist: 
             step = (d.detach()[:, None] * grad / n.clamp(min=1e-6)) * ok[:, None]
             p[a:a + chunk] -= step.double().numpy()
     return p
-
-
-def udf_mesh(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.Tensor | None = None,
-             lower_corner: float | np.ndarray | None = None, voxel: float = 0.1, res: float = 0.05,
-             chunk: int = 1 << 15, min_area: float = MIN_AREA, pinhole_edges: int = PINHOLE_EDGES,
-             points: np.ndarray | None = None, sensors: np.ndarray | None = None, fair: bool = True,
-             timings: dict | None = None, tree: PointIndex | None = None, workers: int | None = None
-             ) -> trimesh.Trimesh:
-    """One open surface at the zero level of the unsigned distance around occupied 10 cm cells (5 cm grid).
-
-    decoder: an autoencoder (anything with `.field(cells, latents)`) or a function of (Q, 3) cell-frame points
-      (metres) -> (Q,) unsigned distances (metres), clamped at `voxel`.
-    cells: (N, 3) int occupied cells; latents: (N, K) their codes (ignored by a plain function).
-    lower_corner: where cell c's box starts, lower_corner + c * voxel, as in `geometry.voxel_mesh`; the default
-      -voxel / 2 is the region frame of 10 cm cells made by rounding, so vertices come back in that frame.
-    chunk: decoder queries per call (memory bound; results do not depend on it).
-    min_area: connected pieces with less area (m^2) are dropped; pinhole_edges: boundary loops with at most
-      this many edges are closed (0: none).
-    points / sensors: input points and sensor positions (output frame): observed faces (`observed_vertices`)
-      face the nearest sensor, and each connected piece follows its observed faces; pieces nobody saw face
-      away from their own centre (outwards from what they enclose), or up. Without points: the latter.
-    fair: near-horizontal surfaces are faired between the input points (`hgca_core.geometry.fairing`: the
-      generated ground between scan rings is flattened onto what the rings say, and the decoder's local bias at
-      the rings taken out); needs `points`.
-    tree: a `geometry.nearest.PointIndex` of `points` when the caller has one (`pipeline.complete_local` builds
-      one per completion for the fairing's anchors and the vertices' observed_distance); None: built here if needed.
-    workers: threads for the numpy steps (default: torch's thread count, the decoder's).
-    timings: if given, filled with the wall seconds of each step (decode, extract, clean, fair) and the CPU seconds
-      (`*_cpu`, all threads of this process: on a busy machine a fairer measure of the work).
-    """
-    import time
-
-    from hgca_core.geometry import mesh_clean as mc
-    from hgca_core.geometry.udf_surface import dual_surface
-
-    workers = torch.get_num_threads() if workers is None else max(1, int(workers))
-    t0, c0 = time.perf_counter(), time.process_time()
-    shift = np.asarray(-voxel / 2 if lower_corner is None else lower_corner, dtype=np.float64) + voxel / 2
-    g, vals = udf_grid(decoder, cells, latents, voxel, res, chunk)
-    t1, c1 = time.perf_counter(), time.process_time()
-    surf = dual_surface(g, vals, res, voxel, workers=workers)
-    v, f = surf.vertices * res + shift, surf.faces
-    t2, c2 = time.perf_counter(), time.process_time()
-    observed = None
-    if points is not None and sensors is not None and len(points) and len(v):
-        observed = observed_vertices(v, points, voxel)
-    v, f = mc.clean_surface(v, f, min_area, observed, sensors, pinhole_edges, workers)
-    t3, c3 = time.perf_counter(), time.process_time()
-    if fair and points is not None and len(points) and len(f):
-        from hgca_core.geometry.fairing import fair_ground
-        from hgca_core.geometry.nearest import PointIndex
-
-        tree = PointIndex(points) if tree is None else tree
-        v = fair_ground(v, f, workers=workers, points=tree)[0]   # anchors: the ground vertices' nearest points
-    if timings is not None:   # wall seconds, and CPU seconds of this process (all its threads)
-        t4, c4 = time.perf_counter(), time.process_time()
-        timings.update(decode=t1 - t0, extract=t2 - t1, clean=t3 - t2, fair=t4 - t3,
-                       decode_cpu=c1 - c0, extract_cpu=c2 - c1, clean_cpu=c3 - c2, fair_cpu=c4 - c3)
-    return trimesh.Trimesh(vertices=v, faces=f, process=False)
-
-
-def observed_vertices(vertices: np.ndarray, points: np.ndarray, voxel: float) -> np.ndarray:
-    """(V,) bool: the vertex lies in a `voxel` cell (by rounding, like the 10 cm input cells) that holds an input
-    point, i.e. within ~0.9 voxel of one; a search among the points' sorted cell keys, several times cheaper than a
-    nearest-neighbour query."""
-    if len(points) == 0 or len(vertices) == 0:
-        return np.zeros(len(vertices), dtype=bool)
-    keys = np.unique(pack(np.round(np.asarray(points, dtype=np.float64) / voxel).astype(np.int64)))
-    q = pack(np.round(np.asarray(vertices, dtype=np.float64) / voxel).astype(np.int64))
-    return keys[np.minimum(np.searchsorted(keys, q), len(keys) - 1)] == q
-
-
-def finish_mesh(mesh: trimesh.Trimesh, observed_distance: np.ndarray | None = None,
-                split: float = OBSERVED_SPLIT) -> trimesh.Trimesh:
-    """Add what a scene builder expects to a finished mesh (in its final frame): per-vertex normals as the
-    vertex attributes `nx`, `ny`, `nz` (and trimesh's `vertex_normals`), `observed_distance` when given, and
-    the face attribute `material` (uint8: 0 observed, 1 generated: the mean observed_distance of the face's
-    vertices above `split` metres; all 0 without distances)."""
-    from hgca_core.geometry.mesh_clean import vertex_normals
-
-    v, f = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
-    normals = vertex_normals(v, f) if len(v) else np.zeros((0, 3), np.float32)
-    out = trimesh.Trimesh(vertices=v, faces=f, vertex_normals=normals if len(v) else None, process=False)
-    if observed_distance is not None:
-        d = np.asarray(observed_distance, dtype=np.float32)
-        out.vertex_attributes["observed_distance"] = d
-        material = (d[f].mean(1) > split).astype(np.uint8) if len(f) else np.zeros(0, np.uint8)
-    else:
-        material = np.zeros(len(f), np.uint8)
-    for name, k in (("nx", 0), ("ny", 1), ("nz", 2)):
-        out.vertex_attributes[name] = normals[:, k]
-    out.face_attributes["material"] = material
-    return out
-
-
-def decimate(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
-    """The mesh with at most `max_faces` triangles, by quadric edge collapse (fast-simplification).
-
-    Quadric error keeps detail where the surface bends and spends few triangles on flat facades and roads, most
-    of a street (a default region's 1.8 M -> 1 M moves the surface by < 1 mm, benchmarks/results/mesh_quality).
-    Open borders are kept as they are (collapsing them shrinks holes' rims and splits pieces) unless the limit
-    cannot be met otherwise. Vertex attributes are dropped: the vertices are new (`finish_mesh` adds them).
-    """
-    import fast_simplification
-
-    if max_faces < 1:
-        raise ValueError(f"max_faces must be at least 1, got {max_faces}")
-    n = len(mesh.faces)
-    if n <= max_faces:
-        return mesh
-    v, f = interruptible(fast_simplification.simplify, np.asarray(mesh.vertices, dtype=np.float32),
-                         np.asarray(mesh.faces, dtype=np.int32), target_count=max_faces, preserve_border=True)
-    if len(f) > max_faces:   # mostly border (small or ragged pieces): the limit wins over the borders
-        v, f = interruptible(fast_simplification.simplify, v, f, target_count=max_faces)
-    return trimesh.Trimesh(vertices=v.astype(np.float64), faces=f.astype(np.int64), process=False)
-
-
-def interruptible(fn: Callable[..., tuple[np.ndarray, ...]], *args: object, **kwargs: object) -> tuple[np.ndarray, ...]:
-    """`fn(*args, **kwargs)` (arrays in, a tuple of arrays out) in a forked child when the CLI's signal handler
-    is installed: fast-simplification holds the GIL for seconds (a default region's mesh: ~4 s), and Python runs
-    signal handlers only between bytecodes of the main thread, so Ctrl-C or SIGTERM waited for it. Here the
-    main thread waits on a pipe, where a signal is handled at once, and the handler's last words kill the child.
-    Without fork (Windows) or the handler (a library caller), it is a plain call."""
-    import os
-    import signal
-
-    from hgca_core import interrupt
-
-    if not hasattr(os, "fork") or not interrupt.installed():
-        return fn(*args, **kwargs)
-    read_end, write_end = os.pipe()
-    pid = os.fork()
-    if pid == 0:  # the child: compute, send the arrays, end without Python's exit handlers
-        code = 1
-        try:
-            os.close(read_end)
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                signal.signal(sig, signal.SIG_DFL)
-            out = fn(*args, **kwargs)
-            with os.fdopen(write_end, "wb") as pipe:
-                pipe.write(len(out).to_bytes(4, "little"))
-                for a in out:
-                    np.save(pipe, np.asarray(a), allow_pickle=False)
-            code = 0
-        finally:
-            os._exit(code)
-    os.close(write_end)
-    with interrupt.last_words(lambda _signum: os.kill(pid, signal.SIGKILL)):
-        try:
-            with os.fdopen(read_end, "rb") as pipe:
-                count = int.from_bytes(pipe.read(4), "little")
-                out = tuple(np.load(pipe, allow_pickle=False) for _ in range(count))
-        except (OSError, ValueError, EOFError):
-            out = None
-        finally:
-            _, status = os.waitpid(pid, 0)
-    if out is None or status != 0:   # the child failed (memory?): the same call here says why
-        return fn(*args, **kwargs)
-    return out
 
 
 def udf_surface_points(decoder: object, cells: np.ndarray | torch.Tensor, latents: torch.Tensor | None = None,

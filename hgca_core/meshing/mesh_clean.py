@@ -10,7 +10,7 @@ import numpy as np
 from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
-from hgca_core.geometry.parallel import map_slices, run_all
+from hgca_core.meshing.parallel import map_slices, run_all
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray, workers: int = 1) -> tuple[np.ndarray, np.ndarray]:

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hgca_core.geometry.keys import pack
-from hgca_core.geometry.parallel import map_slices
+from hgca_core.meshing.parallel import map_slices
 
 # Crossing test thresholds, in grid steps h. A plane crossing an edge has d_i + d_j = h |n_a| <= h; the learned
 # decoder's distances bottom out at ~1.5 mm rather than 0 and its slope is not exactly 1, so allow some slack.

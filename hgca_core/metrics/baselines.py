@@ -11,7 +11,7 @@ from hgca_core.geometry.nearest import PointIndex
 
 from hgca_core.errors import HgcaError, InputError
 from hgca_core.geometry.voxel import COARSE, voxelize
-from hgca_core.geometry.voxel_mesh import voxel_mesh
+from hgca_core.meshing.voxel_mesh import voxel_mesh
 from hgca_core.metrics.chamfer import as_points
 
 

@@ -2,7 +2,7 @@
 with the 128-beam, (-30, 30) degree LiDAR and compare with the same sensor's scan of the ground truth.
 
 Every representation is scored as a mesh by the same ray caster; voxel outputs (the input row, GCA, hGCA's
-20 cm and 10 cm cells) are all meshed by `hgca_core.geometry.voxel_mesh.voxel_mesh`, the mesh the product
+20 cm and 10 cm cells) are all meshed by `hgca_core.meshing.voxel_mesh.voxel_mesh`, the mesh the product
 ships (the paper does not say how it meshes voxels for ReSim).
 """
 from __future__ import annotations

@@ -40,7 +40,7 @@ def evaluate_methods(path: Path, methods: list[str], models: dict, settings: Eva
 
     from hgca_core.geometry.region import Region
     from hgca_core.geometry.voxel import COARSE, FINE, downsample
-    from hgca_core.geometry.voxel_mesh import voxel_mesh
+    from hgca_core.meshing.voxel_mesh import voxel_mesh
     from hgca_core.metrics.baselines import input_baseline, poisson_baseline
     from hgca_core.metrics.evaluate import evaluate_sample
     from hgca_core.pipeline import complete_local

@@ -258,7 +258,7 @@ def upsample(model: CGCAKernel, autoencoder: Autoencoder, input_points_local: np
     grid10: the 10 cm grid shape (Region.grid_shape(0.1)); free20: (1, X, Y, Z) bool seen-empty 20 cm cells or
     None, given to the model as 10 cm cells; forbid20: the 20 cm cells whose 10 cm children are never output
     (`--free-space mask`), or None. Returns (cells (N, 3) int64, latents
-    (N, K) float32) on the model's device, which the pipeline meshes (`meshing.udf_mesh`).
+    (N, K) float32) on the model's device, which the pipeline meshes (`meshing.fine.udf_mesh`).
     """
     x0, z0 = initial_state(autoencoder, input_points_local, coarse_cells, grid10)
     free = fs.upsample(free20, tuple(grid10)) if free20 is not None and model.cfg.free_space else None

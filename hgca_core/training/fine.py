@@ -32,7 +32,7 @@ from torch import nn
 from hgca_core.geometry import coords as cs
 from hgca_core.geometry.keys import unique_rows
 from hgca_core.geometry.voxel import FINE
-from hgca_core.meshing import udf_surface_points
+from hgca_core.meshing.field import udf_surface_points
 from hgca_core.metrics.chamfer import chamfer_or_penalty
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel, _gather, _table, sample

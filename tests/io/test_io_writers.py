@@ -120,7 +120,7 @@ def test_unwritable_output_is_input_error(tmp_path):
 
 def finished_mesh() -> trimesh.Trimesh:
     """A mesh as the pipeline returns it: normals, observed_distance, observed / generated face material."""
-    from hgca_core.meshing import finish_mesh
+    from hgca_core.meshing.finish import finish_mesh
 
     mesh = trimesh.creation.icosphere(2)
     return finish_mesh(mesh, np.where(mesh.vertices[:, 0] > 0, 0.0, 1.0).astype(np.float32))

@@ -3,8 +3,8 @@ domes and steep surfaces keep their shape."""
 import numpy as np
 import pytest
 
-from hgca_core.geometry.fairing import fair_ground
-from hgca_core.geometry.mesh_clean import adjacency
+from hgca_core.meshing.fairing import fair_ground
+from hgca_core.meshing.mesh_clean import adjacency
 
 H = 0.05   # grid spacing of the test meshes, like the 5 cm extraction grid
 
@@ -173,7 +173,7 @@ def test_own_cg_is_scipys_cg_bit_for_bit(seed):
     from scipy.sparse import diags
     from scipy.sparse.linalg import cg
 
-    from hgca_core.geometry.fairing import _cg
+    from hgca_core.meshing.fairing import _cg
 
     a, b, diag = _membrane(30, seed)
     for tol, max_iter in ((1e-3, 500), (1e-6, 7)):
@@ -188,7 +188,7 @@ def test_own_cg_is_scipys_cg_bit_for_bit(seed):
 
 def test_subgraph_is_scipys_fancy_index():
     """`_subgraph(adj, idx)` is `adj[idx][:, idx]`: the same rows, columns (sorted) and values."""
-    from hgca_core.geometry.fairing import _subgraph
+    from hgca_core.meshing.fairing import _subgraph
 
     rng = np.random.default_rng(4)
     v, f = grid_mesh(25, lambda x, y: 0 * x)
@@ -206,7 +206,7 @@ def test_subgraph_is_scipys_fancy_index():
 def test_anchors_from_the_point_index_equal_given_distances():
     """fair_ground(points=index) looks up only the ground-like vertices: the same heights, bit for bit, as
     passing every vertex's nearest distance and height."""
-    from hgca_core.geometry.fairing import ANCHOR_SCALE
+    from hgca_core.meshing.fairing import ANCHOR_SCALE
     from hgca_core.geometry.nearest import PointIndex
 
     rng = np.random.default_rng(6)

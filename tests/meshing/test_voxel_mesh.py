@@ -4,7 +4,7 @@ import pytest
 
 from hgca_core.errors import InputError
 from hgca_core.geometry.voxel import cell_centers
-from hgca_core.geometry.voxel_mesh import voxel_mesh
+from hgca_core.meshing.voxel_mesh import voxel_mesh
 
 
 def test_single_cell_is_a_closed_cube():

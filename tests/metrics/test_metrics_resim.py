@@ -7,7 +7,7 @@ import trimesh
 
 from hgca_core.geometry import raycast as lidar
 from hgca_core.geometry.voxel import voxelize
-from hgca_core.geometry.voxel_mesh import voxel_mesh
+from hgca_core.meshing.voxel_mesh import voxel_mesh
 from hgca_core.metrics.evaluate import evaluate_sample
 from hgca_core.metrics.iou import iou
 from hgca_core.metrics.resim import resim_cd, resim_scans

@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 from hgca_core.geometry import coords as cs
 from hgca_core.geometry.voxel import downsample, voxelize
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
-from hgca_core.meshing import udf_mesh
+from hgca_core.meshing.fine import udf_mesh
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel, initial_state, sample, upsample
 from hgca_core.models.weights import load_file, load_fine, save_weights
 from hgca_core.nn.sparse import CellState

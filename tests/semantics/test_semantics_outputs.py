@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 from hgca_core.io import write_mesh, write_mesh_npz
 from hgca_core.io.classes import CLASS_NAMES
 from hgca_core.io.writers import CLASS_MATERIALS
-from hgca_core.meshing import finish_mesh
+from hgca_core.meshing.finish import finish_mesh
 
 
 def labelled_mesh(offset: float = 0.0) -> trimesh.Trimesh:
