@@ -3,8 +3,7 @@
 Why pykdtree (the pytroll project's OpenMP k-d tree) and not scipy's cKDTree: a mesh's generated vertices lie
 metres from any input point, and there cKDTree's queries are slow. On the bundled example's 0.74 M points with
 0.2 M queries (half near the scans, half anywhere in the region) cKDTree took 108 s and pykdtree 4.1 s on 2 threads,
-with the same distances and the same indices for every query (benchmarks/results/nearest_backend.md). Its threads
-follow OMP_NUM_THREADS.
+with the same distances and the same indices for every query. Its threads follow OMP_NUM_THREADS.
 """
 from __future__ import annotations
 
