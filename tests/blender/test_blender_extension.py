@@ -30,9 +30,10 @@ def test_zip_builds_installs_and_enables(addon, tmp_path: Path) -> None:
     zip_path = build_extension.build(tmp_path / "dist")
     assert zip_path.name == "hgca-0.1.0.zip"
     names = set(zipfile.ZipFile(zip_path).namelist())
-    assert {"blender_manifest.toml", "__init__.py", "core.py", "jobs.py", "batch.py", "panels.py"} <= names
+    assert {"blender_manifest.toml", "__init__.py", "jobs/core.py", "jobs/completion.py", "batch.py", "ui/panels.py",
+            "scene/__init__.py", "operators/watch.py"} <= names   # the packages, not only the top level
     assert "build_extension.py" not in names and not any("__pycache__" in n for n in names)
-    assert {"install_core.py", "installer.py", "core/hgca-0.1.0-py3-none-any.whl"} <= names
+    assert {"jobs/install_core.py", "jobs/installer.py", "core/hgca-0.1.0-py3-none-any.whl"} <= names
 
     # The session's copy registers the same classes: step it aside while the installed one is tested.
     addon_utils.disable(ADDON, default_set=True)
