@@ -47,7 +47,7 @@ import bpy
 from . import preferences, settings
 from .jobs import completion, core, default_region, job_inputs
 from .operators import import_scans
-from .scene import georef, mesh_build, preview, region, sources
+from .scene import georef, mesh_build, preview, region
 
 
 def script_args(argv: list[str]) -> list[str]:
