@@ -126,17 +126,20 @@ def cpu() -> dict:
 
 
 def page(r: dict) -> str:
+    where = (f"on the synthetic test split (`{r['data']}`), paired per scene, {r['samples']} samples per scene"
+             if set(r["pairs"]) - {"real"} else "on the real scans, paired per scan")
     lines = ["# Few-step students against the teacher", "",
              "What `--quality fast` (the students, `hgca train --recipe coarse-student` / `fine-student`) costs in "
-             "quality against `--quality best` (the teacher chains of the paper), on the synthetic test split "
-             f"(`{r['data']}`), paired per scene, {r['samples']} samples per scene. The band is the teacher's own "
+             f"quality against `--quality best` (the teacher chains of the paper), {where}. The band is the teacher's own "
              "seed-to-seed difference (seeds 0 and 1000), measured in the same run: a student *holds* a measure when "
              "its mean difference from the teacher is no worse than that band. Made by `benchmarks/students.py`.", "",
              f"Machine: {r['cpu'].get('model', '?')}, {r['cpu'].get('cores')} cores, "
              f"flags {' '.join(r['cpu'].get('flags', []))}.", ""]
     student = Path(r.get("coarse_student", "coarse_student.pt")).name
     if student != "coarse_student.pt":
-        lines += [f"The coarse student here is `{r['coarse_student']}`, not the shipped one.", ""]
+        lines += [f"The coarse student here is `{r['coarse_student']}`, not the shipped one (made by "
+                  "`hgca train --recipe coarse-student --set distill=1.0`, selected on val, exported with "
+                  "`--export`).", ""]
     titles = (("coarse", f"Coarse stage: {student} (T1 10) vs coarse.pt (T1 30)"),
               ("coarse_short", "Coarse stage, untrained: coarse.pt run for 10 steps vs its own 30"),
               ("full", "Full stage: fast (both students, T1 10 + T2 5) vs best (T1 30 + T2 15)"),
@@ -164,7 +167,7 @@ def page(r: dict) -> str:
               "(higher: more diverse). Real scans: each input's mean over its samples; recall is the share of the "
               "cells cut away above 2 m that the completion brings back, the shares are of the generated cells above "
               "the cut that lie where the sensor saw empty space (lower is better).", "",
-              "![students](students.png)", ""]
+              f"![{r.get('page', 'students')}]({r.get('page', 'students')}.png)", ""]
     return "\n".join(lines)
 
 
@@ -254,6 +257,7 @@ def main() -> int:
             result["pairs"]["real"] = paired(rows["teacher"], rows["band"], rows["student"], REAL_METRICS)
             result["scenes"]["real"] = rows["teacher"]["n"]
             result["seconds"]["real"] = {w: rows[w]["seconds_per_completion"] for w in rows}
+    result["page"] = args.page
     result["coarse_student"] = str(coarse_s.relative_to(REPO)) if coarse_s.is_relative_to(REPO) else str(coarse_s)
     print(write_page(OUT, args.page, result, page, plot))
     return 0
