@@ -16,7 +16,8 @@ MODULE = {"torch": "torch", "numpy": "numpy", "scipy": "scipy", "trimesh": "trim
           "pyarrow": "pyarrow", "ray": "ray",
           "embreex": None,   # trimesh's ray casting (synthetic LiDAR, ray-hit visibility)
           "rtree": None,     # trimesh's spatial index
-          "lazrs": "lazrs", "pillow": "PIL", "scikit-image": "skimage"}
+          "lazrs": "lazrs", "pillow": "PIL", "scikit-image": "skimage",
+          "rosbags": "rosbags", "pye57": "pye57", "kiss-icp": "kiss_icp"}
 
 
 def _name(requirement: str) -> str:
