@@ -261,7 +261,7 @@ def completions(bags, log, small_weights, tmp_path_factory):
     shutil.copytree(log, folder, ignore=shutil.ignore_patterns("calibration"))
     common = ["--weights", small_weights, "--stage", "coarse", "--seed", 3, "--region", REGION, "--progress", "none"]
     out = {}
-    for name, src in (("bag", bags["sqlite3"]), ("folder", folder)):
+    for name, src in (("bag", bags["sqlite3"]), ("ros1", bags["ros1"]), ("folder", folder)):
         res = cli("complete", src, "--frames", "0:2", "-o", root / f"{name}.npz", *common)
         assert res.returncode == 0, res.stderr
         with np.load(root / f"{name}_s0.npz") as z:
@@ -269,8 +269,9 @@ def completions(bags, log, small_weights, tmp_path_factory):
     return out
 
 
-def test_bag_completes_like_the_log_folder(completions):
-    (va, fa), (vb, fb) = completions["bag"], completions["folder"]
+@pytest.mark.parametrize("bag", ["bag", "ros1"], ids=["ros2-sqlite3", "ros1-tf-interpolated"])
+def test_bag_completes_like_the_log_folder(completions, bag):
+    (va, fa), (vb, fb) = completions[bag], completions["folder"]
     assert len(fa) > 100
     np.testing.assert_array_equal(fa, fb)
     np.testing.assert_allclose(va, vb, rtol=0, atol=1e-6)
