@@ -64,7 +64,9 @@ def write_page(runs: list[dict], out_dir: Path) -> None:
              "shipped weights), import the real nuScenes sweep, *Complete* (9.6 m region, full stage, 2 samples) "
              "and see the result coloured by observed/generated and by agreement in Solid view (Workbench, read back). "
              f"Measured by `benchmarks/blender_done.py` (tests/blender/test_blender_done.py) on {platform.machine()}, "
-             f"{os.cpu_count()} cores shared with other jobs (load average 15-21 while they ran): times are upper bounds.", "",
+             f"{os.cpu_count()} cores; 1-minute load average at the start and end of each line: "
+             + ", ".join(f"{r['blender']} {r['load_average'][0]} / {r['load_average'][1]}"
+                         for r in runs if "load_average" in r) + ".", "",
              "![step times](blender_done.png)", "",
              "| step | " + " | ".join(r["blender"] for r in runs) + " |",
              "|---|" + "---:|" * len(runs)]
@@ -72,6 +74,14 @@ def write_page(runs: list[dict], out_dir: Path) -> None:
         lines.append(f"| {step} | " + " | ".join(f"{r['seconds'].get(step, float('nan')):.1f}" for r in runs) + " |")
     lines.append("| total | " + " | ".join(f"{sum(r['seconds'].values()):.1f}" for r in runs) + " |")
     lines += ["", "All times in seconds. *Check* includes torch's first import in the new environment.", ""]
+    shown = [k for k in runs[0].get("feedback", {})]
+    if shown:
+        lines += ["While *Complete* runs (the job's timer driven as Blender's loop does; the longest call is the "
+                  "longest freeze the job causes):", "",
+                  "| what | " + " | ".join(r["blender"] for r in runs) + " |", "|---|" + "---:|" * len(runs)]
+        lines += [f"| {k} | " + " | ".join(f"{r.get('feedback', {}).get(k, float('nan')):g}" for r in runs) + " |"
+                  for k in shown]
+        lines.append("")
     (out_dir / "blender_done.md").write_text("\n".join(lines))
     (out_dir / "blender_done.json").write_text(json.dumps(runs, indent=2))
     chart(runs, out_dir / "blender_done.png")

@@ -84,6 +84,22 @@ def write_las(path, points: np.ndarray, scale: float = 0.001, offset=None) -> np
     return np.column_stack([np.asarray(back.x), np.asarray(back.y), np.asarray(back.z)])
 
 
+def geokeys(*pairs: tuple[int, int]):
+    """A LAS GeoKeyDirectory record holding `(key id, value)` pairs (e.g. (3072, 32633): projected CRS EPSG:32633),
+    as GIS software writes them."""
+    from laspy.vlrs.known import GeoKeyDirectoryVlr, GeoKeyEntryStruct
+
+    vlr = GeoKeyDirectoryVlr()
+    vlr.geo_keys_header.key_directory_version, vlr.geo_keys_header.key_revision = 1, 1
+    vlr.geo_keys_header.number_of_keys = len(pairs)
+    vlr.geo_keys = []
+    for key_id, value in pairs:
+        entry = GeoKeyEntryStruct()
+        entry.id, entry.tiff_tag_location, entry.count, entry.value_offset = key_id, 0, 1, value
+        vlr.geo_keys.append(entry)
+    return vlr
+
+
 def folder_state(root: Path) -> dict[str, object]:
     """Every entry under `root`: file bytes, link targets, the kind of anything else (fifos are not opened), so a
     before/after comparison shows any input changed and any output written."""

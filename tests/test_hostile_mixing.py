@@ -23,7 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent / "drive"))
 from drive_data import write_drive, write_kitti  # noqa: E402
 
 laspy = pytest.importorskip("laspy")
-from laspy.vlrs.known import GeoKeyDirectoryVlr, GeoKeyEntryStruct, WktCoordinateSystemVlr  # noqa: E402
+from laspy.vlrs.known import WktCoordinateSystemVlr  # noqa: E402
+from builders import geokeys  # noqa: E402
 
 FAST = ["--stage", "coarse", "--t1", "4", "--device", "cpu"]
 SMALL_REGION = "8,0,1,9.6,9.6,4"
@@ -43,18 +44,6 @@ def cli(monkeypatch, capsys, *argv) -> tuple[int, str, str]:
 
 def hgca(*argv) -> list[str]:
     return [sys.executable, "-m", "hgca_core.cli", *[str(a) for a in argv]]
-
-
-def geokeys(*pairs: tuple[int, int]) -> GeoKeyDirectoryVlr:
-    vlr = GeoKeyDirectoryVlr()
-    vlr.geo_keys_header.key_directory_version, vlr.geo_keys_header.key_revision = 1, 1
-    vlr.geo_keys_header.number_of_keys = len(pairs)
-    vlr.geo_keys = []
-    for key_id, value in pairs:
-        entry = GeoKeyEntryStruct()
-        entry.id, entry.tiff_tag_location, entry.count, entry.value_offset = key_id, 0, 1, value
-        vlr.geo_keys.append(entry)
-    return vlr
 
 
 def street_las(path: Path, vlrs=(), shift: float = 0.0) -> Path:

@@ -16,6 +16,8 @@ from pathlib import Path
 import bpy
 import pytest
 
+from hgca_blender.jobs.install_core import EXTRAS  # what Install Core asks pip for
+
 from bl_helpers import CORE_PYTHON, NUSCENES, SMALL_REGION, addon_module, prefs, require_fixture
 
 INSTALL_TIMEOUT_S = 900
@@ -36,7 +38,7 @@ def core_wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def wheels_folder(tmp_path_factory: pytest.TempPathFactory, core_wheel: Path) -> Path:
     """Every wheel the core needs, fetched once from the index pip is configured with (local on this machine)."""
     folder = tmp_path_factory.mktemp("wheels")
-    done = subprocess.run([CORE_PYTHON, "-m", "pip", "download", "-q", "-d", str(folder), f"{core_wheel}[real]",
+    done = subprocess.run([CORE_PYTHON, "-m", "pip", "download", "-q", "-d", str(folder), f"{core_wheel}[{EXTRAS}]",
                            "torch==2.13.0"], capture_output=True, text=True, timeout=1800)
     if done.returncode != 0:
         pytest.skip(f"pip cannot fetch the core's dependencies here: {done.stderr[-500:]}")

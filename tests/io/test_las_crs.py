@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 laspy = pytest.importorskip("laspy")
-from laspy.vlrs.known import GeoKeyDirectoryVlr, GeoKeyEntryStruct, WktCoordinateSystemVlr  # noqa: E402
+from laspy.vlrs.known import WktCoordinateSystemVlr  # noqa: E402
+from builders import geokeys  # noqa: E402
 from laspy.vlrs.vlrlist import VLRList  # noqa: E402
 
 from hgca_core.io.las import las_header_info  # noqa: E402
@@ -28,18 +29,6 @@ NO_CODE_WKT = ('PROJCS["local LCC",GEOGCS["NAD83",DATUM["NAD83",SPHEROID["GRS 19
                'UNIT["foot",0.3048,AUTHORITY["EPSG","9002"]]]')
 WKT2 = ('PROJCRS["ETRS89 / UTM zone 32N",BASEGEOGCRS["ETRS89",ID["EPSG",4258]],CONVERSION["UTM zone 32N",'
         'ID["EPSG",16032]],CS[Cartesian,2],LENGTHUNIT["metre",1,ID["EPSG",9001]],ID["EPSG",25832]]')
-
-
-def geokeys(*pairs: tuple[int, int]) -> GeoKeyDirectoryVlr:
-    vlr = GeoKeyDirectoryVlr()
-    vlr.geo_keys_header.key_directory_version, vlr.geo_keys_header.key_revision = 1, 1
-    vlr.geo_keys_header.number_of_keys = len(pairs)
-    vlr.geo_keys = []
-    for key_id, value in pairs:
-        entry = GeoKeyEntryStruct()
-        entry.id, entry.tiff_tag_location, entry.count, entry.value_offset = key_id, 0, 1, value
-        vlr.geo_keys.append(entry)
-    return vlr
 
 
 def write_las(path: Path, vlrs=(), evlrs=(), version: str = "1.2", wkt_bit: bool = False) -> Path:
