@@ -28,8 +28,8 @@ from . import mesh_build, semantics
 from .result_prepare import MeshArrays, SampleArrays
 
 SLICE_S = 0.2          # main-thread time one step() may take before it returns (plus at most one step)
-# Seconds per unit of each kind of step (by its function's name), as last measured in this session: a step that
-# would not fit what is left of a slice's budget waits for the next slice.
+# Seconds per unit of each kind of step (by its function's name), measured as the steps run in this Blender
+# process: a step that would not fit what is left of a slice's budget waits for the next slice.
 RATES: dict[str, float] = {}
 # (units of work, what the status line says, the Blender call; what it returns, if anything, becomes `result`)
 Step = tuple[int, str, Callable[[], Any]]
