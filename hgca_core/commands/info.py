@@ -46,15 +46,11 @@ def describe(path: str, fmt: str | None = None) -> dict[str, Any]:
 
 def describe_sequence(root: str, frames: str | None, poses: str | None, topic: str | None = None) -> dict[str, Any]:
     """Facts about the chosen frames of a sequence folder (bag, E57), accumulated with its poses."""
-    from hgca_core.io.read import accumulate, read_scans
     from hgca_core.io.sequence import open_sequence, parse_frames, select
 
     seq = open_sequence(root, poses, topic)
     files, mats = select(seq, frames)
-    if seq.reader is None:
-        scan = read_scans(files, poses=mats, fmt=seq.fmt)
-    else:
-        scan = accumulate([seq.read_frame(seq.files.index(f)) for f in files], files, mats)
+    scan = seq.accumulate(files, mats)
     return {
         "file": root,
         "format": f"{seq.layout} sequence",

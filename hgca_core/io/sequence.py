@@ -55,6 +55,16 @@ class Sequence:
 
         return read_scan(self.files[i], self.fmt)
 
+    def accumulate(self, files: list[str], poses: list[np.ndarray] | None) -> Scan:
+        """The frames named `files` (from `select`) with their `poses` in one world frame: scan files through
+        `read_scans` (its repeat and pose checks), a container's frames through their reader."""
+        from hgca_core.io.read import accumulate, read_scans
+
+        if self.reader is None:
+            return read_scans(files, poses=poses, fmt=self.fmt)
+        index = {name: i for i, name in enumerate(self.files)}
+        return accumulate([self.read_frame(index[f]) for f in files], files, poses)
+
 
 # Files and folders that hold a whole sequence in one container: layout -> "module:opener", each opener
 # `open(path, topic) -> Sequence` (the module is imported only when such an input is given).
@@ -304,15 +314,9 @@ def read_sequence(root: str | os.PathLike, frames: str | None = None, poses: str
 
     `calibration` (AV2 only) is an egovehicle_SE3_sensor table to take the lidar origins from, for a log
     that lacks its own (the av2-api test logs): without one such a log's origins are the ego origins."""
-    from hgca_core.io.read import accumulate, read_scans
-
     seq = open_sequence(root, poses, topic)
     files, mats = select(seq, frames)
-    if seq.reader is None:
-        scan = read_scans(files, poses=mats, fmt=seq.fmt)
-    else:
-        chosen = [seq.files.index(f) for f in files]
-        scan = accumulate([seq.read_frame(i) for i in chosen], files, mats)
+    scan = seq.accumulate(files, mats)
     if calibration is not None:
         if seq.layout != "av2":
             raise InputError(f"a lidar calibration applies to Argoverse 2 logs, not to a {seq.layout} sequence",

@@ -83,7 +83,6 @@ def read_drive_inputs(inputs: Sequence[str | os.PathLike], poses: str | os.PathL
     (`order`: the poses file's, else time stamps, else the chain of sensor positions). A jump between
     consecutive scans is reported as a warning."""
     from hgca_core.io import read_scan, read_scans
-    from hgca_core.io.read import accumulate
     from hgca_core.io.sequence import is_sequence, open_sequence, select
     from hgca_core.tiling.order import order_scans, poses_order, warn_jumps
 
@@ -98,9 +97,7 @@ def read_drive_inputs(inputs: Sequence[str | os.PathLike], poses: str | os.PathL
         seq = open_sequence(paths[0], poses, topic)
         files, mats = select(seq, frames if frames is not None else ":")
         for i, f in enumerate(files):
-            pose = [mats[i]] if mats is not None else None
-            scan = (read_scans([f], poses=pose, fmt=seq.fmt) if seq.reader is None
-                    else accumulate([seq.read_frame(seq.files.index(f))], [f], pose))
+            scan = seq.accumulate([f], [mats[i]] if mats is not None else None)
             out.extend(split_scans(scan, f))
             say("read", i + 1, len(files), os.path.basename(f), 0)
         warn_jumps([s.name for s in out], np.array([s.position for s in out]))
