@@ -46,7 +46,8 @@ def fine_state(models: Models, points: np.ndarray, region: Region, seed: int, ca
     if path is not None and path.exists():
         z = np.load(path)
         return torch.from_numpy(z["cells10"]), torch.from_numpy(z["latents"])
-    done = complete_local(points, region, models, "full", 1, seed, origins=origins, origin_index=origin_index)[0]
+    done = complete_local(points, region, models, stage="full", samples=1, seed=seed, max_faces=0, origins=origins,
+                          origin_index=origin_index)[0]
     cells10, z = done.fine_cells, done.fine_latents
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)

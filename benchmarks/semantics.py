@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import time
 from pathlib import Path
@@ -210,8 +209,8 @@ def main() -> None:
         sample = load_sample(path)
         rays, ray_scan = input_rays(sample)
         region = Region.from_tuple(sample["region"])
-        comp = complete_local(rays, region, models[stage], stage, 1, 0, origins=sample["input_origins"],
-                              origin_index=ray_scan)[0]
+        comp = complete_local(rays, region, models[stage], stage=stage, samples=1, seed=0, max_faces=0,
+                              origins=sample["input_origins"], origin_index=ray_scan)[0]
         return comp, voxelize(rays[region.contains_local(rays)], COARSE, region.size)
 
     def real_run(rel: str, frames: str | None, calib: str | None):
@@ -222,8 +221,8 @@ def main() -> None:
         region = default_region(scan.points, scan.origins)
         index = ray_origins(scan.origins, scan.attributes, scan.points)
         local = region.to_local(scan.points)
-        comp = complete_local(local, region, models["coarse"], "coarse", 1, 0, origins=region.to_local(scan.origins),
-                              origin_index=index)[0]
+        comp = complete_local(local, region, models["coarse"], stage="coarse", samples=1, seed=0, max_faces=0,
+                              origins=region.to_local(scan.origins), origin_index=index)[0]
         return comp, voxelize(local[region.contains_local(local)], COARSE, region.size)
 
     files = split_files(args.data, "test")[: args.limit]

@@ -72,8 +72,8 @@ def completions(data: Path, cache: Path, n: int) -> list[Path]:
             rays, ray_scan = input_rays(sample)
             region = Region.from_tuple(sample["region"])
             t0, c0 = time.perf_counter(), time.process_time()
-            comp = complete_local(rays, region, models, "full", 1, 0, origins=sample["input_origins"],
-                                  origin_index=ray_scan)[0]
+            comp = complete_local(rays, region, models, stage="full", samples=1, seed=0, max_faces=0,
+                                  origins=sample["input_origins"], origin_index=ray_scan)[0]
             secs, cpu = time.perf_counter() - t0, time.process_time() - c0
             np.savez(f, cells=comp.coarse_cells, s0=voxelize(rays[region.contains_local(rays)], COARSE, region.size),
                      fine_cells=comp.fine_cells, fine_latents=comp.fine_latents, grid=region.grid_shape(COARSE),

@@ -20,8 +20,7 @@ import numpy as np
 import torch
 import trimesh
 
-from hgca_core.config import (FREE_SPACE_MODES, MIN_FACES, SEED_MAX, STAGES, CompletionConfig,  # noqa: F401 (the bounds'
-                              check_device_name, check_seed_span)                     # names, re-exported)
+from hgca_core.config import STAGES, CompletionConfig, check_device_name
 from hgca_core.errors import HgcaWarning, InputError
 from hgca_core.geometry import coords as cs
 from hgca_core.geometry.nearest import PointIndex
@@ -69,14 +68,6 @@ def check_device(device: str) -> None:
     index = int(device.split(":")[1]) if ":" in device else 0
     if index >= torch.cuda.device_count():
         raise InputError(f"--device {device}: this machine has {torch.cuda.device_count()} CUDA GPU(s)")
-
-
-def check_settings(samples: int, seed: int, max_faces: int | None, t1: int | None, t2: int | None,
-                   span: int | None = None) -> None:
-    """The numbers of a completion, checked before any work (`CompletionConfig`'s checks), with every one of the
-    `span` (default `samples`) seeds a run uses within SEED_MAX."""
-    CompletionConfig(samples=samples, seed=seed, max_faces=max_faces, t1=t1, t2=t2)
-    check_seed_span(int(seed), span if span is not None else int(samples))
 
 
 @dataclass
@@ -175,13 +166,11 @@ def takes_free_space(models: Models) -> bool:
 def observed_free(local: np.ndarray, region: Region, models: Models, mode: str, origins: np.ndarray | None,
                   origin_index: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None, str]:
     """(seen-empty 20 cm cells as a dense (X, Y, Z) bool grid or None, the cells to forbid or None, a note for the
-    progress line) for `mode` (FREE_SPACE_MODES). Asked for explicitly (feature, mask) without sensor origins, or
-    as a feature the weights do not take, it is an `InputError`; auto without origins gives None and, when the
-    weights take the feature, a warning that it is all unknown."""
+    progress line) for `mode` (one of FREE_SPACE_MODES, checked by `CompletionConfig`). Asked for explicitly
+    (feature, mask) without sensor origins, or as a feature the weights do not take, it is an `InputError`; auto
+    without origins gives None and, when the weights take the feature, a warning that it is all unknown."""
     from hgca_core.geometry.freespace import confident, observed_empty
 
-    if mode not in FREE_SPACE_MODES:
-        raise InputError(f"free_space must be one of {', '.join(FREE_SPACE_MODES)}, not {mode!r}")
     takes = takes_free_space(models)
     if mode == "off" or (mode == "auto" and not takes):
         return None, None, "off" if mode == "off" else "not an input of these weights"
@@ -205,26 +194,22 @@ def observed_free(local: np.ndarray, region: Region, models: Models, mode: str, 
     return free, forbid, f"{note}: {int(free.sum())} cells"
 
 
-def complete_local(local: np.ndarray, region: Region, models: Models, stage: str | None = None, samples: int = 1,
-                   seed: int = 0, t1: int | None = None, t2: int | None = None, progress: ProgressFn | None = None,
-                   precision: str = DEFAULTS.precision, max_faces: int | None = None,
-                   origins: np.ndarray | None = None, origin_index: np.ndarray | None = None,
-                   free_space: str = DEFAULTS.free_space, fixed_cells: np.ndarray | None = None
-                   ) -> list[LocalCompletion]:
+def complete_local(local: np.ndarray, region: Region, models: Models, config: CompletionConfig | None = None, *,
+                   progress: ProgressFn | None = None, origins: np.ndarray | None = None,
+                   origin_index: np.ndarray | None = None, fixed_cells: np.ndarray | None = None,
+                   **settings) -> list[LocalCompletion]:
     """The region-frame core: `local` (N, 3) points in `region`'s frame (metres; only the region's size is used
-    here) -> `samples` completions, meshes in the same frame. Sample i uses seed + i.
+    here) -> `config.samples` completions, meshes in the same frame, as `config` says (default: its defaults;
+    `settings` change single fields, as in `complete`; its bounds were checked when it was made). Sample i uses
+    seed + i. The models must be those `load_models(config.stage, ...)` gives.
 
     Points outside the box [0, size) are dropped first, so every caller crops the same way; the observed free
     space uses every point's ray (a ray to a hit outside the box still crosses it). `origins` (S, 3) are the
     sensor positions in the region frame and `origin_index` (N,) each point's (None: the nearest origin, see
-    `geometry.freespace.ray_origins`); `free_space` is one of FREE_SPACE_MODES. The free space is computed
+    `geometry.freespace.ray_origins`); `config.free_space` says what the free space does. It is computed
     once and given to both stages. The coarse stage's mesh is the 20 cm cells' `voxel_mesh`; the full stage's
     is the zero level of the decoded unsigned distance as one surface, its observed parts facing `origins`
-    (`hgca_core.meshing.fine.udf_mesh`). Runs on the models' device. See `complete` for `precision`; `max_faces`
-    None or 0 keeps every triangle here.
-
-    `stage` None is the stage `models` were loaded for (`load_models(config.stage)`): full when they hold the fine
-    kernel, else coarse.
+    (`hgca_core.meshing.fine.udf_mesh`). Runs on the models' device; `config.device` is where they were loaded.
 
     `fixed_cells` ((M, 3) 20 cm cells in this frame) join the initial state s0 exactly as observed cells do:
     `hgca drive` passes the cells its finished neighbours generated in a tile's overlap, so the joins agree.
@@ -234,16 +219,13 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
     from hgca_core.nn.conv import gemm_precision, resolve_precision
     from hgca_core.nn.sparse import CellState
 
-    if stage is None:
-        stage = "full" if models.fine is not None else "coarse"
+    cfg = (config or DEFAULTS).with_(**settings) if settings else (config or DEFAULTS)
+    stage, t2 = cfg.stage, cfg.t2
     if stage == "full" and (models.fine is None or models.autoencoder is None):
         raise InputError("the full stage needs the fine kernel and its autoencoder (load_models('full', ...))")
-    for name, steps in (("t1", t1), ("t2", t2)):
-        if steps is not None and (int(steps) != steps or steps < 0):
-            raise InputError(f"{name} must be a whole number >= 0 (0: the weights' own), got {steps}")
     device = next(models.coarse.parameters()).device
     try:
-        gemm_dtype = resolve_precision(precision, str(device))
+        gemm_dtype = resolve_precision(cfg.precision, str(device))
     except ValueError as exc:
         raise InputError(str(exc)) from exc
     report = progress or (lambda *a: None)
@@ -256,7 +238,7 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
         from hgca_core.geometry.freespace import ray_origins
 
         origin_index = ray_origins(np.asarray(origins), {}, everything)
-    free_np, forbid_np, note = observed_free(everything, region, models, free_space, origins, origin_index)
+    free_np, forbid_np, note = observed_free(everything, region, models, cfg.free_space, origins, origin_index)
     free = None if free_np is None else torch.from_numpy(free_np)[None].to(device)
     forbid = None if forbid_np is None else torch.from_numpy(forbid_np)[None].to(device)
     report("free space", 1, 1, note, 0)
@@ -270,13 +252,14 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
         fixed = fixed[np.all((fixed >= 0) & (fixed < np.asarray(grid)), axis=1)]
         s0 = unique_rows(np.concatenate([s0, fixed])) if len(fixed) else s0
     report("voxelise", 1, 1, f"{len(s0)} cells at 20 cm", 0)
-    steps = t1 or models.coarse.cfg.steps
+    steps = cfg.t1 or models.coarse.cfg.steps
     # where observed faces of the full stage's surface turn to; without origins a sensor 2 m above the ground
     # at the region's centre (the box starts 1 m below the ground)
     sensors = (np.asarray(origins, dtype=np.float64).reshape(-1, 3) if origins is not None and len(origins)
                else np.array([[*(np.asarray(region.size[:2]) / 2), 3.0]]))
     tree = PointIndex(local)  # the input points, for the fairing's anchors and each vertex's observed_distance
     results = []
+    samples, seed = cfg.samples, cfg.seed
     for i in range(samples):
         tag = f"sample {i + 1}/{samples}"
         gen = torch.Generator().manual_seed(seed + i)   # on the CPU on any device: one seed, one mesh
@@ -306,7 +289,7 @@ def complete_local(local: np.ndarray, region: Region, models: Models, stage: str
         else:
             report("mesh", 0, 1, tag, i)
             mesh = voxel_mesh(cells, COARSE)
-        mesh = limit_faces(mesh, max_faces, lambda note: report("mesh", 0, 1, f"{tag}: {note}", i))
+        mesh = limit_faces(mesh, cfg.max_faces, lambda note: report("mesh", 0, 1, f"{tag}: {note}", i))
         if len(mesh.faces) == 0:  # inputs too small to complete were refused above: this is the model's doing
             warnings.warn(HgcaWarning(f"{tag} is an empty mesh: the model made no surface from {len(s0)} input "
                                       "cells (untrained or mismatched weights?)"), stacklevel=2)
@@ -356,8 +339,8 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
         raise InputError(f"origin_index has {len(origin_index)} entries for {len(pts)} points")
     origins_local = None if origins is None or len(origins) == 0 else region.to_local(np.asarray(origins, np.float64))
     results = []
-    for r in complete_local(local, region, models, cfg.stage, cfg.samples, cfg.seed, cfg.t1, cfg.t2, progress,
-                            cfg.precision, cfg.max_faces, origins_local, origin_index, cfg.free_space):
+    for r in complete_local(local, region, models, cfg, progress=progress, origins=origins_local,
+                            origin_index=origin_index):
         mesh = r.mesh
         mesh.vertices = region.to_world(mesh.vertices)
         mesh = finish_mesh(mesh, r.observed_distance)

@@ -241,8 +241,8 @@ def test_world_wrapper_is_the_region_core_moved_to_the_world(small_weights, scan
     region = hgca_core.Region.parse(REGION + ",30")               # a turned box: the frames really differ
     world = hgca_core.complete(pts, region=region, samples=2, seed=7, weights=small_weights, precision="fp32",
                                stage="coarse")
-    local = complete_local(region.to_local(pts), region, load_models("coarse", small_weights), samples=2, seed=7,
-                           precision="fp32")
+    local = complete_local(region.to_local(pts), region, load_models("coarse", small_weights), stage="coarse",
+                           samples=2, seed=7, precision="fp32")
     assert len(world) == len(local) == 2
     for w, c in zip(world, local):
         assert w.seed == c.seed and np.array_equal(w.coarse_cells, c.coarse_cells) and len(c.coarse_cells) > 0
@@ -250,7 +250,7 @@ def test_world_wrapper_is_the_region_core_moved_to_the_world(small_weights, scan
         np.testing.assert_allclose(w.vertices, region.to_world(c.mesh.vertices), rtol=0, atol=1e-9)
     assert not np.array_equal(local[0].coarse_cells, local[1].coarse_cells)
     with pytest.raises(hgca_core.InputError, match="inside"):
-        complete_local(region.to_local(pts) + 1000.0, region, load_models("coarse", small_weights))
+        complete_local(region.to_local(pts) + 1000.0, region, load_models("coarse", small_weights), stage="coarse")
 
 
 def test_stage_defaults_to_full(small_weights, scan, tmp_path):

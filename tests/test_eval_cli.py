@@ -119,14 +119,14 @@ def test_eval_scores_what_complete_ships(small_split):
     from hgca_core.geometry.voxel import voxelize
     from hgca_core.meshing.voxel_mesh import voxel_mesh
     from hgca_core.metrics.evaluate import evaluate_sample
-    from hgca_core.metrics.settings import EvalSettings
+    from hgca_core.config import CompletionConfig
     from hgca_core.metrics.synthetic import evaluate_methods, load_method_models
     from hgca_core.models.weights import shipped
     from hgca_core.synth.dataset import load_sample
     from hgca_core.synth.rays import input_rays
 
     path = small_split / "val" / "sample_1000123.npz"
-    settings = EvalSettings(samples=1, seed=3, t1=2, t2=None, precision="fp32", free_space="auto")
+    settings = CompletionConfig(samples=1, seed=3, t1=2, precision="fp32")
     got = evaluate_methods(path, ["input", "hgca"], load_method_models(["hgca"], None), settings)
     sample = load_sample(path)
     region = Region.from_tuple(sample["region"])

@@ -69,7 +69,7 @@ def test_free_space_is_computed_once_from_every_ray_and_reaches_both_stages(scen
 
     monkeypatch.setattr(gca, "sample", spy_gca)
     monkeypatch.setattr(cgca, "upsample", spy_up)
-    res = complete_local(local, region, _free_models(), "full", samples=2, origins=origins, origin_index=index,
+    res = complete_local(local, region, _free_models(), stage="full", samples=2, origins=origins, origin_index=index,
                          precision="fp32")
     assert len(res) == 2 and len(calls) == 1
     for free in seen["coarse"] + seen["fine"]:
@@ -98,18 +98,19 @@ def test_old_weights_give_the_old_result_unless_the_mask_is_asked_for(scene, tmp
     monkeypatch.setattr(freespace, "confident", lambda free: free)
     models = load_models("coarse", weights=_without_free_space(tmp_path / "old.pt"))
     assert not takes_free_space(models)
-    runs = {name: complete_local(local, region, models, samples=1, seed=3, precision="fp32", **kw)[0].coarse_cells
+    runs = {name: complete_local(local, region, models, stage="coarse", samples=1, seed=3, precision="fp32",
+                                 **kw)[0].coarse_cells
             for name, kw in {"plain": {}, "auto": dict(origins=origins, origin_index=index),
                              "off": dict(origins=origins, origin_index=index, free_space="off"),
                              "mask": dict(origins=origins, origin_index=index, free_space="mask")}.items()}
     assert np.array_equal(runs["plain"], runs["auto"]) and np.array_equal(runs["plain"], runs["off"])
     assert not np.array_equal(runs["plain"], runs["mask"])
     with pytest.raises(InputError, match="trained without observed free space"):
-        complete_local(local, region, models, origins=origins, free_space="feature")
+        complete_local(local, region, models, stage="coarse", origins=origins, free_space="feature")
     with pytest.raises(InputError, match="needs the sensor origins"):
-        complete_local(local, region, models, free_space="mask")
+        complete_local(local, region, models, stage="coarse", free_space="mask")
     with pytest.raises(InputError, match="free_space must be one of"):
-        complete_local(local, region, models, origins=origins, free_space="maybe")
+        complete_local(local, region, models, stage="coarse", origins=origins, free_space="maybe")
 
 
 def test_shipped_coarse_weights_read_the_free_space_by_default(scene, monkeypatch):
@@ -119,7 +120,7 @@ def test_shipped_coarse_weights_read_the_free_space_by_default(scene, monkeypatc
     local, origins, index, region = scene
     models = load_models("coarse")
     assert takes_free_space(models)
-    kw = dict(samples=1, seed=3, precision="fp32")
+    kw = dict(stage="coarse", samples=1, seed=3, precision="fp32")
     auto = complete_local(local, region, models, origins=origins, origin_index=index, **kw)[0]
     off = complete_local(local, region, models, origins=origins, origin_index=index, free_space="off", **kw)[0]
     mask = complete_local(local, region, models, origins=origins, origin_index=index, free_space="mask", **kw)[0]
@@ -144,12 +145,12 @@ def test_the_mask_never_outputs_a_cell_of_the_free_space_core(scene, monkeypatch
     core = freespace.confident(free)
     models = load_models("full")                                        # the shipped coarse and fine weights
     kw = dict(origins=origins, origin_index=index, samples=1, seed=0, precision="fp32")
-    off = complete_local(local, region, models, "full", free_space="off", **kw)[0]
+    off = complete_local(local, region, models, stage="full", free_space="off", **kw)[0]
     assert free[tuple(off.coarse_cells.T)].sum() > 0                    # unmasked, the model does grow there
-    rim = complete_local(local, region, models, "full", free_space="mask", **kw)[0]
+    rim = complete_local(local, region, models, stage="full", free_space="mask", **kw)[0]
     assert free[tuple(rim.coarse_cells.T)].sum() > 0 and core[tuple(rim.coarse_cells.T)].sum() == 0
     monkeypatch.setattr(freespace, "confident", lambda grid: grid)
-    on = complete_local(local, region, models, "full", free_space="mask", **kw)[0]
+    on = complete_local(local, region, models, stage="full", free_space="mask", **kw)[0]
     assert len(on.coarse_cells) and len(on.fine_cells)
     assert free[tuple(on.coarse_cells.T)].sum() == 0
     parents = on.fine_cells // 2
@@ -172,8 +173,8 @@ def test_free_space_weights_without_origins_warn_that_it_is_unknown(scene):
     local, _, _, region = scene
     models = _free_models()
     with pytest.warns(UserWarning, match="no sensor origins"):
-        a = complete_local(local, region, models, samples=1, seed=1, precision="fp32")[0]
-    b = complete_local(local, region, models, samples=1, seed=1, precision="fp32", free_space="off")[0]
+        a = complete_local(local, region, models, stage="coarse", samples=1, seed=1, precision="fp32")[0]
+    b = complete_local(local, region, models, stage="coarse", samples=1, seed=1, precision="fp32", free_space="off")[0]
     assert np.array_equal(a.coarse_cells, b.coarse_cells)              # all unknown = off
 
 

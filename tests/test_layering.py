@@ -23,7 +23,7 @@ ALLOWED = {
     "io": {"errors", "geometry"},   # geometry.nearest: the odometry's registration checks
     "geometry": UTIL,
     "nn": UTIL | {"geometry"},
-    "models": LOW | {"nn"},
+    "models": LOW | {"config", "nn"},   # config: the bounds a weights file is checked against (MAX_STEPS)
     "meshing": LOW,
     "synth": LOW,
     "render": LOW,

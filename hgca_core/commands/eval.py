@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
 
     from hgca_core.errors import InputError
     from hgca_core.metrics.evaluate import aggregate, format_table
-    from hgca_core.metrics.settings import EvalSettings
+    from hgca_core.config import CompletionConfig
     from hgca_core.metrics.synthetic import evaluate_methods, load_method_models
     from hgca_core.models.weights import WEIGHTS_DIR, weights_record
     from hgca_core.nn.conv import precision_name, resolve_precision
@@ -71,8 +71,8 @@ def run(args: argparse.Namespace) -> int:
         record = merge_weights(record, old_record, path)
         reused = {**old_rows, **reused}      # the later files first in priority, as given
     models = load_method_models(methods, args.fine_weights, args.weights, args.noplanner_weights)
-    settings = EvalSettings(samples=args.samples, seed=args.seed, t1=args.t1, t2=args.t2, precision=args.precision,
-                            free_space=args.free_space)
+    settings = CompletionConfig(samples=args.samples, seed=args.seed, t1=args.t1, t2=args.t2,
+                                precision=args.precision, free_space=args.free_space)
     results: dict[str, list[dict]] = {r: [] for m in methods for r in rows_of[m]}
     timings: dict[str, list[float]] = {r: [] for m in methods for r in rows_of[m]}
     kept: dict = {}        # the first scene's first completion per row, for --render

@@ -118,11 +118,13 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(max(1, args.threads))
     from hgca_core.models.weights import weights_record
     from hgca_core.metrics.real_eval import WAYMO_NA, evaluate_input, format_tables
+    from hgca_core.config import CompletionConfig
     from hgca_core.metrics.settings import RealEvalSettings
 
-    settings = RealEvalSettings(samples=args.samples, seed=args.seed, t1=args.t1, t2=args.t2,
-                                precision=args.precision, free_space=args.free_space, weights=args.weights,
-                                fine_weights=args.fine_weights, noplanner_weights=args.noplanner_weights,
+    completion = CompletionConfig(samples=args.samples, seed=args.seed, t1=args.t1, t2=args.t2,
+                                  precision=args.precision, free_space=args.free_space, weights=args.weights,
+                                  fine_weights=args.fine_weights)
+    settings = RealEvalSettings(completion=completion, noplanner_weights=args.noplanner_weights,
                                 full_samples=args.full_samples, threads=args.threads, yaw=args.yaw)
 
     items = inputs_of(args)

@@ -80,10 +80,10 @@ class Runner:
 
         self.settings, self.region, self.origins = settings, region, origins
         # the files `weights_record` digests for the results' config: loaded from the same one decision
-        self.files = weights_files(["hgca-full", "gca"], settings.weights, settings.fine_weights,
-                                   settings.noplanner_weights)
-        self.k = settings.samples
-        self.kf = settings.full_samples or settings.samples
+        c = settings.completion
+        self.files = weights_files(["hgca-full", "gca"], c.weights, c.fine_weights, settings.noplanner_weights)
+        self.k = c.samples
+        self.kf = settings.full_samples or c.samples
         self.index: np.ndarray | None = None
 
     def _complete(self, pts: np.ndarray, samples: int, seed: int, stage: str, role: str):
@@ -91,15 +91,15 @@ class Runner:
         (`self.index`, set per case by `cells`), as `hgca complete` does for the same scans."""
         from hgca_core.pipeline import complete
 
-        return complete(pts, region=self.region, origins=self.origins, samples=samples, seed=seed, stage=stage,
-                        t1=self.settings.t1, t2=self.settings.t2, weights=self.files[role],
-                        fine_weights=self.files["fine"], precision=self.settings.precision,
-                        origin_index=self.index, free_space=self.settings.free_space)
+        config = self.settings.completion.with_(samples=samples, seed=seed, stage=stage, weights=self.files[role],
+                                                fine_weights=self.files["fine"])
+        return complete(pts, region=self.region, origins=self.origins, config=config, origin_index=self.index)
 
     def cells(self, method: str, pts: np.ndarray, full: bool, index: np.ndarray | None = None) -> dict[str, Any]:
         """{method row: (list of cell sets, seconds per completion, sample-0 mesh or None)}; `index` (N,): each
         point's row in the origins (None: the nearest origin)."""
         settings, region = self.settings, self.region
+        seed = settings.completion.seed
         self.index = index
         local = region.to_local(pts)
         inside = region.contains_local(local)
@@ -111,25 +111,25 @@ class Runner:
 
             mesh = poisson_baseline(local[inside], region.to_local(self.origins), n_threads=settings.threads)
             mesh.vertices = region.to_world(mesh.vertices)
-            return {"poisson": ([_mesh_cells(mesh, region, settings.seed)], time.time() - t, mesh)}
+            return {"poisson": ([_mesh_cells(mesh, region, seed)], time.time() - t, mesh)}
         if method == "gca":
-            res = self._complete(pts, self.k, settings.seed, "coarse", "noplanner")
+            res = self._complete(pts, self.k, seed, "coarse", "noplanner")
             return {"gca": ([r.coarse_cells for r in res], (time.time() - t) / self.k, res[0].mesh)}
         # hgca (+ hgca-full): the full stage's coarse cells are the coarse row's samples (same seeds)
         rows: dict[str, Any] = {}
         coarse, meshes, seconds_full = [], [], 0.0
         if full:
-            res = self._complete(pts, self.kf, settings.seed, "full", "coarse")
+            res = self._complete(pts, self.kf, seed, "full", "coarse")
             seconds_full = (time.time() - t) / self.kf
             coarse += [r.coarse_cells for r in res]
-            cells_full = [_mesh_cells(r.mesh, region, settings.seed + i) for i, r in enumerate(res)]
+            cells_full = [_mesh_cells(r.mesh, region, seed + i) for i, r in enumerate(res)]
             rows["hgca-full"] = (cells_full, seconds_full, res[0].mesh)
             meshes = [r.mesh for r in res[:1]]
             del res
         t = time.time()
         extra = self.k - len(coarse)
         if extra > 0:
-            res = self._complete(pts, extra, settings.seed + len(coarse), "coarse", "coarse")
+            res = self._complete(pts, extra, seed + len(coarse), "coarse", "coarse")
             coarse += [r.coarse_cells for r in res]
             meshes = meshes or [res[0].mesh]
             seconds_coarse = (time.time() - t) / extra

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from hgca_core.metrics.settings import EvalSettings
+from hgca_core.config import CompletionConfig
 
 
 def load_method_models(methods: list[str], fine_weights: str | None, weights: str | None = None,
@@ -24,7 +24,7 @@ def load_method_models(methods: list[str], fine_weights: str | None, weights: st
     return models
 
 
-def evaluate_methods(path: Path, methods: list[str], models: dict, settings: EvalSettings,
+def evaluate_methods(path: Path, methods: list[str], models: dict, settings: CompletionConfig,
                      keep: dict | None = None) -> dict:
     """{row: (metrics of the k completions of one sample, seconds per completion)} for each method's rows; the
     seconds are the method's own (making the completion and its mesh), not the scoring's. `keep`, when given,
@@ -59,10 +59,10 @@ def evaluate_methods(path: Path, methods: list[str], models: dict, settings: Eva
     def core(name: str, stage: str) -> tuple[list, StageClock]:
         if (name, stage) not in runs:
             clock = StageClock()
-            runs[name, stage] = (complete_local(rays, region, models[name], stage, k, settings.seed, settings.t1,
-                                                settings.t2, clock, settings.precision, origins=sample["input_origins"],
-                                                origin_index=ray_scan,
-                                                free_space=settings.free_space), clock)
+            # every triangle scored (max_faces 0), whatever the config's face limit
+            runs[name, stage] = (complete_local(rays, region, models[name], settings.with_(stage=stage, max_faces=0),
+                                                progress=clock, origins=sample["input_origins"],
+                                                origin_index=ray_scan), clock)
         return runs[name, stage]
 
     out = {}

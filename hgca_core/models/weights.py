@@ -31,6 +31,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from hgca_core.config import MAX_STEPS   # a weights file may ask for no longer a chain than a run may
 from hgca_core.errors import InputError
 from hgca_core.io.atomic import atomic_write
 from hgca_core.io.digest import file_digest
@@ -126,7 +127,9 @@ def blend_files(a: str | os.PathLike, b: str | os.PathLike, t: float) -> dict:
     from (WiSE-FT, Wortsman et al. 2022), which keeps more of the fine-tune's gain off its training distribution.
 
     Both files must be weights (not checkpoints) of the same kind and architecture; the result takes `a`'s config
-    and records both sources in its meta. Floating tensors are mixed in fp32, integer buffers are `a`'s."""
+    except the chain's schedule (`SCHEDULE`), which is `b`'s: `b` is the fine-tune, and a few-step student blended
+    back toward its teacher samples the short chain it was trained for. Both sources are recorded in its meta.
+    Floating tensors are mixed in fp32, integer buffers are `a`'s."""
     if not 0.0 <= t <= 1.0:
         raise ValueError(f"blend fraction {t} is outside [0, 1]")
     blobs = [load_file(f) for f in (a, b)]
@@ -144,7 +147,8 @@ def blend_files(a: str | os.PathLike, b: str | os.PathLike, t: float) -> dict:
     state = {k: (((1 - t) * v.float() + t * sb[k].float()).to(v.dtype) if v.is_floating_point() else v)
              for k, v in sa.items()}
     meta = {**_meta(blobs[0]), "blend": {"t": t, "a": lineage(a, _meta(blobs[0])), "b": lineage(b, _meta(blobs[1]))}}
-    return {**blobs[0], "state_dict": state, "meta": meta}
+    config = {**blobs[0]["config"], **{k: v for k, v in blobs[1]["config"].items() if k in SCHEDULE}}
+    return {**blobs[0], "config": config, "state_dict": state, "meta": meta}
 
 
 LINEAGE_KEYS = ("steps", "train_wall_s", "data", "seed", "sessions", "notes", "blend", "init")
@@ -168,11 +172,14 @@ def lineage(path: str | os.PathLike, meta: dict) -> dict:
     return {"file": shown_path(path), "sha256": file_digest(path), **{k: meta[k] for k in LINEAGE_KEYS if k in meta}}
 
 
+SCHEDULE = ("steps", "alpha0", "alpha1")   # the chain a coarse file samples (T1 and the infusion slope)
+
+
 def _architecture(kind: str, blob: dict) -> dict:
     """The config as this version reads it (fields a file predates filled in), less the sampling settings
-    (`keep`, `bias`), which do not change the tensors and which a blend takes from its first file."""
+    (`keep`, `bias` and the chain's `SCHEDULE`), which do not change the tensors."""
     cfg = KINDS[kind].config.from_dict(blob["config"]).to_dict()
-    return {k: v for k, v in cfg.items() if k not in ("keep", "bias")}
+    return {k: v for k, v in cfg.items() if k not in ("keep", "bias", *SCHEDULE)}
 
 
 # -- reading ----------------------------------------------------------------------------------------------------
@@ -227,7 +234,6 @@ def _check_regular(p: Path, hint: str) -> None:
 
 # Bounds of the config values a weights file may hold: what this code can run in reasonable time and memory.
 # Steps are network passes per sample (the shipped files use 30 and 15); 10^9 would never end.
-MAX_STEPS = 1000
 INT_BOUNDS = {"steps": (1, MAX_STEPS), "channels": (1, 4096), "grid": (1, 65536)}
 DEFAULT_INT_BOUNDS = (0, 65536)
 FLOAT_BOUND = 1e6

@@ -153,7 +153,7 @@ def check_cache(store, jobs: list[TileJob], previous: dict | None) -> dict[str, 
             warn(f"tile {job.index}: its record in drive.json names other inputs than the tile's key (edited by "
                  "hand?): checking its finished result on its own and writing its meshes again")
             record.pop("sha256", None)
-        problem, digest = store.check_entry(job.key, want, job.settings.samples,
+        problem, digest = store.check_entry(job.key, want, job.settings.config.samples,
                                             record.get("sha256", {}).get(store.relative(store.entry(job.key))))
         if problem:
             warn(f"tile {job.index}: its finished result {store.entry(job.key)} {problem}: computing the tile again")

@@ -18,7 +18,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from hgca_core.config import MESH_FORMATS, TILE_OVERLAP, TILE_SIZE, DriveConfig, check_seed_span
+from hgca_core.config import TILE_OVERLAP, TILE_SIZE, DriveConfig, check_seed_span
 from hgca_core.errors import InputError
 from hgca_core.geometry.region import DEFAULT_SIZE, Region
 from hgca_core.io.digest import file_digest
@@ -27,7 +27,7 @@ from hgca_core.tiling.inputs import DriveScan, read_drive_inputs
 from hgca_core.tiling.plan import TilePlan, neighbours, plan_tiles, tile_region
 from hgca_core.tiling.records import check_cache, check_meshes, checksums, made_from, recorded, sweep
 from hgca_core.tiling.store import DriveStore
-from hgca_core.tiling.tile import Settings, TileJob, cells_of, weight_files
+from hgca_core.tiling.tile import Settings, TileJob, cells_of
 
 Report = Callable[[str, int, int, str, int], None]   # (stage, step, total, message, sample): pipeline.ProgressFn
 
@@ -78,14 +78,13 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
 
     cfg = (config or DriveConfig()).with_(**settings) if settings else (config or DriveConfig())
     c = cfg.completion
-    stage, samples, seed, t1, t2 = c.stage, c.samples, c.seed, c.t1, c.t2
-    weights, fine_weights, device = c.coarse_file(), c.fine_file(), c.device
-    workers, threads, address = cfg.workers, cfg.threads, cfg.address
+    samples, seed = c.samples, c.seed
+    workers, address = cfg.workers, cfg.address
 
     t_start = time.perf_counter()
     say = report or (lambda *a: None)
     tell = on_tile or (lambda *a: None)
-    check_device(device)
+    check_device(c.device)
     if workers > 1 or address:
         from hgca_core.tiling.runners import require_ray
 
@@ -96,11 +95,11 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     store = DriveStore(out)
     store.check()
     ext = "." + cfg.mesh_format
-    _check_outputs(paths, poses, store, weight_files(stage, weights, fine_weights))
-    threads = threads or max(1, (os.cpu_count() or 1) // workers)
-    tile = Settings.of(c, threads)
-    load_models(stage, weights, fine_weights, device)              # bad weights fail before reading a scan
-    digests = tuple(file_digest(p) for p in weight_files(stage, weights, fine_weights))
+    threads = cfg.threads or max(1, (os.cpu_count() or 1) // workers)
+    tile = Settings(c, threads)
+    _check_outputs(paths, poses, store, tile.files())
+    load_models(c.stage, c.coarse_file(), c.fine_file(), c.device)   # bad weights fail before reading a scan
+    digests = tuple(file_digest(p) for p in tile.files())
 
     inputs = read_drive_inputs(paths, poses, fmt, frames, say, topic)
     t_read = time.perf_counter()
@@ -196,11 +195,11 @@ def _start_manifest(store: DriveStore, doc: dict, previous: dict | None, cached:
     run_no = int(previous.get("runs", 0)) + 1
     old_tiles = recorded(previous)
     kept = ("seconds", "worker", "run", "peak_rss", "faces", "started", "finished", "fixed_cells", "free_cells")
-    files = weight_files(settings.stage, settings.weights, settings.fine_weights)
+    files = settings.files()
     doc.update({"status": "running", "runs": run_no, "pid": os.getpid(), "host": socket.gethostname(),
                 **{k: run[k] for k in ("engine", "workers", "threads", "address", "tile_memory")},
                 "settings": {**settings.keyed(), "weights": [str(p) for p in files], "weights_sha256": list(digests),
-                             "device": settings.device},
+                             "device": settings.config.device},
                 "plan": {**{k: plan_doc[k] for k in ("size", "overlap", "stride", "scans_per_tile", "length")},
                          "seams": run["seams"], "mesh_format": run["mesh_format"]},
                 "scans": [{"file": s.name, "position": s.position.tolist(), "points": int(len(s.points)),

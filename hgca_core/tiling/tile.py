@@ -13,7 +13,7 @@ import json
 import os
 import socket
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -31,37 +31,28 @@ KEY_VERSION = 3   # bump when the same key would give different content (a chang
 
 @dataclass(frozen=True)
 class Settings:
-    """What every tile of a drive is completed with (the `hgca complete` options). `device` decides only where,
-    not what, so it is not part of a tile's key; nor is `threads` at fp32 (MKL's strict mode makes float32 GEMMs
-    thread-count independent). bf16 GEMMs (oneDNN) differ between thread counts on some CPUs, so at any other
-    precision the thread count is part of the key: a resumed drive never mixes tiles made on 1 and 2 threads."""
+    """What every tile of a drive is completed with: the drive's completion config (`DriveConfig.completion`) on
+    `threads` torch threads. `device` decides only where, not what, so it is not part of a tile's key; nor is
+    `threads` at fp32 (MKL's strict mode makes float32 GEMMs thread-count independent). bf16 GEMMs (oneDNN)
+    differ between thread counts on some CPUs, so at any other precision the thread count is part of the key: a
+    resumed drive never mixes tiles made on 1 and 2 threads. The weights enter the key by digest
+    (`TileJob.weights`), not by name or quality."""
 
-    # no defaults here: `tiling.run.drive` fills every field from its `DriveConfig`, the one home of the defaults
-    stage: str
-    samples: int
-    seed: int
-    t1: int | None
-    t2: int | None
-    precision: str
-    max_faces: int | None           # 0 (keep every triangle) is None, as in keys written before the config
-    weights: str | None
-    fine_weights: str | None
-    device: str
+    config: CompletionConfig
     threads: int
-    free_space: str                 # as `hgca complete --free-space`: the scans' rays travel with them
 
-    @classmethod
-    def of(cls, c: CompletionConfig, threads: int) -> "Settings":
-        """A drive's tile settings: its completion config's fields, on `threads` torch threads."""
-        return cls(stage=c.stage, samples=c.samples, seed=c.seed, t1=c.t1, t2=c.t2, precision=c.precision,
-                   max_faces=c.max_faces or None, weights=c.coarse_file(), fine_weights=c.fine_file(), device=c.device,
-                   threads=threads, free_space=c.free_space)
+    def files(self) -> list[Path]:
+        """The weights files each tile loads (`weight_files` of the config's stage and quality)."""
+        c = self.config
+        return weight_files(c.stage, c.coarse_file(), c.fine_file())
 
     def keyed(self) -> dict:
-        d = asdict(self)
-        for name in ("weights", "fine_weights", "device"):   # files enter by digest, see weight_files
-            d.pop(name)
-        if self.precision == "fp32":
+        """The settings as a tile's key holds them (the same document since key version 3)."""
+        c = self.config
+        d = {"stage": c.stage, "samples": c.samples, "seed": c.seed, "t1": c.t1, "t2": c.t2,
+             "precision": c.precision, "max_faces": c.max_faces or None, "threads": self.threads,
+             "free_space": c.free_space}
+        if c.precision == "fp32":
             d.pop("threads")
         return d
 
@@ -122,8 +113,8 @@ def complete_tile(job: TileJob, scans: list, neighbour_cells: list[tuple[tuple, 
     from hgca_core.pipeline import MIN_INPUT_CELLS, complete_local, load_models
 
     start, started = time.perf_counter(), time.time()
-    s = job.settings
-    for path, want in zip(weight_files(s.stage, s.weights, s.fine_weights), job.weights):
+    s, c = job.settings, job.settings.config
+    for path, want in zip(s.files(), job.weights):
         if file_digest(path) != want:
             raise InputError(f"weights differ from the driver's (sha256 {file_digest(path)[:12]} here, "
                              f"{want[:12]} there) on {socket.gethostname()}", str(path))
@@ -134,20 +125,19 @@ def complete_tile(job: TileJob, scans: list, neighbour_cells: list[tuple[tuple, 
     origins = region.to_local(np.concatenate([np.asarray(sc.origins, dtype=np.float64) for sc in scans]))
     rays = np.concatenate([sc.origin_index.astype(np.int64) + f for sc, f in zip(scans, first)])
     local = everything[region.contains_local(everything)]
-    models = load_models(s.stage, s.weights, s.fine_weights, s.device)
+    models = load_models(c.stage, c.coarse_file(), c.fine_file(), c.device)
     # a tile that sees (almost) nothing gets no mesh, where `hgca complete` would refuse the region
     enough = len(voxelize(local, COARSE, region.size)) >= MIN_INPUT_CELLS
     samples = []
-    for k in range(s.samples):
+    for k in range(c.samples):
         fixed = [transfer_cells(cells[k], Region.from_tuple(reg), region) for reg, cells in neighbour_cells]
         fixed = np.concatenate(fixed) if fixed else np.zeros((0, 3), np.int64)
         if not enough:
             samples.append(_empty(job.seed + k, len(fixed)))
             continue
         # every point, not only the box's: a ray to a hit outside the tile still crosses it (complete_local crops)
-        r = complete_local(everything, region, models, s.stage, 1, job.seed + k, s.t1, s.t2, progress, s.precision,
-                           s.max_faces, origins=origins, origin_index=rays, free_space=s.free_space,
-                           fixed_cells=fixed)[0]
+        r = complete_local(everything, region, models, c.with_(samples=1, seed=job.seed + k), progress=progress,
+                           origins=origins, origin_index=rays, fixed_cells=fixed)[0]
         samples.append({"vertices": np.asarray(r.mesh.vertices, dtype=np.float32),
                         "faces": np.asarray(r.mesh.faces, dtype=np.int32), "observed_distance": r.observed_distance,
                         "cells": r.coarse_cells.astype(np.int16), "seed": r.seed,

@@ -18,7 +18,8 @@ def setup(drive_weights):
 
 def run(setup, points=None, **kw):
     pts, region, models = setup
-    return complete_local(pts if points is None else points, region, models, "coarse", 2, 7, 3, **kw)
+    return complete_local(pts if points is None else points, region, models, stage="coarse", samples=2, seed=7, t1=3,
+                          **kw)
 
 
 def same(a, b):

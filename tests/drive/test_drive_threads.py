@@ -17,7 +17,7 @@ from hgca_core.tiling.tile import Settings
 
 def _settings(threads: int, precision: str | None = None) -> Settings:
     c = DriveConfig().completion
-    return Settings.of(c if precision is None else c.with_(precision=precision), threads)
+    return Settings(c if precision is None else c.with_(precision=precision), threads)
 
 
 def test_thread_count_enters_the_key_only_where_it_can_change_the_result():

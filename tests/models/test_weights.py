@@ -205,6 +205,14 @@ def test_blend_interpolates_tensor_by_tensor_and_refuses_what_does_not_fit(files
     older = save_file(older, tmp_path / "older.pt")
     assert blend_files(files["coarse"], older, 0.5)["config"] == load_file(files["coarse"])["config"]
     assert blend_files(older, files["coarse"], 0.5)["config"]["keep"] == 0.4
+    # a few-step student (b) blended back toward its teacher (a) samples the student's chain, not the teacher's
+    student = load_file(b)
+    student["config"].update(steps=2, alpha0=0.3, alpha1=0.02)
+    student = save_file(student, tmp_path / "student.pt")
+    blob = blend_files(files["coarse"], student, 0.7)
+    assert {k: blob["config"][k] for k in ("steps", "alpha0", "alpha1")} == {"steps": 2, "alpha0": 0.3, "alpha1": 0.02}
+    assert load_file(files["coarse"])["config"]["steps"] != 2
+    assert load_coarse(save_file(blob, tmp_path / "sb.pt"))[0].cfg.steps == 2
     changed = load_file(b)
     changed["config"]["pe_axes"] = "x" if changed["config"]["pe_axes"] != "x" else "y"
     with pytest.raises(InputError, match="different architectures"):   # same tensor shapes, other meaning
@@ -253,13 +261,3 @@ def test_non_finite_tensors_are_refused_at_load(files, tmp_path):
     path = save_file({**fine, "autoencoder": {**fine["autoencoder"], "state_dict": ae}}, tmp_path / "inf.pt")
     with pytest.raises(InputError, match=f"autoencoder tensor '{name}' holds 1 NaN or infinite value"):
         load_fine(path)
-
-
-def test_parsing_bounds_equal_the_cores():
-    """The torch-free argument types spell out the core's bounds; they must be the same numbers."""
-    from hgca_core import pipeline
-    from hgca_core.commands import arguments
-    from hgca_core.models import weights
-
-    assert arguments.MAX_STEPS == weights.MAX_STEPS
-    assert arguments.SEED_MAX == pipeline.SEED_MAX and arguments.MIN_FACES == pipeline.MIN_FACES
