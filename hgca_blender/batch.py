@@ -76,17 +76,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output .blend")
     p.add_argument("--region", default=None, help="cx,cy,cz,sx,sy,sz[,yaw_deg] (default: `hgca region`'s box, "
                                                   "38.4 x 38.4 x 8 m around the sensor, 1 m below the ground)")
-    # the core's defaults and choices (settings: the schema the extension build writes from hgca_core.config)
-    p.add_argument("--samples", type=int, default=settings.default("samples"))
-    p.add_argument("--seed", type=int, default=settings.default("seed"))
-    p.add_argument("--stage", choices=settings.choices("stage"), default=settings.default("stage"))
-    p.add_argument("--quality", choices=settings.choices("quality"), default=settings.default("quality"),
-                   help="fast: the few-step students; best: the paper's chains (as `hgca complete --quality`)")
-    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
-    p.add_argument("--t1", type=int, default=settings.default("t1"), help="coarse steps T1 (0: from the weights)")
-    p.add_argument("--t2", type=int, default=settings.default("t2"), help="fine steps T2 (0: from the weights)")
-    p.add_argument("--max-faces", type=int, default=settings.default("max_faces"),
-                   help="simplify each mesh to this many triangles (0: keep all)")
+    # the core's settings, each made from the schema the extension build writes from hgca_core.config: default,
+    # bounds, choices and help are the core's (the drive's as --workers, --tile-size, --overlap)
+    for name in settings.LIMITS:
+        flag = "--" + name.removeprefix("drive_").replace("_", "-")
+        kind = {"choices": settings.choices(name)} if "choices" in settings.LIMITS[name] else {
+            "type": settings.parse_type(name)}
+        what = "--drive: " if name.startswith("drive_") else ""
+        p.add_argument(flag, dest=name, default=settings.default(name),
+                       help=f"{what}{settings.HELP.get(name, '')} (default {settings.default(name)})", **kind)
     p.add_argument("--simplify", choices=("bake", "modifier"), default="bake",
                    help="bake: the core simplifies to --max-faces; modifier: keep every triangle under a Decimate "
                         "modifier showing --max-faces (tunable in Blender, larger .blend)")
@@ -101,12 +99,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--drive", default=None, metavar="DIR",
                    help="complete the whole drive tile by tile (`hgca drive`, scans in trajectory order) into DIR "
                         "(kept: running again resumes); one object per tile per sample")
-    p.add_argument("--workers", type=int, default=settings.default("drive_workers"),
-                   help="--drive: tiles at once (more than 1 needs hgca[ray])")
-    p.add_argument("--tile-size", type=float, default=settings.default("drive_tile_size"),
-                   help="--drive: tile side in metres")
-    p.add_argument("--overlap", type=float, default=settings.default("drive_overlap"),
-                   help="--drive: overlap of consecutive tiles in metres")
     return p
 
 
@@ -226,7 +218,7 @@ def _drive(args: argparse.Namespace, python: str, scene: bpy.types.Scene, t0: fl
         python=python, scans=list(args.scans), out_dir=args.drive, poses=args.poses, samples=args.samples,
         seed=args.seed, stage=args.stage, quality=args.quality, device=args.device, t1=args.t1, t2=args.t2,
         max_faces=args.max_faces,
-        workers=args.workers, tile_size=args.tile_size, overlap=args.overlap, scene_name=scene.name,
+        workers=args.drive_workers, tile_size=args.drive_tile_size, overlap=args.drive_overlap, scene_name=scene.name,
         extra_args=["--weights", args.weights] if args.weights else [])
     if _run_job(lambda: drive_job.start_drive_job(params), args.timeout, "drive", t0,
                 f" (finished tiles stay in {args.drive})") is None:

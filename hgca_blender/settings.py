@@ -31,6 +31,7 @@ def _load() -> dict[str, Any]:
 SCHEMA = _load()
 LIMITS: dict[str, dict[str, Any]] = SCHEMA["settings"]
 FLAGS: dict[str, str] = SCHEMA["flags"]
+HELP: dict[str, str] = SCHEMA.get("help", {})
 INT_MAX = 2**31 - 1   # Blender's IntProperty holds 32-bit values
 
 
@@ -59,6 +60,28 @@ def check(name: str, value: Any) -> None:
         raise ValueError(f"{name} must be one of {', '.join(spec['choices'])}, got {value!r}")
     if spec.get("min") is not None and value < spec["min"] or spec.get("max") is not None and value > spec["max"]:
         raise ValueError(f"{name} must lie between {spec.get('min')} and {spec.get('max')}, got {value!r}")
+
+
+def parse_type(name: str):
+    """An argparse type for setting `name` (the batch's options): the default's type, checked against the core's
+    bounds and choices; 0 stays allowed where it means "the core decides" (steps from the weights, every face)."""
+    import argparse
+
+    kind = type(default(name))
+
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a {kind.__name__}: {text!r}") from None
+        if not (name in ("t1", "t2", "max_faces") and value == 0):
+            try:
+                check(name, value)
+            except ValueError as exc:
+                raise argparse.ArgumentTypeError(str(exc)) from None
+        return value
+    parse.__name__ = name
+    return parse
 
 
 def core_args(values: dict[str, Any]) -> list[str]:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import numbers
 import re
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import MISSING, Field, asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -78,65 +78,120 @@ def check_device_name(device: Any) -> str:
     return device
 
 
+# -- the settings' metadata: each field's kind, bounds, choices and help, read by the checks below, by the command
+# line (`hgca_core.commands.arguments.add_config_arguments` makes each option from it) and by the add-on's schema
+
+def setting(default: Any = MISSING, help: str = "", *, kind: str, low: float | None = None,
+            high: float | None = None, choices: tuple[str, ...] = (), flag: str | None = None,
+            metavar: str | None = None, default_factory: Any = MISSING) -> Any:
+    """A config field with its metadata. kind: choice, whole, steps (None or 0..MAX_STEPS, 0 = the weights' own),
+    faces (0 or at least MIN_FACES), device, path (None or a file name), switch (a bool), number (a finite float
+    above `low`), address (None or text), nested (a config of its own). `flag` is the command-line option (default
+    `--name-with-dashes`)."""
+    meta = {"kind": kind, "low": low, "high": high, "choices": choices, "help": help, "flag": flag,
+            "metavar": metavar}
+    if default_factory is not MISSING:
+        return field(default_factory=default_factory, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def check_setting(f: Field, value: Any) -> Any:
+    """`value` checked against field `f`'s metadata (an `InputError` naming the field and the value), normalised
+    (a whole number as int, a Path as its text). The one place a setting's bound is checked: the config's
+    constructor calls it for every field, and the command line's option types call it while parsing."""
+    m, name = f.metadata, f.name
+    kind = m["kind"]
+    if kind == "choice":
+        return _choice(name, value, m["choices"])
+    if kind == "whole":
+        return None if value is None and f.default is None else _whole(name, value, int(m["low"]),
+                                                                       None if m["high"] is None else int(m["high"]))
+    if kind == "steps":
+        if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Integral)
+                                  or not 0 <= value <= MAX_STEPS):
+            raise InputError(f"{name} must be a whole number >= 0 and at most {MAX_STEPS} (0: the weights' own), "
+                             f"got {value!r}")
+        return None if value is None else int(value)
+    if kind == "faces":
+        value = DEFAULT_MAX_FACES if value is None else _whole(name, value, 0)
+        if value and value < MIN_FACES:
+            raise InputError(f"{name} must be 0 (keep every triangle) or at least {MIN_FACES}, got {value}")
+        return value
+    if kind == "device":
+        return check_device_name(value)
+    if kind == "path":
+        if value is not None and not isinstance(value, (str, Path)):
+            raise InputError(f"{name} must be a file name, got {value!r}")
+        return None if value is None else str(value)     # a Path is kept as its text: configs compare equal
+    if kind == "switch":
+        if not isinstance(value, bool):
+            raise InputError(f"{name} must be True or False, got {value!r}")
+        return value
+    if kind == "number":
+        return None if value is None and f.default is None else _finite(name, value, m["low"] or 0.0)
+    if kind == "address":
+        if value is not None and not isinstance(value, str):
+            raise InputError(f"{name} must be a Ray address (ray://host:port), got {value!r}")
+        return value
+    return value
+
+
+def _check_fields(config: Any) -> None:
+    for f in fields(config):
+        if f.metadata.get("kind", "nested") != "nested":
+            object.__setattr__(config, f.name, check_setting(f, getattr(config, f.name)))
+
+
 @dataclass(frozen=True)
 class CompletionConfig:
-    """How one region is completed (`hgca complete`'s options).
+    """How one region is completed (`hgca complete`'s options; each field's help is its option's).
 
-    stage: "full" = 20 cm coarse GCA, 10 cm cGCA upsampling and an implicit mesh; "coarse" = the 20 cm cells'
-        blocky mesh only (faster); "preview" = the coarse cells as a smooth surface (scikit-image's marching
-        cubes of their blurred occupancy), for deciding where a region goes.
-    quality: the shipped weights used when `weights` / `fine_weights` are None (QUALITIES): fast = the few-step
-        students, best = the paper's 30 + 15 step chains.
-    samples: completions k, one mesh each; sample i uses seed + i, so a (seed, i) pair names one mesh.
-    t1, t2: coarse / fine steps; None or 0 = the weights' own (30 and 15 for the shipped ones).
-    weights, fine_weights: weights files; None = the shipped ones.
-    device: cpu, cuda or cuda:N.
-    precision: GEMM precision of the sparse convs (fp32: the same mesh on any thread count).
-    max_faces: simplify each mesh to at most this many triangles; 0 keeps every one (None: the default).
-    free_space: what observed free space does (FREE_SPACE_MODES).
-    semantics: label every face with a class (`hgca_core.models.semantics`); semantics_weights: its weights file
-        (None = the shipped semantics.pt). The geometry is the same with or without it.
+    Sample i of a run uses seed + i, so a (seed, i) pair names one mesh. `weights` / `fine_weights` None = the
+    quality's shipped files; t1 / t2 None or 0 = the weights' own chain. The geometry is the same with or without
+    `semantics`.
     """
 
-    stage: str = "full"
-    samples: int = 1
-    seed: int = 0
-    t1: int | None = None
-    t2: int | None = None
-    weights: str | None = None
-    fine_weights: str | None = None
-    device: str = "cpu"
-    precision: str = DEFAULT_PRECISION
-    max_faces: int = DEFAULT_MAX_FACES
-    free_space: str = "auto"
-    semantics: bool = False
-    semantics_weights: str | None = None
-    quality: str = DEFAULT_QUALITY
+    stage: str = setting("full", "full: 20 cm coarse GCA, 10 cm cGCA upsampling and an implicit mesh; coarse: the "
+                         "20 cm voxels only (faster); preview: the coarse cells as a smooth surface (scikit-image's "
+                         "marching cubes), for deciding where a region goes (fastest)", kind="choice", choices=STAGES)
+    samples: int = setting(1, "number of completions k, one mesh each", kind="whole", low=1, high=MAX_SAMPLES)
+    seed: int = setting(0, "sample i uses seed + i: same seed, same mesh", kind="whole", low=0, high=SEED_MAX,
+                        metavar="N")
+    t1: int | None = setting(None, "coarse steps T1 (0 or left out: the weights' own, 30 for coarse.pt, 10 for the "
+                             "fast quality's student)", kind="steps")
+    t2: int | None = setting(None, "fine steps T2 (0 or left out: the weights' own, 15 for fine.pt, 5 for the fast "
+                             "quality's student)", kind="steps")
+    weights: str | None = setting(None, "coarse weights file or training checkpoint (default: the quality's "
+                                  "shipped file)", kind="path")
+    fine_weights: str | None = setting(None, "fine weights file, stage full (default: the quality's shipped file)",
+                                       kind="path")
+    device: str = setting("cpu", "cpu, cuda or cuda:N", kind="device")
+    precision: str = setting(DEFAULT_PRECISION, "GEMM precision of the sparse convs while sampling (fp32: the same "
+                             "mesh on any thread count; bf16 is faster where the CPU has AVX512-BF16/AMX but its "
+                             "mesh may differ between thread counts; auto: bf16 where the hardware has it)",
+                             kind="choice", choices=PRECISIONS)
+    max_faces: int = setting(DEFAULT_MAX_FACES, "simplify each mesh to at most this many triangles (0 keeps every "
+                             "triangle: a default region's full-stage mesh has 1.9-3.1 M)", kind="faces")
+    free_space: str = setting("auto", "observed free space: what the sensor saw through (needs sensor origins). "
+                              "feature = give it to weights trained with it; mask = also never output a cell deep "
+                              "in it (seen-empty cells whose six neighbours are seen empty); off = neither; auto = "
+                              "mask where the weights take the feature (every shipped coarse and fine file does) "
+                              "and the scans have sensor origins, nothing for weights without it",
+                              kind="choice", choices=FREE_SPACE_MODES)
+    semantics: bool = setting(False, "label every face with a class (road, sidewalk, building, car, tree, pole, "
+                              "fence, shelter, person): a PLY face property `label`, NPZ `face_label`, one GLB "
+                              "primitive per class; with --samples k also each face's class agreement across the "
+                              "samples. The geometry is unchanged", kind="switch")
+    semantics_weights: str | None = setting(None, "semantic head weights (default: the shipped semantics.pt); "
+                                            "implies --semantics",
+                                            kind="path")
+    quality: str = setting(DEFAULT_QUALITY, "which shipped weights run when --weights / --fine-weights name none: "
+                           "fast = the few-step students (T1 10, T2 5), best = the paper's chains (T1 30, T2 15); "
+                           "their measured quality and speed: MODEL_CARD.md", kind="choice", choices=QUALITIES)
 
     def __post_init__(self) -> None:
-        if self.max_faces is None:
-            object.__setattr__(self, "max_faces", DEFAULT_MAX_FACES)
-        _choice("stage", self.stage, STAGES)
-        _choice("quality", self.quality, QUALITIES)
-        _whole("samples", self.samples, 1, MAX_SAMPLES)
-        _whole("seed", self.seed, 0, SEED_MAX)
+        _check_fields(self)
         check_seed_span(self.seed, self.samples)
-        for name in ("t1", "t2"):
-            steps = getattr(self, name)
-            if steps is not None and (isinstance(steps, bool) or not isinstance(steps, numbers.Integral)
-                                      or not 0 <= steps <= MAX_STEPS):
-                raise InputError(f"{name} must be a whole number >= 0 and at most {MAX_STEPS} (0: the weights' "
-                                 f"own), got {steps!r}")
-        max_faces = _whole("max_faces", self.max_faces, 0)
-        if max_faces and max_faces < MIN_FACES:
-            raise InputError(f"max_faces must be 0 (keep every triangle) or at least {MIN_FACES}, got {max_faces}")
-        for name in ("weights", "fine_weights", "semantics_weights"):
-            value = getattr(self, name)
-            if value is not None:
-                object.__setattr__(self, name, str(value))     # a Path is kept as its text: configs compare equal
-        check_device_name(self.device)
-        _choice("precision", self.precision, PRECISIONS)
-        _choice("free_space", self.free_space, FREE_SPACE_MODES)
 
     def coarse_file(self) -> str | None:
         """The coarse weights to load: `weights`, else the quality's shipped file (None: the loader's default,
@@ -173,46 +228,34 @@ def _tile_completion() -> CompletionConfig:
 
 @dataclass(frozen=True)
 class DriveConfig:
-    """How a drive is tiled and each tile completed (`hgca drive`'s options).
+    """How a drive is tiled and each tile completed (`hgca drive`'s options; each field's help is its option's).
 
     completion: each tile's completion; sample k of tile i uses seed + i * samples + k. Its default keeps every
         triangle of a tile (max_faces 0), so neighbouring tiles' surfaces meet at the seams as computed.
-    size, overlap: tile side and overlap of consecutive tiles, metres (tiles are 8 m high).
-    scans_per_tile: each tile is completed from its N nearest scans (N above the drive's scan count: all of them).
-    seams: condition each second-phase tile on its finished neighbours' coarse cells (joins agree).
-    workers: tiles at once; more than 1 (or an `address`) runs them on Ray.
-    address: an existing Ray cluster (ray://host:port), or None.
-    threads: torch threads per tile; None = cores / workers.
-    tile_memory: bytes each tile declares to Ray; None = estimated from the tile's area.
-    mesh_format: the tile and drive meshes' format (MESH_FORMATS).
+    tile_memory is in bytes (the command line's --tile-memory in GiB).
     """
 
-    completion: CompletionConfig = field(default_factory=_tile_completion)
-    size: float = TILE_SIZE
-    overlap: float = TILE_OVERLAP
-    scans_per_tile: int = 5
-    seams: bool = True
-    workers: int = 1
-    address: str | None = None
-    threads: int | None = None
-    tile_memory: float | None = None
-    mesh_format: str = "ply"
+    completion: CompletionConfig = setting(kind="nested", default_factory=_tile_completion)
+    size: float = setting(TILE_SIZE, "tile side in metres (the paper's region)", kind="number", low=MIN_STRIDE)
+    overlap: float = setting(TILE_OVERLAP, "overlap of consecutive tiles in metres", kind="number", low=0.0)
+    scans_per_tile: int = setting(5, "each tile is completed from its N nearest scans (N at or above the drive's "
+                                  "scan count means all of them)", kind="whole", low=1, metavar="N")
+    seams: bool = setting(True, "condition each second-phase tile on its finished neighbours' coarse cells (joins "
+                          "agree)", kind="switch")
+    workers: int = setting(1, "tiles at once; more than 1 starts a local Ray in this process (needs hgca[ray])",
+                           kind="whole", low=1, high=MAX_WORKERS)
+    address: str | None = setting(None, "run on an existing Ray cluster (ray://host:port)", kind="address")
+    threads: int | None = setting(None, "torch threads per tile (default: cores / workers)", kind="whole", low=1,
+                                  high=MAX_THREADS, metavar="N")
+    tile_memory: float | None = setting(None, "memory each tile declares to Ray (default: estimated from the "
+                                        "tile's area)", kind="number", metavar="GIB")
+    mesh_format: str = setting("ply", "tile and drive meshes", kind="choice", choices=MESH_FORMATS)
 
     def __post_init__(self) -> None:
         if not isinstance(self.completion, CompletionConfig):
             raise InputError(f"completion must be a CompletionConfig, got {type(self.completion).__name__}")
         check_stride(self.size, self.overlap)
-        _whole("scans_per_tile", self.scans_per_tile, 1)   # more than the drive's scans: all of them
-        if not isinstance(self.seams, bool):
-            raise InputError(f"seams must be True or False, got {self.seams!r}")
-        _whole("workers", self.workers, 1, MAX_WORKERS)
-        if self.threads is not None:
-            _whole("threads", self.threads, 1, MAX_THREADS)
-        if self.tile_memory is not None:
-            _finite("tile_memory", self.tile_memory)
-        if self.address is not None and not isinstance(self.address, str):
-            raise InputError(f"address must be a Ray address (ray://host:port), got {self.address!r}")
-        _choice("mesh_format", self.mesh_format, MESH_FORMATS)
+        _check_fields(self)
 
     def with_(self, **changes: Any) -> "DriveConfig":
         """A copy with `changes`: drive fields by name, completion fields (stage, seed, ...) into `completion`."""
@@ -240,36 +283,57 @@ def check_stride(size: float, overlap: float) -> float:
     return stride
 
 
+# The settings the Blender add-on shows: its property name -> (config, field). Their defaults, bounds, choices and
+# command-line flags are read off the fields' metadata, so the panel and the CLI cannot drift apart.
+ADDON_SETTINGS = {"samples": ("completion", "samples"), "seed": ("completion", "seed"),
+                  "stage": ("completion", "stage"), "quality": ("completion", "quality"),
+                  "device": ("completion", "device"), "t1": ("completion", "t1"), "t2": ("completion", "t2"),
+                  "max_faces": ("completion", "max_faces"), "drive_tile_size": ("drive", "size"),
+                  "drive_overlap": ("drive", "overlap"), "drive_workers": ("drive", "workers")}
+_BOUNDS = {"steps": (0, MAX_STEPS), "faces": (MIN_FACES, None)}   # the add-on's t1/t2 0 and faces > 0
+
+
+def config_field(cls: type, name: str) -> Field:
+    """The dataclass field `name` of config class `cls` (its metadata is the setting's description)."""
+    return next(f for f in fields(cls) if f.name == name)
+
+
+def flag_of(f: Field) -> str:
+    """The command-line option of field `f`: its `flag`, else --name-with-dashes."""
+    return f.metadata.get("flag") or "--" + f.name.replace("_", "-")
+
+
 def addon_limits() -> dict[str, dict[str, Any]]:
-    """Each setting the Blender add-on shows: its default and the core's bounds (None: unbounded). The add-on
-    cannot import the core (it runs it as a subprocess), so a test holds its properties to these."""
-    c, d = CompletionConfig(), DriveConfig()
-    return {
-        "samples": {"default": c.samples, "min": 1, "max": MAX_SAMPLES},
-        "seed": {"default": c.seed, "min": 0, "max": SEED_MAX},
-        "stage": {"default": c.stage, "choices": list(STAGES)},
-        "quality": {"default": c.quality, "choices": list(QUALITIES)},
-        "device": {"default": c.device},
-        "t1": {"default": c.t1 or 0, "min": 0, "max": MAX_STEPS},
-        "t2": {"default": c.t2 or 0, "min": 0, "max": MAX_STEPS},
-        "max_faces": {"default": c.max_faces, "min": MIN_FACES, "max": None},
-        "drive_tile_size": {"default": d.size, "min": MIN_STRIDE, "max": None},
-        "drive_overlap": {"default": d.overlap, "min": 0.0, "max": None},
-        "drive_workers": {"default": d.workers, "min": 1, "max": MAX_WORKERS},
-    }
+    """Each setting the Blender add-on shows: its default and the core's bounds (None: unbounded) or choices. The
+    add-on cannot import the core (it runs it as a subprocess): the extension build ships these in the zip."""
+    configs = {"completion": CompletionConfig(), "drive": DriveConfig()}
+    out = {}
+    for prop, (which, name) in ADDON_SETTINGS.items():
+        config = configs[which]
+        f, value = config_field(type(config), name), getattr(config, name)
+        m = f.metadata
+        entry: dict[str, Any] = {"default": 0 if value is None and m["kind"] == "steps" else value}
+        if m["choices"]:
+            entry["choices"] = list(m["choices"])
+        elif m["kind"] != "device":
+            low, high = _BOUNDS.get(m["kind"], (m["low"], m["high"]))
+            entry.update(min=low if low is not None else 0.0, max=high)
+        out[prop] = entry
+    return out
 
 
 # The CLI flag of each setting the add-on shows (`hgca complete` / `hgca drive`), for its one config -> argv
-CLI_FLAGS = {"samples": "--samples", "seed": "--seed", "stage": "--stage", "quality": "--quality",
-             "device": "--device", "t1": "--t1", "t2": "--t2", "max_faces": "--max-faces",
-             "drive_tile_size": "--size", "drive_overlap": "--overlap", "drive_workers": "--workers"}
+CLI_FLAGS = {prop: flag_of(config_field(CompletionConfig if which == "completion" else DriveConfig, name))
+             for prop, (which, name) in ADDON_SETTINGS.items()}
 
 
 def addon_schema() -> dict[str, Any]:
     """What the Blender add-on knows of the core's settings, as JSON: each setting's default, bounds and choices
-    (`addon_limits`) and its CLI flag. The extension build writes it into the zip (`core_settings.json`), and the
+    (`addon_limits`), its CLI flag and its help. The extension build writes it into the zip (`core_settings.json`), and the
     add-on makes its panel properties and every job's command line from it, so the two cannot drift apart."""
-    return {"schema": 1, "settings": addon_limits(), "flags": dict(CLI_FLAGS)}
+    helps = {prop: config_field(CompletionConfig if which == "completion" else DriveConfig, name).metadata["help"]
+             for prop, (which, name) in ADDON_SETTINGS.items()}
+    return {"schema": 1, "settings": addon_limits(), "flags": dict(CLI_FLAGS), "help": helps}
 
 
 def as_dict(config: CompletionConfig | DriveConfig) -> dict[str, Any]:

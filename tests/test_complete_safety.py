@@ -95,8 +95,8 @@ def test_degenerate_input_is_refused_with_its_reason(small_weights, tmp_path, ca
 
 
 @pytest.mark.parametrize("argv, needles", [
-    (["--t1", "-3"], ["argument --t1", "must be 0"]),
-    (["--t2", "-1"], ["argument --t2", "must be 0"]),
+    (["--t1", "-3"], ["argument --t1", "must be a whole number >= 0"]),
+    (["--t2", "-1"], ["argument --t2", "must be a whole number >= 0"]),
     (["--t1", "two"], ["argument --t1", "not a whole number"]),
     (["--device", "tpu"], ["argument --device", "unknown device 'tpu'"]),
 ])

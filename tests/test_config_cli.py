@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from hgca_core import cli
+from hgca_core.errors import InputError
 from test_config import option, subparser
 
 FOLDER_OUT = {"drive", "demo", "bench", "synth", "train"}
@@ -38,11 +39,9 @@ def test_commands_that_write_are_the_ones_listed():
 
 @pytest.mark.parametrize("name", sorted(cli.COMMANDS))
 def test_device_is_validated_while_parsing_everywhere(name):
-    from hgca_core.commands.arguments import device_arg
-
     device = option(subparser(name), "--device")
     if device is not None:
-        assert device.type is device_arg
+        assert device.type.__name__ == "device"      # config.check_setting's kind, made by add_config_arguments
         with pytest.raises(SystemExit):
             subparser(name).parse_args(["x", "--device", "tpu"])
 
@@ -112,3 +111,59 @@ def test_an_option_shared_by_commands_has_one_definition():
     assert not bad, bad
     spelled = [flag for _, flag in _defined_options(ARGUMENTS)]
     assert len(spelled) == len(set(spelled)), sorted({f for f in spelled if spelled.count(f) > 1})
+
+
+def test_completion_options_are_made_from_the_configs_fields():
+    """`hgca complete` has one option per `CompletionConfig` field, with the field's help, choices and default;
+    a value out of a field's bounds fails while parsing with the message the config itself gives."""
+    from dataclasses import fields
+
+    from hgca_core.config import CompletionConfig, flag_of
+
+    p = subparser("complete")
+    for f in fields(CompletionConfig):
+        action = option(p, flag_of(f))
+        assert action is not None and action.dest == f.name, f.name
+        assert action.help.startswith(f.metadata["help"]), f.name
+        assert tuple(action.choices or ()) == tuple(f.metadata["choices"]), f.name
+        if f.metadata["kind"] not in ("steps", "faces"):     # those two leave the choice to the weights / the run
+            assert action.default == getattr(CompletionConfig(), f.name), f.name
+    for name, bad in (("samples", 0), ("samples", 1001), ("seed", -1), ("t1", 1001), ("max_faces", 999)):
+        with pytest.raises(InputError) as built:
+            CompletionConfig(**{name: bad})
+        with pytest.raises(SystemExit):
+            p.parse_args(["scan.ply", "-o", "m.ply", flag_of(next(f for f in fields(CompletionConfig)
+                                                                  if f.name == name)), str(bad)])
+        assert str(built.value).startswith(name + " must"), built.value
+
+
+def test_a_parse_error_carries_the_configs_message(capsys):
+    from hgca_core.config import CompletionConfig
+
+    with pytest.raises(InputError) as built:
+        CompletionConfig(max_faces=10)
+    with pytest.raises(SystemExit):
+        subparser("drive").parse_args(["scan.ply", "-o", "d", "--max-faces", "10"])
+    assert str(built.value).removeprefix("max_faces ") in capsys.readouterr().err
+
+
+def test_no_command_types_a_config_option_by_hand():
+    """The options of `CompletionConfig` / `DriveConfig` fields are made only by `add_config_arguments`: no command
+    module writes `add_argument("--samples", ...)` with a default, a bound or a help of its own."""
+    import re
+    from dataclasses import fields
+
+    from hgca_core.config import CompletionConfig, DriveConfig, flag_of
+
+    flags = {flag_of(f) for cls in (CompletionConfig, DriveConfig) for f in fields(cls)
+             if f.metadata.get("kind") != "nested"} - {"--tile-memory"}   # GiB on the command line, bytes in the config
+    commands = Path(cli.__file__).resolve().parent / "commands"
+    for path in commands.glob("*.py"):
+        typed = set(re.findall(r'add_argument\(\s*"(--[a-z0-9-]+)"', path.read_text())) & flags
+        if path.name == "region.py":
+            typed -= {"--size"}         # the region box's three sides, not a drive's tile side
+        if path.name == "synth.py":
+            typed -= {"--workers"}      # processes that build scenes, not tiles
+        if path.name == "arguments.py":
+            typed -= {"--seed", "--threads"}   # a training run's seed and threads, typed by the config's fields
+        assert not typed, (path.name, typed)

@@ -250,7 +250,7 @@ def test_eval_real_runs_the_weights_its_results_name(tmp_path, small_weights, mo
     real = hgca_core.pipeline.complete         # what `hgca_core.complete` is, and what eval-real calls
 
     def spy(points, **kw):
-        seen.append(str(kw["weights"]))
+        seen.append(str(kw["config"].weights))      # eval-real hands the library one config per row
         return real(points, **kw)
 
     monkeypatch.setattr(hgca_core.pipeline, "complete", spy)

@@ -11,13 +11,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import re
-from typing import Callable
+from dataclasses import Field, fields
+from typing import Any, Callable
 
-from hgca_core.config import (FREE_SPACE_MODES, MAX_SAMPLES, MAX_STEPS, MAX_THREADS, MAX_WORKERS, MESH_FORMATS,
-                              MIN_FACES, QUALITIES, SEED_MAX, STAGES, CompletionConfig, check_seed_span as _check_seed_span)
+from hgca_core.config import (CompletionConfig, DriveConfig, check_setting, config_field,
+                              flag_of, check_seed_span as _check_seed_span)
 from hgca_core.errors import InputError
-from hgca_core.nn.precision import PRECISIONS
 
 DEFAULTS = CompletionConfig()
 PROGRESS_MODES = ("bar", "jsonl", "none")
@@ -30,14 +29,6 @@ def _int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
 
 
-def seed_arg(text: str) -> int:
-    """`--seed`: a whole number in [0, 2**63 - 1]."""
-    value = _int(text)
-    if not 0 <= value <= SEED_MAX:
-        raise argparse.ArgumentTypeError(f"must be between 0 and 2**63 - 1 = {SEED_MAX}, got {value}")
-    return value
-
-
 def counted(low: int, high: int | None = None) -> Callable[[str], int]:
     """A type for a count in [low, high] (`--samples`, `--workers`, `--count`, ...)."""
     def parse(text: str) -> int:
@@ -48,18 +39,6 @@ def counted(low: int, high: int | None = None) -> Callable[[str], int]:
         return value
     parse.__name__ = "count"
     return parse
-
-
-samples_arg = counted(1, MAX_SAMPLES)
-
-
-def max_faces_arg(text: str) -> int:
-    """`--max-faces`: 0 (keep every triangle) or at least MIN_FACES."""
-    value = _int(text)
-    if value != 0 and value < MIN_FACES:
-        raise argparse.ArgumentTypeError(f"must be 0 (keep every triangle) or at least {MIN_FACES} (max_faces), "
-                                         f"got {value}")
-    return value
 
 
 def number(predicate: Callable[[float], bool], must: str) -> Callable[[str], float]:
@@ -78,20 +57,6 @@ def number(predicate: Callable[[float], bool], must: str) -> Callable[[str], flo
 
 positive_float = number(lambda v: v > 0, "a finite number above 0")   # metres, GiB
 finite_float = number(lambda v: True, "a finite number")                # degrees, metres that may be 0 or negative
-
-
-def device_arg(text: str) -> str:
-    """`--device`: cpu, cuda or cuda:N, checked while parsing so a typo fails before any work."""
-    if re.fullmatch(r"cpu|cuda(:\d+)?", text.strip()):
-        return text.strip()
-    raise argparse.ArgumentTypeError(f"unknown device {text!r}: use cpu, cuda or cuda:N")
-
-
-def check_device(device: str) -> None:
-    """`pipeline.check_device` (imports torch: call it after parsing)."""
-    from hgca_core.pipeline import check_device as check
-
-    check(device)
 
 
 def check_seed_span(seed: int, count: int, what: str = "samples") -> None:
@@ -123,77 +88,105 @@ def floats_arg(what: str, positive: bool = False) -> Callable[[str], list[float]
     return parse
 
 
-def steps_arg(text: str) -> int:
-    """`--t1` / `--t2` type: a step count in [0, MAX_STEPS], where 0 (like leaving the option out) means the
-    weights' own; a bound, since each step is a pass of the network (10^9 steps would never end)."""
-    value = _int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 (the weights' own step count) or more, got {value}")
-    if value > MAX_STEPS:
-        raise argparse.ArgumentTypeError(f"must be at most {MAX_STEPS} steps, got {value}")
-    return value
+# -- the options of a config, made from its fields' metadata (`hgca_core.config.setting`): each option's type,
+# bounds, choices, default and help are the field's, and its value is checked by the field's own check
+def setting_type(f: Field) -> Callable[[str], Any]:
+    """The argparse type of config field `f`: the text read as the field's kind, then `config.check_setting`, so
+    a bad value fails while parsing with the config's own message (`argument --t1: must be ...`)."""
+    kind = f.metadata["kind"]
+
+    def parse(text: str) -> Any:
+        if kind in ("whole", "steps", "faces"):
+            value: Any = _int(text)
+        elif kind == "number":
+            try:
+                value = float(text)
+            except ValueError:
+                raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        else:
+            value = text.strip() if kind == "device" else text
+        try:
+            return check_setting(f, value)
+        except InputError as exc:
+            message = str(exc)
+            raise argparse.ArgumentTypeError(message[len(f.name) + 1:] if message.startswith(f.name + " ")
+                                             else message) from None
+    parse.__name__ = kind
+    return parse
 
 
-# The options of a completion (`CompletionConfig`'s fields), one definition each; `add_completion_arguments`
-# adds those a command takes and `completion_config` maps them back. Defaults come from the config.
-def add_stage_argument(p: argparse.ArgumentParser, help: str | None = None, quality: bool = True,
-                       stages: tuple[str, ...] = STAGES) -> None:
-    """`--stage` and (with `quality`) `--quality`: how far a completion goes and which shipped weights run it."""
-    p.add_argument("--stage", choices=stages, default=DEFAULTS.stage,
-                   help=help or f"full: 20 cm coarse GCA, 10 cm cGCA upsampling and an implicit mesh; coarse: the "
-                                f"20 cm voxels only (faster); preview: the coarse cells as a smooth surface, for "
-                                f"deciding where a region goes (fastest); default {DEFAULTS.stage}")
-    if quality:
-        p.add_argument("--quality", choices=QUALITIES, default=DEFAULTS.quality,
-                       help=f"which shipped weights run when --weights / --fine-weights name none: fast = the "
-                            f"few-step students (T1 10, T2 5), best = the paper's chains (T1 30, T2 15); default "
-                            f"{DEFAULTS.quality} (their measured quality and speed: MODEL_CARD.md)")
+def add_config_arguments(p: argparse.ArgumentParser | argparse._ActionsContainer, names: tuple[str, ...],
+                         cls: type = CompletionConfig, **overrides: dict[str, Any]) -> None:
+    """One option per field `names` of config class `cls`, made from the field's metadata. `overrides[name]` may
+    replace the option's `help` or `default` (`hgca eval`'s 3 samples), never its bounds or choices; a help that
+    names its default is shown as it is."""
+    base = cls()
+    for name in names:
+        f = config_field(cls, name)
+        m, own = f.metadata, dict(overrides.get(name, {}))
+        default = own.pop("default", getattr(base, name))
+        if m["kind"] in ("steps", "faces"):
+            default = None                  # left out: the weights' own chain, the config's (or a tile's) faces
+        given_help = "help" in own
+        help = own.pop("help", m["help"])
+        if own:
+            raise TypeError(f"add_config_arguments: unknown override(s) {sorted(own)} of {name}")
+        shown = DEFAULTS.max_faces if m["kind"] == "faces" else default
+        if m["kind"] == "switch":
+            if default:                     # a switch that is on: --no-NAME (its help says what turning it off does)
+                p.add_argument(f"--no-{name.replace('_', '-')}", dest=name, action="store_false",
+                               help=help if given_help else f"turn off: {help}")
+            else:
+                p.add_argument(flag_of(f), dest=name, action="store_true", help=help)
+            continue
+        kw: dict[str, Any] = {"dest": name, "default": default, "metavar": m["metavar"]}
+        if m["choices"]:
+            kw.update(choices=m["choices"], metavar=None)
+        elif m["kind"] not in ("path", "address"):
+            kw["type"] = setting_type(f)
+        if shown is not None and m["kind"] != "steps" and "(default" not in help:
+            help = f"{help} (default {shown:,})" if isinstance(shown, int) else f"{help} (default {shown})"
+        p.add_argument(flag_of(f), help=help, **kw)
 
 
-def add_precision_argument(p: argparse.ArgumentParser) -> None:
-    """`--precision`, shared by complete, drive, eval, eval-real and bench."""
-    p.add_argument("--precision", choices=PRECISIONS, default=DEFAULTS.precision,
-                   help=f"GEMM precision of the sparse convs while sampling (default {DEFAULTS.precision}: the same "
-                        "mesh on any thread count; bf16 is faster where the CPU has AVX512-BF16/AMX but its mesh "
-                        "may differ between thread counts; auto: bf16 where the hardware has it)")
+def completion_config(args: argparse.Namespace, base: CompletionConfig = DEFAULTS) -> CompletionConfig:
+    """The `CompletionConfig` of a command's parsed options (those it has; the rest from `base`)."""
+    given = {f.name: getattr(args, f.name) for f in fields(CompletionConfig) if hasattr(args, f.name)}
+    if given.get("max_faces") is None:
+        given.pop("max_faces", None)
+    return base.with_(**given)
 
 
-def add_free_space_argument(p: argparse.ArgumentParser, what: str = "") -> None:
-    """`--free-space`, shared by complete, drive, eval and eval-real (`config.FREE_SPACE_MODES`)."""
-    p.add_argument("--free-space", choices=FREE_SPACE_MODES, default=DEFAULTS.free_space,
-                   help=f"observed free space{what}: what the sensor saw through (needs sensor origins). feature = "
-                        "give it to weights trained with it; mask = also never output a cell deep in it (seen-empty "
-                        "cells whose six neighbours are seen empty); off = neither; auto (default) = mask where the "
-                        "weights take the feature (the shipped coarse.pt, coarse_noplanner.pt and fine.pt do) and "
-                        "the scans have sensor origins, nothing for weights without it")
+# A completion's options in `hgca complete` and `hgca drive` (`CompletionConfig`'s fields, in the help's order)
+COMPLETION_OPTIONS = ("samples", "seed", "stage", "quality", "device", "max_faces", "precision", "t1", "t2",
+                      "weights", "fine_weights", "free_space")
 
 
-def add_steps_arguments(p: argparse.ArgumentParser, which: tuple[str, ...] = ("t1", "t2")) -> None:
-    """`--t1` and `--t2`, shared by complete, drive, eval, eval-real and bench."""
-    text = {"t1": "coarse steps T1 (0 or left out: the weights' own, 30 for the shipped ones)",
-            "t2": "fine steps T2 (0 or left out: the weights' own, 15 for the shipped ones)"}
-    for name in which:
-        p.add_argument(f"--{name}", type=steps_arg, default=None, help=text[name])
+def add_completion_arguments(p: argparse.ArgumentParser, **overrides: dict[str, Any]) -> None:
+    """The `CompletionConfig` options of `hgca complete` and `hgca drive`."""
+    add_config_arguments(p, COMPLETION_OPTIONS, **overrides)
 
 
-def add_device_argument(p: argparse.ArgumentParser, help: str = "cpu, cuda or cuda:N") -> None:
-    p.add_argument("--device", type=device_arg, default=DEFAULTS.device, help=f"{help} (default {DEFAULTS.device})")
+def add_noplanner_argument(p: argparse.ArgumentParser) -> None:
+    """The evaluations' planner ablation (`RealEvalSettings.noplanner_weights`; not a completion setting)."""
+    p.add_argument("--noplanner-weights", default=None,
+                   help="GCA (no planner) weights file or training checkpoint (default: the shipped "
+                        "coarse_noplanner.pt)")
 
 
-def add_weights_arguments(p: argparse.ArgumentParser, noplanner: bool = False) -> None:
-    """`--weights` and `--fine-weights` (and the planner ablation's `--noplanner-weights` for the evaluations)."""
-    p.add_argument("--weights", default=None,
-                   help="coarse weights file or training checkpoint (default: the shipped coarse.pt)")
-    if noplanner:
-        p.add_argument("--noplanner-weights", default=None,
-                       help="GCA (no planner) weights file or training checkpoint (default: the shipped "
-                            "coarse_noplanner.pt)")
-    p.add_argument("--fine-weights", default=None, help="fine weights file, stage full (default: the shipped fine.pt)")
+def check_device(device: str) -> None:
+    """`pipeline.check_device` (imports torch: call it after parsing)."""
+    from hgca_core.pipeline import check_device as check
+
+    check(device)
 
 
-def add_samples_argument(p: argparse.ArgumentParser, default: int = DEFAULTS.samples,
-                         help: str = "number of completions k, one mesh each") -> None:
-    p.add_argument("--samples", type=samples_arg, default=default, help=f"{help} (default {default})")
+def seed_arg(text: str) -> int:
+    """`--seed` of a training run or a synthetic scene: the bounds of a completion's seed (0 to 2**63 - 1)."""
+    return setting_type(config_field(CompletionConfig, "seed"))(text)
+
+
+seed_arg.__name__ = "whole"
 
 
 def add_seed_argument(p: argparse.ArgumentParser | argparse._ActionsContainer, help: str,
@@ -203,15 +196,10 @@ def add_seed_argument(p: argparse.ArgumentParser | argparse._ActionsContainer, h
                    help=help if default is None else f"{help} (default {default})")
 
 
-def add_semantics_argument(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--semantics", action="store_true",
-                   help="label every face with a class (road, sidewalk, building, car, tree, pole, fence, shelter, "
-                        "person): a PLY face property `label`, NPZ `face_label`, one GLB primitive per class; with "
-                        "--samples k also each face's class agreement across the samples. The geometry is unchanged")
-
-
 def add_threads_argument(p: argparse.ArgumentParser, help: str, default: int | None = None) -> None:
-    p.add_argument("--threads", type=counted(1, MAX_THREADS), default=default, metavar="N", help=help)
+    """`--threads` of training and evaluation runs, with a drive's bounds (`DriveConfig.threads`)."""
+    p.add_argument("--threads", type=setting_type(config_field(DriveConfig, "threads")), default=default,
+                   metavar="N", help=help)
 
 
 def add_methods_argument(p: argparse.ArgumentParser, methods: tuple[str, ...], default: str | None,
@@ -245,42 +233,10 @@ def add_json_argument(p: argparse.ArgumentParser, help: str) -> None:
     p.add_argument("--json", action="store_true", help=help)
 
 
-def add_completion_arguments(p: argparse.ArgumentParser, seed_help: str, max_faces_help: str | None = None,
-                             free_space_what: str = "") -> None:
-    """The `CompletionConfig` options of `hgca complete` and `hgca drive`."""
-    add_samples_argument(p)
-    add_seed_argument(p, seed_help)
-    add_stage_argument(p)
-    add_device_argument(p)
-    p.add_argument("--max-faces", type=max_faces_arg, default=None,
-                   help=max_faces_help or f"simplify each mesh to at most this many triangles (default "
-                                          f"{DEFAULTS.max_faces:,}; 0 keeps every triangle: a default region's "
-                                          "full-stage mesh has 1.9-3.1 M)")
-    add_precision_argument(p)
-    add_steps_arguments(p)
-    add_weights_arguments(p)
-    add_free_space_argument(p, free_space_what)
-
-
-def completion_config(args: argparse.Namespace, base: CompletionConfig = DEFAULTS) -> CompletionConfig:
-    """The `CompletionConfig` of a command's parsed options (those it has; the rest from `base`)."""
-    names = ("stage", "samples", "seed", "t1", "t2", "weights", "fine_weights", "device", "precision", "max_faces",
-             "free_space", "semantics", "semantics_weights", "quality")
-    given = {n: getattr(args, n) for n in names if hasattr(args, n)}
-    if given.get("max_faces") is None:
-        given.pop("max_faces", None)
-    return base.with_(**given)
-
-
 def add_progress_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--progress", choices=PROGRESS_MODES, default="bar",
                    help="bar: a progress bar on stderr (default); jsonl: one JSON object per line on stdout (what "
                         "the Blender add-on reads); none: quiet")
-
-
-def add_mesh_format_argument(p: argparse.ArgumentParser, default: str | None, help: str) -> None:
-    """`--mesh-format`, shared by complete and drive (`config.MESH_FORMATS`)."""
-    p.add_argument("--mesh-format", choices=MESH_FORMATS, default=default, help=help)
 
 
 def add_out_argument(p: argparse.ArgumentParser, metavar: str, help: str, **kw) -> None:

@@ -6,18 +6,12 @@ from pathlib import Path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from hgca_core.commands.arguments import (add_device_argument, add_out_argument, add_precision_argument,
-                                              add_stage_argument, add_steps_arguments, add_weights_arguments,
-                                              floats_arg)
+    from hgca_core.commands.arguments import add_config_arguments, add_out_argument, floats_arg
 
     p.add_argument("--widths", type=floats_arg("--widths", positive=True), default="40,60,80,100,120",
                    help="strip widths w (m) of 40 x w regions; '' for none")
     p.add_argument("--no-default", action="store_true", help="skip the default 38.4 x 38.4 m region")
-    add_stage_argument(p, quality=False)
-    add_device_argument(p)
-    add_steps_arguments(p, ("t1",))
-    add_weights_arguments(p)
-    add_precision_argument(p)
+    add_config_arguments(p, ("stage", "device", "t1", "weights", "fine_weights", "precision"))
     add_out_argument(p, "DIR", required=True,
                      help="folder for the result (<name>.json, .md and .png; the repository's pages: "
                           "benchmarks/results)")

@@ -4,15 +4,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from hgca_core.commands.arguments import (add_completion_arguments, add_format_argument,
-                                          add_frames_argument, add_mesh_format_argument, add_poses_argument,
-                                          add_semantics_argument,
-                                          add_out_argument, add_precision_argument, add_progress_argument,
-                                          completion_config, device_arg, steps_arg)
+from hgca_core.commands.arguments import (add_completion_arguments, add_config_arguments, add_format_argument,
+                                          add_frames_argument, add_out_argument,
+                                          add_poses_argument, add_progress_argument, completion_config)
+from hgca_core.config import DriveConfig
 from hgca_core.files import mesh_format, output_paths
 
-__all__ = ["device_arg", "steps_arg", "add_arguments", "add_precision_argument", "run", "output_paths",
-           "mesh_format"]
+__all__ = ["add_arguments", "run", "output_paths", "mesh_format"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -22,15 +20,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_out_argument(p, "MESH", required=True,
                      help="the mesh file's name; sample i goes to MESH_s<i>.<format>, the format from "
                           "--mesh-format or else MESH's extension (.ply, .obj, .glb, .npz)")
-    add_mesh_format_argument(p, None, "mesh format (default: MESH's extension)")
+    add_config_arguments(p, ("mesh_format",), DriveConfig,
+                         mesh_format={"default": None, "help": "mesh format (default: MESH's extension)"})
     add_poses_argument(p)
     add_format_argument(p)
     p.add_argument("--region", help="cx,cy,cz,sx,sy,sz[,yaw_deg] in the world frame (default: 38.4 x 38.4 x 8 m "
                                     "around the first scan's sensor, from 1 m below the ground)")
-    add_completion_arguments(p, "sample i uses seed + i: same seed, same mesh")
-    add_semantics_argument(p)
-    p.add_argument("--semantics-weights", default=None, help="semantic head weights (default: the shipped "
-                                                             "semantics.pt); implies --semantics")
+    add_completion_arguments(p)
+    add_config_arguments(p, ("semantics", "semantics_weights"))
     add_progress_argument(p)
 
 

@@ -9,15 +9,11 @@ EXAMPLE_DIR = Path(__file__).resolve().parents[1] / "examples"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from hgca_core.commands.arguments import (add_out_argument, add_progress_argument, add_samples_argument,
-                                              add_seed_argument, add_semantics_argument, add_stage_argument)
+    from hgca_core.commands.arguments import add_config_arguments, add_out_argument, add_progress_argument
 
     add_out_argument(p, "DIR", required=True,
                      help="folder for the meshes (completion_s<i>.ply) and their renderings (`make demo`: demo_out)")
-    add_samples_argument(p)
-    add_seed_argument(p, "sample i uses seed + i")
-    add_stage_argument(p)
-    add_semantics_argument(p)
+    add_config_arguments(p, ("samples", "seed", "stage", "quality", "semantics"))
     add_progress_argument(p)
 
 

@@ -12,11 +12,10 @@ import argparse
 import json
 import sys
 
-from hgca_core.commands.arguments import (MAX_WORKERS, add_completion_arguments, add_format_argument,
-                                          add_frames_argument, add_json_argument, add_mesh_format_argument,
-                                          add_out_argument, add_poses_argument, add_progress_argument,
-                                          add_threads_argument,
-                                          check_device, completion_config, counted, positive_float)
+from hgca_core.commands.arguments import (add_completion_arguments, add_config_arguments, add_format_argument,
+                                          add_frames_argument, add_json_argument, add_out_argument,
+                                          add_poses_argument, add_progress_argument, check_device,
+                                          completion_config, positive_float)
 from hgca_core.config import DriveConfig
 from hgca_core.errors import InputError
 
@@ -32,29 +31,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_poses_argument(p)
     add_frames_argument(p, "frames of a sequence folder (default: all of them)")
     add_format_argument(p)
-    p.add_argument("--size", type=positive_float, default=DEFAULTS.size,
-                   help=f"tile side in metres (default {DEFAULTS.size}, the paper's region)")
-    p.add_argument("--overlap", type=positive_float, default=DEFAULTS.overlap,
-                   help=f"overlap of consecutive tiles in metres (default {DEFAULTS.overlap})")
-    p.add_argument("--scans-per-tile", type=counted(1), default=DEFAULTS.scans_per_tile,
-                   help=f"each tile is completed from its N nearest scans (default {DEFAULTS.scans_per_tile}; N at or "
-                        "above the drive's scan count means all of them)")
+    add_config_arguments(p, ("size", "overlap", "scans_per_tile"), DriveConfig)
     p.add_argument("--plan-only", action="store_true",
                    help="print the tiles (regions along the trajectory, their scans) and stop; writes nothing")
     add_json_argument(p, "--plan-only: print the plan as one JSON object")
-    add_completion_arguments(p, "sample k of tile i uses seed + i * samples + k",
-                             max_faces_help="simplify each tile's mesh to at most N triangles (default 0: every "
-                                            "triangle, so the tiles' surfaces meet at the seams as computed)",
-                             free_space_what=" from each scan's rays")
-    p.add_argument("--no-seams", dest="seams", action="store_false",
-                   help="do not condition tiles on their finished neighbours (faster start, joins may disagree)")
-    p.add_argument("--workers", type=counted(1, MAX_WORKERS), default=DEFAULTS.workers,
-                   help="tiles at once; more than 1 starts a local Ray in this process (needs hgca[ray])")
-    p.add_argument("--address", default=None, help="run on an existing Ray cluster (ray://host:port)")
-    add_threads_argument(p, "torch threads per tile (default: cores / workers)")
+    add_completion_arguments(p, seed={"help": "sample k of tile i uses seed + i * samples + k"},
+                             max_faces={"help": "simplify each tile's mesh to at most N triangles (default 0: every "
+                                                "triangle, so the tiles' surfaces meet at the seams as computed)"})
+    add_config_arguments(p, ("seams", "workers", "address", "threads"), DriveConfig,
+                         seams={"help": "do not condition tiles on their finished neighbours (faster start, joins "
+                                        "may disagree)"})
+    # GiB on the command line, bytes in the config
     p.add_argument("--tile-memory", type=positive_float, default=None, metavar="GIB",
                    help="memory each tile declares to Ray (default: estimated from the tile's area)")
-    add_mesh_format_argument(p, DEFAULTS.mesh_format, f"tile and drive meshes (default {DEFAULTS.mesh_format})")
+    add_config_arguments(p, ("mesh_format",), DriveConfig)
     add_progress_argument(p)
 
 

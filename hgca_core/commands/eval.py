@@ -10,23 +10,19 @@ DEFAULT_METHODS = ("input", "poisson", "gca", "hgca")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from hgca_core.commands.arguments import (add_free_space_argument, add_methods_argument, add_out_argument,
-                                              add_precision_argument, add_samples_argument, add_seed_argument,
-                                              add_stage_argument, add_steps_arguments, add_weights_arguments,
-                                              counted)
+    from hgca_core.commands.arguments import (add_config_arguments, add_methods_argument, add_noplanner_argument,
+                                              add_out_argument, counted)
 
     p.add_argument("--data", default="data/synth", help="dataset folder (hgca synth --split test)")
     p.add_argument("--split", default="test", choices=("val", "test"), help="the split to score (default test)")
-    add_stage_argument(p, quality=False, help="full (default) adds the fine stage's rows (hGCA 10 cm voxels and implicit mesh; "
-                               "needs fine weights) to the coarse ones")
-    add_weights_arguments(p, noplanner=True)
-    add_steps_arguments(p)
-    add_precision_argument(p)
+    add_config_arguments(p, ("stage", "weights", "fine_weights", "t1", "t2", "precision"),
+                         stage={"help": "full adds the fine stage's rows (hGCA 10 cm voxels and implicit mesh; needs "
+                                        "fine weights) to the coarse ones"})
+    add_noplanner_argument(p)
     p.add_argument("--count", type=counted(1), default=None, help="evaluate only the first N samples")
-    add_samples_argument(p, 3, "completions k per input (min/avg/TMD)")
+    add_config_arguments(p, ("samples",), samples={"default": 3, "help": "completions k per input (min/avg/TMD)"})
     add_methods_argument(p, METHODS, None, " (default: the coarse ones, plus hgca-full with --stage full)")
-    add_seed_argument(p, "sample i of every input uses seed + i")
-    add_free_space_argument(p, " for the model rows (compare runs to ablate it)")
+    add_config_arguments(p, ("seed", "free_space"), seed={"help": "sample i of every input uses seed + i"})
     add_out_argument(p, "FILE.json", default=None, help="write the rows as JSON and the table as .md next to it")
     p.add_argument("--render", default=None, metavar="PNG",
                    help="also write a PNG of the first scene: its ground truth, input and each row's first "

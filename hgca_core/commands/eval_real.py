@@ -14,10 +14,10 @@ import math
 import time
 from pathlib import Path
 
-from hgca_core.commands.arguments import (add_free_space_argument, add_frames_argument, add_methods_argument,
-                                          add_out_argument, add_precision_argument, add_samples_argument,
-                                          add_seed_argument, add_steps_arguments, add_threads_argument,
-                                          add_weights_arguments, finite_float, samples_arg)
+from hgca_core.commands.arguments import (add_config_arguments, add_frames_argument, add_methods_argument,
+                                          add_noplanner_argument, add_out_argument, add_threads_argument,
+                                          finite_float, setting_type)
+from hgca_core.config import CompletionConfig, config_field
 from hgca_core.metrics.real_eval import METHODS
 
 # The real fixtures shipped with the repository (tests/data/real), wherever the command is run from
@@ -44,18 +44,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_methods_argument(p, METHODS, ",".join(METHODS), " (default: all)")
     p.add_argument("--cuts", default="1.5,2.0", help="cut heights above the ground, metres")
     p.add_argument("--full-cuts", default="2.0", help="cut heights where the full stage runs (it is slow)")
-    add_samples_argument(p, 3, "k for the sampling rows")
-    p.add_argument("--full-samples", type=samples_arg, default=None, help="k for the full-stage rows (default --samples)")
-    add_seed_argument(p, "sample i uses seed + i")
+    add_config_arguments(p, ("samples", "seed"), samples={"default": 3, "help": "k for the sampling rows"})
+    p.add_argument("--full-samples", type=setting_type(config_field(CompletionConfig, "samples")), default=None,
+                   help="k for the full-stage rows (default --samples)")
     p.add_argument("--yaw", type=finite_float, default=0.0, metavar="DEG",
                    help="turn each input's region by DEG degrees about the vertical (default 0: the region's axes "
                         "along the scan's frame, as `hgca complete` picks it); a model trained on regions along the "
                         "drive may score otherwise on a turned box")
     add_threads_argument(p, "torch / Open3D threads (default 1)", default=1)
-    add_steps_arguments(p)
-    add_weights_arguments(p, noplanner=True)
-    add_precision_argument(p)
-    add_free_space_argument(p, " for the model rows (compare runs to ablate it)")
+    add_config_arguments(p, ("t1", "t2", "weights", "fine_weights", "precision", "free_space"))
+    add_noplanner_argument(p)
     p.add_argument("--no-render", action="store_true", help="skip the PNG renderings")
     p.add_argument("--resume", action="store_true",
                    help="keep the cases an earlier run with the same sampling settings wrote to --out (a later "

@@ -12,7 +12,8 @@ import argparse
 import json
 import time
 
-from hgca_core.commands.arguments import MAX_WORKERS, add_out_argument, add_seed_argument, counted
+from hgca_core.commands.arguments import add_out_argument, add_seed_argument, counted
+from hgca_core.config import MAX_WORKERS
 from hgca_core.errors import InputError
 from hgca_core.synth.lidar import PROFILES
 from hgca_core.synth.scene import GENERATOR_VERSION, STYLE_DRAWS, STYLES

@@ -17,7 +17,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from hgca_core.commands.arguments import (add_device_argument, add_out_argument, add_seed_argument,
+from hgca_core.commands.arguments import (add_config_arguments, add_out_argument, add_seed_argument,
                                           add_threads_argument, counted)
 from hgca_core.errors import InputError
 from hgca_core.training.recipes import DEFAULT, RECIPES, Recipe, parse_sets, resolve, resumed
@@ -55,7 +55,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="stop after this many steps of this invocation (a resumed run counts from where it resumes)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out (its checkpoint, with the recipe saved in it)")
-    add_device_argument(p, "cpu, cuda or cuda:N (under torchrun, cuda puts each rank on its own GPU, cuda:LOCAL_RANK)")
+    add_config_arguments(p, ("device",), device={"help": "cpu, cuda or cuda:N (under torchrun, cuda puts each rank "
+                                                         "on its own GPU, cuda:LOCAL_RANK)"})
     add_threads_argument(p, "torch CPU threads (1 is fastest on a busy machine)")
     add_seed_argument(p, "a new run's random streams: initial weights, crops, chains, infusion draws (default 0); "
                          "a resume continues the run's own streams and refuses another seed", default=None)

@@ -145,3 +145,25 @@ def test_batch_uses_the_core_that_install_core_set(addon, tmp_path: Path, monkey
         assert batch.core_python(argparse.Namespace(python=None)) == str(made)
     finally:
         shutil.rmtree(env)
+
+
+def test_batch_options_are_the_cores_settings() -> None:
+    """Every setting the panel shows is a batch option with the core's default, choices, bounds and help (made from
+    the schema, not typed again); a value out of the core's bounds fails while parsing, naming the setting."""
+    from hgca_blender import batch, settings
+    from hgca_core.config import addon_schema
+
+    schema = addon_schema()
+    parser = batch.build_parser()
+    actions = {a.dest: a for a in parser._actions}
+    for name, spec in schema["settings"].items():
+        action = actions[name]
+        assert action.default == spec["default"], name
+        assert list(action.choices or spec.get("choices", [])) == spec.get("choices", []), name
+        assert schema["help"][name] in action.help, name
+    base = [str(REPO / "x.pcd"), "--out", "x.blend"]
+    assert parser.parse_args([*base, "--t2", "3", "--tile-size", "12.8"]).t2 == 3
+    for flag, bad in (("--samples", "0"), ("--t2", "1001"), ("--workers", "0"), ("--tile-size", "-1")):
+        with pytest.raises(SystemExit):
+            parser.parse_args([*base, flag, bad])
+    assert settings.parse_type("max_faces")("0") == 0          # 0: every triangle, as the core takes it

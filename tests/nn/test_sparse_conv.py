@@ -338,11 +338,11 @@ def test_bf16_gemms_for_inference_only(gen: torch.Generator, path: str) -> None:
     assert resolve_precision("fp32") is None and resolve_precision("bf16") is torch.bfloat16
     import argparse
 
-    from hgca_core.commands.complete import add_precision_argument
+    from hgca_core.commands.arguments import add_config_arguments
     from hgca_core.nn.conv import PRECISIONS, precision_name
 
     parser = argparse.ArgumentParser()
-    add_precision_argument(parser)
+    add_config_arguments(parser, ("precision",))
     assert tuple(parser._option_string_actions["--precision"].choices) == PRECISIONS   # the CLI spells them out
     assert [precision_name(resolve_precision(n)) for n in ("fp32", "bf16")] == ["fp32", "bf16"]
     with pytest.raises(ValueError, match="precision"):
