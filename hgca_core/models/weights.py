@@ -126,9 +126,10 @@ def blend_files(a: str | os.PathLike, b: str | os.PathLike, t: float) -> dict:
     """Weights `(1 - t) * a + t * b`, tensor by tensor: a fine-tune interpolated back toward the weights it started
     from (WiSE-FT, Wortsman et al. 2022), which keeps more of the fine-tune's gain off its training distribution.
 
-    Both files must be weights (not checkpoints) of the same kind and architecture; the result takes `a`'s config
-    except the chain's schedule (`SCHEDULE`), which is `b`'s: `b` is the fine-tune, and a few-step student blended
-    back toward its teacher samples the short chain it was trained for. Both sources are recorded in its meta.
+    Both files must be weights (not checkpoints) of the same kind and architecture, fine ones over the same
+    autoencoder (kept as it is); the result takes `a`'s config except the chain's schedule (`SCHEDULE`), which is
+    `b`'s: `b` is the fine-tune, and a few-step student blended back toward its teacher samples the short chain it
+    was trained for. Both sources are recorded in its meta.
     Floating tensors are mixed in fp32, integer buffers are `a`'s."""
     if not 0.0 <= t <= 1.0:
         raise ValueError(f"blend fraction {t} is outside [0, 1]")
@@ -138,9 +139,11 @@ def blend_files(a: str | os.PathLike, b: str | os.PathLike, t: float) -> dict:
         if kind is None or checkpoint:
             raise InputError("not an hgca weights file (export a checkpoint with `hgca train --export` first)", str(f))
     ka, kb = blobs[0]["kind"], blobs[1]["kind"]
-    if ka != kb or "autoencoder" in blobs[0] or _architecture(ka, blobs[0]) != _architecture(kb, blobs[1]):
-        raise InputError(f"cannot blend: {ka} and {kb} weights of different architectures (or fine weights, whose "
-                         "autoencoders differ)", str(b))
+    if ka != kb or _architecture(ka, blobs[0]) != _architecture(kb, blobs[1]):
+        raise InputError(f"cannot blend: {ka} and {kb} weights of different architectures", str(b))
+    if not _same_autoencoder(blobs[0], blobs[1]):
+        raise InputError("cannot blend: fine weights with different autoencoders (a latent of one means nothing "
+                         "to the other's decoder)", str(b))
     sa, sb = blobs[0]["state_dict"], blobs[1]["state_dict"]
     if sa.keys() != sb.keys() or any(sa[k].shape != sb[k].shape for k in sa):
         raise InputError("cannot blend: the files' tensors differ in names or shapes", str(b))
@@ -149,6 +152,17 @@ def blend_files(a: str | os.PathLike, b: str | os.PathLike, t: float) -> dict:
     meta = {**_meta(blobs[0]), "blend": {"t": t, "a": lineage(a, _meta(blobs[0])), "b": lineage(b, _meta(blobs[1]))}}
     config = {**blobs[0]["config"], **{k: v for k, v in blobs[1]["config"].items() if k in SCHEDULE}}
     return {**blobs[0], "config": config, "state_dict": state, "meta": meta}
+
+
+def _same_autoencoder(a: dict, b: dict) -> bool:
+    """Whether two weights blobs carry the same autoencoder (or none): fine weights blend only over one decoder,
+    as a fine student's, which trains with its teacher's autoencoder frozen."""
+    ea, eb = a.get("autoencoder"), b.get("autoencoder")
+    if ea is None or eb is None:
+        return ea is eb
+    sa, sb = ea["state_dict"], eb["state_dict"]
+    return (ea.get("config") == eb.get("config") and sa.keys() == sb.keys()
+            and all(sa[k].shape == sb[k].shape and torch.equal(sa[k], sb[k]) for k in sa))
 
 
 LINEAGE_KEYS = ("steps", "train_wall_s", "data", "seed", "sessions", "notes", "blend", "init")

@@ -223,6 +223,23 @@ def test_blend_interpolates_tensor_by_tensor_and_refuses_what_does_not_fit(files
         blend_files(files["coarse"], wider, 0.5)
     with pytest.raises(InputError, match="different architectures"):
         blend_files(files["coarse"], files["autoencoder"], 0.5)
+    # fine weights blend over one autoencoder (a fine student keeps its teacher's), never over two
+    fine_b = load_file(files["fine"])
+    fine_b["state_dict"] = {k: v + 1 if v.is_floating_point() else v for k, v in fine_b["state_dict"].items()}
+    fine_b["config"]["steps"] = 1
+    fine_blob = blend_files(files["fine"], save_file(fine_b, tmp_path / "fine_b.pt"), 0.5)
+    kept = load_file(files["fine"])["autoencoder"]
+    assert fine_blob["autoencoder"]["config"] == kept["config"] and fine_blob["config"]["steps"] == 1
+    assert all(torch.equal(v, kept["state_dict"][k]) for k, v in fine_blob["autoencoder"]["state_dict"].items())
+    fine_mid, ae_mid, _ = load_fine(save_file(fine_blob, tmp_path / "fine_mid.pt"))
+    name = next(k for k, v in fine_b["state_dict"].items() if v.is_floating_point())
+    want = (load_file(files["fine"])["state_dict"][name].float() + 0.5).to(fine_b["state_dict"][name].dtype)
+    assert torch.allclose(fine_mid.state_dict()[name].float(), want.float(), atol=1e-3)
+    other_ae = load_file(files["fine"])
+    other_ae["autoencoder"] = {**other_ae["autoencoder"], "state_dict": {
+        k: v * 2 if v.is_floating_point() else v for k, v in other_ae["autoencoder"]["state_dict"].items()}}
+    with pytest.raises(InputError, match="different autoencoders"):
+        blend_files(files["fine"], save_file(other_ae, tmp_path / "other_ae.pt"), 0.5)
     ckpt = save_file({"task": "coarse", "model": a_sd, "config": {}}, tmp_path / "ckpt.pt")
     with pytest.raises(InputError, match="export a checkpoint"):
         blend_files(files["coarse"], ckpt, 0.5)
