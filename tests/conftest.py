@@ -84,7 +84,7 @@ def real_dir() -> Path:
 def small_weights(tmp_path_factory) -> Path:
     """Small untrained coarse weights (3 steps): the whole `hgca complete` path in a few seconds."""
     from hgca_core.models.gca import GCAConfig, GCAKernel
-    from hgca_core.models.weights import save_weights
+    from hgca_core.training.export import save_weights
 
     torch.manual_seed(0)
     cfg = GCAConfig(channels=(8, 8, 16, 16, 16), steps=3)

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from hgca_testdata import tiny_scan_file
-from hgca_core.models.weights import save_weights
+from hgca_core.training.export import save_weights
 from hgca_core.progress import PROTOCOL
 
 

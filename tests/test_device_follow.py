@@ -131,7 +131,7 @@ def assert_no_mixes(mode: DeviceFollow) -> None:
 def fine_weights(tmp_path_factory) -> Path:
     from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
     from hgca_core.models.cgca import CGCAConfig, CGCAKernel
-    from hgca_core.models.weights import save_weights
+    from hgca_core.training.export import save_weights
 
     torch.manual_seed(0)
     path = tmp_path_factory.mktemp("w") / "fine_small.pt"
@@ -206,7 +206,7 @@ def test_fine_training_steps_keep_every_tensor_on_the_models_device(dataset, tmp
 
     from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
     from hgca_core.models.cgca import CGCAConfig
-    from hgca_core.models.weights import save_weights
+    from hgca_core.training.export import save_weights
     from hgca_core.training import trainer
     from hgca_core.training.fine import FineTask
 

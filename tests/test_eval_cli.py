@@ -29,7 +29,7 @@ def small_fine(tmp_path_factory):
     fine row scores the empty-completion penalty, so comparisons between runs would hold whatever the code did."""
     from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
     from hgca_core.models.cgca import CGCAConfig, CGCAKernel
-    from hgca_core.models.weights import save_weights
+    from hgca_core.training.export import save_weights
 
     torch.manual_seed(0)
     kernel, autoencoder = CGCAKernel(CGCAConfig(channels=(8, 8, 8, 8, 8), steps=2)), Autoencoder(AutoencoderConfig())
@@ -90,7 +90,8 @@ def test_eval_full_stage_table(small_split, small_fine, tmp_path, capsys):
     # the reused rows keep the weights they ran, by role, once (the input row runs none)
     assert (doc2["weights"], doc2["weights_sha256"]) == (doc["weights"], doc["weights_sha256"])
     # rows run now with other coarse weights than the reused rows' are refused before any scene runs
-    from hgca_core.models.weights import blend_files, save_file
+    from hgca_core.models.weights import save_file
+    from hgca_core.training.export import blend_files
 
     other = save_file(blend_files(shipped("coarse"), shipped("coarse"), 0.5), tmp_path / "other.pt")
     mixed = tmp_path / "mixed.json"

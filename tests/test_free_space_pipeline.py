@@ -17,7 +17,8 @@ from hgca_core.models import cgca, gca
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel
 from hgca_core.models.gca import GCAConfig, GCAKernel
-from hgca_core.models.weights import save_weights, shipped
+from hgca_core.models.weights import shipped
+from hgca_core.training.export import save_weights
 from hgca_core.pipeline import Models, complete_local, load_models, takes_free_space
 
 pytestmark = pytest.mark.usefixtures("one_thread")

@@ -331,3 +331,19 @@ def test_benchmarks_reach_into_tests_only_for_the_shared_builders():
         bad += [f"{path.relative_to(REPO)} imports {n}" for n in _imported(tree)
                 if n.split(".")[0] in ({"pytest", "hgca_testdata", "conftest"} | test_modules)]
     assert not bad, bad
+
+
+# Writing weights is training's (training/export.py); models/weights.py reads and checks them, so a completion, a
+# drive or the add-on's Check never imports training code.
+EXPORT_NAMES = ("save_weights", "half_state", "blend_files", "lineage", "load_into", "widened", "kind_of")
+
+
+def test_weights_are_written_by_training_and_read_by_models():
+    weights = importlib.import_module("hgca_core.models.weights")
+    export = importlib.import_module("hgca_core.training.export")
+    assert [n for n in EXPORT_NAMES if hasattr(weights, n)] == []
+    assert [n for n in EXPORT_NAMES if not callable(getattr(export, n, None))] == []
+    runtime = ("pipeline", "tiling", "files", "meshing", "models", "nn", "geometry", "io")
+    users = sorted(m for m, f in MODULES.items() if layer(m) in runtime
+                   for d in imported_modules(f) if layer(d) == "training")
+    assert users == []

@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).parent / "drive"))
 from drive_data import write_drive  # noqa: E402
 
 from hgca_core.models.gca import GCAConfig, GCAKernel  # noqa: E402
-from hgca_core.models.weights import save_weights  # noqa: E402
+from hgca_core.training.export import save_weights
 
 pytestmark = pytest.mark.slow    # ~30 processes: `make test-slow` (CI runs it)
 

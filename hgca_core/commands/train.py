@@ -268,7 +268,8 @@ def export(recipe: Recipe, data: list[str], task, ckpt: Path, target: Path) -> P
     """The run's weights as it selected them on val (`training.selection.selected_run`: the average kept at the
     best validation score, best.pt, else the checkpoint's), with its training record as metadata (blended back
     toward `init_from` when the recipe says so); weights written beside the model card re-render it."""
-    from hgca_core.models.weights import WEIGHTS_DIR, save_weights, shipped, trained_weights
+    from hgca_core.models.weights import WEIGHTS_DIR, shipped, trained_weights
+    from hgca_core.training.export import save_weights
 
     extra = {"stage": recipe.stage, "data": " + ".join(map(str, data))}
     if recipe.coarse:
@@ -280,7 +281,8 @@ def export(recipe: Recipe, data: list[str], task, ckpt: Path, target: Path) -> P
         meta = {**record, **extra, "crop": task.crop}
         if recipe.blend is not None:
             from hgca_core.io.digest import file_digest
-            from hgca_core.models.weights import blend_files, save_file
+            from hgca_core.models.weights import save_file
+            from hgca_core.training.export import blend_files
 
             with tempfile.TemporaryDirectory() as tmp:
                 run_weights = save_weights(Path(tmp) / f"{ckpt.parent.name}.pt", module.model, meta)

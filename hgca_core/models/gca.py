@@ -76,7 +76,7 @@ class GCAKernel(nn.Module):
 
     def free_columns(self) -> dict[str, tuple[int, list[int]]]:
         """{parameter name: (dim, indices)}: where the free-space inputs enter the weights (empty without them).
-        A model trained without free space warm-starts one with it by zeros there (`weights.load_into`)."""
+        A model trained without free space warm-starts one with it by zeros there (`hgca_core.training.export.load_into`)."""
         if not self.cfg.free_space:
             return {}
         cols = {"unet.stem.0.weight": (1, [2])}    # SubMConv3d weight (K, C_in, C_out); column 2 = "in free"

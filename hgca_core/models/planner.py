@@ -8,7 +8,7 @@ only, so it is computed once per completion and reused at every GCA step.
 With `free_bins` > 0 (beyond the paper, `GCAConfig.free_space`), the 2D U-Net also sees per pillar the share of
 its cells seen empty in each of `free_bins` height bins (`hgca_core.models.free.pillar_fractions`), concatenated
 after the positional encoding so that a planner trained without them keeps its meaning when they are added as
-zero-initialised input channels (warm start, `hgca_core.models.weights.load_into`).
+zero-initialised input channels (warm start, `hgca_core.training.export.load_into`).
 """
 from __future__ import annotations
 

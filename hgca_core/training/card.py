@@ -84,7 +84,7 @@ def _section(path: Path, blob: dict) -> str:
 
 
 def _origins(rec: dict, indent: str, listed: str = "") -> list[str]:
-    """The weights a record's tensors came from besides its own sessions, nested (`weights.lineage`): the file
+    """The weights a record's tensors came from besides its own sessions, nested (`training.export.lineage`): the file
     its run started from and the two files it is a blend of, each with its sessions, so every device and step
     in a file's history is on the card. A start from the file `listed` (by sha256: a blend's a, whose history
     is already on the card) is named, not repeated."""
@@ -101,7 +101,7 @@ def _origins(rec: dict, indent: str, listed: str = "") -> list[str]:
     if blend:
         a, b = blend["a"], blend["b"]
         lines.append(f"{indent}- blend: these tensors are `(1 - t) * a + t * b`, t = {blend['t']:g} "
-                     f"(`hgca_core.models.weights.blend_files`, WiSE-FT), a = {_named(a)}, the training above, "
+                     f"(`hgca_core.training.export.blend_files`, WiSE-FT), a = {_named(a)}, the training above, "
                      f"b = {_named(b)}: {_trained(b)}")
         lines += [indent + _session(s) for s in b.get("sessions", [])]
         lines += [f"{indent}  - note of b: {n}" for n in b.get("notes", [])]

@@ -38,7 +38,8 @@ from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel, _gather, _table, sample
 from hgca_core.models import free as fs
 from hgca_core.models.infusion import alpha
-from hgca_core.models.weights import load_autoencoder, save_weights, shipped, shown_path, trained_weights
+from hgca_core.models.weights import load_autoencoder, shipped, shown_path, trained_weights
+from hgca_core.training.export import save_weights
 from hgca_core.nn.sparse import CellState
 from hgca_core.training.buffer import Chain
 from hgca_core.training.data import draw_crop, free_cells, grids, load_arrays, split_files

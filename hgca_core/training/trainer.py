@@ -185,7 +185,7 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
     checkpoint's from this step on (an annealing phase), which the run's notes record.
 
     `init_from` (weights or a checkpoint of the task's kind) initialises a run that does not resume a checkpoint
-    (`weights.load_into`: new free-space inputs start at zero); the run's notes record it.
+    (`training.export.load_into`: new free-space inputs start at zero); the run's notes record it.
 
     `recipe` (`hgca train`'s resolved recipe, plain values) is saved in every checkpoint, so a resume continues
     the run as it was configured, not from flags given again."""
@@ -233,7 +233,8 @@ def train(task: Task, out_dir: str | Path, minutes: float, resume: bool = False,
         if resume and rank == 0:
             print(f"no checkpoint at {ckpt_path}: starting {'from ' + str(init_from) if init_from else 'from scratch'}")
         if init_from:
-            from hgca_core.models.weights import lineage, load_into, shown_path
+            from hgca_core.models.weights import shown_path
+            from hgca_core.training.export import lineage, load_into
 
             meta = load_into(module.model, init_from)
             state["init"] = lineage(init_from, meta)

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from hgca_core.models.gca import GCAConfig, GCAKernel
-from hgca_core.models.weights import save_weights
+from hgca_core.training.export import save_weights
 
 
 @pytest.fixture(scope="session")

@@ -11,7 +11,8 @@ from hgca_core.geometry.voxel import downsample, voxelize
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.meshing.fine import udf_mesh
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel, initial_state, sample, upsample
-from hgca_core.models.weights import load_file, load_fine, save_weights
+from hgca_core.models.weights import load_file, load_fine
+from hgca_core.training.export import save_weights
 from hgca_core.nn.sparse import CellState
 from hgca_core.training.buffer import Chain, ChainBuffer
 from hgca_core.training.fine import FineLoss, FineTask, export_fine

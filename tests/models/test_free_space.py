@@ -14,7 +14,8 @@ from hgca_core.models import free as fs
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel, _gather, _table
 from hgca_core.models.gca import GCAConfig, GCAKernel
 from hgca_core.models.planner import PILLAR, Planner
-from hgca_core.models.weights import load_coarse, load_file, load_fine, load_into, save_file, save_weights, shipped
+from hgca_core.models.weights import load_coarse, load_file, load_fine, save_file, shipped
+from hgca_core.training.export import load_into, save_weights
 from hgca_core.nn.encoding import sinusoidal
 from hgca_core.nn.sparse import CellState
 

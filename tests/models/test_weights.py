@@ -12,8 +12,8 @@ from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig, CGCAKernel
 from hgca_core.models.gca import GCAConfig, GCAKernel
 from hgca_core.models.semantics import SemanticHead, SemanticsConfig
-from hgca_core.models.weights import (KINDS, WEIGHTS_DIR, check_config, identify, load_autoencoder, load_coarse,
-                                      load_file, load_fine, save_file, save_weights, shipped)
+from hgca_core.models.weights import KINDS, WEIGHTS_DIR, check_config, identify, load_autoencoder, load_coarse, load_file, load_fine, save_file, shipped
+from hgca_core.training.export import save_weights
 
 SMALL_AE = AutoencoderConfig(latent=4, enc_hidden=8, mlp_hidden=8, dec_channels=8)
 
@@ -176,7 +176,7 @@ def test_kinds_table_covers_the_models():
 
 
 def test_blend_interpolates_tensor_by_tensor_and_refuses_what_does_not_fit(files, tmp_path):
-    from hgca_core.models.weights import blend_files
+    from hgca_core.training.export import blend_files
 
     torch.manual_seed(1)
     other = GCAKernel(GCAConfig(channels=(8, 8, 16, 16, 16), steps=3))

@@ -14,7 +14,7 @@ from plyfile import PlyData
 from hgca_testdata import tiny_scan_file
 from hgca_core.io.classes import CLASS_NAMES
 from hgca_core.models.semantics import SemanticHead, SemanticsConfig
-from hgca_core.models.weights import save_weights
+from hgca_core.training.export import save_weights
 
 REGION = "103,203,1,6,6,4"
 

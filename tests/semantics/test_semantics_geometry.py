@@ -12,7 +12,7 @@ import trimesh
 
 from hgca_testdata import tiny_scan_file
 from hgca_core.models.semantics import SemanticHead, SemanticsConfig
-from hgca_core.models.weights import save_weights
+from hgca_core.training.export import save_weights
 
 REGION = "103,203,1,3,3,3"   # a 3 m corner of the tiny scan: tens of thousands of faces in seconds
 

@@ -8,7 +8,8 @@ import torch
 from hgca_core.cli import main
 from hgca_core.io.digest import file_digest
 from hgca_core.models.gca import GCAConfig, GCAKernel
-from hgca_core.models.weights import load_file, save_weights
+from hgca_core.models.weights import load_file
+from hgca_core.training.export import save_weights
 from hgca_core.nn.sparse import CellState
 from hgca_core.training import coarse
 from hgca_core.training.card import write_model_card

@@ -15,7 +15,8 @@ from hgca_core.io.digest import file_digest
 from hgca_core.models.autoencoder import Autoencoder, AutoencoderConfig
 from hgca_core.models.cgca import CGCAConfig
 from hgca_core.models.gca import GCAConfig, GCAKernel
-from hgca_core.models.weights import WEIGHTS_DIR, load_coarse, load_file, save_weights
+from hgca_core.models.weights import WEIGHTS_DIR, load_coarse, load_file
+from hgca_core.training.export import save_weights
 from hgca_core.training import data
 from hgca_core.training.coarse import CoarseTask
 from hgca_core.training.data import free_cells, free_path

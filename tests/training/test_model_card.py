@@ -4,7 +4,7 @@ import json
 import torch
 
 from hgca_core.models.gca import GCAConfig, GCAKernel
-from hgca_core.models.weights import save_weights
+from hgca_core.training.export import save_weights
 from hgca_core.training.card import write_model_card
 
 
@@ -53,7 +53,8 @@ def test_card_lists_weights_trained_on_synth2_and_synth3_under_both(tmp_path):
 
 
 def test_card_says_a_blend_is_one_and_lists_both_trainings(tmp_path):
-    from hgca_core.models.weights import blend_files, save_file
+    from hgca_core.models.weights import save_file
+    from hgca_core.training.export import blend_files
 
     ses = {"ended": "2026-11-23 11:00:00", "steps": 9, "wall_s": 3.0, "device": "cpu", "threads": 2,
            "world_size": 1, "precision": "fp32"}
@@ -67,7 +68,7 @@ def test_card_says_a_blend_is_one_and_lists_both_trainings(tmp_path):
     save_file(blend_files(a, b, 0.25), cards / "coarse.pt")
     card = write_model_card(cards).read_text()
     assert "- steps: 5," in card and "  - session ended 2026-11-23 11:00:00: 5 steps in 3.0 s" in card
-    assert "t = 0.25 (`hgca_core.models.weights.blend_files`, WiSE-FT), a = `a.pt` (sha256 " in card
+    assert "t = 0.25 (`hgca_core.training.export.blend_files`, WiSE-FT), a = `a.pt` (sha256 " in card
     assert ", the training above, b = `b.pt` (sha256 " in card
     assert "9 steps, 3.0 s of step wall time on d/synth7 over 1 session(s)" in card
     assert "  - session ended 2026-11-23 11:00:00: 9 steps in 3.0 s" in card
@@ -76,7 +77,8 @@ def test_card_says_a_blend_is_one_and_lists_both_trainings(tmp_path):
 def test_card_names_every_session_of_a_blend_of_a_blend_and_of_a_warm_start(tmp_path):
     """Blend a blend with a run started from it: the card lists the sessions and devices of all four trainings
     (the inner blend's second source and the run's start included)."""
-    from hgca_core.models.weights import blend_files, lineage, load_file, save_file
+    from hgca_core.models.weights import load_file, save_file
+    from hgca_core.training.export import blend_files, lineage
 
     def ses(day, steps, device="cpu", name=None):
         return {"ended": f"2026-11-{day} 11:00:00", "steps": steps, "wall_s": 1.0, "device": device,

@@ -293,7 +293,7 @@ def test_export_blended_toward_the_weights_the_run_started_from(tiny_dataset, tm
     meta (which the card renders); it needs init_from, and T lies strictly between 0 and 1 (exit 2, nothing
     written)."""
     from hgca_core.models.gca import GCAKernel
-    from hgca_core.models.weights import save_weights
+    from hgca_core.training.export import save_weights
 
     torch.manual_seed(3)
     a = save_weights(tmp_path / "a.pt", GCAKernel(GCAConfig(use_planner=False, **SMALL)), {"steps": 5})
@@ -364,7 +364,7 @@ def test_the_seed_starts_a_new_runs_streams_and_a_resume_keeps_them(tiny_dataset
     assert run_record(b)["seed"] == 1 and _trained(run_record(b)).endswith(", seed 1")
     assert "seed" not in _trained(run_record(a))
     from hgca_core.errors import InputError
-    from hgca_core.models.weights import lineage
+    from hgca_core.training.export import lineage
 
     with pytest.raises(InputError, match="seed must be 0 or more"):
         train(_task(tiny_dataset), tmp_path / "neg", seed=-1, **kw)
