@@ -5,7 +5,6 @@ from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorPro
                        PointerProperty, StringProperty)
 
 from . import settings as core
-from .scene.region import DEFAULT_SIZE
 
 # Every default, bound and choice of a core setting below comes from the core's schema (`settings`, made from
 # `hgca_core.config` by the extension build); only the labels and descriptions are the panel's own.
@@ -47,7 +46,7 @@ class HGCA_PG_scene(bpy.types.PropertyGroup):
                                    description="Object whose bounding box is the completion region (a mesh or an empty)")
     region_center: FloatVectorProperty(name="Centre", size=3, subtype="TRANSLATION", unit="LENGTH",
                                        description="Centre of the region (scene coordinates: relative to the hGCA georeference origin, if any)")
-    region_size: FloatVectorProperty(name="Size", size=3, default=DEFAULT_SIZE, min=0.1, subtype="XYZ",
+    region_size: FloatVectorProperty(name="Size", size=3, default=core.REGION_SIZE, min=0.1, subtype="XYZ",
                                      unit="LENGTH", description="Size of the region")
     region_yaw: FloatProperty(name="Yaw", subtype="ANGLE", description="Rotation of the region about Z")
 

@@ -32,6 +32,7 @@ SCHEMA = _load()
 LIMITS: dict[str, dict[str, Any]] = SCHEMA["settings"]
 FLAGS: dict[str, str] = SCHEMA["flags"]
 HELP: dict[str, str] = SCHEMA.get("help", {})
+REGION_SIZE: tuple[float, float, float] = tuple(SCHEMA["region_size"])   # the core's default region (metres)
 INT_MAX = 2**31 - 1   # Blender's IntProperty holds 32-bit values
 
 

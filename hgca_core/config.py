@@ -43,7 +43,8 @@ DEFAULT_MAX_FACES = 1_000_000   # a default region's full-stage mesh has ~2 M tr
 MIN_STRIDE = 0.2          # metres between tile centres: one coarse cell (a finer stride only repeats tiles)
 MAX_WORKERS = 4096
 MAX_THREADS = 4096
-TILE_SIZE = 38.4          # metres: the paper's region
+REGION_SIZE = (38.4, 38.4, 8.0)   # metres: the paper's region (x, y along the ground, z up)
+TILE_SIZE = REGION_SIZE[0]
 TILE_OVERLAP = 6.4        # metres: 32 coarse cells, wider than the GCA's receptive field on either side
 _DEVICE = re.compile(r"cpu|cuda(:\d+)?")
 
@@ -333,7 +334,8 @@ def addon_schema() -> dict[str, Any]:
     add-on makes its panel properties and every job's command line from it, so the two cannot drift apart."""
     helps = {prop: config_field(CompletionConfig if which == "completion" else DriveConfig, name).metadata["help"]
              for prop, (which, name) in ADDON_SETTINGS.items()}
-    return {"schema": 1, "settings": addon_limits(), "flags": dict(CLI_FLAGS), "help": helps}
+    return {"schema": 1, "settings": addon_limits(), "flags": dict(CLI_FLAGS), "help": helps,
+            "region_size": list(REGION_SIZE)}
 
 
 def as_dict(config: CompletionConfig | DriveConfig) -> dict[str, Any]:

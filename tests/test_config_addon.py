@@ -52,3 +52,16 @@ def test_jobs_build_their_command_lines_through_one_function() -> None:
         assert "settings.core_args(" in text
         for flag in ("--samples", "--seed", "--stage", "--quality", "--t1", "--t2", "--max-faces", "--workers"):
             assert f'"{flag}"' not in text, (module, flag)
+
+
+def test_the_panels_region_size_is_the_cores() -> None:
+    """The panel's default region box is the core's default region (`config.REGION_SIZE`, carried by the schema),
+    not a copy of its numbers."""
+    from hgca_blender import settings
+    from hgca_core.config import REGION_SIZE
+    from hgca_core.geometry.region import DEFAULT_SIZE
+
+    assert settings.REGION_SIZE == tuple(REGION_SIZE) == tuple(DEFAULT_SIZE)
+    props = _keyword_sources(ADDON / "properties.py", "HGCA_PG_scene")
+    assert props["region_size"]["default"] == "core.REGION_SIZE"
+    assert "38.4" not in (ADDON / "properties.py").read_text() + (ADDON / "scene" / "region.py").read_text()

@@ -21,7 +21,7 @@ ALLOWED = {
     "errors": set(),
     "config": {"errors", "nn"},   # nn.precision's names only (test_config_is_light)
     "io": {"errors", "geometry"},   # geometry.nearest: the odometry's registration checks
-    "geometry": UTIL,
+    "geometry": UTIL | {"config"},   # the default region's size (config.REGION_SIZE)
     "nn": UTIL | {"geometry"},
     "models": LOW | {"config", "nn"},   # config: the bounds a weights file is checked against (MAX_STEPS)
     "meshing": LOW,

@@ -14,7 +14,8 @@ import bpy
 import numpy as np
 
 from ..scene import georef, sources
-from ..scene.region import DEFAULT_SIZE, Region, RegionError, clean
+from .. import settings
+from ..scene.region import Region, RegionError, clean
 from . import job_inputs
 from .core import CoreError, run_core_json
 
@@ -55,7 +56,7 @@ def ask_core(python: str, args: list[str], folder: Path) -> Region:
 
 
 def default_world_region(python: str, scene: bpy.types.Scene, objects: list[bpy.types.Object],
-                         size: tuple[float, float, float] = DEFAULT_SIZE) -> Region:
+                         size: tuple[float, float, float] = settings.REGION_SIZE) -> Region:
     """The core's default region around source objects, in world coordinates (`region_request` + `ask_core`, in
     this thread: batch runs and scripts)."""
     folder = Path(tempfile.mkdtemp(prefix="hgca_region_"))

@@ -17,7 +17,6 @@ from . import georef
 from .mesh_build import ROLE_KEY
 from .sources import update_transforms
 
-DEFAULT_SIZE = (38.4, 38.4, 8.0)  # the panel's default box size (the core's default region size)
 MAX_TILT_DEG = 1.0
 REGION_TYPES = ("MESH", "EMPTY")  # objects whose box can be a region
 EXACT_KEY = "hgca_exact_region"   # custom property of a box the add-on made: its region in float64 world metres

@@ -11,10 +11,11 @@ from typing import Sequence
 
 import numpy as np
 
+from hgca_core.config import REGION_SIZE
 from hgca_core.errors import InputError
 from hgca_core.geometry.voxel import COARSE, grid_shape
 
-DEFAULT_SIZE = (38.4, 38.4, 8.0)
+DEFAULT_SIZE = REGION_SIZE
 MIN_SIZE = COARSE   # metres: the thinnest region side, one coarse cell (grids are rounded to whole cells)
 BELOW_GROUND = 1.0  # the box starts this far below the ground under the sensor (paper: [-1, 7] m)
 

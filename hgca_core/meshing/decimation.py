@@ -6,9 +6,6 @@ from typing import Callable
 import numpy as np
 import trimesh
 
-DEFAULT_MAX_FACES = 1_000_000
-
-
 def limit_faces(mesh: trimesh.Trimesh, max_faces: int | None, note: Callable[[str], None] | None = None
                 ) -> trimesh.Trimesh:
     """The completion's triangle limit: `decimate` to `max_faces` when the mesh has more (None or 0 keeps every
