@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hgca_core.geometry.voxel import COARSE, cell_centers
 from semantics_page import CAR_TOP, GROUND_TOL, POLE_WIDTH, VERTICAL_NZ, markdown, shares
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,7 +42,7 @@ MIN_SHARE = 0.01      # classes with fewer cells than this share of a scene's ar
 def hag(cells: np.ndarray) -> np.ndarray:
     from hgca_core.models.semantics import fitted_ground
 
-    return (cells[:, 2] + 0.5) * 0.2 - fitted_ground(cells)
+    return cell_centers(cells, COARSE)[:, 2] - fitted_ground(cells)
 
 
 def checks(cells: np.ndarray, labels: np.ndarray) -> dict[str, tuple[int, int]]:
@@ -63,7 +64,7 @@ def checks(cells: np.ndarray, labels: np.ndarray) -> dict[str, tuple[int, int]]:
     if len(b):
         from scipy.sparse import coo_matrix, identity
 
-        p = (cells[b] + 0.5) * 0.2
+        p = cell_centers(cells[b], COARSE)
         pairs = cKDTree(p).query_pairs(0.6, output_type="ndarray")
         adj = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(p), len(p))).tocsr()
         adj = adj + adj.T + identity(len(p), format="csr")
@@ -95,11 +96,12 @@ def checks(cells: np.ndarray, labels: np.ndarray) -> dict[str, tuple[int, int]]:
 
 def scene_confusion(pred_cells: np.ndarray, pred_labels: np.ndarray, observed: np.ndarray, gt: dict) -> dict:
     """{"observed", "generated"}: confusion matrices over the cells both the completion and the truth hold."""
-    from hgca_core.training.semantics import _keys, confusion
+    from hgca_core.geometry.keys import pack
+    from hgca_core.training.semantics import confusion
 
-    gk = _keys(gt["cells"])
+    gk = pack(gt["cells"])
     order = np.argsort(gk)
-    pk = _keys(pred_cells)
+    pk = pack(pred_cells)
     pos = np.clip(np.searchsorted(gk[order], pk), 0, len(gk) - 1)
     hit = gk[order][pos] == pk
     truth = gt["labels"][order][pos]
@@ -111,7 +113,7 @@ def render(cells: np.ndarray, labels: np.ndarray, ax, title: str) -> None:
     """Cells as an oblique view coloured by class (painter's order, far first)."""
     from hgca_core.io.classes import CLASS_COLORS
 
-    p = (cells + 0.5) * 0.2
+    p = cell_centers(cells, COARSE)
     view = np.array([-0.55, -0.75, 0.45])
     view /= np.linalg.norm(view)
     right = np.cross(view, [0, 0, 1.0])

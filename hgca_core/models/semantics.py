@@ -29,8 +29,9 @@ import torch
 from scipy import ndimage
 from torch import nn
 
+from hgca_core.geometry.keys import pack
 from hgca_core.geometry.nearest import PointIndex
-from hgca_core.geometry.voxel import COARSE
+from hgca_core.geometry.voxel import COARSE, cell_centers
 from hgca_core.io.classes import CLASS_COLORS, CLASS_NAMES  # noqa: F401  (re-exported)
 from hgca_core.models.config import Config
 from hgca_core.nn.encoding import sinusoidal
@@ -81,14 +82,14 @@ def fitted_ground(cells: np.ndarray) -> np.ndarray:
         idx = ndimage.distance_transform_edt(empty, return_distances=False, return_indices=True)
         low = low[idx[0], idx[1]]
     low = ndimage.minimum_filter(low, size=GROUND_WINDOW, mode="nearest")
-    return (low[t[:, 0], t[:, 1]].astype(np.float64) + 0.5) * COARSE
+    return cell_centers(np.c_[np.zeros((len(c), 2)), low[t[:, 0], t[:, 1]]], COARSE)[:, 2]
 
 
 def cell_features(cells: np.ndarray, observed: np.ndarray, pe_freq: int = 3) -> np.ndarray:
     """(N, 3 + 2 pe_freq) float32 features of the cells (N, 3) of a 20 cm state: observed flag, height above the
     fitted ground, height of the cell's column top above it (both / HEIGHT_SCALE) and the height's encoding."""
     c = np.asarray(cells, dtype=np.int64).reshape(-1, 3)
-    z = (c[:, 2] + 0.5) * COARSE
+    z = cell_centers(c, COARSE)[:, 2]
     hag = z - fitted_ground(c)
     top = np.zeros(len(c))
     if len(c):
@@ -124,12 +125,6 @@ def _sorted_batch(cells: np.ndarray) -> tuple[torch.Tensor, np.ndarray]:
     coords = torch.cat([torch.zeros(len(c), 1, dtype=torch.long), c], 1)
     order = torch.argsort(pack(coords))
     return coords[order], order.numpy()
-
-
-def _cell_keys(cells: np.ndarray) -> np.ndarray:
-    """(N,) int64 key of each cell (N, 3): equal keys, equal cells, for the cells of any one region."""
-    big = np.int64(1 << 20)
-    return (cells[:, 0] * big + cells[:, 1]) * big + cells[:, 2]
 
 
 @torch.no_grad()
@@ -172,9 +167,9 @@ def fine_features(cells: np.ndarray, fine_cells: np.ndarray, latents: np.ndarray
     out = np.zeros((len(c), k + 1), np.float32)
     if len(c) == 0 or len(f) == 0:
         return out
-    ck = _cell_keys(c)
+    ck = pack(c)
     order = np.argsort(ck)
-    pk = _cell_keys(f // 2)
+    pk = pack(f // 2)
     pos = np.clip(np.searchsorted(ck[order], pk), 0, len(c) - 1)
     hit = ck[order][pos] == pk
     row = order[pos[hit]]
@@ -226,7 +221,7 @@ def observed_mask(cells: np.ndarray, input_cells: np.ndarray) -> np.ndarray:
     s = np.asarray(input_cells, dtype=np.int64).reshape(-1, 3)
     if len(c) == 0 or len(s) == 0:
         return np.zeros(len(c), bool)
-    return np.isin(_cell_keys(c), _cell_keys(s))
+    return np.isin(pack(c), pack(s))
 
 
 def face_labels(points: np.ndarray, cells: np.ndarray, labels: np.ndarray) -> np.ndarray:
@@ -235,7 +230,7 @@ def face_labels(points: np.ndarray, cells: np.ndarray, labels: np.ndarray) -> np
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(p) == 0 or len(cells) == 0:
         return np.zeros(len(p), np.uint8)
-    centres = (np.asarray(cells, dtype=np.float64) + 0.5) * COARSE
+    centres = cell_centers(cells, COARSE)         # the 20 cm cells' centres as every other stage places them
     i = PointIndex(centres).nearest(p)[1]
     return np.asarray(labels, dtype=np.uint8)[i]
 

@@ -27,8 +27,9 @@ import numpy as np
 import torch
 from torch import nn
 
+from hgca_core.geometry.keys import pack
 from hgca_core.geometry.nearest import PointIndex
-from hgca_core.geometry.voxel import COARSE, voxelize
+from hgca_core.geometry.voxel import COARSE, cell_centers, point_cells, voxelize
 from hgca_core.models.semantics import (CLASS_NAMES, SemanticHead, SemanticsConfig, coarse_features, fine_features,
                                         fitted_ground, head_input)
 from hgca_core.training.buffer import Chain
@@ -41,30 +42,26 @@ LABEL_SMOOTHING = 0.05
 REFRESH = 50             # examples between looks for new train scenes (a split still being built)
 
 
-def _keys(c: np.ndarray) -> np.ndarray:
-    c = np.asarray(c, dtype=np.int64)
-    return ((c[:, 0] + 4096) * 8192 + (c[:, 1] + 4096)) * 8192 + (c[:, 2] + 4096)
-
-
 def cell_labels(cells: np.ndarray, surface: np.ndarray, surface_label: np.ndarray) -> np.ndarray:
-    """(M,) uint8 label of each 20 cm cell: the majority of the surface samples inside, else the nearest's."""
+    """(M,) uint8 label of each 20 cm cell: the majority of the surface samples inside (the cell a point falls in
+    as `voxelize` puts it), else the nearest's."""
     c = np.asarray(cells, dtype=np.int64).reshape(-1, 3)
-    pc = np.floor(np.asarray(surface, dtype=np.float64) / COARSE).astype(np.int64)
+    pc = point_cells(surface, COARSE)
     lab = np.asarray(surface_label, dtype=np.int64)
-    k = _keys(pc) * 16 + lab
+    k = pack(pc) * 16 + lab
     uk, counts = np.unique(k, return_counts=True)
     cell_k, cell_lab = uk // 16, uk % 16
     order = np.lexsort((-counts, cell_k))           # per cell, the most frequent label first
     cell_k, cell_lab = cell_k[order], cell_lab[order]
     first = np.r_[True, cell_k[1:] != cell_k[:-1]]
     cell_k, cell_lab = cell_k[first], cell_lab[first]
-    ck = _keys(c)
+    ck = pack(c)
     pos = np.clip(np.searchsorted(cell_k, ck), 0, max(len(cell_k) - 1, 0))
     hit = (cell_k[pos] == ck) if len(cell_k) else np.zeros(len(c), bool)
     out = np.zeros(len(c), np.uint8)
     out[hit] = cell_lab[pos[hit]]
     if (~hit).any() and len(surface):
-        i = PointIndex(surface).nearest((c[~hit] + 0.5) * COARSE)[1]
+        i = PointIndex(surface).nearest(cell_centers(c[~hit], COARSE))[1]
         out[~hit] = lab[i]
     return out
 
@@ -75,7 +72,7 @@ def scene(path: str | Path) -> dict[str, np.ndarray]:
     cells = a["gt_occ20"].astype(np.int64)
     size = a["region"][3:6]
     s0 = voxelize(a["input_points"], COARSE, size)
-    observed = np.isin(_keys(cells), _keys(s0))
+    observed = np.isin(pack(cells), pack(s0))
     return {"cells": cells, "labels": cell_labels(cells, a["gt_surface"], a["gt_surface_label"]),
             "observed": observed, "grid": np.array([int(round(v / COARSE)) for v in size])}
 
@@ -107,7 +104,7 @@ def perturb(cells: np.ndarray, labels: np.ndarray, observed: np.ndarray, rng: np
         if rng.random() < 0.5:
             xy[:, 0] = -xy[:, 0]
     c = np.c_[np.floor(xy - xy.min(0)).astype(np.int64), c[:, 2]]
-    _, first = np.unique(_keys(c), return_index=True)
+    _, first = np.unique(pack(c), return_index=True)
     c, lab, obs, origin = c[first], lab[first], obs[first], origin[first]
     drop = rng.random(len(c)) < rng.uniform(*DROP) * np.where(obs, 0.3, 1.0)   # generated cells are the fuzzy ones
     if drop.all():
@@ -119,9 +116,9 @@ def perturb(cells: np.ndarray, labels: np.ndarray, observed: np.ndarray, rng: np
         step = rng.integers(-1, 2, size=(n_add, 3))
         new = c[src] + step
         new = new[new[:, 2] >= 0]
-        fresh = ~np.isin(_keys(new), _keys(c))
+        fresh = ~np.isin(pack(new), pack(c))
         new = new[fresh]
-        _, first = np.unique(_keys(new), return_index=True)
+        _, first = np.unique(pack(new), return_index=True)
         new = new[first]
         if len(new):
             i = PointIndex(c).nearest(new)[1]
@@ -130,7 +127,7 @@ def perturb(cells: np.ndarray, labels: np.ndarray, observed: np.ndarray, rng: np
             c = np.c_[c[:, :2] - c[:, :2].min(0), c[:, 2]]
     obs = obs.copy()
     if rng.random() < 0.5:
-        hag = (c[:, 2] + 0.5) * COARSE - fitted_ground(c)
+        hag = cell_centers(c, COARSE)[:, 2] - fitted_ground(c)
         obs &= hag < rng.uniform(*CUT_HEIGHT)
     if rng.random() < 0.5:
         a = rng.uniform(0, 2 * np.pi)
@@ -329,7 +326,8 @@ def export_semantics(ckpt_path: str | Path, dest: str | Path, meta: dict | None 
     validation mIoU (`best.pt` beside the checkpoint, the recipe's selection on val), else the checkpoint's own
     average. Why: the val mIoU of perturbed scenes swings by a few points between checks, and the last check is
     not always the best one. The record names the step and score it was selected at."""
-    from hgca_core.models.weights import save_weights, trained_weights
+    from hgca_core.models.weights import trained_weights
+    from hgca_core.training.export import save_weights
     from hgca_core.training.selection import selected_run   # every stage's exporter picks its weights there
 
     ck, record, _ = selected_run(ckpt_path)

@@ -149,3 +149,20 @@ def test_label_completions_adds_face_attributes_and_leaves_geometry():
     np.testing.assert_array_equal(comps[0].mesh.vertices, before_v)
     np.testing.assert_array_equal(comps[0].mesh.faces, before_f)
     assert observed_mask(cells[:5], cells[:3]).tolist() == [True, True, True, False, False]
+
+
+def test_cells_and_faces_use_the_projects_20cm_cells():
+    """A point belongs to the 20 cm cell `voxelize` puts it in (cell c holds 10 cm cells 2c and 2c + 1, centre
+    (c + 0.25) * 0.2 m): training targets take a surface point's label into that cell and a face takes that cell's
+    label, never the neighbour a centre 5 cm off would pick."""
+    from hgca_core.geometry.voxel import point_cells, voxelize
+
+    rng = np.random.default_rng(4)
+    points = rng.uniform(0.0, 3.0, (4000, 3))
+    cells = voxelize(points)
+    own = point_cells(points)
+    cell_label = rng.integers(0, 9, len(cells)).astype(np.uint8)
+    row = {tuple(c): i for i, c in enumerate(cells)}
+    point_label = cell_label[[row[tuple(c)] for c in own]]
+    assert np.array_equal(face_labels(points, cells, cell_label), point_label)
+    assert np.array_equal(cell_labels(cells, points, point_label), cell_label)
