@@ -14,7 +14,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 import torch
@@ -194,10 +194,29 @@ def observed_free(local: np.ndarray, region: Region, models: Models, mode: str, 
     return free, forbid, f"{note}: {int(free.sum())} cells"
 
 
+def _initial_states(observed: np.ndarray, fixed_cells: np.ndarray | Sequence[np.ndarray] | None, samples: int,
+                    grid: tuple[int, int, int]) -> list[np.ndarray]:
+    """Each sample's s0: the input's cells with its fixed cells (one array for every sample, or one per sample)
+    inside the grid."""
+    from hgca_core.geometry.keys import unique_rows
+
+    if fixed_cells is None or (not isinstance(fixed_cells, (list, tuple)) and len(fixed_cells) == 0):
+        return [observed] * samples
+    per_sample = list(fixed_cells) if isinstance(fixed_cells, (list, tuple)) else [fixed_cells] * samples
+    if len(per_sample) != samples:
+        raise ValueError(f"fixed_cells gives {len(per_sample)} samples' cells for {samples} samples")
+    starts = []
+    for cells in per_sample:
+        fixed = np.asarray(cells, dtype=np.int64).reshape(-1, 3)
+        fixed = fixed[np.all((fixed >= 0) & (fixed < np.asarray(grid)), axis=1)]
+        starts.append(unique_rows(np.concatenate([observed, fixed])) if len(fixed) else observed)
+    return starts
+
+
 def complete_local(local: np.ndarray, region: Region, models: Models, config: CompletionConfig | None = None, *,
                    progress: ProgressFn | None = None, origins: np.ndarray | None = None,
-                   origin_index: np.ndarray | None = None, fixed_cells: np.ndarray | None = None,
-                   **settings) -> list[LocalCompletion]:
+                   origin_index: np.ndarray | None = None,
+                   fixed_cells: np.ndarray | Sequence[np.ndarray] | None = None, **settings) -> list[LocalCompletion]:
     """The region-frame core: `local` (N, 3) points in `region`'s frame (metres; only the region's size is used
     here) -> `config.samples` completions, meshes in the same frame, as `config` says (default: its defaults;
     `settings` change single fields, as in `complete`; its bounds were checked when it was made). Sample i uses
@@ -213,7 +232,9 @@ def complete_local(local: np.ndarray, region: Region, models: Models, config: Co
 
     `fixed_cells` ((M, 3) 20 cm cells in this frame) join the initial state s0 exactly as observed cells do:
     `hgca drive` passes the cells its finished neighbours generated in a tile's overlap, so the joins agree.
-    Cells outside the grid are ignored; None (or none inside) leaves the run unchanged.
+    A list of such arrays gives each sample its own (a drive tile's sample k joins its neighbours' sample k), so
+    the free space and the input's cells are computed once for all samples. Cells outside the grid are ignored;
+    None (or none inside) leaves the run unchanged.
     """
     from hgca_core.models.gca import sample as gca_sample
     from hgca_core.nn.conv import gemm_precision, resolve_precision
@@ -242,16 +263,11 @@ def complete_local(local: np.ndarray, region: Region, models: Models, config: Co
     free = None if free_np is None else torch.from_numpy(free_np)[None].to(device)
     forbid = None if forbid_np is None else torch.from_numpy(forbid_np)[None].to(device)
     report("free space", 1, 1, note, 0)
-    s0 = voxelize(local, COARSE, region.size)
+    observed = voxelize(local, COARSE, region.size)
     grid = region.grid_shape(COARSE)
-    check_input_cells(len(s0), local)
-    if fixed_cells is not None and len(fixed_cells):
-        from hgca_core.geometry.keys import unique_rows
-
-        fixed = np.asarray(fixed_cells, dtype=np.int64).reshape(-1, 3)
-        fixed = fixed[np.all((fixed >= 0) & (fixed < np.asarray(grid)), axis=1)]
-        s0 = unique_rows(np.concatenate([s0, fixed])) if len(fixed) else s0
-    report("voxelise", 1, 1, f"{len(s0)} cells at 20 cm", 0)
+    check_input_cells(len(observed), local)
+    starts = _initial_states(observed, fixed_cells, cfg.samples, grid)
+    report("voxelise", 1, 1, f"{len(starts[0])} cells at 20 cm", 0)
     steps = cfg.t1 or models.coarse.cfg.steps
     # where observed faces of the full stage's surface turn to; without origins a sensor 2 m above the ground
     # at the region's centre (the box starts 1 m below the ground)
@@ -261,7 +277,7 @@ def complete_local(local: np.ndarray, region: Region, models: Models, config: Co
     results = []
     samples, seed = cfg.samples, cfg.seed
     for i in range(samples):
-        tag = f"sample {i + 1}/{samples}"
+        tag, s0 = f"sample {i + 1}/{samples}", starts[i]
         gen = torch.Generator().manual_seed(seed + i)   # on the CPU on any device: one seed, one mesh
         with gemm_precision(gemm_dtype):
             start = CellState(cs.with_batch(torch.from_numpy(s0).to(device)), grid)

@@ -128,20 +128,22 @@ def complete_tile(job: TileJob, scans: list, neighbour_cells: list[tuple[tuple, 
     models = load_models(c.stage, c.coarse_file(), c.fine_file(), c.device)
     # a tile that sees (almost) nothing gets no mesh, where `hgca complete` would refuse the region
     enough = len(voxelize(local, COARSE, region.size)) >= MIN_INPUT_CELLS
-    samples = []
+    fixed = []                       # sample k joins its finished neighbours' sample k
     for k in range(c.samples):
-        fixed = [transfer_cells(cells[k], Region.from_tuple(reg), region) for reg, cells in neighbour_cells]
-        fixed = np.concatenate(fixed) if fixed else np.zeros((0, 3), np.int64)
-        if not enough:
-            samples.append(_empty(job.seed + k, len(fixed)))
-            continue
-        # every point, not only the box's: a ray to a hit outside the tile still crosses it (complete_local crops)
-        r = complete_local(everything, region, models, c.with_(samples=1, seed=job.seed + k), progress=progress,
-                           origins=origins, origin_index=rays, fixed_cells=fixed)[0]
-        samples.append({"vertices": np.asarray(r.mesh.vertices, dtype=np.float32),
-                        "faces": np.asarray(r.mesh.faces, dtype=np.int32), "observed_distance": r.observed_distance,
-                        "cells": r.coarse_cells.astype(np.int16), "seed": r.seed,
-                        "fixed_cells": int(len(np.unique(fixed, axis=0))), "free_cells": r.free_cells})
+        cells_k = [transfer_cells(cells[k], Region.from_tuple(reg), region) for reg, cells in neighbour_cells]
+        fixed.append(np.concatenate(cells_k) if cells_k else np.zeros((0, 3), np.int64))
+    if not enough:
+        samples = [_empty(job.seed + k, len(f)) for k, f in enumerate(fixed)]
+    else:
+        # every point, not only the box's: a ray to a hit outside the tile still crosses it (complete_local
+        # crops); one call for all samples, so the free space and the input's cells are computed once
+        done = complete_local(everything, region, models, c.with_(seed=job.seed), progress=progress,
+                              origins=origins, origin_index=rays, fixed_cells=fixed)
+        samples = [{"vertices": np.asarray(r.mesh.vertices, dtype=np.float32),
+                    "faces": np.asarray(r.mesh.faces, dtype=np.int32), "observed_distance": r.observed_distance,
+                    "cells": r.coarse_cells.astype(np.int16), "seed": r.seed,
+                    "fixed_cells": int(len(np.unique(f, axis=0))), "free_cells": r.free_cells}
+                   for r, f in zip(done, fixed)]
     rss = peak_rss_bytes()
     return {"index": job.index, "key": job.key, "samples": samples, "points": int(len(local)),
             "seconds": round(time.perf_counter() - start, 3), "started": started, "finished": time.time(),

@@ -18,8 +18,8 @@ def setup(drive_weights):
 
 def run(setup, points=None, **kw):
     pts, region, models = setup
-    return complete_local(pts if points is None else points, region, models, stage="coarse", samples=2, seed=7, t1=3,
-                          **kw)
+    return complete_local(pts if points is None else points, region, models, **{"stage": "coarse", "samples": 2,
+                                                                               "seed": 7, "t1": 3, **kw})
 
 
 def same(a, b):
@@ -41,6 +41,19 @@ def test_fixed_cells_act_exactly_like_observed_cells(setup, one_thread):
     as_points = run(setup, points=np.concatenate([pts, cell_centers(wall, COARSE)]))
     assert same(with_cells, as_points)
     assert not same(with_cells, run(setup))
+
+
+def test_each_sample_can_have_its_own_fixed_cells(setup, one_thread):
+    """A drive tile completes its k samples in one call, sample i joining its neighbours' sample i: the same meshes
+    as k calls of one sample each (seed + i), with the free space and the input's cells made once."""
+    wall = np.array([[x, 25, z] for x in range(2, 28) for z in range(3, 15)])
+    post = np.array([[15, 5, z] for z in range(3, 20)])
+    both = run(setup, fixed_cells=[wall, post])
+    one_by_one = [run(setup, fixed_cells=f, samples=1, seed=7 + i)[0] for i, f in enumerate((wall, post))]
+    assert same(both, one_by_one) and len(both) == 2
+    assert not same(both, run(setup, fixed_cells=wall))      # sample 1 did not get sample 0's cells
+    with pytest.raises(ValueError, match="2 samples"):
+        run(setup, fixed_cells=[wall])
 
 
 def test_transfer_cells_between_frames():
