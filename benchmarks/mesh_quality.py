@@ -97,7 +97,7 @@ def ground(meshes: dict, patches: flatness.Patches, ref: dict, truth: np.ndarray
 
 
 def synthetic_scene(path: Path, samples: int, cache: Path | None, models: Models) -> tuple[dict, dict, dict]:
-    from hgca_core.synth.dataset import load_sample
+    from hgca_core.dataset.samples import load_sample
 
     s = load_sample(path)
     region = Region.parse(",".join(str(v) for v in np.asarray(s["region"])))
@@ -207,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     from hgca_core.metrics.evaluate import aggregate, evaluate_sample, format_table
-    from hgca_core.training.data import split_files
+    from hgca_core.dataset.samples import split_files
 
     cache = Path(args.cache) if args.cache else None
     models = load_models("full", None, args.fine_weights)

@@ -183,9 +183,8 @@ def main() -> None:
     from hgca_core.models.weights import load_semantics, shipped
     from hgca_core.pipeline import complete_local, load_models
     from hgca_core.metrics.real_eval import read_input
-    from hgca_core.synth.dataset import load_sample
+    from hgca_core.dataset.samples import load_sample, split_files
     from hgca_core.synth.rays import input_rays
-    from hgca_core.training.data import split_files
     from hgca_core.training.semantics import SemanticsTask, scene
 
     cache = Path(args.cache)

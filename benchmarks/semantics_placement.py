@@ -55,12 +55,11 @@ def cpu_per_step(folder: Path) -> float | None:
 def completions(data: Path, cache: Path, n: int) -> list[Path]:
     """Cached full-stage completions (seed 0) of the first `n` val scenes: coarse cells, the input's cells, fine
     cells and latents, the completion's CPU seconds."""
+    from hgca_core.dataset.samples import load_sample, split_files
     from hgca_core.geometry.region import Region
     from hgca_core.geometry.voxel import COARSE, voxelize
     from hgca_core.pipeline import complete_local, load_models
-    from hgca_core.synth.dataset import load_sample
     from hgca_core.synth.rays import input_rays
-    from hgca_core.training.data import split_files
 
     cache.mkdir(parents=True, exist_ok=True)
     out = []
@@ -105,7 +104,7 @@ def added_cpu(args: argparse.Namespace, heads: dict) -> dict:
     `benchmarks/semantics.py`, full stage, its CPU seconds recorded when it was made): its features and forward
     pass, median of 3 runs. The fine placement pools latents of the scene's ground-truth 10 cm cells (random
     codes: the cost does not depend on their values; the completion's own latents are not in that cache)."""
-    from hgca_core.training.data import load_arrays
+    from hgca_core.dataset.samples import load_arrays
 
     f = Path(args.timing_scene)
     if not f.exists():

@@ -67,7 +67,8 @@ def main() -> int:
     ap.add_argument("--start", type=int, default=0)
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
     args = ap.parse_args()
-    from hgca_core.synth.dataset import make_sample, save_sample
+    from hgca_core.dataset.samples import save_sample
+    from hgca_core.synth.dataset import make_sample
 
     rows = []
     tmp = Path(args.out) / ".synth_samples_tmp.npz"

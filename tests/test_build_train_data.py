@@ -6,7 +6,7 @@ import re
 import subprocess
 from pathlib import Path
 
-from hgca_core.synth.dataset import SPLITS
+from hgca_core.dataset.samples import SPLITS
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scripts" / "build_train_data.sh"

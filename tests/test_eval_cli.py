@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from hgca_core.synth.dataset import QUICK_QUALITY, make_sample, save_sample
+from hgca_core.dataset.samples import save_sample
+from hgca_core.synth.dataset import QUICK_QUALITY, make_sample
 
 
 @pytest.fixture(scope="module")
@@ -123,7 +124,7 @@ def test_eval_scores_what_complete_ships(small_split):
     from hgca_core.config import CompletionConfig
     from hgca_core.metrics.synthetic import evaluate_methods, load_method_models
     from hgca_core.models.weights import shipped
-    from hgca_core.synth.dataset import load_sample
+    from hgca_core.dataset.samples import load_sample
     from hgca_core.synth.rays import input_rays
 
     path = small_split / "val" / "sample_1000123.npz"

@@ -6,6 +6,7 @@ Only hgca_core/models/weights.py calls torch.load / torch.save, and only with we
 Tests never import benchmarks/; benchmarks import of tests/ only the shared builders (tests/builders.py and co)."""
 import ast
 import importlib
+import importlib.util
 import re
 from pathlib import Path
 
@@ -25,10 +26,11 @@ ALLOWED = {
     "nn": UTIL | {"geometry"},
     "models": LOW | {"config", "nn"},   # config: the bounds a weights file is checked against (MAX_STEPS)
     "meshing": LOW,
-    "synth": LOW,
+    "dataset": {"errors", "io", "geometry", "config"},   # the sample files' format: no simulator, no training
+    "synth": LOW | {"dataset"},
     "render": LOW,
-    "metrics": LOW | {"config", "nn", "models", "meshing", "pipeline", "render", "synth"},
-    "training": LOW | {"config", "nn", "models", "meshing", "metrics", "synth"},
+    "metrics": LOW | {"config", "dataset", "nn", "models", "meshing", "pipeline", "render", "synth"},
+    "training": LOW | {"config", "dataset", "nn", "models", "meshing", "metrics", "synth"},
     "pipeline": LOW | {"config", "nn", "models", "meshing"},
     "tiling": LOW | {"config", "nn", "models", "meshing", "pipeline"},
 }
@@ -157,6 +159,97 @@ def test_old_mesh_imports_are_caught(tmp_path):
                  "from hgca_core.meshing import udf_mesh, mesh_clean\nfrom hgca_core.meshing.fine import udf_mesh\n")
     assert _old_mesh_imports(f) == ["hgca_core.geometry.udf_surface", "hgca_core.geometry.fairing",
                                     "hgca_core.meshing.udf_mesh"]
+
+
+# The dataset's files have one home, hgca_core/dataset/ (docs/architecture.md): the sample format moved there from
+# synth/dataset.py and training/data.py, the packed coarse format from training/; no alias keeps an old name alive.
+MOVED_FORMAT = {"hgca_core.synth.dataset": ("SPLITS", "SPLIT_SPAN", "FORMAT_VERSION", "KEYS", "save_sample",
+                                            "load_sample", "sample_path", "sample_seed"),
+                "hgca_core.training.data": ("split_files", "load_arrays")}
+OLD_PACKED = ".".join(("hgca_core", "training", "packed"))   # spelt apart: a grep for the old path finds nothing
+OLD_FORMAT_TEXT = re.compile(r"(?<![\w.])(?:hgca_core\.)?training[./]packed\b"
+                             r"|(?<![\w.])(?:hgca_core\.)?synth[./]dataset\.(?:"
+                             + "|".join(MOVED_FORMAT["hgca_core.synth.dataset"]) + r")\b"
+                             r"|(?<![\w.])(?:hgca_core\.)?training[./]data\.(?:split_files|load_arrays)\b")
+
+
+def test_the_dataset_format_lives_in_dataset_only():
+    assert (CORE / "dataset" / "samples.py").is_file() and (CORE / "dataset" / "packed.py").is_file()
+    assert not (CORE / "training" / "packed.py").exists() and importlib.util.find_spec(OLD_PACKED) is None
+    samples = importlib.import_module("hgca_core.dataset.samples")
+    assert [n for names in MOVED_FORMAT.values() for n in names if not hasattr(samples, n)] == []
+    # synth.dataset holds none of them; training.data at most imports one from its home to use it
+    synth = vars(importlib.import_module("hgca_core.synth.dataset"))
+    assert not set(MOVED_FORMAT["hgca_core.synth.dataset"]) & set(synth)
+    data = vars(importlib.import_module("hgca_core.training.data"))
+    assert [n for n in MOVED_FORMAT["hgca_core.training.data"]
+            if data.get(n, getattr(samples, n)) is not getattr(samples, n)] == []
+
+
+def _dotted(node: ast.AST) -> str | None:
+    if isinstance(node, ast.Name):
+        return node.id
+    if isinstance(node, ast.Attribute):
+        base = _dotted(node.value)
+        return f"{base}.{node.attr}" if base else None
+    return None
+
+
+def _old_format_imports(path: Path) -> list[str]:
+    """The imports in a file of the old packed module or of a moved format name from its old module, and the uses of
+    a moved name as an attribute of its old module (`from hgca_core.synth import dataset; dataset.load_sample`)."""
+    tree = ast.parse(path.read_text(), str(path))
+    aliases = {m: m for m in MOVED_FORMAT}   # local name -> old module
+    bad = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            bad += [a.name for a in node.names if a.name == OLD_PACKED]
+            aliases.update({a.asname: a.name for a in node.names if a.asname and a.name in MOVED_FORMAT})
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            if node.module == OLD_PACKED:
+                bad.append(node.module)
+            elif node.module in MOVED_FORMAT:
+                bad += [f"{node.module}.{a.name}" for a in node.names if a.name in MOVED_FORMAT[node.module]]
+            for a in node.names:
+                full = f"{node.module}.{a.name}"
+                if full == OLD_PACKED:
+                    bad.append(full)
+                elif full in MOVED_FORMAT:
+                    aliases[a.asname or a.name] = full
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute):
+            module = aliases.get(_dotted(node.value) or "")
+            if module and node.attr in MOVED_FORMAT[module]:
+                bad.append(f"{module}.{node.attr}")
+    return bad
+
+
+def test_nothing_imports_the_old_dataset_format_paths():
+    """Every Python file of the repository reads and writes the dataset's files through hgca_core.dataset, and the
+    core's source and the docs name the format there."""
+    files = [p for top in ("hgca_core", "hgca_blender", "tests", "benchmarks", "scripts")
+             for p in sorted((REPO / top).rglob("*.py"))]
+    assert len(files) > 100
+    bad = [f"{p.relative_to(REPO)} imports {b}" for p in files for b in _old_format_imports(p)]
+    texts = sorted(CORE.rglob("*.py")) + sorted((REPO / "docs").rglob("*.md")) + [REPO / "README.md"]
+    bad += [f"{p.relative_to(REPO)}:{i} names {m.group(0)}" for p in texts
+            for i, line in enumerate(p.read_text().splitlines(), 1) for m in OLD_FORMAT_TEXT.finditer(line)]
+    assert not bad, bad
+
+
+def test_old_dataset_format_paths_are_caught(tmp_path):
+    f = tmp_path / "old.py"
+    f.write_text(f"import {OLD_PACKED}\nfrom hgca_core.training import packed, data\n"
+                 "from hgca_core.synth.dataset import Drive, load_sample\nfrom hgca_core.synth import dataset as ds\n"
+                 "import hgca_core.training.data\nds.KEYS, ds.make_sample, data.grids, data.split_files\n"
+                 "hgca_core.training.data.load_arrays\n")
+    assert sorted(_old_format_imports(f)) == sorted([
+        OLD_PACKED, OLD_PACKED, "hgca_core.synth.dataset.load_sample", "hgca_core.synth.dataset.KEYS",
+        "hgca_core.training.data.split_files", "hgca_core.training.data.load_arrays"])
+    assert OLD_FORMAT_TEXT.search("hgca_core/training/" + "packed.py")
+    assert OLD_FORMAT_TEXT.search("`synth.dataset.KEYS`")
+    assert OLD_FORMAT_TEXT.search("(`training.data.split_files`)")
+    assert not OLD_FORMAT_TEXT.search("`hgca_core.dataset.packed`, synth/dataset.py, `synth.dataset.make_sample`")
 
 
 def test_no_import_cycles_between_modules():

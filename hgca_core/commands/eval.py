@@ -42,8 +42,8 @@ def run(args: argparse.Namespace) -> int:
     from hgca_core.metrics.synthetic import evaluate_methods, load_method_models
     from hgca_core.models.weights import WEIGHTS_DIR, weights_record
     from hgca_core.nn.conv import precision_name, resolve_precision
-    from hgca_core.training.data import split_files
-    from hgca_core.training.packed import refuse_packed
+    from hgca_core.dataset.packed import refuse_packed
+    from hgca_core.dataset.samples import split_files
 
     default = DEFAULT_METHODS + (("hgca-full",) if args.stage == "full" else ())
     methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else list(default)
@@ -133,7 +133,7 @@ def render_scene(path: Path, rows: list[tuple[str, "trimesh.Trimesh"]], png: str
     from hgca_core.geometry.nearest import PointIndex
     from hgca_core.geometry.region import Region
     from hgca_core.render import gallery, mesh_image
-    from hgca_core.synth.dataset import load_sample
+    from hgca_core.dataset.samples import load_sample
 
     sample = load_sample(path)
     size = Region.from_tuple(sample["region"]).size

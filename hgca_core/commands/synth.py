@@ -2,7 +2,7 @@
 
     hgca synth --seed S [--scans N] [--profile P] [--style city|suburb|town|strip] [--generator 6|7] --out DIR
     hgca synth --split train|val|test --count N --out DIR [--scans N] [--workers 2] [--generator 6|7]
-    hgca synth --pack DATASET --out DIR   (the coarse stage's 20 cm cells only, ~60 kB a scene: hgca_core.training.packed)
+    hgca synth --pack DATASET --out DIR   (the coarse stage's 20 cm cells only, ~60 kB a scene: hgca_core.dataset.packed)
 
 Each sample draws its sensor profile and number of scans (1-10) from its seed unless given.
 """

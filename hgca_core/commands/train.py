@@ -79,7 +79,7 @@ def _saved_recipe(ck: dict, ckpt: Path) -> tuple[dict, str]:
 def plan(args: argparse.Namespace) -> tuple[str, Recipe, dict | None, Path]:
     """(recipe name, resolved recipe, the run's checkpoint where this command continues it, run folder): every
     argument and path checked before any work."""
-    from hgca_core.training.data import split_files
+    from hgca_core.dataset.samples import split_files
     from hgca_core.training.trainer import BEST
 
     sets = parse_sets(args.sets)

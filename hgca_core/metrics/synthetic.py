@@ -38,6 +38,7 @@ def evaluate_methods(path: Path, methods: list[str], models: dict, settings: Com
     """
     import numpy as np
 
+    from hgca_core.dataset.samples import load_sample
     from hgca_core.geometry.region import Region
     from hgca_core.geometry.voxel import COARSE, FINE, downsample
     from hgca_core.meshing.voxel_mesh import voxel_mesh
@@ -45,7 +46,6 @@ def evaluate_methods(path: Path, methods: list[str], models: dict, settings: Com
     from hgca_core.metrics.evaluate import evaluate_sample
     from hgca_core.pipeline import complete_local
     from hgca_core.progress import StageClock
-    from hgca_core.synth.dataset import load_sample
     from hgca_core.synth.rays import input_rays
 
     sample = load_sample(path)

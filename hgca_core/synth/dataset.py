@@ -1,4 +1,5 @@
-"""Synthetic samples in the CONTRACTS.md format and their files (splits of them: `synth.splits`).
+"""Simulated synthetic samples in the CONTRACTS.md format (the file format: `dataset.samples`; splits of them:
+`synth.splits`).
 
 A sample is one region of one scene: the ego (center) pose on the drive fixes the region (its x axis
 along the heading, its floor 1 m below the ground under the ego sensor); the input is that scan plus n-1
@@ -9,12 +10,11 @@ ground truth is the scene's visible surface inside the region.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
+from hgca_core.dataset import samples
 from hgca_core.geometry.raycast import EVAL128, Sensor, make_intersector, range_image
 from hgca_core.geometry.region import BELOW_GROUND, DEFAULT_SIZE, GROUND_STEP, Region
 from hgca_core.synth.groundtruth import RegionSurface, visible_cells
@@ -22,15 +22,8 @@ from hgca_core.synth.lidar import PROFILES, Effects, Unit, scan
 from hgca_core.synth.assets import LABEL_NAMES
 from hgca_core.synth.scene import GENERATOR_VERSION, STYLE_DRAWS, StreetScene, make_scene
 
-SPLITS = {"train": 0, "val": 1_000_000, "test": 2_000_000}
-SPLIT_SPAN = 1_000_000   # seeds a split may use before the next split's
-FORMAT_VERSION = 3      # layout of the sample file (CONTRACTS.md); 2 added ground_height, 3 the hits beyond the region
 SCANS = (1, 10)         # a sample draws its number of input scans from this range (inclusive)
 EVAL_HEIGHT = 2.0       # the evaluation LiDAR rides this high above the road
-KEYS = ("region", "input_points", "input_scan_index", "input_far_points", "input_far_scan_index", "input_origins",
-        "input_poses", "gt_occ20", "gt_occ10",
-        "gt_surface", "gt_surface_label", "udf_points", "udf_dist", "eval_poses", "eval_scan_0", "eval_scan_1",
-        "visible20", "street_box", "ground_z", "ground_height", "meta")
 
 
 @dataclass(frozen=True)
@@ -188,7 +181,7 @@ def simulate(seed: int, n_scans: int | None = None, style: str | None = None,
 
     street = _street_box_local(scene, region)
     pitch = float(np.degrees(np.arcsin(np.clip(-unit.mount[2, 0], -1, 1))))
-    meta = {"seed": int(seed), "style": scene.style, "n_scans": int(n_scans), "format_version": FORMAT_VERSION,
+    meta = {"seed": int(seed), "style": scene.style, "n_scans": int(n_scans), "format_version": samples.FORMAT_VERSION,
             "generator_version": int(generator), "profile": unit.profile.name, "dataset": unit.profile.dataset,
             "sensor_height": round(float(unit.mount[2, 3]), 3), "sensor_pitch_deg": round(pitch, 3),
             "ego_arc": round(float(s0), 3), "input_arcs": [round(float(a), 3) for a in arcs],
@@ -295,31 +288,3 @@ def _street_box_local(scene: StreetScene, region: Region) -> np.ndarray:
     lo = np.clip(local.min(axis=0), 0.0, region.size[:2])
     hi = np.clip(local.max(axis=0), 0.0, region.size[:2])
     return np.array([lo[0], lo[1], hi[0], hi[1]])
-
-
-# ------------------------------------------------------------------------------------------------ files
-def save_sample(path: str | os.PathLike, sample: dict) -> str:
-    """Write a compressed .npz atomically (temp file in the same folder, then os.replace)."""
-    from hgca_core.io.atomic import atomic_write
-
-    missing = [k for k in KEYS if k not in sample]
-    if missing:
-        raise ValueError(f"sample lacks {', '.join(missing)}")
-    # (N, 3) arrays go column-major: runs of equal coordinates compress up to 50x better
-    arrays = {k: np.asfortranarray(sample[k]) if np.ndim(sample[k]) == 2 else sample[k] for k in KEYS}
-    return atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
-
-
-def load_sample(path: str | os.PathLike) -> dict:
-    """All arrays of a sample file, as np.load gives them (`json.loads(str(s["meta"]))` for the meta dict)."""
-    with np.load(path, allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}
-
-
-def sample_path(out_dir: str | os.PathLike, split: str, seed: int) -> Path:
-    return Path(out_dir, split, f"sample_{seed:07d}.npz")
-
-
-def sample_seed(path: str | os.PathLike) -> int:
-    """The seed a sample file is named by (`sample_path`'s inverse): with `draw_recipe`, its sensor profile."""
-    return int(Path(path).stem.split("_")[1])

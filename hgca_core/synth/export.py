@@ -9,9 +9,10 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from hgca_core.dataset.samples import save_sample
 from hgca_core.io import write_mesh, write_points
 from hgca_core.io.atomic import atomic_write
-from hgca_core.synth.dataset import Simulation, save_sample
+from hgca_core.synth.dataset import Simulation
 
 
 def region_mesh(sim: Simulation, pad: float = 0.5) -> trimesh.Trimesh:

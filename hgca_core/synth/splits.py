@@ -9,8 +9,8 @@ import os
 import time
 from pathlib import Path
 
-from hgca_core.synth.dataset import (DEFAULT_QUALITY, FORMAT_VERSION, SCANS, SPLIT_SPAN, SPLITS, Quality, draw_recipe,
-                                     load_sample, make_sample, sample_path, save_sample)
+from hgca_core.dataset.samples import FORMAT_VERSION, SPLIT_SPAN, SPLITS, load_sample, sample_path, save_sample
+from hgca_core.synth.dataset import DEFAULT_QUALITY, SCANS, Quality, draw_recipe, make_sample
 from hgca_core.synth.lidar import PROFILES
 from hgca_core.synth.scene import GENERATOR_VERSION, STYLE_DRAWS
 

@@ -22,8 +22,8 @@ from hgca_core.models.infusion import alpha
 from hgca_core.models.planner import rough_target
 from hgca_core.nn.sparse import CellState
 from hgca_core.training.buffer import Chain
-from hgca_core.training.data import (coarse_pair, crop_flip, focus_cells, free_cells, split_files, turn_cells,
-                                     visible_cells)
+from hgca_core.dataset.samples import split_files
+from hgca_core.training.data import coarse_pair, crop_flip, focus_cells, free_cells, turn_cells, visible_cells
 
 
 CUT_HEIGHTS = (1.5, 3.0)  # m above the ground: `hgca eval-real` cuts real scans at 1.5 and 2 m

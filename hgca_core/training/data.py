@@ -1,47 +1,23 @@
 """Training examples from synthetic samples: sparse voxel sets, random crops and flips, and the observed free
-space of a sample's input (`free_cells`), cached beside it."""
+space of a sample's input (`free_cells`), cached beside it. The files themselves (full or packed) are read
+through `hgca_core.dataset`."""
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from hgca_core.dataset.packed import is_packed, unpack_cells
+from hgca_core.dataset.samples import load_arrays
 from hgca_core.errors import InputError
 from hgca_core.geometry.freespace import observed_empty
 from hgca_core.geometry.keys import pack, unique_rows
 from hgca_core.geometry.voxel import COARSE, FINE, grid_shape, point_cells, voxelize
 from hgca_core.io.atomic import atomic_write
 from hgca_core.synth.rays import input_rays
-from hgca_core.training.packed import is_packed, unpack_cells
-
-
-def split_files(data: str | Path | Sequence[str | Path], split: str) -> list[Path]:
-    """Sample files of a split, sorted, so that an index names the same sample on every run.
-
-    `data` may name several dataset folders (newer scenes built beside a dataset with `hgca synth --first`):
-    the train split is then the union of theirs, in the order given, and any other split is the first
-    folder's, so that validation compares like with like across runs that add data. The first of several folders
-    may hold only a val split (the validation scenes alone, packed apart from the training batches)."""
-    folders = [data] if isinstance(data, (str, Path)) else list(data)
-    out = []
-    for i, folder in enumerate(folders if split == "train" else folders[:1]):
-        files = sorted(Path(folder, split).glob("sample_*.npz"))
-        if not files and not (split == "train" and i == 0 and len(folders) > 1
-                              and any(Path(folder, "val").glob("sample_*.npz"))):
-            raise InputError(f"no samples in {Path(folder, split)}; make them with `hgca synth --split {split}`")
-        out += files
-    return out
-
-
-@lru_cache(maxsize=64)
-def load_arrays(path: str, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """Load only the named arrays of a sample (npz members load lazily), cached across chain resets."""
-    with np.load(path, allow_pickle=False) as z:
-        return {k: z[k] for k in keys}
 
 
 def grids(path: str | Path) -> tuple[tuple[int, int, int], tuple[int, int, int]]:
@@ -51,7 +27,7 @@ def grids(path: str | Path) -> tuple[tuple[int, int, int], tuple[int, int, int]]
 
 
 def packed_cells(path: str | Path, name: str) -> np.ndarray:
-    """One cell set ("s0", "gt", "free", "visible20") of a packed coarse sample (`training.packed`)."""
+    """One cell set ("s0", "gt", "free", "visible20") of a packed coarse sample (`dataset.packed`)."""
     a = load_arrays(str(path), ("grid", name))
     return unpack_cells(a[name], a["grid"])
 

@@ -42,8 +42,9 @@ from hgca_core.models.weights import load_autoencoder, shipped, shown_path, trai
 from hgca_core.training.export import save_weights
 from hgca_core.nn.sparse import CellState
 from hgca_core.training.buffer import Chain
-from hgca_core.training.data import draw_crop, free_cells, grids, load_arrays, split_files
-from hgca_core.training.packed import refuse_packed
+from hgca_core.dataset.packed import refuse_packed
+from hgca_core.dataset.samples import load_arrays, split_files
+from hgca_core.training.data import draw_crop, free_cells, grids
 from hgca_core.training.selection import selected_run
 
 KEYS = ("input_points", "gt_occ10", "gt_occ20", "gt_surface", "udf_points", "udf_dist")

@@ -9,10 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
+from hgca_core.dataset.packed import MARK, SPLITS, VERSION, is_packed, pack_bits
+from hgca_core.dataset.samples import load_arrays
 from hgca_core.errors import InputError
 from hgca_core.io.atomic import atomic_write
-from hgca_core.training.data import coarse_pair, free_cells, load_arrays
-from hgca_core.training.packed import MARK, SPLITS, VERSION, is_packed, pack_bits
+from hgca_core.training.data import coarse_pair, free_cells
 
 
 def pack_sample(src: str | Path, dst: str | Path, visible: bool) -> Path:

@@ -33,7 +33,7 @@ from hgca_core.geometry.voxel import COARSE, cell_centers, point_cells, voxelize
 from hgca_core.models.semantics import (CLASS_NAMES, SemanticHead, SemanticsConfig, coarse_features, fine_features,
                                         fitted_ground, head_input)
 from hgca_core.training.buffer import Chain
-from hgca_core.training.data import load_arrays, split_files
+from hgca_core.dataset.samples import load_arrays, split_files
 
 DROP = (0.0, 0.2)        # share of cells dropped per example (drawn uniformly)
 ADD = (0.0, 0.1)         # share of cells added next to others

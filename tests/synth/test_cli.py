@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 
 from hgca_core.cli import main
 from hgca_core.geometry.region import Region
-from hgca_core.synth.dataset import KEYS, load_sample
+from hgca_core.dataset.samples import KEYS, load_sample
 
 
 @pytest.fixture(scope="module")

@@ -8,10 +8,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from hgca_core.dataset.samples import KEYS, SPLITS, load_sample, save_sample
 from hgca_core.geometry.region import Region
 from hgca_core.geometry.voxel import FINE, downsample, voxelize
-from hgca_core.synth.dataset import (GENERATOR_VERSION, KEYS, QUICK_QUALITY, SPLITS, draw_recipe, load_sample,
-                                     make_sample, save_sample, simulate)
+from hgca_core.synth.dataset import GENERATOR_VERSION, QUICK_QUALITY, draw_recipe, make_sample, simulate
 from hgca_core.synth.splits import build_split
 from hgca_core.synth.groundtruth import RegionSurface
 from hgca_core.synth.lidar import PAPER_EFFECTS, PROFILES

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from hgca_core.cli import main
+from hgca_core.dataset.packed import is_packed
 from hgca_core.errors import InputError
 from hgca_core.models.cgca import CGCAConfig
 from hgca_core.models.gca import GCAConfig
@@ -14,7 +15,6 @@ from hgca_core.training import data
 from hgca_core.training.coarse import CoarseTask
 from hgca_core.training.fine import FineTask
 from hgca_core.training.pack import pack_dataset
-from hgca_core.training.packed import is_packed
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 SMALL = dict(channels=(8, 8, 16, 16, 16), steps=3, free_space=True)

@@ -252,8 +252,8 @@ def test_several_data_folders_train_on_the_union_and_validate_on_the_first(tiny_
 
     import numpy as np
 
+    from hgca_core.dataset.samples import split_files
     from hgca_core.errors import InputError
-    from hgca_core.training.data import split_files
     from hgca_testdata import tiny_sample
 
     more = tmp_path / "more"

@@ -3,9 +3,9 @@ the observed free space) and, in val and test splits, the visible cells its vali
 
 Why: a GPU machine often cannot build scenes itself (no Embree there, and its time is better spent training).
 A full sample is ~6 MB (points, surfaces, distance pairs, evaluation scans); packed, a scene is ~60 kB, so several
-hundred fit in a few tens of MB that are quick to copy to it. The
-full samples stay the one source: a packed file is derived from one by `pack.pack_sample` and gives the coarse stage
-the very cells its source gives (`training.data` reads both); the fine stage and `hgca eval` need the full files.
+hundred fit in a few tens of MB that are quick to copy to it. The full samples stay the one source: a packed file is
+derived from one by `training.pack.pack_sample` and gives the coarse stage the very cells its source gives
+(`training.data` reads both); the fine stage and `hgca eval` need the full files.
 """
 from __future__ import annotations
 
@@ -15,12 +15,13 @@ from pathlib import Path
 
 import numpy as np
 
+from hgca_core.dataset.samples import SPLITS as SAMPLE_SPLITS
 from hgca_core.errors import InputError
 from hgca_core.geometry.freespace import dense
 
 MARK = "packed_coarse"   # key present in every packed file; its value is the format version
 VERSION = 1
-SPLITS = ("train", "val", "test")
+SPLITS = tuple(SAMPLE_SPLITS)   # a packed dataset has the full one's splits
 
 
 @lru_cache(maxsize=4096)
