@@ -27,7 +27,7 @@ TIMEOUT_S = 300
 def small_weights(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("w") / "coarse_small.pt"
     core_arrays("import torch\nfrom hgca_core.models.gca import GCAConfig, GCAKernel\n"
-                "from hgca_core.models.weights import save_weights\ntorch.manual_seed(0)\n"
+                "from hgca_core.training.export import save_weights\ntorch.manual_seed(0)\n"
                 f"save_weights({str(path)!r}, GCAKernel(GCAConfig(channels=(8, 8, 16, 16, 16), steps=3)), "
                 "{'stage': 'test'})", ok="1")
     return path
