@@ -22,7 +22,6 @@ import numpy as np
 from hgca_core.hardware import machine, peak_rss_bytes
 from hgca_core.nn.precision import DEFAULT_PRECISION
 
-WIDTHS = (40, 60, 80, 100, 120)
 
 
 def scene_inputs(width: float, seed: int = 4_000_000,

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import numbers
 import re
-from dataclasses import MISSING, Field, asdict, dataclass, field, fields, replace
+from dataclasses import MISSING, Field, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -336,8 +336,3 @@ def addon_schema() -> dict[str, Any]:
              for prop, (which, name) in ADDON_SETTINGS.items()}
     return {"schema": 1, "settings": addon_limits(), "flags": dict(CLI_FLAGS), "help": helps,
             "region_size": list(REGION_SIZE)}
-
-
-def as_dict(config: CompletionConfig | DriveConfig) -> dict[str, Any]:
-    """The config as plain JSON-able values (a run's record)."""
-    return asdict(config)

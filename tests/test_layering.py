@@ -164,7 +164,7 @@ def test_old_mesh_imports_are_caught(tmp_path):
 # The dataset's files have one home, hgca_core/dataset/ (docs/architecture.md): the sample format moved there from
 # synth/dataset.py and training/data.py, the packed coarse format from training/; no alias keeps an old name alive.
 MOVED_FORMAT = {"hgca_core.synth.dataset": ("SPLITS", "SPLIT_SPAN", "FORMAT_VERSION", "KEYS", "save_sample",
-                                            "load_sample", "sample_path", "sample_seed"),
+                                            "load_sample", "sample_path"),
                 "hgca_core.training.data": ("split_files", "load_arrays")}
 OLD_PACKED = ".".join(("hgca_core", "training", "packed"))   # spelt apart: a grep for the old path finds nothing
 OLD_FORMAT_TEXT = re.compile(r"(?<![\w.])(?:hgca_core\.)?training[./]packed\b"

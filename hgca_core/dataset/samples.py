@@ -28,12 +28,6 @@ def sample_path(out_dir: str | os.PathLike, split: str, seed: int) -> Path:
     return Path(out_dir, split, f"sample_{seed:07d}.npz")
 
 
-def sample_seed(path: str | os.PathLike) -> int:
-    """The seed a sample file is named by (`sample_path`'s inverse): with `synth.dataset.draw_recipe`, its sensor
-    profile."""
-    return int(Path(path).stem.split("_")[1])
-
-
 def save_sample(path: str | os.PathLike, sample: dict) -> str:
     """Write a compressed .npz atomically (temp file in the same folder, then os.replace)."""
     missing = [k for k in KEYS if k not in sample]

@@ -41,7 +41,6 @@ from hgca_core.nn.unet import SparseUNet
 GROUND_TILE = 10      # cells (2 m) per ground tile: the lowest cell per tile is a ground sample
 GROUND_WINDOW = 3     # tiles: the ground at a tile is the lowest sample within this window (a car roof is no ground)
 HEIGHT_SCALE = 4.0    # metres: heights enter the network divided by this
-FACE_REACH = 0.6      # metres: a face farther than this from every cell keeps the nearest cell's class anyway
 PLACEMENTS = ("geometry", "coarse-features", "fine-latents")
 COARSE_WIDTH = 16     # the shipped coarse U-Net's finest decoder width (GCAConfig.channels[0])
 LATENT = 32           # the shipped autoencoder's latent size (AutoencoderConfig.latent)

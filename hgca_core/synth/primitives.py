@@ -137,11 +137,6 @@ class MeshBuilder:
         lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
         self.hexahedron(lo + _CORNERS * (hi - lo), label, skip, solid)
 
-    def obox(self, center, size, yaw: float, label: int, skip: tuple[str, ...] = ("-z",), solid: bool = True) -> None:
-        """Box rotated by yaw about its own centre."""
-        local = (_CORNERS - 0.5) * np.asarray(size, dtype=np.float64)
-        self.hexahedron(local @ _rot_z(yaw).T + np.asarray(center, dtype=np.float64), label, skip, solid)
-
     def gable(self, lo, hi, ridge_height: float, label: int, ridge_axis: int = 0, solid: bool = True) -> None:
         """Gabled roof over the rectangle lo..hi (lo[2] = eave height), ridge along x (0) or y (1), open below."""
         x0, y0, z0 = lo
@@ -196,18 +191,6 @@ class MeshBuilder:
         self.add(ico.vertices * scale + np.asarray(center, dtype=np.float64), ico.faces, label)
         c = self.frame.apply(np.asarray(center, dtype=np.float64)[None])[0]
         self._ellipsoids.append(np.array([*c, radius_xy, radius_z, self.frame.yaw, subdivisions]))
-
-    def ground_tiles(self, xmin: float, ymin: float, xmax: float, ymax: float, z: float, tile: float, label: int) -> None:
-        """A flat rectangle split into tiles, so later cropping to a region wastes little."""
-        xs = np.linspace(xmin, xmax, max(1, int(np.ceil((xmax - xmin) / tile))) + 1)
-        ys = np.linspace(ymin, ymax, max(1, int(np.ceil((ymax - ymin) / tile))) + 1)
-        gx, gy = np.meshgrid(xs, ys, indexing="ij")
-        v = np.c_[gx.ravel(), gy.ravel(), np.full(gx.size, z)]
-        nx, ny = len(xs), len(ys)
-        ii, jj = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1), indexing="ij")
-        a = (ii * ny + jj).ravel()
-        b, c, d = a + ny, a + ny + 1, a + 1
-        self.add(v, np.vstack([np.c_[a, b, c], np.c_[a, c, d]]), label)
 
     # ---------------------------------------------------------------- output
     def quad(self, corners, label: int) -> None:
