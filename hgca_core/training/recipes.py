@@ -199,8 +199,8 @@ def check(r: Recipe) -> Recipe:
     if r.stage == "autoencoder" and (r.free_space or r.init_from):
         raise InputError(f"recipe field {'free_space' if r.free_space else 'init_from'} is for the coarse and fine "
                          "stages (the autoencoder has neither)")
-    if r.stage == "semantics" and (r.free_space or r.init_from):
-        raise InputError(f"recipe field {'free_space' if r.free_space else 'init_from'} is not for the semantic head")
+    if r.stage == "semantics" and r.free_space:
+        raise InputError("recipe field free_space is not for the semantic head (it reads completed cells)")
     if r.placement is not None and (r.stage != "semantics" or r.placement not in SEMANTIC_PLACEMENTS):
         raise InputError(f"recipe field placement is the semantic head's input, one of "
                          f"{', '.join(SEMANTIC_PLACEMENTS)}" + ("" if r.stage == "semantics" else f", not for {r.stage}")

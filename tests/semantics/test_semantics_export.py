@@ -42,3 +42,26 @@ def test_export_without_a_val_selection_takes_the_checkpoint(tmp_path):
     last = _checkpoint(tmp_path / "ckpt.pt", seed=1, step=900, best=None)
     head = load_semantics(export_semantics(tmp_path / "ckpt.pt", tmp_path / "semantics.pt"))
     assert _same(head, last)
+
+
+def test_a_head_can_start_from_shipped_weights(tmp_path):
+    """`hgca train --recipe semantics --set init_from=semantics.pt` fine-tunes a head (e.g. after its targets moved):
+    the recipe takes init_from, the new head starts with the file's tensors, and free_space stays refused."""
+    import pytest
+
+    from hgca_core.errors import InputError
+    from hgca_core.models.semantics import SemanticHead
+    from hgca_core.training.export import load_into, save_weights
+    from hgca_core.training.recipes import parse_sets, resolve
+
+    cfg = SemanticsConfig(channels=(8, 8, 16))
+    torch.manual_seed(3)
+    source = save_weights(tmp_path / "head.pt", SemanticHead(cfg))
+    torch.manual_seed(4)
+    head = SemanticHead(cfg)
+    assert not _same(head, load_semantics(source).state_dict())
+    load_into(head, source)
+    assert _same(head, load_semantics(source).state_dict())
+    assert resolve("semantics", parse_sets([f"init_from={source}"])).init_from == str(source)
+    with pytest.raises(InputError, match="free_space is not for the semantic head"):
+        resolve("semantics", parse_sets(["free_space=true"]))
