@@ -133,17 +133,22 @@ def _old_mesh_imports(path: Path) -> list[str]:
     return bad
 
 
-def test_nothing_imports_the_old_mesh_paths():
-    """Every Python file of the repository (core, add-on, tests, benchmarks, scripts) imports the mesh step from
-    hgca_core.meshing's submodules, and the core's source and the docs name it there."""
+def _old_paths(old_imports, old_text: re.Pattern) -> list[str]:
+    """What names a moved place: imports of it in every Python file of the repository (core, add-on, tests,
+    benchmarks, scripts) by `old_imports(path)`, and `old_text` in the core's source and the docs."""
     files = [p for top in ("hgca_core", "hgca_blender", "tests", "benchmarks", "scripts")
              for p in sorted((REPO / top).rglob("*.py"))]
     assert len(files) > 100
-    bad = [f"{p.relative_to(REPO)} imports {b}" for p in files for b in _old_mesh_imports(p)]
+    bad = [f"{p.relative_to(REPO)} imports {b}" for p in files for b in old_imports(p)]
     texts = sorted(CORE.rglob("*.py")) + sorted((REPO / "docs").rglob("*.md")) + [REPO / "README.md"]
-    bad += [f"{p.relative_to(REPO)}:{i} names {m.group(0)}" for p in texts
-            for i, line in enumerate(p.read_text().splitlines(), 1) for m in OLD_MESH_TEXT.finditer(line)]
-    assert not bad, bad
+    return bad + [f"{p.relative_to(REPO)}:{i} names {m.group(0)}" for p in texts
+                  for i, line in enumerate(p.read_text().splitlines(), 1) for m in old_text.finditer(line)]
+
+
+def test_nothing_imports_the_old_mesh_paths():
+    """Every Python file of the repository (core, add-on, tests, benchmarks, scripts) imports the mesh step from
+    hgca_core.meshing's submodules, and the core's source and the docs name it there."""
+    assert not _old_paths(_old_mesh_imports, OLD_MESH_TEXT)
 
 
 def test_the_old_mesh_names_are_caught():
@@ -227,14 +232,7 @@ def _old_format_imports(path: Path) -> list[str]:
 def test_nothing_imports_the_old_dataset_format_paths():
     """Every Python file of the repository reads and writes the dataset's files through hgca_core.dataset, and the
     core's source and the docs name the format there."""
-    files = [p for top in ("hgca_core", "hgca_blender", "tests", "benchmarks", "scripts")
-             for p in sorted((REPO / top).rglob("*.py"))]
-    assert len(files) > 100
-    bad = [f"{p.relative_to(REPO)} imports {b}" for p in files for b in _old_format_imports(p)]
-    texts = sorted(CORE.rglob("*.py")) + sorted((REPO / "docs").rglob("*.md")) + [REPO / "README.md"]
-    bad += [f"{p.relative_to(REPO)}:{i} names {m.group(0)}" for p in texts
-            for i, line in enumerate(p.read_text().splitlines(), 1) for m in OLD_FORMAT_TEXT.finditer(line)]
-    assert not bad, bad
+    assert not _old_paths(_old_format_imports, OLD_FORMAT_TEXT)
 
 
 def test_old_dataset_format_paths_are_caught(tmp_path):
