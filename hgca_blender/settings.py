@@ -63,6 +63,12 @@ def check(name: str, value: Any) -> None:
         raise ValueError(f"{name} must lie between {spec.get('min')} and {spec.get('max')}, got {value!r}")
 
 
+def checked(name: str, value: Any) -> None:
+    """`check`, except that a face limit of 0 passes: it keeps every triangle (the core's default is a limit)."""
+    if not (name == "max_faces" and int(value) == 0):
+        check(name, value)
+
+
 def parse_type(name: str):
     """An argparse type for setting `name` (the batch's options): the default's type, checked against the core's
     bounds and choices; 0 stays allowed where it means "the core decides" (steps from the weights, every face)."""
@@ -75,11 +81,10 @@ def parse_type(name: str):
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"not a {kind.__name__}: {text!r}") from None
-        if not (name in ("t1", "t2", "max_faces") and value == 0):
-            try:
-                check(name, value)
-            except ValueError as exc:
-                raise argparse.ArgumentTypeError(str(exc)) from None
+        try:
+            checked(name, value)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
         return value
     parse.__name__ = name
     return parse
@@ -95,7 +100,6 @@ def core_args(values: dict[str, Any]) -> list[str]:
         value = values[name]
         if name in ("t1", "t2") and not int(value):
             continue
-        if not (name == "max_faces" and int(value) == 0):   # 0 keeps every triangle (the core's default is a limit)
-            check(name, value)
+        checked(name, value)
         args += [flag, repr(float(value)) if isinstance(value, float) else str(value)]
     return args

@@ -83,14 +83,13 @@ def check_device_name(device: Any) -> str:
 # line (`hgca_core.commands.arguments.add_config_arguments` makes each option from it) and by the add-on's schema
 
 def setting(default: Any = MISSING, help: str = "", *, kind: str, low: float | None = None,
-            high: float | None = None, choices: tuple[str, ...] = (), flag: str | None = None,
-            metavar: str | None = None, default_factory: Any = MISSING) -> Any:
+            high: float | None = None, choices: tuple[str, ...] = (), metavar: str | None = None,
+            default_factory: Any = MISSING) -> Any:
     """A config field with its metadata. kind: choice, whole, steps (None or 0..MAX_STEPS, 0 = the weights' own),
     faces (0 or at least MIN_FACES), device, path (None or a file name), switch (a bool), number (a finite float
-    above `low`), address (None or text), nested (a config of its own). `flag` is the command-line option (default
-    `--name-with-dashes`)."""
-    meta = {"kind": kind, "low": low, "high": high, "choices": choices, "help": help, "flag": flag,
-            "metavar": metavar}
+    above `low`), address (None or text), nested (a config of its own). Its command-line option is
+    --name-with-dashes (`flag_of`)."""
+    meta = {"kind": kind, "low": low, "high": high, "choices": choices, "help": help, "metavar": metavar}
     if default_factory is not MISSING:
         return field(default_factory=default_factory, metadata=meta)
     return field(default=default, metadata=meta)
@@ -286,11 +285,10 @@ def check_stride(size: float, overlap: float) -> float:
 
 # The settings the Blender add-on shows: its property name -> (config, field). Their defaults, bounds, choices and
 # command-line flags are read off the fields' metadata, so the panel and the CLI cannot drift apart.
-ADDON_SETTINGS = {"samples": ("completion", "samples"), "seed": ("completion", "seed"),
-                  "stage": ("completion", "stage"), "quality": ("completion", "quality"),
-                  "device": ("completion", "device"), "t1": ("completion", "t1"), "t2": ("completion", "t2"),
-                  "max_faces": ("completion", "max_faces"), "drive_tile_size": ("drive", "size"),
-                  "drive_overlap": ("drive", "overlap"), "drive_workers": ("drive", "workers")}
+ADDON_SETTINGS = {**{name: (CompletionConfig, name) for name in ("samples", "seed", "stage", "quality", "device",
+                                                                 "t1", "t2", "max_faces")},
+                  "drive_tile_size": (DriveConfig, "size"), "drive_overlap": (DriveConfig, "overlap"),
+                  "drive_workers": (DriveConfig, "workers")}
 _BOUNDS = {"steps": (0, MAX_STEPS), "faces": (MIN_FACES, None)}   # the add-on's t1/t2 0 and faces > 0
 
 
@@ -300,18 +298,17 @@ def config_field(cls: type, name: str) -> Field:
 
 
 def flag_of(f: Field) -> str:
-    """The command-line option of field `f`: its `flag`, else --name-with-dashes."""
-    return f.metadata.get("flag") or "--" + f.name.replace("_", "-")
+    """The command-line option of field `f`: --name-with-dashes."""
+    return "--" + f.name.replace("_", "-")
 
 
 def addon_limits() -> dict[str, dict[str, Any]]:
     """Each setting the Blender add-on shows: its default and the core's bounds (None: unbounded) or choices. The
     add-on cannot import the core (it runs it as a subprocess): the extension build ships these in the zip."""
-    configs = {"completion": CompletionConfig(), "drive": DriveConfig()}
+    defaults = {CompletionConfig: CompletionConfig(), DriveConfig: DriveConfig()}
     out = {}
-    for prop, (which, name) in ADDON_SETTINGS.items():
-        config = configs[which]
-        f, value = config_field(type(config), name), getattr(config, name)
+    for prop, (cls, name) in ADDON_SETTINGS.items():
+        f, value = config_field(cls, name), getattr(defaults[cls], name)
         m = f.metadata
         entry: dict[str, Any] = {"default": 0 if value is None and m["kind"] == "steps" else value}
         if m["choices"]:
@@ -324,15 +321,13 @@ def addon_limits() -> dict[str, dict[str, Any]]:
 
 
 # The CLI flag of each setting the add-on shows (`hgca complete` / `hgca drive`), for its one config -> argv
-CLI_FLAGS = {prop: flag_of(config_field(CompletionConfig if which == "completion" else DriveConfig, name))
-             for prop, (which, name) in ADDON_SETTINGS.items()}
+CLI_FLAGS = {prop: flag_of(config_field(cls, name)) for prop, (cls, name) in ADDON_SETTINGS.items()}
 
 
 def addon_schema() -> dict[str, Any]:
     """What the Blender add-on knows of the core's settings, as JSON: each setting's default, bounds and choices
-    (`addon_limits`), its CLI flag and its help. The extension build writes it into the zip (`core_settings.json`), and the
-    add-on makes its panel properties and every job's command line from it, so the two cannot drift apart."""
-    helps = {prop: config_field(CompletionConfig if which == "completion" else DriveConfig, name).metadata["help"]
-             for prop, (which, name) in ADDON_SETTINGS.items()}
+    (`addon_limits`), its CLI flag and its help. The extension build writes it into the zip (`core_settings.json`),
+    and the add-on makes its panel properties and every job's command line from it, so the two cannot drift apart."""
+    helps = {prop: config_field(cls, name).metadata["help"] for prop, (cls, name) in ADDON_SETTINGS.items()}
     return {"schema": 1, "settings": addon_limits(), "flags": dict(CLI_FLAGS), "help": helps,
             "region_size": list(REGION_SIZE)}

@@ -59,7 +59,7 @@ def complete_files(scans: Sequence[str | os.PathLike], out: str | os.PathLike,
     from hgca_core.io.paths import check_outputs
     from hgca_core.pipeline import check_device, check_memory
 
-    cfg = (config or DEFAULTS).with_(**settings) if settings else (config or DEFAULTS)
+    cfg = (config or DEFAULTS).with_(**settings)
     if cfg.semantics_weights is not None and not cfg.semantics:
         cfg = cfg.with_(semantics=True)
     scans = [str(s) for s in scans]

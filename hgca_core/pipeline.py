@@ -200,7 +200,7 @@ def _initial_states(observed: np.ndarray, fixed_cells: np.ndarray | Sequence[np.
     inside the grid."""
     from hgca_core.geometry.keys import unique_rows
 
-    if fixed_cells is None or (not isinstance(fixed_cells, (list, tuple)) and len(fixed_cells) == 0):
+    if fixed_cells is None:
         return [observed] * samples
     per_sample = list(fixed_cells) if isinstance(fixed_cells, (list, tuple)) else [fixed_cells] * samples
     if len(per_sample) != samples:
@@ -240,7 +240,7 @@ def complete_local(local: np.ndarray, region: Region, models: Models, config: Co
     from hgca_core.nn.conv import gemm_precision, resolve_precision
     from hgca_core.nn.sparse import CellState
 
-    cfg = (config or DEFAULTS).with_(**settings) if settings else (config or DEFAULTS)
+    cfg = (config or DEFAULTS).with_(**settings)
     stage, t2 = cfg.stage, cfg.t2
     if stage == "full" and (models.fine is None or models.autoencoder is None):
         raise InputError("the full stage needs the fine kernel and its autoencoder (load_models('full', ...))")
@@ -331,7 +331,7 @@ def complete(points: np.ndarray, region: Region | None = None, origins: np.ndarr
     triangles (0: every one) and carries per-vertex normals, `observed_distance` and an observed / generated
     face `material` (`hgca_core.meshing.finish.finish_mesh`). The work itself is `complete_local`'s, in the region
     frame; this wrapper moves points in and meshes out."""
-    cfg = (config or DEFAULTS).with_(**settings) if settings else (config or DEFAULTS)
+    cfg = (config or DEFAULTS).with_(**settings)
     check_device(cfg.device)
     models = load_models(cfg.stage, cfg.coarse_file(), cfg.fine_file(), cfg.device)   # both checked before work
     head = None

@@ -181,12 +181,8 @@ def check_device(device: str) -> None:
     check(device)
 
 
-def seed_arg(text: str) -> int:
-    """`--seed` of a training run or a synthetic scene: the bounds of a completion's seed (0 to 2**63 - 1)."""
-    return setting_type(config_field(CompletionConfig, "seed"))(text)
-
-
-seed_arg.__name__ = "whole"
+# `--seed` of a training run or a synthetic scene: the bounds of a completion's seed (0 to 2**63 - 1)
+seed_arg = setting_type(config_field(CompletionConfig, "seed"))
 
 
 def add_seed_argument(p: argparse.ArgumentParser | argparse._ActionsContainer, help: str,

@@ -81,7 +81,7 @@ def fitted_ground(cells: np.ndarray) -> np.ndarray:
         idx = ndimage.distance_transform_edt(empty, return_distances=False, return_indices=True)
         low = low[idx[0], idx[1]]
     low = ndimage.minimum_filter(low, size=GROUND_WINDOW, mode="nearest")
-    return cell_centers(np.c_[np.zeros((len(c), 2)), low[t[:, 0], t[:, 1]]], COARSE)[:, 2]
+    return cell_centers(low[t[:, 0], t[:, 1]], COARSE)
 
 
 def cell_features(cells: np.ndarray, observed: np.ndarray, pe_freq: int = 3) -> np.ndarray:

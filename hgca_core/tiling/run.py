@@ -76,7 +76,7 @@ def drive(scans: Sequence[str | os.PathLike], out: str | os.PathLike, poses: str
     from hgca_core.interrupt import last_words
     from hgca_core.pipeline import check_device, check_memory, load_models, memory_need
 
-    cfg = (config or DriveConfig()).with_(**settings) if settings else (config or DriveConfig())
+    cfg = (config or DriveConfig()).with_(**settings)
     c = cfg.completion
     samples, seed = c.samples, c.seed
     workers, address = cfg.workers, cfg.address
